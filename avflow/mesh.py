@@ -1,0 +1,151 @@
+"""Finite-volume layout: cells and the faces between them (seed eqs. 24-27).
+
+A :class:`Mesh` is the seed's notation as arrays, built once outside the time loop:
+
+- cells ``i``: area ``A_i`` (m^2, measured on the bed; m per unit width for a profile) and
+  perimeter ``sum_j L_ij`` (used by the CFL condition, eq. 41);
+- faces ``Gamma_ij``: the two cells ``(i, j)``, the unit normal ``n_ij`` pointing from i to j,
+  expressed in the bed's tangent basis, and the length ``L_ij`` (m; 1 for a profile).
+
+A boundary face has ``j < 0``: :data:`WALL` (solid wall, the seed's default) or
+:data:`OUTFLOW` (open: material leaves and is counted). The same arrays describe a 1D profile,
+a 2D grid and a triangular dual mesh, so the kernels need nothing else. Profiles keep their
+faces in order (face k between cells k-1 and k), which lets a structured sweep read them fast.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+WALL = -1
+OUTFLOW = -2
+
+BOUNDARY_CODES = {"wall": WALL, "outflow": OUTFLOW}
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """Cells and faces of a finite-volume mesh. All arrays are C-contiguous."""
+
+    cell_area: np.ndarray  #: (n_cells,) float64, m^2 on the bed
+    cell_perimeter: np.ndarray  #: (n_cells,) float64, m
+    face_cells: np.ndarray  #: (n_faces, 2) int64; second entry WALL/OUTFLOW on the boundary
+    face_normal: np.ndarray  #: (n_faces, 2) float64 unit normal from the first cell to the second
+    face_length: np.ndarray  #: (n_faces,) float64, m
+    shape: tuple  #: logical shape of the cell array: (nx,) profile, (ny, nx) grid, (n,) triangles
+    structured_1d: bool = False  #: faces ordered along a line: the fast 1D sweep applies
+
+    @property
+    def n_cells(self) -> int:
+        return self.cell_area.shape[0]
+
+    @property
+    def n_faces(self) -> int:
+        return self.face_length.shape[0]
+
+    def __post_init__(self):
+        n, nf = self.n_cells, self.n_faces
+        if self.face_cells.shape != (nf, 2) or self.face_normal.shape != (nf, 2):
+            raise ValueError("face arrays have inconsistent shapes")
+        if self.cell_perimeter.shape != (n,):
+            raise ValueError("cell arrays have inconsistent shapes")
+        if np.any(self.cell_area <= 0.0):
+            raise ValueError("cell areas must be positive")
+        if int(np.prod(self.shape)) != n:
+            raise ValueError(f"shape {self.shape} does not hold {n} cells")
+
+
+def _perimeters(n_cells, face_cells, face_length):
+    perimeter = np.zeros(n_cells)
+    np.add.at(perimeter, face_cells[:, 0], face_length)
+    inner = face_cells[:, 1] >= 0
+    np.add.at(perimeter, face_cells[inner, 1], face_length[inner])
+    return perimeter
+
+
+def profile_mesh(n: int, dx: float, left: int = WALL, right: int = WALL) -> Mesh:
+    """A line of ``n`` cells of length ``dx`` along the bed, per unit width.
+
+    Face k (k = 1..n-1) lies between cells k-1 and k; face 0 is the upslope boundary of cell 0
+    and face n the downslope boundary of cell n-1. All normals point downslope (+x) except the
+    boundary face 0, whose normal points out of cell 0 (-x), as every boundary normal does.
+    """
+    if n < 2:
+        raise ValueError("a profile needs at least 2 cells")
+    face_cells = np.empty((n + 1, 2), dtype=np.int64)
+    face_normal = np.zeros((n + 1, 2))
+    face_cells[1:n, 0] = np.arange(n - 1)
+    face_cells[1:n, 1] = np.arange(1, n)
+    face_normal[1:n, 0] = 1.0
+    face_cells[0] = (0, left)
+    face_normal[0, 0] = -1.0
+    face_cells[n] = (n - 1, right)
+    face_normal[n, 0] = 1.0
+    face_length = np.ones(n + 1)
+    area = np.full(n, float(dx))
+    return Mesh(
+        cell_area=area,
+        cell_perimeter=_perimeters(n, face_cells, face_length),
+        face_cells=face_cells,
+        face_normal=face_normal,
+        face_length=face_length,
+        shape=(n,),
+        structured_1d=True,
+    )
+
+
+def grid_mesh(
+    nx: int,
+    ny: int,
+    corner_vectors,
+    cell_area: float,
+    boundary: dict,
+) -> Mesh:
+    """A structured grid of ``ny x nx`` cells on a surface with one tangent basis (a plane).
+
+    ``corner_vectors = (ex, ey)``: the cell's edge vectors along the grid's x and y axes,
+    expressed in the bed's tangent basis (2-vectors, m). ``cell_area`` is the bed area of a
+    cell (m^2). ``boundary`` maps ``x_min, x_max, y_min, y_max`` to WALL or OUTFLOW.
+    Cells are numbered ``row * nx + col`` (row along y).
+    """
+    ex = np.asarray(corner_vectors[0], dtype=float)
+    ey = np.asarray(corner_vectors[1], dtype=float)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+
+    def normal_between(edge, toward):
+        """Unit normal of an edge vector, oriented along ``toward``."""
+        nrm = np.array([edge[1], -edge[0]]) / np.hypot(edge[0], edge[1])
+        return nrm if nrm @ toward > 0 else -nrm
+
+    n_x = normal_between(ey, ex)  # faces between column neighbours: along the edge ey
+    n_y = normal_between(ex, ey)  # faces between row neighbours: along the edge ex
+    len_x = float(np.hypot(*ey))
+    len_y = float(np.hypot(*ex))
+
+    cells, normals, lengths = [], [], []
+
+    def add(first, second, normal, length):
+        cells.append(np.stack([first.ravel(), second.ravel()], axis=1))
+        normals.append(np.broadcast_to(normal, (first.size, 2)))
+        lengths.append(np.full(first.size, length))
+
+    add(idx[:, :-1], idx[:, 1:], n_x, len_x)
+    add(idx[:-1, :], idx[1:, :], n_y, len_y)
+    add(idx[:, 0], np.full(ny, boundary["x_min"]), -n_x, len_x)
+    add(idx[:, -1], np.full(ny, boundary["x_max"]), n_x, len_x)
+    add(idx[0, :], np.full(nx, boundary["y_min"]), -n_y, len_y)
+    add(idx[-1, :], np.full(nx, boundary["y_max"]), n_y, len_y)
+    face_cells = np.ascontiguousarray(np.concatenate(cells), dtype=np.int64)
+    face_normal = np.ascontiguousarray(np.concatenate(normals))
+    face_length = np.concatenate(lengths)
+    n = nx * ny
+    return Mesh(
+        cell_area=np.full(n, float(cell_area)),
+        cell_perimeter=_perimeters(n, face_cells, face_length),
+        face_cells=face_cells,
+        face_normal=face_normal,
+        face_length=face_length,
+        shape=(ny, nx),
+    )

@@ -1,0 +1,148 @@
+"""Basal friction laws, all behind one pointwise signature.
+
+Every law answers the same question for one cell: given the thickness ``h`` (m, normal to
+the bed), the speed ``speed`` (m/s, at time n: the seed linearises the friction at time n,
+section 3.3 after eq. 50) and the normal acceleration ``normal_accel`` (m/s^2: g cos(theta)
+plus the curvature term u^2/R of eqs. 61-62), what is
+
+- ``tau``: the Coulomb-type part of the basal shear stress divided by the density (m^2/s^2),
+  ``mu(h, |u|) * h * normal_accel`` (eqs. 12, 44), the threshold of the projection (eq. 49);
+- ``drag``: a velocity-proportional rate (1/s) treated implicitly after the projection,
+  zero for Coulomb and Pouliquen, ``g |u| / (xi h)`` for Voellmy's turbulent term.
+
+The law is chosen by name once, outside the time loop (:class:`Law`), and enters the Numba
+kernels as an integer with a float64 parameter vector; there is no config object in a kernel.
+Adding a law touches this file (one enum member, one branch, one parameter packer) and one test.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+
+import numpy as np
+from numba import njit
+
+__all__ = [
+    "Law",
+    "friction",
+    "friction_parameters",
+    "law_reference",
+    "pouliquen_mu",
+    "h_stop",
+    "pouliquen_steady_froude",
+]
+
+
+class Law(IntEnum):
+    """Friction laws known to the kernels."""
+
+    COULOMB = 1  #: constant friction angle delta, eq. 11-14
+    POULIQUEN = 2  #: flow-dependent angle of Pouliquen (1999), eq. 15, static branch below Fr = beta
+    VOELLMY = 3  #: Coulomb plus turbulent drag g u^2 / xi (Voellmy 1955; Salm 1993)
+
+
+# Plain ints for the kernels: Numba freezes module globals as compile-time constants.
+COULOMB = int(Law.COULOMB)
+POULIQUEN = int(Law.POULIQUEN)
+VOELLMY = int(Law.VOELLMY)
+
+N_PARAMS = 4  # length of the parameter vector every law is packed into
+
+_REFERENCES = {
+    Law.COULOMB: "Mangeney-Castelnau et al. (2003), J. Geophys. Res. 108(B11), 2527, eqs. 11-14",
+    Law.POULIQUEN: (
+        "Pouliquen (1999), Phys. Fluids 11, 542; Pouliquen and Forterre (2002), J. Fluid Mech. 453, "
+        "133 (static branch below Fr = beta); as used by Mangeney-Castelnau et al. (2003), eq. 15"
+    ),
+    Law.VOELLMY: "Voellmy (1955), Schweiz. Bauzeitung 73; Salm (1993), Ann. Glaciol. 18, 221",
+}
+
+
+def law_reference(law: Law) -> str:
+    """Bibliographic reference of a friction law, for the NetCDF ``references`` attribute."""
+    return _REFERENCES[Law(law)]
+
+
+def friction_parameters(rheology) -> tuple[Law, np.ndarray]:
+    """Map a validated rheology block (``scenario.rheology``) to ``(Law, params)``.
+
+    Parameter vectors (float64, length 4):
+    - Coulomb: ``[tan(delta), 0, 0, 0]``
+    - Pouliquen: ``[tan(delta1), tan(delta2), d (m), beta]``
+    - Voellmy: ``[mu, xi (m/s^2), 0, 0]``
+    """
+    params = np.zeros(N_PARAMS)
+    law = Law[rheology.law.upper()]
+    if law is Law.COULOMB:
+        params[0] = math.tan(math.radians(rheology.delta_deg))
+    elif law is Law.POULIQUEN:
+        params[:] = (
+            math.tan(math.radians(rheology.delta1_deg)),
+            math.tan(math.radians(rheology.delta2_deg)),
+            rheology.d,
+            rheology.beta,
+        )
+    elif law is Law.VOELLMY:
+        mu = rheology.mu if rheology.mu is not None else math.tan(math.radians(rheology.delta_deg))
+        params[0] = mu
+        params[1] = rheology.xi
+    return law, params
+
+
+@njit(cache=True, inline="always")
+def pouliquen_mu(h, speed, g, tan1, tan2, d, beta):
+    """Friction coefficient of Pouliquen's law, eq. 15, extended below Fr = beta.
+
+    Above Fr = |u| / sqrt(g h) = beta: ``mu = tan d1 + (tan d2 - tan d1) exp(-beta h / (d Fr))``.
+    Below it the seed needs ``h = h_stop(theta)`` when u = 0 (section 5): we use the static
+    branch ``mu_stop(h) = tan d1 + (tan d2 - tan d1) exp(-h / d)`` (Pouliquen and Forterre
+    2002), which is the value of eq. 15 at Fr = beta, so mu is continuous, between tan d1 and
+    tan d2, and a layer at rest on a slope theta stays exactly when h <= h_stop(theta).
+    """
+    if h <= 0.0:
+        return tan2
+    froude = speed / math.sqrt(g * h)
+    if froude >= beta:
+        return tan1 + (tan2 - tan1) * math.exp(-beta * h / (d * froude))
+    return tan1 + (tan2 - tan1) * math.exp(-h / d)
+
+
+@njit(cache=True, inline="always")
+def friction(law, params, h, speed, normal_accel, g):
+    """Basal friction of one cell: ``(tau, drag)`` as described in the module docstring.
+
+    ``tau`` (m^2/s^2) is compared with ``|q~| / dt`` in the threshold test of eq. 49 and
+    removed in the projection of eq. 50; ``drag`` (1/s) divides the projected discharge
+    implicitly, ``q <- q / (1 + drag dt)``, so it can slow a cell but never reverse it.
+    """
+    if law == COULOMB:
+        return params[0] * h * normal_accel, 0.0
+    if law == POULIQUEN:
+        mu = pouliquen_mu(h, speed, g, params[0], params[1], params[2], params[3])
+        return mu * h * normal_accel, 0.0
+    # VOELLMY: tau_b / rho = mu h N + g |u|^2 / xi; the turbulent part as an implicit drag
+    # on q = h u: g |u| u / xi = (g |u| / (xi h)) q.
+    drag = 0.0
+    if h > 0.0:
+        drag = g * speed / (params[1] * h)
+    return params[0] * h * normal_accel, drag
+
+
+def h_stop(theta_deg, delta1_deg, delta2_deg, d):
+    """Thickness (m) of the deposit Pouliquen's law leaves on a slope theta (section 5).
+
+    From ``tan(theta) = tan d1 + (tan d2 - tan d1) exp(-h_stop / d)``. Infinite at or below
+    delta1 (the layer never flows), zero at or above delta2 (it never stops).
+    """
+    t, t1, t2 = (math.tan(math.radians(a)) for a in (theta_deg, delta1_deg, delta2_deg))
+    if t <= t1:
+        return math.inf
+    if t >= t2:
+        return 0.0
+    return d * math.log((t2 - t1) / (t - t1))
+
+
+def pouliquen_steady_froude(h, theta_deg, delta1_deg, delta2_deg, d, beta):
+    """Froude number of a steady uniform flow of thickness h on slope theta: beta h / h_stop."""
+    return beta * h / h_stop(theta_deg, delta1_deg, delta2_deg, d)

@@ -1,0 +1,134 @@
+"""Solver and state (the Clawpack split: the Riemann part is :mod:`avflow.kinetic`).
+
+- :class:`State` holds ``h`` and the discharge ``(hu, hv)`` in the bed's tangent basis, the
+  time and the running observers (peak thickness, peak speed) of one run.
+- :class:`Solver` binds a :class:`~avflow.terrain.Terrain` and a friction law to the Numba
+  kernels of :mod:`avflow.kernels`; :meth:`Solver.advance` runs the whole time loop inside
+  Numba up to a target time, so no Python runs per step and no array is allocated per step.
+
+Nothing here reads files or knows of scenarios: :mod:`avflow.runner` wires those.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import kernels as K
+from .rheology import Law
+from .terrain import Terrain
+
+STATUS_NAMES = {
+    K.REACHED_TARGET: "running",
+    K.STOPPED: "stopped",
+    K.MAX_STEPS: "max_steps",
+    K.FAILED: "failed",
+}
+
+
+@dataclass
+class State:
+    """Conserved variables per cell and the observers of a run (float64 everywhere)."""
+
+    h: np.ndarray  #: thickness normal to the bed, m
+    hu: np.ndarray  #: discharge along the first tangent axis, m^2/s
+    hv: np.ndarray  #: discharge along the second tangent axis, m^2/s
+    flag: np.ndarray  #: uint8 per cell from the last step: kernels.FLOWING / UNDER_THRESHOLD / DRY
+    peak_h: np.ndarray  #: running maximum of h, m
+    peak_speed: np.ndarray  #: running maximum of |u|, m/s
+    stats: np.ndarray = field(default_factory=lambda: np.zeros(K.N_STATS))
+
+    @property
+    def t(self) -> float:
+        return float(self.stats[K.ST_TIME])
+
+    @property
+    def steps(self) -> int:
+        return int(self.stats[K.ST_STEPS])
+
+    def speed(self) -> np.ndarray:
+        """|u| per cell (m/s), 0 where dry."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.hypot(self.hu, self.hv) / self.h
+        return np.where(self.h > 0.0, s, 0.0)
+
+
+@dataclass
+class Solver:
+    """The kinetic scheme of the seed on one terrain with one friction law.
+
+    ``h_dry`` (m) only classifies: a moving cell thinner than it is a *film* (counted, never
+    deleted) and does not keep a run alive. ``dirac=False`` switches the zero-temperature flux
+    off (the classical kinetic scheme), for studies of what it changes.
+    """
+
+    terrain: Terrain
+    law: Law
+    params: np.ndarray
+    gravity: float = 9.81
+    cfl: float = 0.5
+    dirac: bool = True
+    h_dry: float = 0.0
+
+    def __post_init__(self):
+        if not 0.0 < self.cfl <= 1.0:
+            raise ValueError("cfl must be in (0, 1]: positivity of h needs it (eq. 41)")
+        self.params = np.ascontiguousarray(self.params, dtype=float)
+        m = self.terrain.mesh
+        n = m.n_cells
+        # Work buffers, allocated once per solver and reused by every step.
+        self._h_work = np.zeros(n)
+        self._hu_work = np.zeros(n)
+        self._hv_work = np.zeros(n)
+        self._flux_h = np.zeros(m.n_faces)
+
+    def new_state(self, h0: np.ndarray) -> State:
+        """A state at rest (eq. 60) with thickness ``h0`` (m) per cell."""
+        h0 = np.ascontiguousarray(h0, dtype=float).copy()
+        if h0.shape != (self.terrain.n_cells,):
+            raise ValueError("initial thickness has the wrong shape")
+        if not np.all(np.isfinite(h0)) or np.any(h0 < 0.0):
+            raise ValueError("initial thickness must be finite and >= 0")
+        n = h0.size
+        state = State(
+            h=h0,
+            hu=np.zeros(n),
+            hv=np.zeros(n),
+            flag=np.where(h0 > 0.0, K.UNDER_THRESHOLD, K.DRY).astype(np.uint8),
+            peak_h=h0.copy(),
+            peak_speed=np.zeros(n),
+        )
+        self.reset_limits(state)
+        state.stats[K.ST_DT_MIN] = np.inf
+        return state
+
+    def reset_limits(self, state: State) -> None:
+        """Recompute the CFL limit of ``state`` (after editing its arrays by hand)."""
+        m = self.terrain.mesh
+        state.stats[K.ST_DT_LIMIT] = K.dt_limit(
+            m.cell_area, m.cell_perimeter, self.terrain.gamma_z, state.h, state.hu, state.hv,
+            self.gravity)
+
+    def volume(self, state: State) -> float:
+        """Total volume on the mesh (m^3; m^2 per unit width on a profile), compensated sum."""
+        return math.fsum(state.h * self.terrain.mesh.cell_area)
+
+    def advance(self, state: State, t_target: float, *, stop_volume: float = -1.0,
+                max_steps: int = 10**9) -> str:
+        """Run the time loop until ``t_target`` (s), a stop, or ``max_steps`` steps in all.
+
+        The run counts as stopped once the volume still moving (u != 0, h > h_dry) is below
+        ``stop_volume`` (negative: never). Returns ``"running"`` (target reached),
+        ``"stopped"``, ``"max_steps"`` or ``"failed"``.
+        """
+        m, t = self.terrain.mesh, self.terrain
+        status = K.advance(
+            m.structured_1d, m.face_cells, m.face_normal, m.face_length, m.cell_area,
+            m.cell_perimeter, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
+            state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
+            self._flux_h, state.flag, int(self.law), self.params, float(self.gravity),
+            bool(self.dirac), float(self.h_dry), float(self.cfl), float(t_target),
+            int(max_steps), float(stop_volume), state.peak_h, state.peak_speed, state.stats)
+        return STATUS_NAMES[status]
