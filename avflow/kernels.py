@@ -66,7 +66,7 @@ ST_RETRIES = 9  #: cumulative count of halved steps
 N_STATS = 10
 
 
-@njit(cache=True, inline="always")
+@njit(error_model="numpy", cache=True, inline="always")
 def _normal_accel(g_normal, curvature, speed2):
     """Bed-normal acceleration g cos(theta) + u^2 / R (eqs. 61-62), clamped at 0 on convex beds."""
     n = g_normal + curvature * speed2
@@ -75,7 +75,7 @@ def _normal_accel(g_normal, curvature, speed2):
     return n, 0
 
 
-@njit(cache=True, inline="always")
+@njit(error_model="numpy", cache=True, inline="always")
 def _project(qx, qy, tau, drag, dt):
     """Projection of the trial discharge on the admissible Coulomb set, eq. 50, then drag."""
     norm = math.sqrt(qx * qx + qy * qy)
@@ -86,7 +86,7 @@ def _project(qx, qy, tau, drag, dt):
     return qx * scale, qy * scale
 
 
-@njit(cache=True)
+@njit(error_model="numpy", cache=True)
 def dt_limit(cell_area, cell_perimeter, gamma_z, h, hu, hv, g):
     """Largest stable time step (cfl = 1) of a state: min 2 A / (P (|u| + sqrt(3) c)), eq. 41."""
     best = np.inf
@@ -101,104 +101,97 @@ def dt_limit(cell_area, cell_perimeter, gamma_z, h, hu, hv, g):
     return best
 
 
-@njit(cache=True)
-def _finish_cell(i, h_new, hu_new, hv_new, flag, h, hu, hv, dt, area, perimeter,
-                 gamma_z, curvature, law, params, g, h_dry, peak_h, peak_speed, acc):
-    """Sweep-2 update of one cell once its new thickness is known; shared by both sweeps.
+@njit(error_model="numpy", cache=True, inline="always")
+def _trial_momentum(h_old, speed_n, h_star, qx, qy, dt, gx, gy, gz, kappa,
+                    law, p0, p1, p2, p3, g):
+    """Sweep-1 closure of one cell: q~ of eq. 47 and the threshold test of eq. 49.
 
-    ``acc`` accumulates [dt_limit, moving, film, clamped] over the cells of the step.
+    ``speed_n``: |u| at time n; ``qx, qy``: discharge after the fluxes.
+    Returns ``(q~x, q~y, flag)``.
     """
-    if flag[i] == UNDER_THRESHOLD or h_new[i] <= 0.0:
-        hu_new[i] = 0.0  # eq. 56: q = 0 under the threshold
-        hv_new[i] = 0.0
-    else:
-        speed_n = 0.0
-        if h[i] > 0.0:
-            speed_n = math.sqrt(hu[i] * hu[i] + hv[i] * hv[i]) / h[i]
-        accel, clamped = _normal_accel(g * gamma_z[i], curvature[i], speed_n * speed_n)
-        acc[3] += clamped
-        tau, drag = friction(law, params, h_new[i], speed_n, accel, g)
-        hu_new[i], hv_new[i] = _project(hu_new[i], hv_new[i], tau, drag, dt)
-    hn = h_new[i]
-    if hn > 0.0:
-        speed = math.sqrt(hu_new[i] * hu_new[i] + hv_new[i] * hv_new[i]) / hn
-        if hn > peak_h[i]:
-            peak_h[i] = hn
-        if speed > peak_speed[i]:
-            peak_speed[i] = speed
-        wave = speed + SQRT3 * sound_speed(hn, g * gamma_z[i])
-        if wave > 0.0:
-            lim = 2.0 * area[i] / (perimeter[i] * wave)
-            if lim < acc[0]:
-                acc[0] = lim
-        if speed > 0.0:
-            if hn > h_dry:
-                acc[1] += hn * area[i]
-            else:
-                acc[2] += hn * area[i]
+    qx = qx + g * h_star * gx * dt
+    qy = qy + g * h_star * gy * dt
+    if h_old <= 0.0:
+        return qx, qy, DRY
+    accel, _ = _normal_accel(g * gz, kappa, speed_n * speed_n)
+    tau, _ = friction(law, p0, p1, p2, p3, h_star, speed_n, accel, g)
+    if math.sqrt(qx * qx + qy * qy) < tau * dt:
+        return qx, qy, UNDER_THRESHOLD
+    return qx, qy, FLOWING
 
 
-@njit(cache=True)
-def _trial_cell(i, h_star, hu_t, hv_t, h, hu, hv, dt, gamma_x, gamma_y, gamma_z, curvature,
-                law, params, g, flag):
-    """Sweep-1 closure of one cell: add gravity to q~ (eq. 47) and test the threshold (eq. 49).
+@njit(error_model="numpy", cache=True, inline="always")
+def _final_momentum(flag, speed_n, h_new, qx, qy, dt, gz, kappa, law, p0, p1, p2, p3, g):
+    """Sweep-2 momentum of one cell: q = 0 under the threshold (eq. 56), else eq. 50.
 
-    ``hu_t, hv_t`` hold the discharge after the fluxes and receive q~.
+    The friction is linearised at time n (speed of ``U^n``), with the new thickness.
+    Returns ``(qx, qy, clamped)``; clamped is 1 when the normal acceleration hit 0.
     """
-    hs = h_star
-    qx = hu_t + g * hs * gamma_x[i] * dt
-    qy = hv_t + g * hs * gamma_y[i] * dt
-    if h[i] <= 0.0:
-        f = DRY
-    else:
-        speed_n = math.sqrt(hu[i] * hu[i] + hv[i] * hv[i]) / h[i]
-        accel, _ = _normal_accel(g * gamma_z[i], curvature[i], speed_n * speed_n)
-        tau, _ = friction(law, params, hs, speed_n, accel, g)
-        f = UNDER_THRESHOLD if math.sqrt(qx * qx + qy * qy) < tau * dt else FLOWING
-    flag[i] = f
-    return qx, qy
+    if flag == UNDER_THRESHOLD or h_new <= 0.0:
+        return 0.0, 0.0, 0
+    accel, clamped = _normal_accel(g * gz, kappa, speed_n * speed_n)
+    tau, drag = friction(law, p0, p1, p2, p3, h_new, speed_n, accel, g)
+    qx, qy = _project(qx, qy, tau, drag, dt)
+    return qx, qy, clamped
 
 
-@njit(cache=True, inline="always")
-def _dirac_face(flag, i, j, dirac):
-    """True when the face between i and j carries the Dirac (zero) mass flux, eqs. 51-53."""
-    if not dirac:
-        return False
-    if flag[i] == FLOWING:
-        return False
-    if j >= 0:
-        return flag[j] != FLOWING
-    return True  # a boundary ghost shares the state of its cell
+@njit(error_model="numpy", cache=True, inline="always")
+def _speed(h, hu, hv):
+    """|u| = |q| / h (m/s), 0 where dry."""
+    if h <= 0.0:
+        return 0.0
+    return math.sqrt(hu * hu + hv * hv) / h
 
 
-@njit(cache=True)
+@njit(error_model="numpy", cache=True, inline="always")
+def _observe(h, q_norm, area, perimeter, gz, g):
+    """Speed (m/s) of a cell of discharge norm q_norm and its CFL limit (s, cfl = 1), eq. 41."""
+    if h <= 0.0:
+        return 0.0, np.inf
+    speed = q_norm / h
+    wave = speed + SQRT3 * sound_speed(h, g * gz)
+    return speed, 2.0 * area / (perimeter * wave)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _dirac_face(dirac, flag_i, flag_j):
+    """True when a face carries the Dirac (zero) mass flux: both cells at zero temperature.
+
+    Eqs. 51-53 and section 3.3 (Figs. 4-5); a boundary ghost shares the flag of its cell.
+    """
+    return dirac and flag_i != FLOWING and flag_j != FLOWING
+
+
+@njit(error_model="numpy", cache=True)
 def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_z, curvature,
                  h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
-                 law, params, g, dirac, h_dry, dt, peak_h, peak_speed, acc):
+                 law, params, g, dirac, h_dry, dt, peak_h, peak_speed):
     """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
 
     Same arithmetic as :func:`step_faces`, with the face loop fused into the cell loops.
     ``flux_h[k]`` is the mass flux (m^2/s) through face k towards +x. Returns
-    ``(ok, outflow_volume)``; ok is False when a thickness would become negative.
+    ``(ok, outflow, dt_limit, moving, film, clamped)`` (see :func:`step_faces`).
     """
     n = h.size
     dx = cell_area[0]
     r = dt / dx
     left = face_cells[0, 1]
     right = face_cells[n, 1]
+    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
 
     # --- sweep 1: fluxes (every normal along +x), trial state, threshold flags
     c0 = sound_speed(h[0], g * gamma_z[0])
     u0 = hu[0] / h[0] if h[0] > 0.0 else 0.0
     fp_h, fp_q, fm_h, fm_q = half_fluxes(h[0], u0, c0)
-    if left == WALL:
+    if left == WALL:  # mirror ghost (h, -u): no mass, twice the pressure
         fl_h = 0.0
         fl_q = 2.0 * fm_q
-    else:  # open: ghost copies cell 0 but cannot push material in
+    else:  # open: the ghost copies cell 0 but cannot push material in
         gp_h, gp_q, _, _ = half_fluxes(h[0], min(u0, 0.0), c0)
         fl_h = gp_h + fm_h
         fl_q = gp_q + fm_q
     flux_h[0] = fl_h
+    u_prev = u0
     for i in range(1, n + 1):
         if i < n:
             ci = sound_speed(h[i], g * gamma_z[i])
@@ -207,67 +200,89 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
             fr_h = fp_h + nm_h
             fr_q = fp_q + nm_q
         else:
-            um = hu[n - 1] / h[n - 1] if h[n - 1] > 0.0 else 0.0
+            ui = 0.0
+            np_h = np_q = 0.0
             if right == WALL:
                 fr_h = 0.0
                 fr_q = 2.0 * fp_q
             else:
+                um = hu[n - 1] / h[n - 1] if h[n - 1] > 0.0 else 0.0
                 cm = sound_speed(h[n - 1], g * gamma_z[n - 1])
                 _, _, gm_h, gm_q = half_fluxes(h[n - 1], max(um, 0.0), cm)
                 fr_h = fp_h + gm_h
                 fr_q = fp_q + gm_q
-            np_h = np_q = nm_h = nm_q = 0.0
         flux_h[i] = fr_h
         k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
-        h_star = h[k] + r * (fl_h - fr_h)
-        qx, qy = _trial_cell(k, h_star, hu[k] + r * (fl_q - fr_q), 0.0, h, hu, hv, dt,
-                             gamma_x, gamma_y, gamma_z, curvature, law, params, g, flag)
+        qx, _, fk = _trial_momentum(h[k], abs(u_prev), h[k] + r * (fl_h - fr_h),
+                                    hu[k] + r * (fl_q - fr_q), 0.0, dt, gamma_x[k], 0.0,
+                                    gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
         hu_new[k] = qx
-        hv_new[k] = 0.0
+        hv_new[k] = abs(u_prev)  # scratch: |u^n| for sweep 2 (hv is identically 0 on a line)
+        flag[k] = fk
+        u_prev = ui
         fl_h = fr_h
         fl_q = fr_q
         fp_h, fp_q = np_h, np_q
 
-    # --- sweep 2: mass with the Dirac switch, projection
+    # --- sweep 2: mass with the Dirac switch, projection, observers
     outflow = 0.0
+    lim = np.inf
+    moving = 0.0
+    film = 0.0
+    clamped = 0
     for k in range(n):
-        jl = k - 1 if k > 0 else left
-        jr = k + 1 if k < n - 1 else right
-        fl = 0.0 if _dirac_face(flag, k, jl, dirac) else flux_h[k]
-        fr = 0.0 if _dirac_face(flag, k, jr, dirac) else flux_h[k + 1]
-        if fl == 0.0 and fr == 0.0:
-            hn = h[k]  # no face carries mass: the thickness is untouched, bit for bit
-        else:
-            hn = h[k] + r * (fl - fr)
+        fk = flag[k]
+        fl = 0.0 if _dirac_face(dirac, fk, flag[k - 1] if k > 0 else fk) else flux_h[k]
+        fr = 0.0 if _dirac_face(dirac, fk, flag[k + 1] if k < n - 1 else fk) else flux_h[k + 1]
+        hn = h[k] + r * (fl - fr)
         if hn < 0.0:
-            return False, 0.0
-        h_new[k] = hn
+            return False, 0.0, 0.0, 0.0, 0.0, 0
         if k == 0 and left == OUTFLOW:
             outflow -= fl * dt
         if k == n - 1 and right == OUTFLOW:
             outflow += fr * dt
-        _finish_cell(k, h_new, hu_new, hv_new, flag, h, hu, hv, dt, cell_area, cell_perimeter,
-                     gamma_z, curvature, law, params, g, h_dry, peak_h, peak_speed, acc)
-    return True, outflow
+        qx, _, cl = _final_momentum(fk, hv_new[k], hn, hu_new[k], 0.0, dt,
+                                    gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
+        h_new[k] = hn
+        hu_new[k] = qx
+        hv_new[k] = 0.0
+        clamped += cl
+        speed, lim_k = _observe(hn, abs(qx), dx, cell_perimeter[k], gamma_z[k], g)
+        lim = min(lim, lim_k)
+        if hn > peak_h[k]:
+            peak_h[k] = hn
+        if speed > peak_speed[k]:
+            peak_speed[k] = speed
+        if speed > 0.0:
+            if hn > h_dry:
+                moving += hn * dx
+            else:
+                film += hn * dx
+    return True, outflow, lim, moving, film, clamped
 
 
-@njit(cache=True)
+@njit(error_model="numpy", cache=True)
 def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
                gamma_x, gamma_y, gamma_z, curvature,
                h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
-               law, params, g, dirac, h_dry, dt, peak_h, peak_speed, acc):
+               law, params, g, dirac, h_dry, dt, peak_h, peak_speed):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
     ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
     Normal and tangential components are taken in each face's frame (rotational invariance):
     the normal part uses the kinetic flux, the tangential velocity is carried upwind with the
     mass. ``flux_h[f]`` is ``L_f`` times the mass flux through face f along its normal.
+
+    Returns ``(ok, outflow, dt_limit, moving, film, clamped)``: ok is False when a thickness
+    would turn negative; outflow the volume that left through open faces in this step;
+    dt_limit the CFL limit of the new state; moving and film the volumes with u != 0 above
+    and below h_dry; clamped the number of cells whose normal acceleration was clamped at 0.
     """
     n = h.size
-    for i in range(n):
-        h_new[i] = 0.0
-        hu_new[i] = 0.0
-        hv_new[i] = 0.0
+    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
+    h_new[:] = 0.0
+    hu_new[:] = 0.0
+    hv_new[:] = 0.0
 
     # --- sweep 1a: rectangular fluxes
     for f in range(face_cells.shape[0]):
@@ -283,7 +298,7 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
             uni = (hu[i] * nx + hv[i] * ny) / hi
             uti = (-hu[i] * ny + hv[i] * nx) / hi
         ci = sound_speed(hi, g * gamma_z[i])
-        fp_h, fp_q, fm_h, fm_q = half_fluxes(hi, uni, ci)
+        fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci)
         if j >= 0:
             hj = h[j]
             unj = 0.0
@@ -293,36 +308,37 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
                 utj = (-hu[j] * ny + hv[j] * nx) / hj
             cj = sound_speed(hj, g * gamma_z[j])
             _, _, gm_h, gm_q = half_fluxes(hj, unj, cj)
-        elif j == WALL:  # mirror ghost: (h, -u_n, u_t)
+        elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
             gm_h = -fp_h
             gm_q = fp_q
             utj = uti
-        else:  # open boundary: ghost copies the cell but cannot push material in
+        else:  # open boundary: the ghost copies the cell but cannot push material in
             _, _, gm_h, gm_q = half_fluxes(hi, max(uni, 0.0), ci)
             utj = uti
-        f_h = fp_h + gm_h
         f_n = fp_q + gm_q
         f_t = uti * fp_h + utj * gm_h
         fx = (f_n * nx - f_t * ny) * length
         fy = (f_n * ny + f_t * nx) * length
-        flux_h[f] = f_h * length
-        h_new[i] -= flux_h[f]
+        fh = (fp_h + gm_h) * length
+        flux_h[f] = fh
+        h_new[i] -= fh
         hu_new[i] -= fx
         hv_new[i] -= fy
         if j >= 0:
-            h_new[j] += flux_h[f]
+            h_new[j] += fh
             hu_new[j] += fx
             hv_new[j] += fy
 
     # --- sweep 1b: trial state and threshold flags
     for i in range(n):
         r = dt / cell_area[i]
-        h_star = h[i] + r * h_new[i]
-        qx, qy = _trial_cell(i, h_star, hu[i] + r * hu_new[i], hv[i] + r * hv_new[i],
-                             h, hu, hv, dt, gamma_x, gamma_y, gamma_z, curvature,
-                             law, params, g, flag)
+        qx, qy, fi = _trial_momentum(h[i], _speed(h[i], hu[i], hv[i]), h[i] + r * h_new[i],
+                                     hu[i] + r * hu_new[i], hv[i] + r * hv_new[i], dt,
+                                     gamma_x[i], gamma_y[i], gamma_z[i], curvature[i],
+                                     law, p0, p1, p2, p3, g)
         hu_new[i] = qx
         hv_new[i] = qy
+        flag[i] = fi
         h_new[i] = 0.0
 
     # --- sweep 2a: mass through the faces that keep the rectangular density
@@ -330,7 +346,7 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
     for f in range(face_cells.shape[0]):
         i = face_cells[f, 0]
         j = face_cells[f, 1]
-        if _dirac_face(flag, i, j, dirac):
+        if _dirac_face(dirac, flag[i], flag[j] if j >= 0 else flag[i]):
             continue
         h_new[i] -= flux_h[f]
         if j >= 0:
@@ -339,18 +355,38 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
             outflow += flux_h[f] * dt
 
     # --- sweep 2b: new thickness, projection, observers
+    lim = np.inf
+    moving = 0.0
+    film = 0.0
+    clamped = 0
     for i in range(n):
-        rate = h_new[i]
-        hn = h[i] if rate == 0.0 else h[i] + dt / cell_area[i] * rate
+        area = cell_area[i]
+        hn = h[i] + dt / area * h_new[i]
         if hn < 0.0:
-            return False, 0.0
+            return False, 0.0, 0.0, 0.0, 0.0, 0
+        qx, qy, cl = _final_momentum(flag[i], _speed(h[i], hu[i], hv[i]), hn, hu_new[i],
+                                     hv_new[i], dt, gamma_z[i], curvature[i],
+                                     law, p0, p1, p2, p3, g)
         h_new[i] = hn
-        _finish_cell(i, h_new, hu_new, hv_new, flag, h, hu, hv, dt, cell_area, cell_perimeter,
-                     gamma_z, curvature, law, params, g, h_dry, peak_h, peak_speed, acc)
-    return True, outflow
+        hu_new[i] = qx
+        hv_new[i] = qy
+        clamped += cl
+        speed, lim_i = _observe(hn, math.sqrt(qx * qx + qy * qy), area, cell_perimeter[i],
+                                gamma_z[i], g)
+        lim = min(lim, lim_i)
+        if hn > peak_h[i]:
+            peak_h[i] = hn
+        if speed > peak_speed[i]:
+            peak_speed[i] = speed
+        if speed > 0.0:
+            if hn > h_dry:
+                moving += hn * area
+            else:
+                film += hn * area
+    return True, outflow, lim, moving, film, clamped
 
 
-@njit(cache=True)
+@njit(error_model="numpy", cache=True)
 def advance(structured, face_cells, face_normal, face_length, cell_area, cell_perimeter,
             gamma_x, gamma_y, gamma_z, curvature,
             h, hu, hv, h_work, hu_work, hv_work, flux_h, flag,
@@ -366,7 +402,6 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cell_pe
     t = stats[ST_TIME]
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
-    acc = np.zeros(4)
     status = REACHED_TARGET
     steps = 0
     while t < t_target:
@@ -378,20 +413,17 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cell_pe
             last = True
         ok = False
         for _ in range(MAX_RETRIES):
-            acc[0] = np.inf
-            acc[1] = 0.0
-            acc[2] = 0.0
-            acc[3] = 0.0
             if structured:
-                ok, out = step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y,
-                                       gamma_z, curvature, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu,
-                                       nxt_hv, flux_h, flag, law, params, g, dirac, h_dry, dt,
-                                       peak_h, peak_speed, acc)
+                ok, out, lim, moving, film, clamped = step_profile(
+                    face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_z, curvature,
+                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
+                    law, params, g, dirac, h_dry, dt, peak_h, peak_speed)
             else:
-                ok, out = step_faces(face_cells, face_normal, face_length, cell_area,
-                                     cell_perimeter, gamma_x, gamma_y, gamma_z, curvature,
-                                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
-                                     law, params, g, dirac, h_dry, dt, peak_h, peak_speed, acc)
+                ok, out, lim, moving, film, clamped = step_faces(
+                    face_cells, face_normal, face_length, cell_area, cell_perimeter,
+                    gamma_x, gamma_y, gamma_z, curvature,
+                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
+                    law, params, g, dirac, h_dry, dt, peak_h, peak_speed)
             if ok:
                 break
             dt *= 0.5
@@ -405,16 +437,14 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cell_pe
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv
-        stats[ST_DT_LIMIT] = acc[0]
-        stats[ST_MOVING] = acc[1]
-        stats[ST_FILM] = acc[2]
-        stats[ST_CLAMPED] += acc[3]
+        stats[ST_DT_LIMIT] = lim
+        stats[ST_MOVING] = moving
+        stats[ST_FILM] = film
+        stats[ST_CLAMPED] += clamped
         stats[ST_OUTFLOW] += out
-        if dt < stats[ST_DT_MIN]:
-            stats[ST_DT_MIN] = dt
-        if dt > stats[ST_DT_MAX]:
-            stats[ST_DT_MAX] = dt
-        if stop_volume >= 0.0 and acc[1] < stop_volume:
+        stats[ST_DT_MIN] = min(stats[ST_DT_MIN], dt)
+        stats[ST_DT_MAX] = max(stats[ST_DT_MAX], dt)
+        if stop_volume >= 0.0 and moving < stop_volume:
             status = STOPPED
             break
         if stats[ST_STEPS] + steps >= max_steps:

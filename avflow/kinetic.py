@@ -27,7 +27,7 @@ from numba import njit
 SQRT3 = math.sqrt(3.0)  # omega_M of the rectangular density, eq. 32
 
 
-@njit(cache=True, inline="always")
+@njit(error_model="numpy", cache=True, inline="always")
 def sound_speed(h, g_normal):
     """Kinetic 'temperature' c = sqrt(g cos(theta) h / 2) (eq. 29), m/s; 0 where dry."""
     if h <= 0.0 or g_normal <= 0.0:
@@ -35,7 +35,7 @@ def sound_speed(h, g_normal):
     return math.sqrt(0.5 * g_normal * h)
 
 
-@njit(cache=True, inline="always")
+@njit(error_model="numpy", cache=True, inline="always")
 def half_fluxes(h, un, c):
     """Outward and inward half-fluxes of one cell through a face, per unit face length.
 

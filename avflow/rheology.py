@@ -90,7 +90,7 @@ def friction_parameters(rheology) -> tuple[Law, np.ndarray]:
     return law, params
 
 
-@njit(cache=True, inline="always")
+@njit(error_model="numpy", cache=True, inline="always")
 def pouliquen_mu(h, speed, g, tan1, tan2, d, beta):
     """Friction coefficient of Pouliquen's law, eq. 15, extended below Fr = beta.
 
@@ -108,25 +108,27 @@ def pouliquen_mu(h, speed, g, tan1, tan2, d, beta):
     return tan1 + (tan2 - tan1) * math.exp(-h / d)
 
 
-@njit(cache=True, inline="always")
-def friction(law, params, h, speed, normal_accel, g):
+@njit(error_model="numpy", cache=True, inline="always")
+def friction(law, p0, p1, p2, p3, h, speed, normal_accel, g):
     """Basal friction of one cell: ``(tau, drag)`` as described in the module docstring.
 
     ``tau`` (m^2/s^2) is compared with ``|q~| / dt`` in the threshold test of eq. 49 and
     removed in the projection of eq. 50; ``drag`` (1/s) divides the projected discharge
     implicitly, ``q <- q / (1 + drag dt)``, so it can slow a cell but never reverse it.
+    ``p0..p3`` is the parameter vector of :func:`friction_parameters`, passed as scalars
+    (array arguments cost reference counting at every call in Numba).
     """
     if law == COULOMB:
-        return params[0] * h * normal_accel, 0.0
+        return p0 * h * normal_accel, 0.0
     if law == POULIQUEN:
-        mu = pouliquen_mu(h, speed, g, params[0], params[1], params[2], params[3])
+        mu = pouliquen_mu(h, speed, g, p0, p1, p2, p3)
         return mu * h * normal_accel, 0.0
     # VOELLMY: tau_b / rho = mu h N + g |u|^2 / xi; the turbulent part as an implicit drag
     # on q = h u: g |u| u / xi = (g |u| / (xi h)) q.
     drag = 0.0
     if h > 0.0:
-        drag = g * speed / (params[1] * h)
-    return params[0] * h * normal_accel, drag
+        drag = g * speed / (p1 * h)
+    return p0 * h * normal_accel, drag
 
 
 def h_stop(theta_deg, delta1_deg, delta2_deg, d):
