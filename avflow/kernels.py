@@ -102,20 +102,27 @@ def dt_limit(cell_area, cell_perimeter, gamma_z, h, hu, hv, g):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _trial_momentum(h_old, speed_n, h_star, qx, qy, dt, gx, gy, gz, kappa,
-                    law, p0, p1, p2, p3, g):
+def _trial_momentum(h_old, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt, dt_decide,
+                    gx, gy, gz, kappa, law, p0, p1, p2, p3, g):
     """Sweep-1 closure of one cell: q~ of eq. 47 and the threshold test of eq. 49.
 
-    ``speed_n``: |u| at time n; ``qx, qy``: discharge after the fluxes.
+    ``rate_*``: the flux divergences (mass m/s, momentum m^2/s^2). The trial discharge q~
+    (returned for the projection) uses the step ``dt``; the threshold is tested with
+    ``dt_decide``, the CFL step of the state, so that the decision depends on the state alone
+    and a deposit at rest stays at rest when a step is shortened to land on an output time.
     Returns ``(q~x, q~y, flag)``.
     """
-    qx = qx + g * h_star * gx * dt
-    qy = qy + g * h_star * gy * dt
+    h_star = h_old + dt * rate_h
+    qx = hu_old + dt * (rate_x + g * h_star * gx)
+    qy = hv_old + dt * (rate_y + g * h_star * gy)
     if h_old <= 0.0:
         return qx, qy, DRY
+    hd = h_old + dt_decide * rate_h
+    qdx = hu_old + dt_decide * (rate_x + g * hd * gx)
+    qdy = hv_old + dt_decide * (rate_y + g * hd * gy)
     accel, _ = _normal_accel(g * gz, kappa, speed_n * speed_n)
-    tau, _ = friction(law, p0, p1, p2, p3, h_star, speed_n, accel, g)
-    if math.sqrt(qx * qx + qy * qy) < tau * dt:
+    tau, _ = friction(law, p0, p1, p2, p3, hd, speed_n, accel, g)
+    if math.sqrt(qdx * qdx + qdy * qdy) < tau * dt_decide:
         return qx, qy, UNDER_THRESHOLD
     return qx, qy, FLOWING
 
@@ -165,7 +172,7 @@ def _dirac_face(dirac, flag_i, flag_j):
 @njit(error_model="numpy", cache=True)
 def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_z, curvature,
                  h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
-                 law, params, g, dirac, h_dry, dt, peak_h, peak_speed):
+                 law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
     """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
 
     Same arithmetic as :func:`step_faces`, with the face loop fused into the cell loops.
@@ -213,8 +220,8 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
                 fr_q = fp_q + gm_q
         flux_h[i] = fr_h
         k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
-        qx, _, fk = _trial_momentum(h[k], abs(u_prev), h[k] + r * (fl_h - fr_h),
-                                    hu[k] + r * (fl_q - fr_q), 0.0, dt, gamma_x[k], 0.0,
+        qx, _, fk = _trial_momentum(h[k], abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
+                                    (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
                                     gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
         hu_new[k] = qx
         hv_new[k] = abs(u_prev)  # scratch: |u^n| for sweep 2 (hv is identically 0 on a line)
@@ -265,7 +272,7 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
 def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
                gamma_x, gamma_y, gamma_z, curvature,
                h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
-               law, params, g, dirac, h_dry, dt, peak_h, peak_speed):
+               law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
     ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
@@ -331,10 +338,11 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
 
     # --- sweep 1b: trial state and threshold flags
     for i in range(n):
-        r = dt / cell_area[i]
-        qx, qy, fi = _trial_momentum(h[i], _speed(h[i], hu[i], hv[i]), h[i] + r * h_new[i],
-                                     hu[i] + r * hu_new[i], hv[i] + r * hv_new[i], dt,
-                                     gamma_x[i], gamma_y[i], gamma_z[i], curvature[i],
+        inv_area = 1.0 / cell_area[i]
+        qx, qy, fi = _trial_momentum(h[i], _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
+                                     h_new[i] * inv_area, hu_new[i] * inv_area,
+                                     hv_new[i] * inv_area, dt, dt_decide, gamma_x[i],
+                                     gamma_y[i], gamma_z[i], curvature[i],
                                      law, p0, p1, p2, p3, g)
         hu_new[i] = qx
         hv_new[i] = qy
@@ -407,6 +415,7 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cell_pe
     while t < t_target:
         dt_max = stats[ST_DT_LIMIT]
         dt = cfl * dt_max if dt_max < np.inf else t_target - t
+        dt_decide = dt  # the threshold is always tested with the state's own CFL step
         last = False
         if t + dt >= t_target:
             dt = t_target - t
@@ -417,13 +426,13 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cell_pe
                 ok, out, lim, moving, film, clamped = step_profile(
                     face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
-                    law, params, g, dirac, h_dry, dt, peak_h, peak_speed)
+                    law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)
             else:
                 ok, out, lim, moving, film, clamped = step_faces(
                     face_cells, face_normal, face_length, cell_area, cell_perimeter,
                     gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
-                    law, params, g, dirac, h_dry, dt, peak_h, peak_speed)
+                    law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)
             if ok:
                 break
             dt *= 0.5

@@ -1,0 +1,102 @@
+"""Command line: ``avflow run SCENARIO.yaml -o OUT.nc``.
+
+Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
+Errors in the input are one line naming the file and the field; no output file is left
+behind (the NetCDF is written to a temporary name and renamed only when complete).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+from . import __version__
+from .errors import AvflowError
+
+
+class Progress:
+    """Simulated time against end time on one terminal line (silent when not a terminal)."""
+
+    def __init__(self, stream=sys.stderr):
+        self.stream = stream
+        self.live = stream.isatty()
+        self.started = time.perf_counter()
+
+    def __call__(self, t: float, t_end: float) -> None:
+        if not self.live:
+            return
+        width = 30
+        done = int(width * min(t / t_end, 1.0))
+        wall = time.perf_counter() - self.started
+        self.stream.write(f"\r  [{'#' * done}{'.' * (width - done)}] t = {t:8.2f} / {t_end:g} s"
+                          f"  ({wall:5.1f} s wall)")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.live:
+            self.stream.write("\n")
+
+
+def summary_line(ds) -> str:
+    """One line: what the run did and where the mass ended."""
+    def f(name, fmt):
+        v = float(ds[name])
+        return "NaN" if math.isnan(v) else format(v, fmt)
+
+    return (f"{ds.attrs['scenario_name']}: {ds.attrs['status']}"
+            f", time_to_stop {f('time_to_stop', '.2f')} s"
+            f", runout {f('runout', '.1f')} m"
+            f", deposit max {f('deposit_max_thickness', '.2f')} m"
+            f", length {f('deposit_length', '.1f')} m"
+            f", mass error {f('mass_balance_error', '.1e')}"
+            f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s")
+
+
+def _cmd_run(args) -> int:
+    from .output import write_netcdf
+    from .scenario import load_scenario
+    from .output import to_dataset
+    from .runner import simulate
+
+    scenario = load_scenario(args.scenario)
+    out = Path(args.output) if args.output else Path(Path(args.scenario).stem + ".nc")
+    progress = Progress()
+    try:
+        result = simulate(scenario, progress=progress)
+    finally:
+        progress.close()
+    ds = to_dataset(result)
+    write_netcdf(ds, out)
+    print(summary_line(ds))
+    print(f"wrote {out}")
+    return 0 if result.status in ("stopped", "completed") else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="avflow", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"avflow {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run one scenario and write a CF NetCDF file")
+    r.add_argument("scenario", help="scenario YAML file")
+    r.add_argument("-o", "--output", help="output NetCDF (default: SCENARIO name + .nc)")
+    r.set_defaults(func=_cmd_run)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except AvflowError as err:
+        print(f"avflow: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("avflow: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

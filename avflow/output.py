@@ -1,0 +1,196 @@
+"""A run as one CF-1.11 ``xarray.Dataset``, and its atomic NetCDF write.
+
+One table, :data:`FIELDS`, declares every output variable (units, names, cell_methods);
+the Dataset builder and the tests read it. Fields are computed in float64 and stored as
+float32 with zlib + shuffle, one chunk per snapshot; summaries and coordinates stay float64.
+No CF standard name exists for a granular flow thickness or velocity, so those carry a
+``long_name`` and a ``comment`` (thickness is measured normal to the bed, as in the seed).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from . import __version__
+from .rheology import law_reference
+from .runner import FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED, RunResult
+
+SEED_REFERENCE = (
+    "Mangeney-Castelnau, A., Vilotte, J.-P., Bristeau, M.-O., Perthame, B., Bouchut, F., "
+    "Simeoni, C., Yerneni, S. (2003). Numerical modeling of avalanches based on Saint Venant "
+    "equations using a kinetic scheme. J. Geophys. Res. 108(B11), 2527, doi:10.1029/2002JB002024"
+)
+
+H_COMMENT = "measured normal to the bed (topography-linked frame of the seed, Fig. 1)"
+
+#: name -> attributes. "kind": field (time, space), reduced (space), summary (0-d), coord.
+FIELDS = {
+    "h": dict(kind="field", long_name="flow thickness", units="m", comment=H_COMMENT),
+    "u": dict(kind="field", long_name="depth-averaged velocity along the bed, x component",
+              units="m s-1"),
+    "v": dict(kind="field", long_name="depth-averaged velocity along the bed, y component",
+              units="m s-1", grid_only=True),
+    "flow_state": dict(kind="flag", long_name="state of the cell after the step",
+                       flag_values=np.array([FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED], np.int8),
+                       flag_meanings="dry flowing under_coulomb_threshold"),
+    "peak_thickness": dict(kind="reduced", long_name="maximum flow thickness over the run",
+                           units="m", cell_methods="time: maximum", comment=H_COMMENT),
+    "peak_speed": dict(kind="reduced", long_name="maximum speed over the run", units="m s-1",
+                       cell_methods="time: maximum"),
+    "deposit_thickness": dict(kind="reduced", long_name="thickness at the end of the run",
+                              units="m", cell_methods="time: point", comment=H_COMMENT),
+    "bed_elevation": dict(kind="static", standard_name="ground_level_altitude", units="m"),
+    "slope_angle": dict(kind="static", standard_name="ground_slope_angle", units="degree"),
+    "moving_volume": dict(kind="series", long_name="volume of material still moving",
+                          units="m3"),
+}
+
+SUMMARIES = {
+    "runout": ("m", "downslope end of the deposit (h > runout_threshold); along the bed "
+                    "from the top on profiles, horizontal distance from the release centroid "
+                    "on grids"),
+    "time_to_stop": ("s", "first time the moving volume (u != 0, h > dry_threshold) is below "
+                          "stop_fraction of the released volume; NaN if never"),
+    "deposit_max_thickness": ("m", "largest final thickness"),
+    "deposit_length": ("m", "extent of the deposit (h > runout_threshold) along the flow"),
+    "deposit_volume": ("m3", "material on the mesh at the end, film included"),
+    "release_volume": ("m3", "released volume"),
+    "outflow_volume": ("m3", "volume that left through open boundaries"),
+    "film_volume": ("m3", "volume still moving at the end with h <= dry_threshold"),
+    "mass_balance_error": ("1", "|V_end + V_out - V_0| / V_0"),
+    "wall_time": ("s", "wall-clock time of the time loop"),
+}
+
+
+def _per_width(units: str, profile: bool) -> str:
+    """Volumes on a profile are per metre of width."""
+    return {"m3": "m2"}.get(units, units) if profile else units
+
+
+def to_dataset(result: RunResult) -> xr.Dataset:
+    """The CF Dataset of a run (profiles on (time, x), grids on (time, y, x))."""
+    terrain, snaps = result.terrain, result.snapshots
+    profile = terrain.kind == "profile"
+    shape = terrain.mesh.shape
+    space = ("x",) if profile else ("y", "x")
+    nt = len(snaps.time)
+
+    def stack(frames):
+        return np.stack(frames).reshape((nt, *shape))
+
+    h = stack(snaps.h)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if profile:
+            u = np.where(h > 0, stack(snaps.hu) / h, 0.0)
+            velocity = {"u": u}
+        else:
+            # Velocity along the bed, as components of its horizontal projection.
+            e1, e2 = terrain.tangent_basis
+            ua = np.where(h > 0, stack(snaps.hu) / h, 0.0)
+            va = np.where(h > 0, stack(snaps.hv) / h, 0.0)
+            velocity = {"u": ua * e1[0] + va * e2[0], "v": ua * e1[1] + va * e2[1]}
+
+    coords = {"time": ("time", np.asarray(snaps.time, dtype=float), {
+        "long_name": "time since release", "units": "s", "axis": "T"})}
+    if profile:
+        coords["x"] = ("x", terrain.x, {
+            "long_name": "distance along the bed from the top of the profile", "units": "m",
+            "axis": "X"})
+        coords["x_horizontal"] = ("x", terrain.x_horizontal, {
+            "long_name": "horizontal distance from the top of the profile", "units": "m"})
+    else:
+        coords["x"] = ("x", terrain.x, {"standard_name": "projection_x_coordinate",
+                                        "long_name": "x coordinate of cell centre",
+                                        "units": "m", "axis": "X"})
+        coords["y"] = ("y", terrain.y, {"standard_name": "projection_y_coordinate",
+                                        "long_name": "y coordinate of cell centre",
+                                        "units": "m", "axis": "Y"})
+
+    def attrs(name):
+        return {k: v for k, v in FIELDS[name].items() if k not in ("kind", "grid_only")}
+
+    data = {"h": (("time", *space), h, attrs("h"))}
+    for name, values in velocity.items():
+        data[name] = (("time", *space), values, attrs(name))
+    data["flow_state"] = (("time", *space), stack(snaps.flag).astype(np.int8),
+                          attrs("flow_state"))
+    data["peak_thickness"] = (space, result.state.peak_h.reshape(shape), attrs("peak_thickness"))
+    data["peak_speed"] = (space, result.state.peak_speed.reshape(shape), attrs("peak_speed"))
+    data["deposit_thickness"] = (space, result.state.h.reshape(shape),
+                                 attrs("deposit_thickness"))
+    data["bed_elevation"] = (space, terrain.bed_elevation.reshape(shape), attrs("bed_elevation"))
+    data["slope_angle"] = (space, terrain.slope_deg.reshape(shape), attrs("slope_angle"))
+    data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
+                             {**attrs("moving_volume"),
+                              "units": _per_width("m3", profile)})
+    s = result.summary
+    for name, (units, description) in SUMMARIES.items():
+        data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
+                                            "units": _per_width(units, profile),
+                                            "comment": description})
+    ds = xr.Dataset(data, coords=coords)
+    ds.attrs = _global_attributes(result)
+    return ds
+
+
+def _global_attributes(result: RunResult) -> dict:
+    sc, s = result.scenario, result.summary
+    th = result.thresholds
+    return {
+        "Conventions": "CF-1.11",
+        "title": f"avflow run of scenario {sc.name}",
+        "source": f"avflow {__version__}: kinetic scheme with Dirac stopping (seed eqs. 26-56)",
+        "references": f"{SEED_REFERENCE}; friction law: {law_reference(result.solver.law)}",
+        "history": "created by avflow " + __version__,
+        "scenario_name": sc.name,
+        "scenario_hash": sc.scenario_hash(),
+        "scenario": sc.source_text,
+        "avflow_version": __version__,
+        "status": s["status"],
+        "runout_threshold_m": th["runout"],
+        "dry_threshold_m": th["dry"],
+        "stop_fraction": th["stop_fraction"],
+        "steps": int(s["steps"]),
+        "dt_min_s": s["dt_min"],
+        "dt_max_s": s["dt_max"],
+        "runout_truncated": int(s["runout_truncated"]),
+        "clamped_normal_cells": s["clamped_normal_cells"],
+        "halved_steps": s["halved_steps"],
+        "comment": ("h is measured normal to the bed; on profiles x is the distance along the "
+                    "bed and volumes are per metre of width"),
+    }
+
+
+def encoding_for(ds: xr.Dataset) -> dict:
+    """float32 + zlib for the big fields, one chunk per snapshot; no fill on coordinates."""
+    enc = {}
+    for name, var in ds.variables.items():
+        if name in ds.coords:
+            enc[name] = {"_FillValue": None}
+        elif var.dtype.kind == "f" and var.ndim >= 1 and name not in ("moving_volume",):
+            chunks = (1, *var.shape[1:]) if var.dims[0] == "time" else var.shape
+            enc[name] = {"dtype": "float32", "zlib": True, "complevel": 2, "shuffle": True,
+                         "chunksizes": chunks, "_FillValue": None}
+        elif var.dtype.kind == "f":
+            enc[name] = {"_FillValue": None}
+    return enc
+
+
+def write_netcdf(ds: xr.Dataset, path) -> Path:
+    """Write ``ds`` to ``path`` atomically: a temporary file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        ds.to_netcdf(tmp, encoding=encoding_for(ds), engine="netcdf4")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

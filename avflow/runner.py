@@ -1,0 +1,164 @@
+"""Run one scenario: terrain, release and law from the scenario, the solver, the snapshots.
+
+The runner is the only place that decides output times; the time loop itself runs inside
+:meth:`avflow.solver.Solver.advance` between two output times.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from . import kernels as K
+from .errors import ScenarioError
+from .release import ReleaseError, initial_thickness
+from .rheology import friction_parameters
+from .solver import Solver, State
+from .summary import deposit_extent
+from .terrain import Terrain, build_terrain
+
+#: Default dry threshold and runout threshold, relative to the largest released thickness.
+DEFAULT_THRESHOLD_FRACTION = 1e-3
+
+# Cell states written to the output flag variable.
+FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED = 0, 1, 2
+
+
+@dataclass
+class Snapshots:
+    """Fields stored at output times (lists of per-cell arrays, float64 / uint8)."""
+
+    time: list = field(default_factory=list)
+    h: list = field(default_factory=list)
+    hu: list = field(default_factory=list)
+    hv: list = field(default_factory=list)
+    flag: list = field(default_factory=list)
+    moving_volume: list = field(default_factory=list)
+
+    def record(self, state: State, moving: float) -> None:
+        self.time.append(state.t)
+        self.h.append(state.h.copy())
+        self.hu.append(state.hu.copy())
+        self.hv.append(state.hv.copy())
+        self.flag.append(cell_flags(state))
+        self.moving_volume.append(moving)
+
+
+def cell_flags(state: State) -> np.ndarray:
+    """0 dry, 1 flowing (above the Coulomb threshold), 2 at rest under the threshold."""
+    flags = np.full(state.h.shape, FLAG_FLOWING, dtype=np.uint8)
+    flags[(state.hu == 0.0) & (state.hv == 0.0)] = FLAG_STOPPED
+    flags[state.h <= 0.0] = FLAG_DRY
+    return flags
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced, before it becomes a Dataset (see :mod:`avflow.output`)."""
+
+    scenario: object
+    terrain: Terrain
+    solver: Solver
+    state: State
+    h0: np.ndarray
+    snapshots: Snapshots
+    status: str  #: "stopped", "completed" (end time reached), "max_steps" or "failed"
+    time_to_stop: float
+    wall_time: float
+    thresholds: dict
+    summary: dict
+
+
+def prepare(scenario):
+    """Terrain, initial thickness and solver of a validated scenario (no time stepping)."""
+    try:
+        terrain = build_terrain(scenario)
+    except ValueError as err:
+        raise ScenarioError.at(scenario, "grid.dx", str(err)) from None
+    try:
+        h0 = initial_thickness(scenario.release, terrain)
+    except ReleaseError as err:
+        raise ScenarioError.at(scenario, "release", str(err)) from None
+    law, params = friction_parameters(scenario.rheology)
+    h_max = float(h0.max())
+    out = scenario.output
+    thresholds = {
+        "dry": out.dry_threshold if out.dry_threshold is not None
+        else DEFAULT_THRESHOLD_FRACTION * h_max,
+        "runout": out.runout_threshold if out.runout_threshold is not None
+        else DEFAULT_THRESHOLD_FRACTION * h_max,
+        "stop_fraction": out.stop_fraction,
+    }
+    solver = Solver(terrain, law, params, gravity=scenario.physics.gravity,
+                    cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
+                    h_dry=thresholds["dry"])
+    return terrain, h0, solver, thresholds
+
+
+def simulate(scenario, progress: Callable[[float, float], None] | None = None) -> RunResult:
+    """Run a validated scenario to its end time or until the mass stops.
+
+    ``progress(t, t_end)`` is called after every output time.
+    """
+    terrain, h0, solver, thresholds = prepare(scenario)
+    state = solver.new_state(h0)
+    v0 = solver.volume(state)
+    stop_volume = thresholds["stop_fraction"] * v0
+    t_end, every = scenario.time.end, scenario.output.every
+    snaps = Snapshots()
+    snaps.record(state, moving=0.0)
+    started = _time.perf_counter()
+    k = 1
+    time_to_stop = np.nan
+    while True:
+        target = min(k * every, t_end)
+        status = solver.advance(state, target, stop_volume=stop_volume,
+                                max_steps=scenario.time.max_steps)
+        snaps.record(state, moving=float(state.stats[K.ST_MOVING]))
+        if progress is not None:
+            progress(state.t, t_end)
+        if status == "stopped":
+            time_to_stop = state.t
+            break
+        if status != "running" or target >= t_end:
+            status = "completed" if status == "running" else status
+            break
+        k += 1
+    wall = _time.perf_counter() - started
+    result = RunResult(scenario, terrain, solver, state, h0, snaps, status, time_to_stop,
+                       wall, thresholds, {})
+    result.summary = summarize(result, v0)
+    return result
+
+
+def summarize(result: RunResult, v0: float) -> dict:
+    """The scalar summaries of a run (see :mod:`avflow.summary` for the definitions)."""
+    state, terrain = result.state, result.terrain
+    v_end = result.solver.volume(state)
+    v_out = float(state.stats[K.ST_OUTFLOW])
+    runout, length, touches = deposit_extent(terrain, state.h, result.thresholds["runout"],
+                                             result.h0)
+    return {
+        "runout": runout,
+        "time_to_stop": result.time_to_stop,
+        "deposit_max_thickness": float(state.h.max()),
+        "deposit_length": length,
+        "deposit_volume": v_end,
+        "release_volume": v0,
+        "outflow_volume": v_out,
+        "film_volume": float(state.stats[K.ST_FILM]),
+        "moving_volume": float(state.stats[K.ST_MOVING]),
+        "mass_balance_error": abs(v_end + v_out - v0) / v0,
+        "runout_truncated": touches,
+        "status": result.status,
+        "steps": state.steps,
+        "dt_min": float(state.stats[K.ST_DT_MIN]),
+        "dt_max": float(state.stats[K.ST_DT_MAX]),
+        "clamped_normal_cells": int(state.stats[K.ST_CLAMPED]),
+        "halved_steps": int(state.stats[K.ST_RETRIES]),
+        "wall_time": result.wall_time,
+        "cell_updates_per_second": state.steps * terrain.n_cells / max(result.wall_time, 1e-9),
+    }

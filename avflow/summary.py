@@ -1,0 +1,53 @@
+"""Scalar summaries of a run: how far, how thick, how long, how well mass was kept.
+
+Definitions (documented in the NetCDF attributes too):
+
+- ``runout`` (m): on a profile, the downslope end, measured along the bed from the top of
+  the profile, of the last cell whose final thickness exceeds ``runout_threshold``; on a
+  grid, the largest horizontal distance from the release's centroid to a deposit cell.
+- ``deposit_length`` (m): on a profile, from the upslope end of the first such cell to the
+  downslope end of the last; on a grid, the extent of the deposit along the horizontal
+  downslope direction of the bed (x when the bed is flat).
+- ``deposit_max_thickness`` (m), ``deposit_volume`` (m^3; m^2 per metre of width on a
+  profile: all material left on the mesh, film included).
+- ``time_to_stop`` (s): first time the volume still moving (cells with u != 0 and h above
+  the dry threshold) falls below ``stop_fraction`` of the released volume; NaN when the run
+  reaches its end time first.
+- ``mass_balance_error``: ``|V_end + V_out - V_0| / V_0`` (V_out: left through open faces).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .terrain import Terrain
+
+
+def deposit_extent(terrain: Terrain, h: np.ndarray, threshold: float, h0: np.ndarray):
+    """``(runout, deposit_length, touches_boundary)`` of a final thickness field."""
+    mask = h > threshold
+    if not mask.any():
+        return math.nan, 0.0, False
+    if terrain.kind == "profile":
+        idx = np.nonzero(mask)[0]
+        half = 0.5 * terrain.dx
+        runout = float(terrain.x[idx[-1]] + half)
+        length = float(terrain.x[idx[-1]] - terrain.x[idx[0]] + 2 * half)
+        touches = bool(idx[0] == 0 or idx[-1] == h.size - 1)
+        return runout, length, touches
+    xx, yy = np.meshgrid(terrain.x, terrain.y)
+    xx, yy = xx.ravel(), yy.ravel()
+    weights = h0 * terrain.mesh.cell_area
+    cx, cy = np.average(xx, weights=weights), np.average(yy, weights=weights)
+    runout = float(np.max(np.hypot(xx[mask] - cx, yy[mask] - cy)))
+    e1 = terrain.tangent_basis[0][:2]
+    direction = e1 / np.linalg.norm(e1) if np.linalg.norm(e1) > 1e-12 else np.array([1.0, 0.0])
+    along = xx[mask] * direction[0] + yy[mask] * direction[1]
+    length = float(along.max() - along.min() + abs(terrain.dx * direction[0])
+                   + abs(terrain.dy * direction[1]))
+    grid_mask = mask.reshape(terrain.mesh.shape)
+    touches = bool(grid_mask[0].any() or grid_mask[-1].any() or grid_mask[:, 0].any()
+                   or grid_mask[:, -1].any())
+    return runout, length, touches

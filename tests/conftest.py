@@ -1,0 +1,40 @@
+"""Shared helpers: small scenes built directly on the solver API, paths to shared/."""
+
+import math
+import os
+from pathlib import Path
+from types import SimpleNamespace as NS
+
+import numpy as np
+import pytest
+
+from avflow.rheology import Law
+from avflow.solver import Solver
+from avflow.terrain import profile_terrain
+
+REPO = Path(__file__).resolve().parents[1]
+SCENARIOS = REPO / "scenarios"
+SHARED = Path(os.environ.get("AVFLOW_SHARED", REPO.parent / "shared"))
+CONTRACT = SHARED / "contract"
+
+
+def walls(x_min="wall", x_max="wall", y_min="wall", y_max="wall"):
+    return NS(x_min=x_min, x_max=x_max, y_min=y_min, y_max=y_max)
+
+
+def slope_profile(length, dx, theta_deg, curvature=False, **bounds):
+    """A constant-slope profile terrain."""
+    block = NS(length=length, slope=NS(kind="constant", theta_deg=theta_deg),
+               curvature=curvature)
+    return profile_terrain(block, dx, walls(**bounds))
+
+
+def coulomb(terrain, delta_deg, **kw):
+    params = np.array([math.tan(math.radians(delta_deg)), 0.0, 0.0, 0.0])
+    return Solver(terrain, Law.COULOMB, params, **kw)
+
+
+@pytest.fixture(scope="session")
+def contract_dir():
+    assert CONTRACT.is_dir(), f"shared contract folder not found at {CONTRACT}"
+    return CONTRACT
