@@ -1,0 +1,26 @@
+"""avflow: debris-avalanche scenarios with the kinetic Saint-Venant scheme of
+Mangeney-Castelnau et al. (2003), with Dirac stopping under the Coulomb threshold.
+
+Public API:
+
+- :func:`load_scenario` reads and validates a scenario YAML file;
+- :func:`run` runs a scenario (a path or a loaded scenario) and returns a CF ``xarray.Dataset``.
+"""
+
+__version__ = "0.1.0"
+
+from .errors import AvflowError, ScenarioError  # noqa: E402
+from .scenario import load_scenario  # noqa: E402
+
+
+def run(scenario, progress=None):
+    """Run a scenario (path or :class:`~avflow.scenario.Scenario`) and return its Dataset."""
+    from .output import to_dataset
+    from .runner import simulate
+
+    if not hasattr(scenario, "terrain"):
+        scenario = load_scenario(scenario)
+    return to_dataset(simulate(scenario, progress=progress))
+
+
+__all__ = ["__version__", "AvflowError", "ScenarioError", "load_scenario", "run"]

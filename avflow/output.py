@@ -26,6 +26,8 @@ SEED_REFERENCE = (
     "equations using a kinetic scheme. J. Geophys. Res. 108(B11), 2527, doi:10.1029/2002JB002024"
 )
 
+TIME_UNITS = "seconds since 1970-01-01 00:00:00"
+
 H_COMMENT = "measured normal to the bed (topography-linked frame of the seed, Fig. 1)"
 
 #: name -> attributes. "kind": field (time, space), reduced (space), summary (0-d), coord.
@@ -39,11 +41,11 @@ FIELDS = {
                        flag_values=np.array([FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED], np.int8),
                        flag_meanings="dry flowing under_coulomb_threshold"),
     "peak_thickness": dict(kind="reduced", long_name="maximum flow thickness over the run",
-                           units="m", cell_methods="time: maximum", comment=H_COMMENT),
+                           units="m", cell_methods="time_span: maximum", comment=H_COMMENT),
     "peak_speed": dict(kind="reduced", long_name="maximum speed over the run", units="m s-1",
-                       cell_methods="time: maximum"),
+                       cell_methods="time_span: maximum"),
     "deposit_thickness": dict(kind="reduced", long_name="thickness at the end of the run",
-                              units="m", cell_methods="time: point", comment=H_COMMENT),
+                              units="m", cell_methods="time_span: point", comment=H_COMMENT),
     "bed_elevation": dict(kind="static", standard_name="ground_level_altitude", units="m"),
     "slope_angle": dict(kind="static", standard_name="ground_slope_angle", units="degree"),
     "moving_volume": dict(kind="series", long_name="volume of material still moving",
@@ -95,12 +97,21 @@ def to_dataset(result: RunResult) -> xr.Dataset:
             va = np.where(h > 0, stack(snaps.hv) / h, 0.0)
             velocity = {"u": ua * e1[0] + va * e2[0], "v": ua * e1[1] + va * e2[1]}
 
-    coords = {"time": ("time", np.asarray(snaps.time, dtype=float), {
-        "long_name": "time since release", "units": "s", "axis": "T"})}
+    # CF 4.4 wants "unit since reference" for time: the release happens at the epoch, so
+    # seconds since release are the stored values (decode_times=False reads them as such).
+    times = np.asarray(snaps.time, dtype=float)
+    time_attrs = {"standard_name": "time", "units": TIME_UNITS, "calendar": "proleptic_gregorian",
+                  "units_metadata": "leap_seconds: none"}
+    coords = {
+        "time": ("time", times, {**time_attrs, "long_name": "time since release",
+                                 "comment": "the reference instant is the release"}),
+        # Scalar coordinate that the cell_methods of the fields reduced over the run refer to.
+        "time_span": ((), times[-1], {**time_attrs, "long_name": "end of the period reduced over",
+                                      "bounds": "time_span_bounds"}),
+    }
     if profile:
         coords["x"] = ("x", terrain.x, {
-            "long_name": "distance along the bed from the top of the profile", "units": "m",
-            "axis": "X"})
+            "long_name": "distance along the bed from the top of the profile", "units": "m"})
         coords["x_horizontal"] = ("x", terrain.x_horizontal, {
             "long_name": "horizontal distance from the top of the profile", "units": "m"})
     else:
@@ -133,6 +144,7 @@ def to_dataset(result: RunResult) -> xr.Dataset:
         data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
                                             "units": _per_width(units, profile),
                                             "comment": description})
+    data["time_span_bounds"] = (("nv",), np.array([times[0], times[-1]]), {})
     ds = xr.Dataset(data, coords=coords)
     ds.attrs = _global_attributes(result)
     return ds
@@ -172,7 +184,8 @@ def encoding_for(ds: xr.Dataset) -> dict:
     for name, var in ds.variables.items():
         if name in ds.coords:
             enc[name] = {"_FillValue": None}
-        elif var.dtype.kind == "f" and var.ndim >= 1 and name not in ("moving_volume",):
+        elif var.dtype.kind == "f" and var.ndim >= 1 and name not in ("moving_volume",
+                                                                        "time_span_bounds"):
             chunks = (1, *var.shape[1:]) if var.dims[0] == "time" else var.shape
             enc[name] = {"dtype": "float32", "zlib": True, "complevel": 2, "shuffle": True,
                          "chunksizes": chunks, "_FillValue": None}

@@ -1,0 +1,944 @@
+"""Scenario files: YAML in, one validated, frozen, fully resolved :class:`Scenario` out.
+
+Validation happens once, here, at the edge; the numerical code trusts what it gets. Every
+problem becomes one :class:`~avflow.errors.ScenarioError` naming the file, the line:column
+where the value was written and the dotted field::
+
+    scenarios/foo.yaml:14:3: rheology.delta_deg: must be in [0, 90) degrees, got 95.0
+    scenarios/foo.yaml:5:3: terrain.slop: unknown field (did you mean 'slope'?)
+
+Conventions: SI units (m, s, kg/m^3), angles in degrees; thicknesses are measured normal to
+the bed, as in the seed (Mangeney-Castelnau et al. 2003). Data files (DEM, release polygons)
+are given relative to the YAML file and stored as absolute paths.
+
+The format, for editors, is the JSON Schema in ``scenarios/schema.json``, written by
+:func:`write_json_schema`.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import functools
+import hashlib
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal, Mapping, Union, get_args
+
+import yaml
+from pydantic import (BaseModel, ConfigDict, Field, PrivateAttr, StringConstraints,
+                      ValidationError, ValidationInfo, WrapValidator, field_validator,
+                      model_validator)
+from pydantic.fields import FieldInfo
+from pydantic_core import PydanticCustomError
+
+from .errors import Problem, ScenarioError
+
+__all__ = ["Scenario", "load_scenario", "parse_scenario", "write_json_schema"]
+
+#: Suffixes accepted for data files, with the companion files that belong to their content
+#: (a shapefile's attributes, such as the release thickness, live in its .dbf).
+DEM_SUFFIXES = {".asc": (".prj",), ".tif": (".tfw", ".prj"), ".tiff": (".tfw", ".prj"),
+                ".nc": ()}
+POLYGON_SUFFIXES = {".shp": (".shx", ".dbf", ".prj", ".cpg")}
+
+# =========================================================================================
+# Value types: each carries its own range and says the whole range when a value is outside.
+# =========================================================================================
+
+
+def _show(value: Any) -> str:
+    """A value as the user wrote it in YAML (strings quoted), for 'got ...' in messages."""
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, (bool, type(None), list, dict, tuple)):
+        text = json.dumps(value, default=str)
+        return text if len(text) <= 60 else text[:57] + "..."
+    return repr(value)
+
+
+def _problem(message: str, field: str | None = None) -> PydanticCustomError:
+    """A validation error with our own message; ``field`` (dotted, relative to the model
+    raising it) names the culprit when a model validator compares several fields."""
+    return PydanticCustomError("scenario", message, {"field": field} if field else None)
+
+
+Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]  # ints accepted, not "5"
+_BOUND_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
+
+
+def _interval(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+              hi_open: bool = False, unit: str = "", why: str = "") -> Any:
+    """A finite float within bounds (ints accepted; strings and booleans are not).
+
+    The bounds go into the JSON Schema; a value outside them gets one message stating the
+    whole interval (pydantic would only name the bound that failed).
+    """
+    bounds: dict[str, float] = {}
+    if lo is not None:
+        bounds["gt" if lo_open else "ge"] = lo
+    if hi is not None:
+        bounds["lt" if hi_open else "le"] = hi
+    if lo is not None and hi is not None:
+        wanted = f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    elif lo is not None:
+        wanted = f"{'>' if lo_open else '>='} {lo:g}"
+    else:
+        wanted = f"{'<' if hi_open else '<='} {hi:g}"
+    wanted = f"must be {wanted}{unit}{why}"
+
+    def explain(value: Any, handler: Any) -> float:
+        try:
+            return handler(value)
+        except ValidationError as err:
+            if err.errors()[0]["type"] in _BOUND_ERRORS:
+                raise _problem(f"{wanted}, got {_show(value)}") from None
+            raise
+
+    return Annotated[float, Field(strict=True, allow_inf_nan=False, **bounds),
+                     WrapValidator(explain)]
+
+
+def _pair(what: str, increasing: bool) -> Any:
+    """Two finite floats written as a YAML list, e.g. ``[xmin, xmax]`` or ``[x, y]``."""
+
+    def check(value: Any, handler: Any) -> tuple[float, float]:
+        try:
+            pair = handler(value)
+        except ValidationError as err:
+            if err.errors()[0]["type"] in ("too_short", "too_long", "missing", "tuple_type"):
+                raise _problem(f"must be a list of two numbers {what}, got {_show(value)}"
+                               ) from None
+            raise
+        if increasing and not pair[0] < pair[1]:
+            raise _problem(f"must be {what} with min < max, got {_show(list(pair))}")
+        return pair
+
+    return Annotated[tuple[Number, Number], WrapValidator(check)]
+
+
+Positive = _interval(0.0, lo_open=True)
+NonNegative = _interval(0.0)
+Angle = _interval(0.0, 90.0, hi_open=True, unit=" degrees")
+SignedAngle = _interval(-90.0, 90.0, lo_open=True, hi_open=True, unit=" degrees")
+Fraction = _interval(0.0, 1.0, hi_open=True)
+Courant = _interval(0.0, 1.0, lo_open=True, why=": positivity of h needs it")
+Range = _pair("[min, max]", increasing=True)
+Point = _pair("[x, y]", increasing=False)
+Flag = Annotated[bool, Field(strict=True)]  # only true/false: not 1, not "yes"
+Text = Annotated[str, Field(strict=True)]
+Side = Literal["wall", "outflow"]
+SIDES = ("x_min", "x_max", "y_min", "y_max")
+
+
+class _Model(BaseModel):
+    """Frozen, unknown keys rejected; attribute docstrings become JSON Schema descriptions."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, use_attribute_docstrings=True)
+
+
+def _data_file(value: str, info: ValidationInfo, suffixes: Mapping[str, Any]) -> str:
+    """Absolute path of a data file named relative to the scenario file; it must exist."""
+    path = Path(value).expanduser()
+    if path.suffix.lower() not in suffixes:
+        raise _problem(f"must be a {', '.join(suffixes)} file, got {_show(value)}")
+    base_dir = (info.context or {}).get("base_dir") or os.getcwd()
+    path = Path(os.path.normpath(Path(base_dir) / path))  # unchanged when already absolute
+    if not path.is_file():
+        raise _problem(f"file not found: {path} (relative paths start at the scenario's "
+                       "folder)")
+    return str(path)
+
+
+# =========================================================================================
+# Terrain
+# =========================================================================================
+
+
+class ConstantSlope(_Model):
+    """A plane bed: constant slope angle."""
+
+    kind: Literal["constant"]
+    theta_deg: Angle
+    """Slope angle (degrees)."""
+
+
+class ExponentialSlope(_Model):
+    """The seed's eq. 58: ``theta(x) = theta0 exp(-x / a)``, x along the bed."""
+
+    kind: Literal["exponential"]
+    theta0_deg: Angle
+    """Slope angle at x = 0 (degrees)."""
+    a: Positive
+    """Decay length (m, along the bed)."""
+
+
+class TableSlope(_Model):
+    """Slope angle given at points along the bed, linear between them."""
+
+    kind: Literal["table"]
+    x: Annotated[tuple[Number, ...], Field(min_length=2)]
+    """Positions along the bed (m), strictly increasing."""
+    theta_deg: tuple[SignedAngle, ...]
+    """Slope angle at each position (degrees, negative uphill)."""
+
+    @model_validator(mode="after")
+    def _check_table(self) -> TableSlope:
+        if any(b <= a for a, b in zip(self.x, self.x[1:])):
+            raise _problem(f"must be strictly increasing, got {_show(list(self.x))}", "x")
+        if len(self.theta_deg) != len(self.x):
+            raise _problem(f"must have one angle per x ({len(self.x)}), "
+                           f"got {len(self.theta_deg)}", "theta_deg")
+        return self
+
+
+Slope = Annotated[Union[ConstantSlope, ExponentialSlope, TableSlope],
+                  Field(discriminator="kind")]
+
+
+class ProfileTerrain(_Model):
+    """A transversally uniform slope, solved in 1D along the bed (seed section 2)."""
+
+    kind: Literal["profile"]
+    length: Positive
+    """Length of the profile (m, measured along the bed)."""
+    slope: Slope
+    """Slope angle as a function of the distance along the bed."""
+    curvature: Flag = True
+    """Include the curvature term of eqs. 61-62."""
+
+
+class Extent(_Model):
+    """Horizontal rectangle covered by the grid."""
+
+    x: Range
+    """[xmin, xmax] (m)."""
+    y: Range
+    """[ymin, ymax] (m)."""
+
+
+class PlaneTerrain(_Model):
+    """An inclined plane over a horizontal rectangle."""
+
+    kind: Literal["plane"]
+    slope_deg: Angle
+    """Steepest slope angle (degrees)."""
+    azimuth_deg: Number = 0.0
+    """Direction the plane faces (downslope), clockwise from north (+y), degrees."""
+    extent: Extent
+    """Horizontal extent of the grid (m)."""
+    elevation_at_center: Number = 0.0
+    """Bed elevation at the centre of the extent (m)."""
+
+
+class DemTerrain(_Model):
+    """A digital elevation model."""
+
+    kind: Literal["dem"]
+    path: Text
+    """DEM file (.asc, .tif, .tiff or .nc), relative to the scenario file; stored absolute."""
+    nodata: Side = "wall"
+    """How the flow treats NODATA cells: as walls or as outflow."""
+
+    @field_validator("path")
+    @classmethod
+    def _existing_dem(cls, value: str, info: ValidationInfo) -> str:
+        return _data_file(value, info, DEM_SUFFIXES)
+
+
+Terrain = Annotated[Union[ProfileTerrain, PlaneTerrain, DemTerrain], Field(discriminator="kind")]
+
+# =========================================================================================
+# Release: the mass at rest at t = 0 (eq. 60); thicknesses are normal to the bed
+# =========================================================================================
+
+
+class _Release(_Model):
+    kind: str  # narrowed to a Literal by each shape (declared here so that it dumps first)
+    volume_factor: Positive = 1.0
+    """Multiplies the thickness, hence the released volume."""
+
+
+class ParabolaRelease(_Release):
+    """The seed's eq. 59 on a profile: ``h = K (l - (x - x0)^2)``, zero outside."""
+
+    kind: Literal["parabola"]
+    center: Number
+    """x0 (m, along the bed)."""
+    half_length: Positive
+    """sqrt(l): half the length of the mass (m, along the bed)."""
+    max_thickness: Positive
+    """K l: thickness at the centre (m, normal to the bed)."""
+
+
+class DamRelease(_Release):
+    """A reservoir of uniform thickness at x < position, dry beyond (profile)."""
+
+    kind: Literal["dam"]
+    position: Number
+    """Position of the dam (m, along the bed)."""
+    thickness: Positive
+    """Thickness of the reservoir (m, normal to the bed)."""
+
+
+class BoxRelease(_Release):
+    """Uniform thickness over an x range (and a y range on a 2D terrain)."""
+
+    kind: Literal["box"]
+    x: Range
+    """[xmin, xmax] (m)."""
+    y: Range | None = None
+    """[ymin, ymax] (m): required on 2D terrains, not allowed on a profile."""
+    thickness: Positive
+    """m, normal to the bed."""
+
+
+class CylinderRelease(_Release):
+    """Uniform thickness within a horizontal radius of a centre (2D terrains)."""
+
+    kind: Literal["cylinder"]
+    center: Point
+    """[x, y] (m, horizontal)."""
+    radius: Positive
+    """m, horizontal."""
+    thickness: Positive
+    """m, normal to the bed."""
+
+
+class PolygonRelease(_Release):
+    """Release areas from a polygon shapefile (2D terrains)."""
+
+    kind: Literal["polygon"]
+    path: Text
+    """Shapefile (.shp), relative to the scenario file; stored absolute."""
+    thickness: Positive | None = None
+    """m, normal to the bed; null: each polygon's 'thickness' attribute."""
+
+    @field_validator("path")
+    @classmethod
+    def _existing_shapefile(cls, value: str, info: ValidationInfo) -> str:
+        return _data_file(value, info, POLYGON_SUFFIXES)
+
+
+Release = Annotated[Union[ParabolaRelease, DamRelease, BoxRelease, CylinderRelease,
+                          PolygonRelease], Field(discriminator="kind")]
+PROFILE_RELEASES = ("parabola", "dam")
+GRID_RELEASES = ("cylinder", "polygon")
+
+# =========================================================================================
+# Rheology: basal friction laws (parameters are turned into numbers in avflow.rheology)
+# =========================================================================================
+
+
+class Coulomb(_Model):
+    """Coulomb friction with a constant friction angle (seed eq. 12)."""
+
+    law: Literal["coulomb"]
+    delta_deg: Angle
+    """Friction angle (degrees)."""
+
+
+class Pouliquen(_Model):
+    """Pouliquen's flow law (seed eq. 15): friction between tan(delta1) and tan(delta2)."""
+
+    law: Literal["pouliquen"]
+    delta1_deg: Angle
+    """Friction angle of thick or fast layers (degrees), smaller than delta2_deg."""
+    delta2_deg: Angle
+    """Friction angle of thin or slow layers (degrees)."""
+    d: Positive
+    """Length scale of the law (m, a multiple of the grain size)."""
+    beta: Positive = 0.136
+    """Dimensionless constant of the law (Froude number scale)."""
+
+    @model_validator(mode="after")
+    def _ordered_angles(self) -> Pouliquen:
+        if not self.delta1_deg < self.delta2_deg:
+            raise _problem(f"must be smaller than delta2_deg ({self.delta2_deg!r}), "
+                           f"got {self.delta1_deg!r}", "delta1_deg")
+        return self
+
+
+class Voellmy(_Model):
+    """Voellmy friction: Coulomb plus a turbulent drag ``g |u|^2 / xi``."""
+
+    law: Literal["voellmy"]
+    delta_deg: Angle | None = None
+    """Friction angle (degrees); give this or mu."""
+    mu: NonNegative | None = None
+    """Friction coefficient tan(delta); give this or delta_deg."""
+    xi: Positive
+    """Turbulent coefficient (m/s^2)."""
+
+    @model_validator(mode="after")
+    def _one_friction(self) -> Voellmy:
+        if self.delta_deg is not None and self.mu is not None:
+            raise _problem("give delta_deg or mu, not both", "mu")
+        if self.delta_deg is None and self.mu is None:
+            raise _problem("needs a friction: delta_deg (degrees) or mu")
+        return self
+
+
+Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy], Field(discriminator="law")]
+
+# =========================================================================================
+# Grid, time, output, boundaries, physics
+# =========================================================================================
+
+
+class Grid(_Model):
+    """Cell sizes."""
+
+    dx: Positive
+    """m: along the bed on a profile, horizontal on a 2D grid."""
+    dy: Positive | None = None
+    """m, horizontal (2D terrains only); null: dy = dx."""
+
+
+class Time(_Model):
+    """Time stepping."""
+
+    end: Positive
+    """End time (s); the run may stop earlier when the mass comes to rest."""
+    cfl: Courant = 0.5
+    """CFL number of the kinetic scheme, in (0, 1]."""
+    max_steps: Annotated[int, Field(strict=True, gt=0)] = 10_000_000
+    """Bound on the number of time steps."""
+
+
+class Output(_Model):
+    """What is stored, and when the run counts as stopped."""
+
+    every: Positive | None = None
+    """Time between stored snapshots (s); default time.end / 20."""
+    runout_threshold: Positive | None = None
+    """Thickness (m) above which a cell counts in the deposit and the runout; null: automatic."""
+    stop_fraction: Fraction = 1e-3
+    """The run stops when the moving volume falls below this fraction of the release; 0:
+    never stop before time.end."""
+    dry_threshold: Positive | None = None
+    """Thickness (m) below which a cell counts as dry in decisions; null: automatic."""
+
+
+class Boundaries(_Model):
+    """Condition on each side of the domain. Also written as one word for all sides."""
+
+    x_min: Side = "wall"
+    x_max: Side = "wall"
+    y_min: Side = "wall"
+    y_max: Side = "wall"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_word_for_all_sides(cls, data: Any) -> Any:
+        if not isinstance(data, str):
+            return data
+        if data not in get_args(Side):
+            raise _problem(f"must be 'wall', 'outflow' or a mapping of sides, got {_show(data)}")
+        return dict.fromkeys(SIDES, data)
+
+    @classmethod
+    def __get_pydantic_json_schema__(cls, core_schema: Any, handler: Any) -> dict[str, Any]:
+        sides = handler(core_schema)
+        return {"anyOf": [{"type": "string", "enum": list(get_args(Side))}, sides],
+                "title": sides.get("title", cls.__name__), "description": cls.__doc__}
+
+
+class Physics(_Model):
+    """Physical constants."""
+
+    gravity: Positive = 9.81
+    """m/s^2."""
+    dirac: Flag = True
+    """The seed's zero-temperature (Dirac) flux; false only for studies."""
+    density: Positive = 2000.0
+    """Bulk density of the flowing material (kg/m^3)."""
+
+
+class Scenario(_Model):
+    """A validated scenario. Build one with :func:`load_scenario` or :func:`parse_scenario`.
+
+    Blocks ``output``, ``boundary`` and ``physics`` are optional; everything is resolved
+    (defaults filled in, data-file paths absolute). ``source_path`` and ``source_text`` tell
+    where it came from; they are not part of :meth:`scenario_hash`.
+    """
+
+    name: Annotated[str, StringConstraints(strict=True, strip_whitespace=True, min_length=1)]
+    """Short identifier of the scenario."""
+    description: Text = ""
+    terrain: Terrain
+    """The bed: a 1D profile, an inclined plane or a DEM."""
+    grid: Grid
+    release: Release
+    """The mass at rest at t = 0 (thickness normal to the bed)."""
+    rheology: Rheology
+    """Basal friction law, chosen by ``law``."""
+    time: Time
+    output: Output = Output()
+    boundary: Boundaries = Boundaries()
+    physics: Physics = Physics()
+
+    _source_path: str | None = PrivateAttr(None)
+    _source_text: str | None = PrivateAttr(None)
+    _positions: dict[tuple, tuple[int, int]] = PrivateAttr(default_factory=dict)
+    _written: dict[str, Any] | None = PrivateAttr(None)  # the mapping as written, for updates
+    _base_dir: str | None = PrivateAttr(None)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_output_every(cls, data: Any) -> Any:
+        """output.every defaults to time.end / 20: twenty snapshots whatever the duration.
+
+        Filled in before validation so that the model stays frozen; left alone when time.end
+        is not a valid number (its own error is reported then).
+        """
+        if not isinstance(data, dict):
+            return data
+        time, output = data.get("time"), data.get("output", {})
+        if isinstance(time, Time):
+            time = {"end": time.end}
+        if isinstance(output, Output):
+            output = output.model_dump(exclude_unset=True)
+        end = time.get("end") if isinstance(time, dict) else None
+        if (isinstance(output, dict) and output.get("every") is None
+                and isinstance(end, (int, float)) and not isinstance(end, bool)
+                and 0 < end < float("inf")):
+            data = {**data, "output": {**output, "every": end / 20.0}}
+        return data
+
+    @model_validator(mode="after")
+    def _blocks_fit_together(self) -> Scenario:
+        terrain, release = self.terrain.kind, self.release.kind
+        if release in PROFILE_RELEASES and terrain != "profile":
+            raise _problem(f"a {release!r} release needs a 'profile' terrain, "
+                           f"got {terrain!r}", "release.kind")
+        if release in GRID_RELEASES and terrain == "profile":
+            raise _problem(f"a {release!r} release needs a 2D terrain ('plane' or 'dem'), "
+                           "got 'profile'", "release.kind")
+        if release == "box" and terrain == "profile" and self.release.y is not None:
+            raise _problem("not allowed on a 'profile' terrain (1D: x only)", "release.y")
+        if release == "box" and terrain != "profile" and self.release.y is None:
+            raise _problem(f"required on a 2D terrain ({terrain!r})", "release.y")
+        if terrain == "profile" and self.grid.dy is not None:
+            raise _problem("not allowed on a 'profile' terrain (1D: dx only)", "grid.dy")
+        return self
+
+    # --- provenance -------------------------------------------------------------------------
+
+    @property
+    def source_path(self) -> str | None:
+        """Absolute path of the scenario file (None for text or programmatic scenarios)."""
+        return self._source_path
+
+    @property
+    def source_text(self) -> str:
+        """The YAML text it was read from (the resolved YAML for derived scenarios)."""
+        return self._source_text if self._source_text is not None else self.to_yaml()
+
+    def locate(self, field: str) -> tuple[int, int] | None:
+        """(line, column), 1-based, of a dotted field in the source text, or of its closest
+        written parent; None when the scenario was not read from text."""
+        return _position(self._positions, _dotted_parts(field))
+
+    # --- identity and export ----------------------------------------------------------------
+
+    def scenario_hash(self) -> str:
+        """16 hex chars of sha256 over the resolved scenario, as canonical JSON.
+
+        Comments, formatting and key order do not count, nor where the file lies: data
+        files count by their content (with their companion files), not by their path.
+        """
+        data = self.model_dump(mode="json")
+        for block in ("terrain", "release"):
+            if "path" in data[block]:
+                try:
+                    data[block]["path"] = "sha256:" + _content_digest(data[block]["path"])
+                except OSError as err:
+                    raise ScenarioError.at(self, f"{block}.path", f"cannot read: {err}") from None
+        canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
+        return hashlib.sha256(canonical.encode()).hexdigest()[:16]
+
+    def to_yaml(self) -> str:
+        """The resolved scenario as YAML (reads back to an equal scenario)."""
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False,
+                              default_flow_style=None, width=100)
+
+    # --- variations -------------------------------------------------------------------------
+
+    def with_updates(self, updates: Mapping[str, Any]) -> Scenario:
+        """A new scenario: this one as written, with dotted-path updates, validated again.
+
+        ``{"release.volume_factor": 2.0, "rheology.delta_deg": 14.0}`` sets single fields;
+        ``{"rheology": {"law": "pouliquen", ...}}`` replaces a whole block. Updates apply in
+        order, as if the file had been edited: defaults are re-derived (output.every follows
+        a new time.end) and relative data paths start at the original file's folder. The
+        result keeps ``source_path``; its ``source_text`` is its own resolved YAML.
+        """
+        written = copy.deepcopy(self._written if self._written is not None
+                                else self.model_dump(mode="json"))
+        for dotted, value in updates.items():
+            _set_dotted(written, dotted, _plain(value), self)
+        scenario = _validate(written, path=self._source_path, base_dir=self._base_dir)
+        scenario._source_text = scenario.to_yaml()
+        return scenario
+
+
+# =========================================================================================
+# YAML with positions
+# =========================================================================================
+
+_BOOL, _INT, _FLOAT, _TIMESTAMP = (f"tag:yaml.org,2002:{name}"
+                                   for name in ("bool", "int", "float", "timestamp"))
+
+
+class _YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with the scalars of YAML 1.2's core schema.
+
+    PyYAML follows YAML 1.1, where ``1e-3`` is a string (a float needs a dot), ``yes``,
+    ``no``, ``on`` and ``off`` are booleans, ``010`` is octal, ``1:30`` is 90 and
+    ``2024-01-01`` a date. Here only true/false are booleans, integers are decimal, decimal
+    and exponent notations are floats, and everything else stays a string.
+    """
+
+
+_YamlLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers
+            if tag not in (_BOOL, _INT, _FLOAT, _TIMESTAMP)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_YamlLoader.add_implicit_resolver(
+    _BOOL, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
+_YamlLoader.add_implicit_resolver(  # before floats: a plain integer stays an int
+    _INT, re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
+_YamlLoader.add_implicit_resolver(
+    _FLOAT, re.compile(r"""^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
+                          |[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
+_YamlLoader.add_constructor(_INT, lambda loader, node: int(loader.construct_scalar(node), 10))
+
+_MERGE = "tag:yaml.org,2002:merge"
+
+
+def _read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, int]]]:
+    """Plain Python data from YAML text, and the (line, column) of every key and item.
+
+    Positions are keyed by the path of keys and list indices, e.g. ``("terrain", "slope")``
+    or ``("terrain", "extent", "x", 1)``; ``()`` is the top-level node.
+    """
+    positions: dict[tuple, tuple[int, int]] = {}
+
+    def where(node: yaml.Node) -> tuple[int, int]:
+        return node.start_mark.line + 1, node.start_mark.column + 1
+
+    def fail(message: str, node: yaml.Node, keys: tuple = ()) -> ScenarioError:
+        return ScenarioError(message, path, _dotted(keys), *where(node))
+
+    def scalar(node: yaml.Node, keys: tuple) -> Any:
+        try:
+            return loader.construct_object(node)
+        except (ValueError, yaml.YAMLError) as err:
+            raise fail(f"cannot read {node.value!r} as {node.tag}: {err}", node, keys) from None
+
+    def build(node: yaml.Node, keys: tuple) -> Any:
+        """Data of ``node``, written at ``keys``; records where its keys and items are."""
+        if isinstance(node, yaml.MappingNode):
+            mapping: dict[str, Any] = {}
+            for key_node, value_node in node.value:
+                if key_node.tag == _MERGE:
+                    raise fail("merge keys (<<) are not supported", key_node, keys)
+                key = scalar(key_node, keys) if isinstance(key_node, yaml.ScalarNode) else None
+                if not isinstance(key, str):
+                    raise fail(f"keys must be names, got {_show(key)}", key_node, keys)
+                if key in mapping:
+                    first_line = positions[keys + (key,)][0]
+                    raise fail(f"duplicate key (first written at line {first_line})",
+                               key_node, keys + (key,))
+                positions[keys + (key,)] = where(key_node)  # the key, not its value
+                mapping[key] = build(value_node, keys + (key,))
+            return mapping
+        if isinstance(node, yaml.SequenceNode):
+            items = []
+            for i, item in enumerate(node.value):
+                positions[keys + (i,)] = where(item)
+                items.append(build(item, keys + (i,)))
+            return items
+        return scalar(node, keys)
+
+    loader = _YamlLoader(text)
+    try:
+        root = loader.get_single_node()
+        if root is not None:
+            positions[()] = where(root)
+        data = None if root is None else build(root, ())
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark or err.context_mark
+        detail = f" ({err.context})" if err.context else ""
+        raise ScenarioError(f"YAML syntax error: {err.problem}{detail}", path, None,
+                            *((mark.line + 1, mark.column + 1) if mark else ())) from None
+    except yaml.YAMLError as err:
+        raise ScenarioError(f"YAML error: {err}", path) from None
+    finally:
+        loader.dispose()
+    if data is None:
+        raise ScenarioError("empty scenario: expected a mapping of fields (name: ..., "
+                            "terrain: ..., ...)", path, None, 1, 1)
+    if not isinstance(data, dict):
+        raise ScenarioError(f"expected a mapping of fields (name: ..., terrain: ..., ...), "
+                            f"got {_show(data)}", path, None, *positions[()])
+    return data, positions
+
+
+def _dotted(keys: tuple) -> str | None:
+    return ".".join(str(k) for k in keys) or None
+
+
+def _dotted_parts(field: str | None) -> tuple:
+    """``"terrain.extent.x.1"`` -> ``("terrain", "extent", "x", 1)`` (list items by index)."""
+    if not field:
+        return ()
+    return tuple(int(p) if p.isdigit() else p for p in field.split("."))
+
+
+def _position(positions: Mapping[tuple, tuple[int, int]], keys: tuple) -> tuple[int, int] | None:
+    """Position of ``keys``, or of its closest parent that was written (a missing field)."""
+    for n in range(len(keys), -1, -1):
+        if keys[:n] in positions:
+            return positions[keys[:n]]
+    return None
+
+
+# =========================================================================================
+# Validation errors -> ScenarioError
+# =========================================================================================
+
+
+@dataclass(frozen=True)
+class _Union:
+    """A discriminated union in the schema: pydantic puts the tag into error locations."""
+
+    discriminator: str
+    members: dict[str, type[BaseModel]]
+
+
+SchemaNode = Union[type[BaseModel], _Union, None]  # None: a value, not a block
+
+
+def _schema_node(field: FieldInfo) -> SchemaNode:
+    """What a field holds: a model, a discriminated union of models, or a plain value."""
+    annotation = field.annotation
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    if field.discriminator:
+        members = [m for m in get_args(annotation) if issubclass(m, BaseModel)]
+        return _Union(field.discriminator, {
+            tag: m for m in members
+            for tag in get_args(m.model_fields[field.discriminator].annotation)})
+    return None
+
+
+def _walk(loc: tuple) -> tuple[tuple, SchemaNode]:
+    """The YAML keys of a pydantic error location (tags dropped) and the schema node there."""
+    keys: list = []
+    node: SchemaNode = Scenario
+    for part in loc:
+        if isinstance(node, _Union):  # this part is the tag pydantic inserted, not a key
+            node = node.members.get(part)
+            continue
+        keys.append(part)
+        field = node.model_fields.get(part) if isinstance(node, type) else None
+        node = _schema_node(field) if field else None
+    return tuple(keys), node
+
+
+def _did_you_mean(word: str, choices: Any) -> str:
+    close = difflib.get_close_matches(str(word), list(choices), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+_TYPE_NAMES = {"float": "a number", "int": "an integer", "bool": "true or false",
+               "string": "a string", "list": "a list", "tuple": "a list",
+               "dict": "a mapping (key: value)", "model": "a mapping (key: value)",
+               "model_attributes": "a mapping (key: value)"}
+
+
+def _explain(error: Mapping[str, Any]) -> tuple[tuple, str]:
+    """YAML keys and message of one pydantic error."""
+    kind, loc, ctx = error["type"], error["loc"], error.get("ctx") or {}
+    keys, node = _walk(loc)
+    got = _show(error.get("input"))
+    if kind == "missing":
+        return keys, "required, but missing"
+    if kind == "extra_forbidden":
+        _, parent = _walk(loc[:-1])
+        allowed = parent.model_fields if isinstance(parent, type) else ()
+        hint = _did_you_mean(loc[-1], allowed) or f"; expected one of: {', '.join(allowed)}"
+        return keys, "unknown field" + hint
+    if kind in ("union_tag_invalid", "union_tag_not_found") and isinstance(node, _Union):
+        known = ", ".join(node.members)
+        if kind == "union_tag_not_found":
+            return keys + (node.discriminator,), f"required, one of: {known}"
+        tag = ctx.get("tag", "")
+        return (keys + (node.discriminator,),
+                f"unknown {node.discriminator} {tag!r}{_did_you_mean(tag, node.members)}; "
+                f"known: {known}")
+    if kind == "scenario":  # ours, from _problem
+        return keys + _dotted_parts(ctx.get("field")), error["msg"]
+    if kind == "finite_number":
+        return keys, f"must be a finite number, got {got}"
+    if kind == "string_too_short":
+        return keys, "must not be empty"
+    if kind == "literal_error":
+        return keys, f"must be {ctx.get('expected')}, got {got}"
+    if kind in ("too_short", "too_long"):
+        need = ctx.get("min_length") if kind == "too_short" else ctx.get("max_length")
+        return keys, (f"must have at {'least' if kind == 'too_short' else 'most'} {need} items,"
+                      f" got {ctx.get('actual_length')}")
+    for prefix, name in _TYPE_NAMES.items():
+        if kind in (f"{prefix}_type", f"{prefix}_parsing", f"{prefix}_from_float"):
+            return keys, f"must be {name}, got {got}"
+    return keys, error["msg"].removeprefix("Value error, ")
+
+
+def _scenario_error(err: ValidationError, path: str | None,
+                    positions: Mapping[tuple, tuple[int, int]]) -> ScenarioError:
+    """One ScenarioError listing every problem pydantic found, in file order."""
+    explained = [_explain(e) for e in err.errors(include_url=False)]
+    # A misspelt key also makes the right spelling "missing": the hint already says it.
+    hinted = {keys[:-1] + (m.group(1),) for keys, message in explained
+              if (m := re.search(r"did you mean '([^']+)'", message))}
+    problems = [Problem(message, path, _dotted(keys), *(_position(positions, keys) or ()))
+                for keys, message in explained
+                if not (message == "required, but missing" and keys in hinted)]
+    problems.sort(key=lambda p: (p.line is None, p.line or 0, p.column or 0))
+    return ScenarioError(problems=problems)
+
+
+def _validate(written: Any, *, path: str | None, base_dir: str | None,
+              positions: Mapping[tuple, tuple[int, int]] | None = None) -> Scenario:
+    """Validate the mapping as written; keep what is needed to update it later."""
+    positions = positions or {}
+    base_dir = base_dir or (os.path.dirname(path) if path else os.getcwd())
+    try:
+        scenario = Scenario.model_validate(written, context={"base_dir": base_dir})
+    except ValidationError as err:
+        raise _scenario_error(err, path, positions) from None
+    # Private attributes may be set on a frozen model: they are provenance, not content.
+    scenario._source_path = path
+    scenario._positions = dict(positions)
+    scenario._written = written
+    scenario._base_dir = base_dir
+    return scenario
+
+
+# =========================================================================================
+# Dotted updates
+# =========================================================================================
+
+
+def _plain(value: Any) -> Any:
+    """Plain Python values (NumPy scalars, from samplers, become floats and ints)."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if type(value).__module__ == "numpy" and hasattr(value, "item"):
+        return value.item()
+    return value
+
+
+def _set_dotted(written: dict[str, Any], dotted: str, value: Any, scenario: Scenario) -> None:
+    """Set ``written[a][b][c] = value`` for ``dotted = "a.b.c"``, checking the path first."""
+    keys = tuple(dotted.split("."))
+    node: SchemaNode = Scenario
+    block: Any = written
+    for depth, key in enumerate(keys):
+        # Which models could hold this key: a union is narrowed by the block's written tag.
+        if isinstance(node, _Union):
+            tag = block.get(node.discriminator) if isinstance(block, dict) else None
+            models = [node.members[tag]] if tag in node.members else list(node.members.values())
+        else:
+            models = [node] if isinstance(node, type) else []
+        model = next((m for m in models if key in m.model_fields), None)
+        if model is None:
+            known = sorted({name for m in models for name in m.model_fields})
+            where = _dotted(keys[:depth + 1])
+            raise ScenarioError(f"unknown field{_did_you_mean(key, known)}",
+                                scenario.source_path, where)
+        if depth == len(keys) - 1:
+            block[key] = value
+            return
+        node = _schema_node(model.model_fields[key])
+        if not isinstance(block.get(key), dict):
+            # Not written (defaults), or written in short form (boundary: wall): start from
+            # its resolved value so that the other fields keep their meaning.
+            resolved = getattr(scenario, key, None) if depth == 0 else None
+            block[key] = (resolved.model_dump(mode="json", exclude_unset=True)
+                          if isinstance(resolved, Boundaries) else {})
+        block = block[key]
+
+
+# =========================================================================================
+# Data files
+# =========================================================================================
+
+
+def _content_digest(path: str) -> str:
+    """16 hex chars of sha256 over a data file and its companion files (.dbf, .prj, ...)."""
+    main = Path(path)
+    companions = {**DEM_SUFFIXES, **POLYGON_SUFFIXES}.get(main.suffix.lower(), ())
+    files = [main] + [f for s in companions if (f := main.with_suffix(s)).is_file()]
+    stamp = tuple((str(f), f.stat().st_mtime_ns, f.stat().st_size) for f in files)
+    return _digest_files(stamp)
+
+
+@functools.lru_cache(maxsize=64)
+def _digest_files(stamp: tuple[tuple[str, int, int], ...]) -> str:
+    """Cached on (path, mtime, size): a DEM is read once per process, not once per hash."""
+    digest = hashlib.sha256()
+    for name, _, _ in stamp:
+        digest.update(Path(name).suffix.lower().encode())
+        with open(name, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+    return digest.hexdigest()[:16]
+
+
+# =========================================================================================
+# Entry points
+# =========================================================================================
+
+
+def parse_scenario(text: str, source_path: str | os.PathLike | None = None,
+                   base_dir: str | os.PathLike | None = None) -> Scenario:
+    """Validate scenario YAML given as text.
+
+    ``source_path`` names the file in messages; relative data paths start at ``base_dir``
+    (default: the folder of ``source_path``, else the working directory).
+    """
+    path = os.path.abspath(source_path) if source_path is not None else None
+    written, positions = _read_yaml(text, path)
+    scenario = _validate(written, path=path, positions=positions,
+                         base_dir=os.path.abspath(base_dir) if base_dir is not None else None)
+    scenario._source_text = text
+    return scenario
+
+
+def load_scenario(path: str | os.PathLike) -> Scenario:
+    """Read and validate a scenario YAML file; any problem is a :class:`ScenarioError`."""
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise ScenarioError("scenario file not found", path) from None
+    except UnicodeDecodeError as err:
+        raise ScenarioError(f"not a UTF-8 text file ({err.reason})", path) from None
+    except OSError as err:
+        raise ScenarioError(f"cannot read the scenario file: {err.strerror}", path) from None
+    return parse_scenario(text, source_path=path)
+
+
+def write_json_schema(path: str | os.PathLike) -> None:
+    """Write the JSON Schema of the scenario format (``scenarios/schema.json``, for editors)."""
+    Path(path).write_text(json.dumps(Scenario.model_json_schema(), indent=1) + "\n")
