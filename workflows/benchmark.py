@@ -1,0 +1,73 @@
+"""Cell-updates per second of the kernels, single core, and the section 6 wall time.
+
+    python workflows/benchmark.py
+
+- 1D: the structured profile sweep and the generic face sweep on the same profile (a
+  frictionless dam break on 200 000 cells), so their ratio is measured in one run;
+- 2D: the face sweep on a 400 x 400 grid over a plane (cylinder release, Coulomb);
+- the seed's section 6 run (880 cells) from its scenario, wall time of the time loop.
+Compilation is excluded (a warm-up call first).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+from types import SimpleNamespace as NS
+
+import numpy as np
+
+from avflow.rheology import Law
+from avflow.runner import simulate
+from avflow.scenario import load_scenario
+from avflow.solver import Solver
+from avflow.terrain import plane_terrain, profile_terrain
+
+WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+
+
+def rate(solver, h0, t_warm, t_end):
+    state = solver.new_state(h0)
+    solver.advance(state, t_warm)
+    n0, t0 = state.steps, time.perf_counter()
+    solver.advance(state, t_end)
+    wall = time.perf_counter() - t0
+    return (state.steps - n0) * h0.size / wall, wall, state.steps - n0
+
+
+def main():
+    rows = []
+    n = 200_000
+    ter = profile_terrain(NS(length=float(n), slope=NS(kind="constant", theta_deg=0.0),
+                             curvature=False), 1.0, WALLS)
+    h0 = np.where(ter.x < n / 2, 1.0, 0.0)
+    params = np.zeros(4)
+    fast = rate(Solver(ter, Law.COULOMB, params), h0, 0.5, 30.0)
+    generic_ter = dataclasses.replace(ter, mesh=dataclasses.replace(ter.mesh, structured_1d=False))
+    slow = rate(Solver(generic_ter, Law.COULOMB, params), h0, 0.5, 30.0)
+    rows.append(("1D profile sweep, 200k cells", *fast))
+    rows.append(("1D generic face sweep, same run", *slow))
+    plane = NS(slope_deg=30.0, azimuth_deg=90.0, extent=NS(x=[0.0, 4000.0], y=[0.0, 4000.0]),
+               elevation_at_center=0.0)
+    ter2 = plane_terrain(plane, 10.0, None, WALLS)
+    xx, yy = np.meshgrid(ter2.x, ter2.y)
+    h2 = np.where((xx - 1000) ** 2 + (yy - 2000) ** 2 < 300**2, 20.0, 0.0).ravel()
+    rows.append(("2D grid face sweep, 400x400",
+                 *rate(Solver(ter2, Law.COULOMB, np.array([math.tan(math.radians(20)), 0, 0, 0])),
+                       h2, 0.5, 10.0)))
+    print(f"{'kernel':36s} {'cell-upd/s':>11s} {'wall (s)':>9s} {'steps':>6s}")
+    for name, r, wall, steps in rows:
+        print(f"{name:36s} {r:11.3g} {wall:9.3f} {steps:6d}")
+    print(f"structured / generic 1D speed ratio: {fast[0] / slow[0]:.2f}")
+    sc = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
+    simulate(sc)
+    s = simulate(sc).summary
+    print(f"section 6 (Coulomb 15, 880 cells, {s['steps']} steps): time loop {s['wall_time']:.3f} s"
+          f", {s['cell_updates_per_second']:.3g} cell-upd/s (with output every 5 s)")
+
+
+if __name__ == "__main__":
+    main()
