@@ -52,6 +52,12 @@ FAILED = 3
 
 MAX_RETRIES = 12
 
+#: A cell counts as moving when u != 0 and one of its faces carries a mass flux above this
+#: fraction of h |u|. A kinetic scheme can hold a cell at a steady u != 0 whose face fluxes
+#: balance to round-off (the "fluid-like zone" pinned behind a deposit, seed section 6.4):
+#: such a cell transports nothing and must not keep a run alive.
+TRANSPORT_EPS = 1e-9
+
 # Slots of the float64 ``stats`` vector shared between advance() and its caller.
 ST_TIME = 0
 ST_DT_LIMIT = 1  #: dt allowed by the CFL condition with cfl = 1, for the next step
@@ -148,6 +154,13 @@ def _speed(h, hu, hv):
     if h <= 0.0:
         return 0.0
     return math.sqrt(hu * hu + hv * hv) / h
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _moves(speed, speed_n, transport, h):
+    """True when a cell moves material: u != 0 now, and either it just set off (u^n = 0)
+    or one of its faces carried a mass flux above TRANSPORT_EPS h |u^n| in this step."""
+    return speed > 0.0 and (speed_n == 0.0 or transport > TRANSPORT_EPS * h * speed_n)
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -248,7 +261,8 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
             outflow -= fl * dt
         if k == n - 1 and right == OUTFLOW:
             outflow += fr * dt
-        qx, _, cl = _final_momentum(fk, hv_new[k], hn, hu_new[k], 0.0, dt,
+        speed_n = hv_new[k]
+        qx, _, cl = _final_momentum(fk, speed_n, hn, hu_new[k], 0.0, dt,
                                     gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
         h_new[k] = hn
         hu_new[k] = qx
@@ -260,7 +274,7 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
             peak_h[k] = hn
         if speed > peak_speed[k]:
             peak_speed[k] = speed
-        if speed > 0.0:
+        if _moves(speed, speed_n, max(abs(fl), abs(fr)), hn):
             if hn > h_dry:
                 moving += hn * dx
             else:
@@ -271,7 +285,7 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
 @njit(error_model="numpy", cache=True)
 def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
                gamma_x, gamma_y, gamma_z, curvature,
-               h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
+               h, hu, hv, h_new, hu_new, hv_new, flux_h, transport, flag,
                law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
@@ -282,8 +296,10 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
 
     Returns ``(ok, outflow, dt_limit, moving, film, clamped)``: ok is False when a thickness
     would turn negative; outflow the volume that left through open faces in this step;
-    dt_limit the CFL limit of the new state; moving and film the volumes with u != 0 above
-    and below h_dry; clamped the number of cells whose normal acceleration was clamped at 0.
+    dt_limit the CFL limit of the new state; moving and film the volumes of the cells that
+    transport mass (u != 0 and a face flux above TRANSPORT_EPS h |u|) above and below h_dry;
+    ``transport`` is a per-cell work array; clamped the number of cells whose normal
+    acceleration was clamped at 0.
     """
     n = h.size
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
@@ -351,14 +367,18 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
 
     # --- sweep 2a: mass through the faces that keep the rectangular density
     outflow = 0.0
+    transport[:] = 0.0
     for f in range(face_cells.shape[0]):
         i = face_cells[f, 0]
         j = face_cells[f, 1]
         if _dirac_face(dirac, flag[i], flag[j] if j >= 0 else flag[i]):
             continue
         h_new[i] -= flux_h[f]
+        unit = abs(flux_h[f]) / face_length[f]
+        transport[i] = max(transport[i], unit)
         if j >= 0:
             h_new[j] += flux_h[f]
+            transport[j] = max(transport[j], unit)
         elif j == OUTFLOW:
             outflow += flux_h[f] * dt
 
@@ -372,7 +392,8 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
         hn = h[i] + dt / area * h_new[i]
         if hn < 0.0:
             return False, 0.0, 0.0, 0.0, 0.0, 0
-        qx, qy, cl = _final_momentum(flag[i], _speed(h[i], hu[i], hv[i]), hn, hu_new[i],
+        speed_n = _speed(h[i], hu[i], hv[i])
+        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, hu_new[i],
                                      hv_new[i], dt, gamma_z[i], curvature[i],
                                      law, p0, p1, p2, p3, g)
         h_new[i] = hn
@@ -386,7 +407,7 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
             peak_h[i] = hn
         if speed > peak_speed[i]:
             peak_speed[i] = speed
-        if speed > 0.0:
+        if _moves(speed, speed_n, transport[i], hn):
             if hn > h_dry:
                 moving += hn * area
             else:
@@ -397,7 +418,7 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
 @njit(error_model="numpy", cache=True)
 def advance(structured, face_cells, face_normal, face_length, cell_area, cell_perimeter,
             gamma_x, gamma_y, gamma_z, curvature,
-            h, hu, hv, h_work, hu_work, hv_work, flux_h, flag,
+            h, hu, hv, h_work, hu_work, hv_work, flux_h, transport, flag,
             law, params, g, dirac, h_dry, cfl, t_target, max_steps, stop_volume,
             peak_h, peak_speed, stats):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
@@ -431,7 +452,7 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cell_pe
                 ok, out, lim, moving, film, clamped = step_faces(
                     face_cells, face_normal, face_length, cell_area, cell_perimeter,
                     gamma_x, gamma_y, gamma_z, curvature,
-                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
+                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, transport, flag,
                     law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)
             if ok:
                 break

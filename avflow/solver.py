@@ -83,6 +83,7 @@ class Solver:
         self._hu_work = np.zeros(n)
         self._hv_work = np.zeros(n)
         self._flux_h = np.zeros(m.n_faces)
+        self._transport = np.zeros(n)
 
     def new_state(self, h0: np.ndarray) -> State:
         """A state at rest (eq. 60) with thickness ``h0`` (m) per cell."""
@@ -119,7 +120,8 @@ class Solver:
                 max_steps: int = 10**9) -> str:
         """Run the time loop until ``t_target`` (s), a stop, or ``max_steps`` steps in all.
 
-        The run counts as stopped once the volume still moving (u != 0, h > h_dry) is below
+        The run counts as stopped once the volume still moving (u != 0 with mass crossing a
+        face of the cell, h > h_dry) is below
         ``stop_volume`` (negative: never). Returns ``"running"`` (target reached),
         ``"stopped"``, ``"max_steps"`` or ``"failed"``.
         """
@@ -128,7 +130,7 @@ class Solver:
             m.structured_1d, m.face_cells, m.face_normal, m.face_length, m.cell_area,
             m.cell_perimeter, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
-            self._flux_h, state.flag, int(self.law), self.params, float(self.gravity),
+            self._flux_h, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
             bool(self.dirac), float(self.h_dry), float(self.cfl), float(t_target),
             int(max_steps), float(stop_volume), state.peak_h, state.peak_speed, state.stats)
         return STATUS_NAMES[status]

@@ -6,6 +6,7 @@ Measured (dx = 6.25 m): stop 86.05 s, max 67.54 m, front 4506 m; no curvature: f
 +159 m; 14/16: 731 m; 16/20: 1062 m; Pouliquen d = 1.5: stop 98.14 s.
 """
 
+import numpy as np
 import pytest
 
 from avflow.rheology import h_stop
@@ -69,3 +70,26 @@ def test_pouliquen_plane_keeps_h_stop():
     assert abs(inner.min() / expected - 1) < 0.05 and abs(inner.max() / expected - 1) < 0.05
     assert result.summary["outflow_volume"] > 0.0
     assert result.summary["mass_balance_error"] < 1e-12
+
+
+def test_coulomb_24_leaves_a_fluid_like_zone_at_the_rear_at_70_s():
+    """Seed 6.4: at t = 70 s the front has stopped, only a ~150 m part at the rear flows.
+
+    Measured: flowing cells span 197-303 m (112 m) at 70 s, the deposit front has not moved
+    since 55 s, and the run stops at 78.8 s. Accepted: 50-250 m, all in the rear third.
+    """
+    from avflow.runner import FLAG_FLOWING
+
+    result = simulate(load_scenario(SCENARIOS / "seed_exponential_coulomb24.yaml"))
+    assert result.status == "stopped"
+    snaps, x = result.snapshots, result.terrain.x
+    k70 = snaps.time.index(70.0)
+    k55 = snaps.time.index(55.0)
+    flowing = np.nonzero((snaps.flag[k70] == FLAG_FLOWING)
+                         & (snaps.h[k70] > result.thresholds["dry"]))[0]
+    wet = np.nonzero(snaps.h[k70] > result.thresholds["runout"])[0]
+    front_70 = x[wet[-1]]
+    assert front_70 == x[np.nonzero(snaps.h[k55] > result.thresholds["runout"])[0][-1]]
+    span = x[flowing[-1]] - x[flowing[0]] + result.terrain.dx
+    assert 50.0 <= span <= 250.0
+    assert x[flowing[-1]] < x[wet[0]] + (front_70 - x[wet[0]]) / 3
