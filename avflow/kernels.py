@@ -84,6 +84,13 @@ def _normal_accel(g_normal, curvature, speed2):
 @njit(error_model="numpy", cache=True, inline="always")
 def _project(qx, qy, tau, drag, dt):
     """Projection of the trial discharge on the admissible Coulomb set, eq. 50, then drag."""
+    if qy == 0.0:  # along a line: no norm to take, no division without drag
+        excess = abs(qx) - tau * dt
+        if excess <= 0.0:
+            return 0.0, 0.0
+        if drag > 0.0:
+            excess /= 1.0 + drag * dt
+        return math.copysign(excess, qx), 0.0
     norm = math.sqrt(qx * qx + qy * qy)
     excess = norm - tau * dt
     if excess <= 0.0 or norm <= 0.0:
@@ -92,19 +99,21 @@ def _project(qx, qy, tau, drag, dt):
     return qx * scale, qy * scale
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _limit(inv_lim):
+    """The CFL limit (s) from the largest inverse limit of the cells; inf when all is still."""
+    return 1.0 / inv_lim if inv_lim > 0.0 else np.inf
+
+
 @njit(error_model="numpy", cache=True)
-def dt_limit(cell_area, cell_perimeter, gamma_z, h, hu, hv, g):
+def dt_limit(cfl_factor, gamma_z, h, hu, hv, g):
     """Largest stable time step (cfl = 1) of a state: min 2 A / (P (|u| + sqrt(3) c)), eq. 41."""
-    best = np.inf
+    inv_lim = 0.0
     for i in range(h.size):
-        if h[i] > 0.0:
-            speed = math.sqrt(hu[i] * hu[i] + hv[i] * hv[i]) / h[i]
-            wave = speed + SQRT3 * sound_speed(h[i], g * gamma_z[i])
-            if wave > 0.0:
-                lim = 2.0 * cell_area[i] / (cell_perimeter[i] * wave)
-                if lim < best:
-                    best = lim
-    return best
+        speed, inv_i = _observe(h[i], math.sqrt(hu[i] * hu[i] + hv[i] * hv[i]), cfl_factor[i],
+                                gamma_z[i], g)
+        inv_lim = max(inv_lim, inv_i)
+    return _limit(inv_lim)
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -128,7 +137,8 @@ def _trial_momentum(h_old, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt, 
     qdy = hv_old + dt_decide * (rate_y + g * hd * gy)
     accel, _ = _normal_accel(g * gz, kappa, speed_n * speed_n)
     tau, _ = friction(law, p0, p1, p2, p3, hd, speed_n, accel, g)
-    if math.sqrt(qdx * qdx + qdy * qdy) < tau * dt_decide:
+    limit = tau * dt_decide
+    if qdx * qdx + qdy * qdy < limit * limit:
         return qx, qy, UNDER_THRESHOLD
     return qx, qy, FLOWING
 
@@ -164,13 +174,16 @@ def _moves(speed, speed_n, transport, h):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _observe(h, q_norm, area, perimeter, gz, g):
-    """Speed (m/s) of a cell of discharge norm q_norm and its CFL limit (s, cfl = 1), eq. 41."""
+def _observe(h, q_norm, cfl_factor, gz, g):
+    """Speed (m/s) of a cell of discharge norm q_norm and its inverse CFL limit (1/s).
+
+    ``cfl_factor = P / (2 A)``: the limit of eq. 41 is ``1 / (cfl_factor (|u| + sqrt(3) c))``;
+    the sweeps keep the largest inverse and divide once per step.
+    """
     if h <= 0.0:
-        return 0.0, np.inf
+        return 0.0, 0.0
     speed = q_norm / h
-    wave = speed + SQRT3 * sound_speed(h, g * gz)
-    return speed, 2.0 * area / (perimeter * wave)
+    return speed, cfl_factor * (speed + SQRT3 * sound_speed(h, g * gz))
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -183,7 +196,7 @@ def _dirac_face(dirac, flag_i, flag_j):
 
 
 @njit(error_model="numpy", cache=True)
-def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_z, curvature,
+def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
                  h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
                  law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
     """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
@@ -202,12 +215,12 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
     # --- sweep 1: fluxes (every normal along +x), trial state, threshold flags
     c0 = sound_speed(h[0], g * gamma_z[0])
     u0 = hu[0] / h[0] if h[0] > 0.0 else 0.0
-    fp_h, fp_q, fm_h, fm_q = half_fluxes(h[0], u0, c0)
+    fp_h, fp_q, fm_h, fm_q = half_fluxes(h[0], u0, c0, c0 * density[0])
     if left == WALL:  # mirror ghost (h, -u): no mass, twice the pressure
         fl_h = 0.0
         fl_q = 2.0 * fm_q
     else:  # open: the ghost copies cell 0 but cannot push material in
-        gp_h, gp_q, _, _ = half_fluxes(h[0], min(u0, 0.0), c0)
+        gp_h, gp_q, _, _ = half_fluxes(h[0], min(u0, 0.0), c0, c0 * density[0])
         fl_h = gp_h + fm_h
         fl_q = gp_q + fm_q
     flux_h[0] = fl_h
@@ -216,7 +229,7 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
         if i < n:
             ci = sound_speed(h[i], g * gamma_z[i])
             ui = hu[i] / h[i] if h[i] > 0.0 else 0.0
-            np_h, np_q, nm_h, nm_q = half_fluxes(h[i], ui, ci)
+            np_h, np_q, nm_h, nm_q = half_fluxes(h[i], ui, ci, ci * density[i])
             fr_h = fp_h + nm_h
             fr_q = fp_q + nm_q
         else:
@@ -228,7 +241,8 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
             else:
                 um = hu[n - 1] / h[n - 1] if h[n - 1] > 0.0 else 0.0
                 cm = sound_speed(h[n - 1], g * gamma_z[n - 1])
-                _, _, gm_h, gm_q = half_fluxes(h[n - 1], max(um, 0.0), cm)
+                _, _, gm_h, gm_q = half_fluxes(h[n - 1], max(um, 0.0), cm,
+                                               cm * density[n - 1])
                 fr_h = fp_h + gm_h
                 fr_q = fp_q + gm_q
         flux_h[i] = fr_h
@@ -246,7 +260,7 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
 
     # --- sweep 2: mass with the Dirac switch, projection, observers
     outflow = 0.0
-    lim = np.inf
+    inv_lim = 0.0
     moving = 0.0
     film = 0.0
     clamped = 0
@@ -268,8 +282,8 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
         hu_new[k] = qx
         hv_new[k] = 0.0
         clamped += cl
-        speed, lim_k = _observe(hn, abs(qx), dx, cell_perimeter[k], gamma_z[k], g)
-        lim = min(lim, lim_k)
+        speed, inv_k = _observe(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
+        inv_lim = max(inv_lim, inv_k)
         if hn > peak_h[k]:
             peak_h[k] = hn
         if speed > peak_speed[k]:
@@ -279,11 +293,11 @@ def step_profile(face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_
                 moving += hn * dx
             else:
                 film += hn * dx
-    return True, outflow, lim, moving, film, clamped
+    return True, outflow, _limit(inv_lim), moving, film, clamped
 
 
 @njit(error_model="numpy", cache=True)
-def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
+def step_faces(face_cells, face_normal, face_length, cell_area, cfl_factor, density,
                gamma_x, gamma_y, gamma_z, curvature,
                h, hu, hv, h_new, hu_new, hv_new, flux_h, transport, flag,
                law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
@@ -321,7 +335,7 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
             uni = (hu[i] * nx + hv[i] * ny) / hi
             uti = (-hu[i] * ny + hv[i] * nx) / hi
         ci = sound_speed(hi, g * gamma_z[i])
-        fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci)
+        fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci, ci * density[i])
         if j >= 0:
             hj = h[j]
             unj = 0.0
@@ -330,13 +344,13 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
                 unj = (hu[j] * nx + hv[j] * ny) / hj
                 utj = (-hu[j] * ny + hv[j] * nx) / hj
             cj = sound_speed(hj, g * gamma_z[j])
-            _, _, gm_h, gm_q = half_fluxes(hj, unj, cj)
+            _, _, gm_h, gm_q = half_fluxes(hj, unj, cj, cj * density[j])
         elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
             gm_h = -fp_h
             gm_q = fp_q
             utj = uti
         else:  # open boundary: the ghost copies the cell but cannot push material in
-            _, _, gm_h, gm_q = half_fluxes(hi, max(uni, 0.0), ci)
+            _, _, gm_h, gm_q = half_fluxes(hi, max(uni, 0.0), ci, ci * density[i])
             utj = uti
         f_n = fp_q + gm_q
         f_t = uti * fp_h + utj * gm_h
@@ -383,7 +397,7 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
             outflow += flux_h[f] * dt
 
     # --- sweep 2b: new thickness, projection, observers
-    lim = np.inf
+    inv_lim = 0.0
     moving = 0.0
     film = 0.0
     clamped = 0
@@ -400,9 +414,8 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
         hu_new[i] = qx
         hv_new[i] = qy
         clamped += cl
-        speed, lim_i = _observe(hn, math.sqrt(qx * qx + qy * qy), area, cell_perimeter[i],
-                                gamma_z[i], g)
-        lim = min(lim, lim_i)
+        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        inv_lim = max(inv_lim, inv_i)
         if hn > peak_h[i]:
             peak_h[i] = hn
         if speed > peak_speed[i]:
@@ -412,11 +425,11 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cell_perimeter,
                 moving += hn * area
             else:
                 film += hn * area
-    return True, outflow, lim, moving, film, clamped
+    return True, outflow, _limit(inv_lim), moving, film, clamped
 
 
 @njit(error_model="numpy", cache=True)
-def advance(structured, face_cells, face_normal, face_length, cell_area, cell_perimeter,
+def advance(structured, face_cells, face_normal, face_length, cell_area, cfl_factor, density,
             gamma_x, gamma_y, gamma_z, curvature,
             h, hu, hv, h_work, hu_work, hv_work, flux_h, transport, flag,
             law, params, g, dirac, h_dry, cfl, t_target, max_steps, stop_volume,
@@ -445,12 +458,13 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cell_pe
         for _ in range(MAX_RETRIES):
             if structured:
                 ok, out, lim, moving, film, clamped = step_profile(
-                    face_cells, cell_area, cell_perimeter, gamma_x, gamma_y, gamma_z, curvature,
+                    face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
+                    curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
                     law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)
             else:
                 ok, out, lim, moving, film, clamped = step_faces(
-                    face_cells, face_normal, face_length, cell_area, cell_perimeter,
+                    face_cells, face_normal, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, transport, flag,
                     law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)

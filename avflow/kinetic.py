@@ -35,12 +35,26 @@ def sound_speed(h, g_normal):
     return math.sqrt(0.5 * g_normal * h)
 
 
+def density_factor(g_normal):
+    """``1 / (sqrt(3) g cos(theta))`` (s/m), per cell: ``h / (2 sqrt(3) c) = c * factor``.
+
+    Precomputed once with the geometry (``inf`` where the bed is vertical, where c = 0 and
+    the Dirac branch applies instead).
+    """
+    import numpy as np
+
+    with np.errstate(divide="ignore"):
+        return 1.0 / (SQRT3 * np.asarray(g_normal, dtype=float))
+
+
 @njit(error_model="numpy", cache=True, inline="always")
-def half_fluxes(h, un, c):
+def half_fluxes(h, un, c, k):
     """Outward and inward half-fluxes of one cell through a face, per unit face length.
 
     Parameters: thickness h (m), normal velocity un (m/s, positive along the face normal),
-    temperature c (m/s). Returns ``(fp_h, fp_q, fm_h, fm_q)``:
+    temperature c (m/s), and the particle density per unit velocity ``k = h / (2 sqrt(3) c)``,
+    which equals ``c * density_factor`` (see :func:`density_factor`): passing it saves a
+    division per call. Returns ``(fp_h, fp_q, fm_h, fm_q)``:
 
     - ``fp_h = int_{xi>0} xi M dxi`` (m^2/s) and ``fp_q = int_{xi>0} xi^2 M dxi`` (m^3/s^2):
       the particles leaving through the face along +n (eq. 39);
@@ -57,7 +71,6 @@ def half_fluxes(h, un, c):
     s = SQRT3 * c
     a = un - s
     b = un + s
-    k = h / (2.0 * s)  # particle density per unit velocity, h / (2 sqrt(3) c)
     ap = a if a > 0.0 else 0.0
     bp = b if b > 0.0 else 0.0
     am = a if a < 0.0 else 0.0

@@ -18,6 +18,7 @@ import numpy as np
 
 from . import kernels as K
 from .rheology import Law
+from .kinetic import density_factor
 from .terrain import Terrain
 
 STATUS_NAMES = {
@@ -83,6 +84,10 @@ class Solver:
         self._hu_work = np.zeros(n)
         self._hv_work = np.zeros(n)
         self._flux_h = np.zeros(m.n_faces)
+        # Per-cell factors derived from the geometry once: P / (2 A) for the CFL limit
+        # (eq. 41) and 1 / (sqrt(3) g cos(theta)) for the kinetic particle density.
+        self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
+        self._density = density_factor(self.gravity * self.terrain.gamma_z)
         self._transport = np.zeros(n)
 
     def new_state(self, h0: np.ndarray) -> State:
@@ -107,10 +112,8 @@ class Solver:
 
     def reset_limits(self, state: State) -> None:
         """Recompute the CFL limit of ``state`` (after editing its arrays by hand)."""
-        m = self.terrain.mesh
         state.stats[K.ST_DT_LIMIT] = K.dt_limit(
-            m.cell_area, m.cell_perimeter, self.terrain.gamma_z, state.h, state.hu, state.hv,
-            self.gravity)
+            self._cfl_factor, self.terrain.gamma_z, state.h, state.hu, state.hv, self.gravity)
 
     def volume(self, state: State) -> float:
         """Total volume on the mesh (m^3; m^2 per unit width on a profile), compensated sum."""
@@ -128,7 +131,7 @@ class Solver:
         m, t = self.terrain.mesh, self.terrain
         status = K.advance(
             m.structured_1d, m.face_cells, m.face_normal, m.face_length, m.cell_area,
-            m.cell_perimeter, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
+            self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
             self._flux_h, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
             bool(self.dirac), float(self.h_dry), float(self.cfl), float(t_target),

@@ -6,17 +6,22 @@ import numpy as np
 import pytest
 
 from avflow.kernels import _project
-from avflow.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.kinetic import SQRT3, density_factor, half_fluxes, sound_speed
 from avflow.rheology import h_stop, pouliquen_mu
 
 G = 9.81
 
 
+def fluxes(h, u, c=None):
+    """half_fluxes with the temperature of a flat bed and its particle density."""
+    c = sound_speed(h, G) if c is None else c
+    return half_fluxes(h, u, c, c * density_factor(G))
+
+
 @pytest.mark.parametrize("h,u", [(1.0, 0.0), (2.0, 1.5), (0.5, -2.0), (1.0, 10.0), (3.0, -9.0)])
 def test_half_fluxes_sum_to_the_physical_flux(h, u):
     """F+ + F- = (h u, h u^2 + g h^2 / 2) for the rectangular density (eqs. 34, 38)."""
-    c = sound_speed(h, G)
-    fp_h, fp_q, fm_h, fm_q = half_fluxes(h, u, c)
+    fp_h, fp_q, fm_h, fm_q = fluxes(h, u)
     assert fp_h + fm_h == pytest.approx(h * u, rel=1e-13, abs=1e-13)
     assert fp_q + fm_q == pytest.approx(h * u * u + 0.5 * G * h * h, rel=1e-13)
     assert fp_h >= 0.0 and fm_h <= 0.0 and fp_q >= 0.0 and fm_q >= 0.0
@@ -27,21 +32,22 @@ def test_half_flux_matches_eq_54():
     h, u = 2.0, 0.7
     c = math.sqrt(G * h / 2)
     expected = 0.5 * h * u + SQRT3 / 4 * h * c + h * u * u / (4 * SQRT3 * c)
-    assert half_fluxes(h, u, c)[0] == pytest.approx(expected, rel=1e-14)
+    assert fluxes(h, u, c)[0] == pytest.approx(expected, rel=1e-14)
+    assert h / (2 * SQRT3 * c) == pytest.approx(c * density_factor(G), rel=1e-14)
 
 
 def test_supercritical_flux_is_fully_upwind():
     h, u = 1.0, 20.0  # u > sqrt(3) c: every particle moves right
-    fp_h, fp_q, fm_h, fm_q = half_fluxes(h, u, sound_speed(h, G))
+    fp_h, fp_q, fm_h, fm_q = fluxes(h, u)
     assert fm_h == 0.0 and fm_q == 0.0
     assert fp_h == pytest.approx(h * u, rel=1e-12)
 
 
 def test_zero_temperature_is_the_dirac_flux():
     """c = 0: eqs. 53 and 55, particles move with the fluid velocity only."""
-    assert half_fluxes(2.0, 3.0, 0.0) == (6.0, 18.0, 0.0, 0.0)
-    assert half_fluxes(2.0, -3.0, 0.0) == (0.0, 0.0, -6.0, 18.0)
-    assert half_fluxes(0.0, 3.0, 1.0) == (0.0, 0.0, 0.0, 0.0)
+    assert half_fluxes(2.0, 3.0, 0.0, 0.0) == (6.0, 18.0, 0.0, 0.0)
+    assert half_fluxes(2.0, -3.0, 0.0, 0.0) == (0.0, 0.0, -6.0, 18.0)
+    assert half_fluxes(0.0, 3.0, 1.0, 1.0) == (0.0, 0.0, 0.0, 0.0)
 
 
 def test_projection_eq_50_by_hand():
