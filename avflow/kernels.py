@@ -297,7 +297,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
 
 
 @njit(error_model="numpy", cache=True)
-def step_faces(face_cells, face_normal, face_length, cell_area, cfl_factor, density,
+def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                gamma_x, gamma_y, gamma_z, curvature,
                h, hu, hv, h_new, hu_new, hv_new, flux_h, transport, flag,
                law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
@@ -306,7 +306,8 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cfl_factor, dens
     ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
     Normal and tangential components are taken in each face's frame (rotational invariance):
     the normal part uses the kinetic flux, the tangential velocity is carried upwind with the
-    mass. ``flux_h[f]`` is ``L_f`` times the mass flux through face f along its normal.
+    mass. ``face_frame`` (see :class:`avflow.mesh.Mesh`) maps each cell's discharge into the
+    face frame and the flux back into the cell's own basis. ``flux_h[f]`` is ``L_f`` times the mass flux through face f along its normal.
 
     Returns ``(ok, outflow, dt_limit, moving, film, clamped)``: ok is False when a thickness
     would turn negative; outflow the volume that left through open faces in this step;
@@ -321,28 +322,30 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cfl_factor, dens
     hu_new[:] = 0.0
     hv_new[:] = 0.0
 
-    # --- sweep 1a: rectangular fluxes
+    # --- sweep 1a: rectangular fluxes, each side read and written in its own cell's basis
     for f in range(face_cells.shape[0]):
         i = face_cells[f, 0]
         j = face_cells[f, 1]
-        nx = face_normal[f, 0]
-        ny = face_normal[f, 1]
+        ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
+        ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
         length = face_length[f]
         hi = h[i]
         uni = 0.0
         uti = 0.0
         if hi > 0.0:
-            uni = (hu[i] * nx + hv[i] * ny) / hi
-            uti = (-hu[i] * ny + hv[i] * nx) / hi
+            uni = (hu[i] * ni_x + hv[i] * ni_y) / hi
+            uti = (hu[i] * ti_x + hv[i] * ti_y) / hi
         ci = sound_speed(hi, g * gamma_z[i])
         fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci, ci * density[i])
         if j >= 0:
+            nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
+            tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
             hj = h[j]
             unj = 0.0
             utj = 0.0
             if hj > 0.0:
-                unj = (hu[j] * nx + hv[j] * ny) / hj
-                utj = (-hu[j] * ny + hv[j] * nx) / hj
+                unj = (hu[j] * nj_x + hv[j] * nj_y) / hj
+                utj = (hu[j] * tj_x + hv[j] * tj_y) / hj
             cj = sound_speed(hj, g * gamma_z[j])
             _, _, gm_h, gm_q = half_fluxes(hj, unj, cj, cj * density[j])
         elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
@@ -352,19 +355,17 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cfl_factor, dens
         else:  # open boundary: the ghost copies the cell but cannot push material in
             _, _, gm_h, gm_q = half_fluxes(hi, max(uni, 0.0), ci, ci * density[i])
             utj = uti
-        f_n = fp_q + gm_q
-        f_t = uti * fp_h + utj * gm_h
-        fx = (f_n * nx - f_t * ny) * length
-        fy = (f_n * ny + f_t * nx) * length
+        f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
+        f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
         fh = (fp_h + gm_h) * length
         flux_h[f] = fh
         h_new[i] -= fh
-        hu_new[i] -= fx
-        hv_new[i] -= fy
+        hu_new[i] -= f_n * ni_x + f_t * ti_x
+        hv_new[i] -= f_n * ni_y + f_t * ti_y
         if j >= 0:
             h_new[j] += fh
-            hu_new[j] += fx
-            hv_new[j] += fy
+            hu_new[j] += f_n * nj_x + f_t * tj_x
+            hv_new[j] += f_n * nj_y + f_t * tj_y
 
     # --- sweep 1b: trial state and threshold flags
     for i in range(n):
@@ -429,7 +430,7 @@ def step_faces(face_cells, face_normal, face_length, cell_area, cfl_factor, dens
 
 
 @njit(error_model="numpy", cache=True)
-def advance(structured, face_cells, face_normal, face_length, cell_area, cfl_factor, density,
+def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
             gamma_x, gamma_y, gamma_z, curvature,
             h, hu, hv, h_work, hu_work, hv_work, flux_h, transport, flag,
             law, params, g, dirac, h_dry, cfl, t_target, max_steps, stop_volume,
@@ -464,7 +465,7 @@ def advance(structured, face_cells, face_normal, face_length, cell_area, cfl_fac
                     law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)
             else:
                 ok, out, lim, moving, film, clamped = step_faces(
-                    face_cells, face_normal, face_length, cell_area, cfl_factor, density,
+                    face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, transport, flag,
                     law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)

@@ -5,7 +5,11 @@ A :class:`Mesh` is the seed's notation as arrays, built once outside the time lo
 - cells ``i``: area ``A_i`` (m^2, measured on the bed; m per unit width for a profile) and
   perimeter ``sum_j L_ij`` (used by the CFL condition, eq. 41);
 - faces ``Gamma_ij``: the two cells ``(i, j)``, the unit normal ``n_ij`` pointing from i to j,
-  expressed in the bed's tangent basis, and the length ``L_ij`` (m; 1 for a profile).
+  expressed in the bed's tangent basis, and the length ``L_ij`` (m; 1 for a profile);
+- per face and side, the *frame* of the face seen from that cell: a 2x2 matrix whose rows
+  are the face normal and the face tangent in the cell's own tangent basis. On a plane both
+  sides hold the same rotation; on real terrain every cell has its own bed-linked basis
+  (seed Fig. 1) and the frame carries a velocity from one basis to the other through the face.
 
 A boundary face has ``j < 0``: :data:`WALL` (solid wall, the seed's default) or
 :data:`OUTFLOW` (open: material leaves and is counted). The same arrays describe a 1D profile,
@@ -36,6 +40,10 @@ class Mesh:
     face_length: np.ndarray  #: (n_faces,) float64, m
     shape: tuple  #: logical shape of the cell array: (nx,) profile, (ny, nx) grid, (n,) triangles
     structured_1d: bool = False  #: faces ordered along a line: the fast 1D sweep applies
+    #: (n_faces, 2, 2, 2) float64: [face, side (0: first cell, 1: second), row (0: normal,
+    #: 1: tangent), component in that cell's tangent basis]. Derived from face_normal when
+    #: all cells share one basis.
+    face_frame: np.ndarray | None = None
 
     @property
     def n_cells(self) -> int:
@@ -55,6 +63,17 @@ class Mesh:
             raise ValueError("cell areas must be positive")
         if int(np.prod(self.shape)) != n:
             raise ValueError(f"shape {self.shape} does not hold {n} cells")
+        if self.face_frame is None:
+            object.__setattr__(self, "face_frame", shared_basis_frames(self.face_normal))
+        if self.face_frame.shape != (nf, 2, 2, 2):
+            raise ValueError("face_frame must have shape (n_faces, 2, 2, 2)")
+
+
+def shared_basis_frames(face_normal: np.ndarray) -> np.ndarray:
+    """Face frames when both cells share one tangent basis: rows n = (nx, ny), t = (-ny, nx)."""
+    nx, ny = face_normal[:, 0], face_normal[:, 1]
+    side = np.stack([np.stack([nx, ny], axis=1), np.stack([-ny, nx], axis=1)], axis=1)
+    return np.ascontiguousarray(np.stack([side, side], axis=1))
 
 
 def _perimeters(n_cells, face_cells, face_length):

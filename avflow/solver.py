@@ -130,7 +130,7 @@ class Solver:
         """
         m, t = self.terrain.mesh, self.terrain
         status = K.advance(
-            m.structured_1d, m.face_cells, m.face_normal, m.face_length, m.cell_area,
+            m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
             self._flux_h, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
