@@ -78,24 +78,24 @@ def to_dataset(result: RunResult) -> xr.Dataset:
     """The CF Dataset of a run (profiles on (time, x), grids on (time, y, x))."""
     terrain, snaps = result.terrain, result.snapshots
     profile = terrain.kind == "profile"
-    shape = terrain.mesh.shape
     space = ("x",) if profile else ("y", "x")
-    nt = len(snaps.time)
 
-    def stack(frames):
-        return np.stack(frames).reshape((nt, *shape))
+    def grid(values):
+        """Per-cell values on the output grid; NaN outside the DEM."""
+        return terrain.to_grid(np.asarray(values))
 
-    h = stack(snaps.h)
+    h_cells = np.stack(snaps.h)
     with np.errstate(invalid="ignore", divide="ignore"):
-        if profile:
-            u = np.where(h > 0, stack(snaps.hu) / h, 0.0)
-            velocity = {"u": u}
-        else:
-            # Velocity along the bed, as components of its horizontal projection.
-            e1, e2 = terrain.tangent_basis
-            ua = np.where(h > 0, stack(snaps.hu) / h, 0.0)
-            va = np.where(h > 0, stack(snaps.hv) / h, 0.0)
-            velocity = {"u": ua * e1[0] + va * e2[0], "v": ua * e1[1] + va * e2[1]}
+        ua = np.where(h_cells > 0, np.stack(snaps.hu) / h_cells, 0.0)
+        va = np.where(h_cells > 0, np.stack(snaps.hv) / h_cells, 0.0)
+    if profile:
+        velocity = {"u": grid(ua)}
+    else:
+        # Velocity along the bed, as the components of its horizontal projection.
+        e1, e2 = terrain.tangent_basis[:, 0, :], terrain.tangent_basis[:, 1, :]
+        velocity = {"u": grid(ua * e1[:, 0] + va * e2[:, 0]),
+                    "v": grid(ua * e1[:, 1] + va * e2[:, 1])}
+    h = grid(h_cells)
 
     # CF 4.4 wants "unit since reference" for time: the release happens at the epoch, so
     # seconds since release are the stored values (decode_times=False reads them as such).
@@ -128,14 +128,13 @@ def to_dataset(result: RunResult) -> xr.Dataset:
     data = {"h": (("time", *space), h, attrs("h"))}
     for name, values in velocity.items():
         data[name] = (("time", *space), values, attrs(name))
-    data["flow_state"] = (("time", *space), stack(snaps.flag).astype(np.int8),
-                          attrs("flow_state"))
-    data["peak_thickness"] = (space, result.state.peak_h.reshape(shape), attrs("peak_thickness"))
-    data["peak_speed"] = (space, result.state.peak_speed.reshape(shape), attrs("peak_speed"))
-    data["deposit_thickness"] = (space, result.state.h.reshape(shape),
-                                 attrs("deposit_thickness"))
-    data["bed_elevation"] = (space, terrain.bed_elevation.reshape(shape), attrs("bed_elevation"))
-    data["slope_angle"] = (space, terrain.slope_deg.reshape(shape), attrs("slope_angle"))
+    flags = terrain.to_grid(np.stack(snaps.flag).astype(np.int8), fill=-1).astype(np.int8)
+    data["flow_state"] = (("time", *space), flags, {**attrs("flow_state"), "_FillValue": -1})
+    data["peak_thickness"] = (space, grid(result.state.peak_h), attrs("peak_thickness"))
+    data["peak_speed"] = (space, grid(result.state.peak_speed), attrs("peak_speed"))
+    data["deposit_thickness"] = (space, grid(result.state.h), attrs("deposit_thickness"))
+    data["bed_elevation"] = (space, grid(terrain.bed_elevation), attrs("bed_elevation"))
+    data["slope_angle"] = (space, grid(terrain.slope_deg), attrs("slope_angle"))
     data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                              {**attrs("moving_volume"),
                               "units": _per_width("m3", profile)})
@@ -187,8 +186,9 @@ def encoding_for(ds: xr.Dataset) -> dict:
         elif var.dtype.kind == "f" and var.ndim >= 1 and name not in ("moving_volume",
                                                                         "time_span_bounds"):
             chunks = (1, *var.shape[1:]) if var.dims[0] == "time" else var.shape
+            fill = np.float32(np.nan) if bool(np.isnan(var.values).any()) else None
             enc[name] = {"dtype": "float32", "zlib": True, "complevel": 2, "shuffle": True,
-                         "chunksizes": chunks, "_FillValue": None}
+                         "chunksizes": chunks, "_FillValue": fill}
         elif var.dtype.kind == "f":
             enc[name] = {"_FillValue": None}
     return enc

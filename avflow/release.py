@@ -28,8 +28,7 @@ def initial_thickness(release, terrain: Terrain) -> np.ndarray:
     if terrain.kind == "profile":
         x, y = terrain.x, None
     else:
-        xx, yy = np.meshgrid(terrain.x, terrain.y)
-        x, y = xx.ravel(), yy.ravel()
+        x, y = terrain.cell_xy()
     kind = release.kind
     if kind == "parabola":
         l2 = release.half_length**2

@@ -37,17 +37,21 @@ def deposit_extent(terrain: Terrain, h: np.ndarray, threshold: float, h0: np.nda
         length = float(terrain.x[idx[-1]] - terrain.x[idx[0]] + 2 * half)
         touches = bool(idx[0] == 0 or idx[-1] == h.size - 1)
         return runout, length, touches
-    xx, yy = np.meshgrid(terrain.x, terrain.y)
-    xx, yy = xx.ravel(), yy.ravel()
+    xx, yy = terrain.cell_xy()
     weights = h0 * terrain.mesh.cell_area
     cx, cy = np.average(xx, weights=weights), np.average(yy, weights=weights)
     runout = float(np.max(np.hypot(xx[mask] - cx, yy[mask] - cy)))
-    e1 = terrain.tangent_basis[0][:2]
-    direction = e1 / np.linalg.norm(e1) if np.linalg.norm(e1) > 1e-12 else np.array([1.0, 0.0])
+    # the deposit's extent along the direction the mass travelled (release centroid to
+    # deposit centroid), or along x when it did not move
+    dweights = h * terrain.mesh.cell_area
+    travel = np.array([np.average(xx, weights=dweights) - cx,
+                       np.average(yy, weights=dweights) - cy])
+    norm = np.hypot(*travel)
+    direction = travel / norm if norm > 1e-9 * max(terrain.dx, 1.0) else np.array([1.0, 0.0])
     along = xx[mask] * direction[0] + yy[mask] * direction[1]
     length = float(along.max() - along.min() + abs(terrain.dx * direction[0])
                    + abs(terrain.dy * direction[1]))
-    grid_mask = mask.reshape(terrain.mesh.shape)
+    grid_mask = terrain.to_grid(mask.astype(float), fill=0.0) > 0
     touches = bool(grid_mask[0].any() or grid_mask[-1].any() or grid_mask[:, 0].any()
                    or grid_mask[:, -1].any())
     return runout, length, touches

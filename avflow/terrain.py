@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .mesh import BOUNDARY_CODES, Mesh, grid_mesh, profile_mesh
+from .mesh import BOUNDARY_CODES, Mesh, _perimeters, grid_mesh, profile_mesh
 
 
 @dataclass(frozen=True)
@@ -43,12 +43,39 @@ class Terrain:
     x_horizontal: np.ndarray | None = None  #: profile only: horizontal distance of cell centres
     dx: float = 0.0  #: m, spacing along x (along the bed for a profile, horizontal for a grid)
     dy: float = 0.0
-    tangent_basis: np.ndarray | None = None  #: grid only: (2, 3) unit vectors e1, e2 in (x, y, z)
+    #: grid only: (n_cells, 2, 3) unit vectors e1, e2 of each cell's tangent basis in (x, y, z)
+    tangent_basis: np.ndarray | None = None
+    #: grid only: flat index of each cell in the (ny, nx) grid (cells outside the DEM are absent)
+    cell_index: np.ndarray | None = None
+    crs_wkt: str | None = None
     extras: dict = field(default_factory=dict)
 
     @property
     def n_cells(self) -> int:
         return self.mesh.n_cells
+
+    @property
+    def grid_shape(self) -> tuple:
+        """(nx,) for a profile, (ny, nx) for a grid."""
+        return (self.x.size,) if self.y is None else (self.y.size, self.x.size)
+
+    def to_grid(self, values: np.ndarray, fill=np.nan) -> np.ndarray:
+        """Per-cell values (..., n_cells) laid out on the grid (..., ny, nx), ``fill`` outside."""
+        values = np.asarray(values)
+        if self.cell_index is None:
+            return values.reshape(values.shape[:-1] + self.grid_shape)
+        out = np.full(values.shape[:-1] + (int(np.prod(self.grid_shape)),), fill,
+                      dtype=np.result_type(values.dtype, type(fill)))
+        out[..., self.cell_index] = values
+        return out.reshape(values.shape[:-1] + self.grid_shape)
+
+    def cell_xy(self):
+        """Horizontal coordinates (x, y) of the cell centres, per cell (grids only)."""
+        xx, yy = np.meshgrid(self.x, self.y)
+        xx, yy = xx.ravel(), yy.ravel()
+        if self.cell_index is not None:
+            xx, yy = xx[self.cell_index], yy[self.cell_index]
+        return xx, yy
 
 
 def slope_function(slope):
@@ -172,7 +199,149 @@ def plane_terrain(terrain, dx: float, dy: float | None, boundary) -> Terrain:
         y=y,
         dx=float(dx),
         dy=float(dy),
-        tangent_basis=basis,
+        tangent_basis=np.ascontiguousarray(np.broadcast_to(basis, (n, 2, 3))),
+    )
+
+
+def _gradient(z, d, axis):
+    """dz/dx along ``axis`` with NaN-aware one-sided differences (0 where isolated)."""
+    fwd = (np.roll(z, -1, axis) - z) / d
+    bwd = (z - np.roll(z, 1, axis)) / d
+    idx = [slice(None)] * 2
+    idx[axis] = -1
+    fwd[tuple(idx)] = np.nan
+    idx[axis] = 0
+    bwd[tuple(idx)] = np.nan
+    with np.errstate(invalid="ignore"):
+        both = 0.5 * (fwd + bwd)
+    return np.where(np.isfinite(both), both,
+                    np.where(np.isfinite(fwd), fwd, np.where(np.isfinite(bwd), bwd, 0.0)))
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _frames(normal, tangent, basis_i, basis_j):
+    """(k, 2, 2, 2) face frames from 3D face normals/tangents and the two cells' bases."""
+    out = np.zeros((normal.shape[0], 2, 2, 2))
+    for side, basis in enumerate((basis_i, basis_j)):
+        for row, vec in enumerate((normal, tangent)):
+            out[:, side, row, :] = np.einsum("kc,kbc->kb", vec, basis)
+    return out
+
+
+def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=None) -> Terrain:
+    """Any bed ``z = b(x, y)`` on a horizontal grid (a DEM); NaN cells lie outside the domain.
+
+    Every cell is the lift of its grid cell onto the bed, with its own tangent basis (seed
+    Fig. 1): z along the bed normal ``n = (-b_x, -b_y, 1) / |.|``, x the projection of the
+    fixed horizontal x axis onto the tangent plane, y = z ^ x. Gravity gives
+    ``gamma = (-e1_z, -e2_z)`` and ``gamma_z = n_z = cos(theta)``; the bed area of a cell is
+    ``dx dy / cos(theta)``. A face between two cells lies on the bed plane of the averaged
+    gradient (the difference across the face, the mean along it); its normal and tangent
+    are read in each cell's basis (:class:`~avflow.mesh.Mesh` face frames), so a discharge
+    crosses from one basis to the other through the face. Faces towards NODATA cells are
+    walls or open (``nodata``); the curvature term of eqs. 61-62 is not used in 2D (the seed
+    notes it is ill-defined when the bed is not transversally uniform).
+    """
+    z = np.asarray(elevation, dtype=float)
+    ny, nx = z.shape
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    dx, dy = float(x[1] - x[0]), float(y[1] - y[0])
+    valid = np.isfinite(z)
+    if not valid.any():
+        raise ValueError("the DEM has no valid cell")
+    bx, by = _gradient(z, dx, 1), _gradient(z, dy, 0)
+    normal = _unit(np.stack([-bx, -by, np.ones_like(z)], axis=-1))
+    e1 = _unit(np.stack([1.0 - normal[..., 0] ** 2, -normal[..., 0] * normal[..., 1],
+                         -normal[..., 0] * normal[..., 2]], axis=-1))
+    e2 = np.cross(normal, e1)
+    index = -np.ones((ny, nx), dtype=np.int64)
+    index[valid] = np.arange(valid.sum())
+    flat = np.flatnonzero(valid.ravel())
+    basis = np.stack([e1, e2], axis=-2).reshape(-1, 2, 3)[flat]
+    cells, frames, lengths = [], [], []
+    side_code = {k: BOUNDARY_CODES[getattr(boundary, k)] for k in ("x_min", "x_max", "y_min",
+                                                                     "y_max")}
+    hole = BOUNDARY_CODES[nodata]
+
+    def add_faces(i_rc, j_rc, along_x):
+        """Faces between cells at i_rc and j_rc (j = +1 in x or y); j may be off-grid/NaN."""
+        (ri, ci), (rj, cj) = i_rc, j_rc
+        inside = (rj >= 0) & (rj < ny) & (cj >= 0) & (cj < nx)
+        rjc, cjc = np.clip(rj, 0, ny - 1), np.clip(cj, 0, nx - 1)
+        j_valid = inside & valid[rjc, cjc]
+        zi, zj = z[ri, ci], np.where(j_valid, z[rjc, cjc], np.nan)
+        gi = np.stack([bx[ri, ci], by[ri, ci]], axis=-1)
+        gj = np.where(j_valid[:, None], np.stack([bx[rjc, cjc], by[rjc, cjc]], axis=-1), gi)
+        g = 0.5 * (gi + gj)
+        step = (cj - ci) * dx if along_x else (rj - ri) * dy
+        across = np.where(j_valid, (zj - zi) / step, g[:, 0 if along_x else 1])
+        if along_x:
+            g[:, 0] = across
+            edge = np.stack([np.zeros_like(g[:, 0]), np.full_like(g[:, 0], dy), g[:, 1] * dy], 1)
+        else:
+            g[:, 1] = across
+            edge = np.stack([np.full_like(g[:, 0], dx), np.zeros_like(g[:, 0]), g[:, 0] * dx], 1)
+        bed = _unit(np.stack([-g[:, 0], -g[:, 1], np.ones_like(g[:, 0])], axis=1))
+        nrm = _unit(np.cross(edge, bed) if along_x else np.cross(bed, edge))
+        direction = np.sign((cj - ci) if along_x else (rj - ri))[:, None]
+        nrm = nrm * direction
+        tan = np.cross(bed, nrm)
+        i_idx = index[ri, ci]
+        if along_x:
+            off = np.where(cj < 0, side_code["x_min"], side_code["x_max"])
+        else:
+            off = np.where(rj < 0, side_code["y_min"], side_code["y_max"])
+        j_idx = np.where(j_valid, index[rjc, cjc], np.where(inside, hole, off))
+        bj = np.where(j_valid[:, None, None], basis[np.maximum(index[rjc, cjc], 0)],
+                      basis[i_idx])
+        cells.append(np.stack([i_idx, j_idx], axis=1))
+        frames.append(_frames(nrm, tan, basis[i_idx], bj))
+        lengths.append(np.linalg.norm(edge, axis=1))
+
+    rr, cc = np.nonzero(valid)
+    # each cell owns its +x and +y faces (to a valid neighbour or a boundary), and its -x /
+    # -y faces only when the neighbour there is off the grid or NODATA
+    for along_x, (dr, dc) in ((True, (0, 1)), (False, (1, 0))):
+        add_faces((rr, cc), (rr + dr, cc + dc), along_x)
+        rb, cb = rr - dr, cc - dc
+        outside = (rb < 0) | (cb < 0)
+        lonely = outside | ~valid[np.clip(rb, 0, ny - 1), np.clip(cb, 0, nx - 1)]
+        add_faces((rr[lonely], cc[lonely]), (rb[lonely], cb[lonely]), along_x)
+    face_cells = np.ascontiguousarray(np.concatenate(cells), dtype=np.int64)
+    face_frame = np.ascontiguousarray(np.concatenate(frames))
+    face_length = np.concatenate(lengths)
+    # the first cell's normal (frame row 0 of side 0) in its basis, for Mesh.face_normal
+    face_normal = np.ascontiguousarray(face_frame[:, 0, 0, :])
+    n = flat.size
+    cos_theta = normal.reshape(-1, 3)[flat, 2]
+    mesh = Mesh(
+        cell_area=np.full(n, dx * dy) / cos_theta,
+        cell_perimeter=_perimeters(n, face_cells, face_length),
+        face_cells=face_cells,
+        face_normal=face_normal,
+        face_length=face_length,
+        shape=(n,),
+        face_frame=face_frame,
+    )
+    return Terrain(
+        kind="grid",
+        mesh=mesh,
+        gamma_x=np.ascontiguousarray(-basis[:, 0, 2]),
+        gamma_y=np.ascontiguousarray(-basis[:, 1, 2]),
+        gamma_z=np.ascontiguousarray(cos_theta),
+        curvature=np.zeros(n),
+        bed_elevation=z.ravel()[flat],
+        slope_deg=np.degrees(np.arccos(np.clip(cos_theta, -1.0, 1.0))),
+        x=x,
+        y=y,
+        dx=dx,
+        dy=dy,
+        tangent_basis=np.ascontiguousarray(basis),
+        cell_index=None if valid.all() else flat,
+        crs_wkt=crs_wkt,
     )
 
 
