@@ -93,3 +93,28 @@ def test_coulomb_24_leaves_a_fluid_like_zone_at_the_rear_at_70_s():
     span = x[flowing[-1]] - x[flowing[0]] + result.terrain.dx
     assert 50.0 <= span <= 250.0
     assert x[flowing[-1]] < x[wet[0]] + (front_70 - x[wet[0]]) / 3
+
+
+@pytest.mark.parametrize("theta", [23.0, 25.0, 28.0])
+def test_pouliquen_steady_uniform_flow_has_fr_beta_h_over_h_stop(theta):
+    """Section 5, Fig. 9b: a uniform layer on an inclined plane reaches Fr = beta h / h_stop.
+
+    The layer (2.5 h_stop) drains through the open lower end; far from both ends it stays
+    uniform and reaches its steady state within 5 s. Measured: Fr equal to 4 digits.
+    """
+    import math
+
+    from avflow.rheology import Law, pouliquen_steady_froude
+    from avflow.solver import Solver
+    from conftest import slope_profile
+
+    d1, d2, d, beta = 20.7, 32.8, 0.98e-3, 0.136
+    terrain = slope_profile(20.0, 0.01, theta, x_max="outflow")
+    params = np.array([math.tan(math.radians(d1)), math.tan(math.radians(d2)), d, beta])
+    solver = Solver(terrain, Law.POULIQUEN, params)
+    state = solver.new_state(np.full(terrain.n_cells, 2.5 * h_stop(theta, d1, d2, d)))
+    solver.advance(state, 5.0)
+    k = terrain.n_cells * 3 // 4
+    h, u = state.h[k], state.hu[k] / state.h[k]
+    froude = u / math.sqrt(9.81 * h)
+    assert froude == pytest.approx(pouliquen_steady_froude(h, theta, d1, d2, d, beta), rel=1e-3)
