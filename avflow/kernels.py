@@ -198,7 +198,8 @@ def _dirac_face(dirac, flag_i, flag_j):
 @njit(error_model="numpy", cache=True)
 def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
                  h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
-                 law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
+                 law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+                 arrival, last_moved):
     """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
 
     Same arithmetic as :func:`step_faces`, with the face loop fused into the cell loops.
@@ -288,6 +289,10 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
             peak_h[k] = hn
         if speed > peak_speed[k]:
             peak_speed[k] = speed
+        if hn > h_dry and math.isnan(arrival[k]):
+            arrival[k] = t_new
+        if speed > 0.0:
+            last_moved[k] = t_new
         if _moves(speed, speed_n, max(abs(fl), abs(fr)), hn):
             if hn > h_dry:
                 moving += hn * dx
@@ -300,7 +305,8 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
 def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                gamma_x, gamma_y, gamma_z, curvature,
                h, hu, hv, h_new, hu_new, hv_new, flux_h, transport, flag,
-               law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed):
+               law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+               arrival, last_moved):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
     ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
@@ -421,6 +427,10 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             peak_h[i] = hn
         if speed > peak_speed[i]:
             peak_speed[i] = speed
+        if hn > h_dry and math.isnan(arrival[i]):
+            arrival[i] = t_new
+        if speed > 0.0:
+            last_moved[i] = t_new
         if _moves(speed, speed_n, transport[i], hn):
             if hn > h_dry:
                 moving += hn * area
@@ -434,11 +444,13 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             gamma_x, gamma_y, gamma_z, curvature,
             h, hu, hv, h_work, hu_work, hv_work, flux_h, transport, flag,
             law, params, g, dirac, h_dry, cfl, t_target, max_steps, stop_volume,
-            peak_h, peak_speed, stats):
+            peak_h, peak_speed, arrival, last_moved, stats):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
-    one call to the next. The run is *stopped* once the moving volume (cells with u != 0 and
+    one call to the next. Observers updated every step: ``peak_h``, ``peak_speed``,
+    ``arrival`` (first time h > h_dry, NaN before) and ``last_moved`` (end of the last step
+    with u != 0: the time a cell came to rest for good once it stays at rest). The run is *stopped* once the moving volume (cells with u != 0 and
     h > h_dry) falls below ``stop_volume``; a negative ``stop_volume`` never stops.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
     """
@@ -457,18 +469,21 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             last = True
         ok = False
         for _ in range(MAX_RETRIES):
+            t_new = t_target if last else t + dt
             if structured:
                 ok, out, lim, moving, film, clamped = step_profile(
                     face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                     curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
-                    law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)
+                    law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+                    arrival, last_moved)
             else:
                 ok, out, lim, moving, film, clamped = step_faces(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, transport, flag,
-                    law, params, g, dirac, h_dry, dt, dt_decide, peak_h, peak_speed)
+                    law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+                    arrival, last_moved)
             if ok:
                 break
             dt *= 0.5

@@ -48,8 +48,19 @@ FIELDS = {
                               units="m", cell_methods="time_span: point", comment=H_COMMENT),
     "bed_elevation": dict(kind="static", standard_name="ground_level_altitude", units="m"),
     "slope_angle": dict(kind="static", standard_name="ground_slope_angle", units="degree"),
+    "peak_pressure": dict(kind="reduced", long_name="maximum dynamic pressure rho |u|^2",
+                          units="Pa", cell_methods="time_span: maximum"),
+    "arrival_time": dict(kind="reduced", long_name="time of first arrival (h > dry threshold)",
+                         units="s", comment="seconds since release; NaN where never reached"),
+    "rest_time": dict(kind="reduced", long_name="time the cell came to rest for good",
+                      units="s", comment=("end of the last step in which the material of the "
+                                          "cell moved; NaN where dry or still moving at the end")),
     "moving_volume": dict(kind="series", long_name="volume of material still moving",
                           units="m3"),
+    "center_of_mass_x": dict(kind="series", long_name="centre of mass, x", units="m"),
+    "center_of_mass_y": dict(kind="series", long_name="centre of mass, y", units="m"),
+    "center_of_mass_z": dict(kind="series", long_name="centre of mass, bed elevation",
+                             units="m"),
 }
 
 SUMMARIES = {
@@ -66,6 +77,10 @@ SUMMARIES = {
     "film_volume": ("m3", "volume still moving at the end with h <= dry_threshold"),
     "mass_balance_error": ("1", "|V_end + V_out - V_0| / V_0"),
     "wall_time": ("s", "wall-clock time of the time loop"),
+    "travel_length": ("m", "horizontal distance from the highest released cell to the farthest "
+                           "deposit cell"),
+    "drop_height": ("m", "elevation drop over travel_length"),
+    "travel_angle": ("degree", "atan(drop_height / travel_length), the Fahrboeschung"),
 }
 
 
@@ -133,6 +148,16 @@ def to_dataset(result: RunResult) -> xr.Dataset:
     data["peak_thickness"] = (space, grid(result.state.peak_h), attrs("peak_thickness"))
     data["peak_speed"] = (space, grid(result.state.peak_speed), attrs("peak_speed"))
     data["deposit_thickness"] = (space, grid(result.state.h), attrs("deposit_thickness"))
+    state = result.state
+    density = result.scenario.physics.density
+    data["peak_pressure"] = (space, grid(density * state.peak_speed**2), attrs("peak_pressure"))
+    data["arrival_time"] = (space, grid(state.arrival), attrs("arrival_time"))
+    at_rest = (state.h > 0.0) & (state.hu == 0.0) & (state.hv == 0.0)
+    data["rest_time"] = (space, grid(np.where(at_rest, state.last_moved, np.nan)),
+                         attrs("rest_time"))
+    com = np.asarray(snaps.center_of_mass, dtype=float)
+    for k, axis in enumerate("xyz"):
+        data[f"center_of_mass_{axis}"] = ("time", com[:, k], attrs(f"center_of_mass_{axis}"))
     data["bed_elevation"] = (space, grid(terrain.bed_elevation), attrs("bed_elevation"))
     data["slope_angle"] = (space, grid(terrain.slope_deg), attrs("slope_angle"))
     data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
@@ -183,8 +208,8 @@ def encoding_for(ds: xr.Dataset) -> dict:
     for name, var in ds.variables.items():
         if name in ds.coords:
             enc[name] = {"_FillValue": None}
-        elif var.dtype.kind == "f" and var.ndim >= 1 and name not in ("moving_volume",
-                                                                        "time_span_bounds"):
+        elif var.dtype.kind == "f" and var.ndim >= 1 and var.dims != ("time",) and name not in (
+                "time_span_bounds",):
             chunks = (1, *var.shape[1:]) if var.dims[0] == "time" else var.shape
             fill = np.float32(np.nan) if bool(np.isnan(var.values).any()) else None
             enc[name] = {"dtype": "float32", "zlib": True, "complevel": 2, "shuffle": True,

@@ -17,7 +17,7 @@ from .errors import ScenarioError
 from .release import ReleaseError, initial_thickness
 from .rheology import friction_parameters
 from .solver import Solver, State
-from .summary import deposit_extent
+from .summary import deposit_extent, travel_angle
 from .terrain import Terrain, build_terrain
 
 #: Default dry threshold and runout threshold, relative to the largest released thickness.
@@ -37,14 +37,29 @@ class Snapshots:
     hv: list = field(default_factory=list)
     flag: list = field(default_factory=list)
     moving_volume: list = field(default_factory=list)
+    center_of_mass: list = field(default_factory=list)  #: (x, y, z) per snapshot, m
 
-    def record(self, state: State, moving: float) -> None:
+    def record(self, state: State, moving: float, terrain: Terrain) -> None:
         self.time.append(state.t)
         self.h.append(state.h.copy())
         self.hu.append(state.hu.copy())
         self.hv.append(state.hv.copy())
         self.flag.append(cell_flags(state))
         self.moving_volume.append(moving)
+        self.center_of_mass.append(center_of_mass(terrain, state.h))
+
+
+def center_of_mass(terrain: Terrain, h: np.ndarray) -> tuple:
+    """Volume-weighted centre (x, y, z) of the material, m (x along the bed on profiles)."""
+    w = h * terrain.mesh.cell_area
+    total = w.sum()
+    if total <= 0.0:
+        return (np.nan, np.nan, np.nan)
+    if terrain.kind == "profile":
+        x, y = terrain.x, np.zeros_like(terrain.x)
+    else:
+        x, y = terrain.cell_xy()
+    return (float(w @ x / total), float(w @ y / total), float(w @ terrain.bed_elevation / total))
 
 
 def cell_flags(state: State) -> np.ndarray:
@@ -109,7 +124,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
     stop_volume = thresholds["stop_fraction"] * v0
     t_end, every = scenario.time.end, scenario.output.every
     snaps = Snapshots()
-    snaps.record(state, moving=0.0)
+    snaps.record(state, 0.0, terrain)
     started = _time.perf_counter()
     k = 1
     time_to_stop = np.nan
@@ -117,7 +132,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
         target = min(k * every, t_end)
         status = solver.advance(state, target, stop_volume=stop_volume,
                                 max_steps=scenario.time.max_steps)
-        snaps.record(state, moving=float(state.stats[K.ST_MOVING]))
+        snaps.record(state, float(state.stats[K.ST_MOVING]), terrain)
         if progress is not None:
             progress(state.t, t_end)
         if status == "stopped":
@@ -141,7 +156,11 @@ def summarize(result: RunResult, v0: float) -> dict:
     v_out = float(state.stats[K.ST_OUTFLOW])
     runout, length, touches = deposit_extent(terrain, state.h, result.thresholds["runout"],
                                              result.h0)
+    travel, drop, angle = travel_angle(terrain, result.h0, state.h, result.thresholds["runout"])
     return {
+        "travel_length": travel,
+        "drop_height": drop,
+        "travel_angle": angle,
         "runout": runout,
         "time_to_stop": result.time_to_stop,
         "deposit_max_thickness": float(state.h.max()),

@@ -39,6 +39,8 @@ class State:
     flag: np.ndarray  #: uint8 per cell from the last step: kernels.FLOWING / UNDER_THRESHOLD / DRY
     peak_h: np.ndarray  #: running maximum of h, m
     peak_speed: np.ndarray  #: running maximum of |u|, m/s
+    arrival: np.ndarray  #: first time h exceeded the dry threshold, s (NaN: never)
+    last_moved: np.ndarray  #: end of the last step in which u != 0, s (NaN: never moved)
     stats: np.ndarray = field(default_factory=lambda: np.zeros(K.N_STATS))
 
     @property
@@ -105,6 +107,8 @@ class Solver:
             flag=np.where(h0 > 0.0, K.UNDER_THRESHOLD, K.DRY).astype(np.uint8),
             peak_h=h0.copy(),
             peak_speed=np.zeros(n),
+            arrival=np.where(h0 > self.h_dry, 0.0, np.nan),
+            last_moved=np.full(n, np.nan),
         )
         self.reset_limits(state)
         state.stats[K.ST_DT_MIN] = np.inf
@@ -135,5 +139,6 @@ class Solver:
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
             self._flux_h, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
             bool(self.dirac), float(self.h_dry), float(self.cfl), float(t_target),
-            int(max_steps), float(stop_volume), state.peak_h, state.peak_speed, state.stats)
+            int(max_steps), float(stop_volume), state.peak_h, state.peak_speed, state.arrival,
+            state.last_moved, state.stats)
         return STATUS_NAMES[status]

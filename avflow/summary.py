@@ -14,6 +14,9 @@ Definitions (documented in the NetCDF attributes too):
   the dry threshold) falls below ``stop_fraction`` of the released volume; NaN when the run
   reaches its end time first.
 - ``mass_balance_error``: ``|V_end + V_out - V_0| / V_0`` (V_out: left through open faces).
+- ``travel_length`` (m, horizontal), ``drop_height`` (m) and ``travel_angle`` (degrees, the
+  Fahrboeschung ``atan(drop / length)``): from the highest released cell to the deposit cell
+  (h > runout_threshold) farthest from it horizontally.
 """
 
 from __future__ import annotations
@@ -55,3 +58,22 @@ def deposit_extent(terrain: Terrain, h: np.ndarray, threshold: float, h0: np.nda
     touches = bool(grid_mask[0].any() or grid_mask[-1].any() or grid_mask[:, 0].any()
                    or grid_mask[:, -1].any())
     return runout, length, touches
+
+
+def travel_angle(terrain: Terrain, h0: np.ndarray, h: np.ndarray, threshold: float):
+    """``(travel_length, drop_height, travel_angle_deg)`` from the release top to the far end."""
+    released, deposit = h0 > 0.0, h > threshold
+    if not deposit.any():
+        return math.nan, math.nan, math.nan
+    if terrain.kind == "profile":
+        xs, ys = terrain.x_horizontal, np.zeros_like(terrain.x_horizontal)
+    else:
+        xs, ys = terrain.cell_xy()
+    z = terrain.bed_elevation
+    top = np.flatnonzero(released)[np.argmax(z[released])]
+    far = np.flatnonzero(deposit)
+    dist = np.hypot(xs[far] - xs[top], ys[far] - ys[top])
+    end = far[np.argmax(dist)]
+    length, drop = float(dist.max()), float(z[top] - z[end])
+    angle = math.degrees(math.atan2(drop, length)) if length > 0.0 else math.nan
+    return length, drop, angle
