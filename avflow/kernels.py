@@ -197,13 +197,14 @@ def _dirac_face(dirac, flag_i, flag_j):
 
 @njit(error_model="numpy", cache=True)
 def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
-                 h, hu, hv, h_new, hu_new, hv_new, flux_h, flag,
+                 h, hu, hv, h_new, hu_new, hv_new, flux, flag,
                  law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
                  arrival, last_moved):
     """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
 
     Same arithmetic as :func:`step_faces`, with the face loop fused into the cell loops.
-    ``flux_h[k]`` is the mass flux (m^2/s) through face k towards +x. Returns
+    ``flux[k, 0]`` is the mass flux (m^2/s) through face k towards +x, ``flux[k, 1]`` its
+    momentum flux. Returns
     ``(ok, outflow, dt_limit, moving, film, clamped)`` (see :func:`step_faces`).
     """
     n = h.size
@@ -224,7 +225,8 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         gp_h, gp_q, _, _ = half_fluxes(h[0], min(u0, 0.0), c0, c0 * density[0])
         fl_h = gp_h + fm_h
         fl_q = gp_q + fm_q
-    flux_h[0] = fl_h
+    flux[0, 0] = fl_h
+    flux[0, 1] = fl_q
     u_prev = u0
     for i in range(1, n + 1):
         if i < n:
@@ -246,7 +248,8 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
                                                cm * density[n - 1])
                 fr_h = fp_h + gm_h
                 fr_q = fp_q + gm_q
-        flux_h[i] = fr_h
+        flux[i, 0] = fr_h
+        flux[i, 1] = fr_q
         k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
         qx, _, fk = _trial_momentum(h[k], abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
                                     (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
@@ -267,11 +270,19 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     clamped = 0
     for k in range(n):
         fk = flag[k]
-        fl = 0.0 if _dirac_face(dirac, fk, flag[k - 1] if k > 0 else fk) else flux_h[k]
-        fr = 0.0 if _dirac_face(dirac, fk, flag[k + 1] if k < n - 1 else fk) else flux_h[k + 1]
+        dirac_l = _dirac_face(dirac, fk, flag[k - 1] if k > 0 else fk)
+        dirac_r = _dirac_face(dirac, fk, flag[k + 1] if k < n - 1 else fk)
+        fl = 0.0 if dirac_l else flux[k, 0]
+        fr = 0.0 if dirac_r else flux[k + 1, 0]
         hn = h[k] + r * (fl - fr)
         if hn < 0.0:
             return False, 0.0, 0.0, 0.0, 0.0, 0
+        if fk == DRY and (dirac_l or dirac_r):
+            # A dry cell takes momentum only with mass: a Dirac face (a resting neighbour)
+            # carries neither, not even its pressure (zero temperature, eq. 53).
+            ql = 0.0 if dirac_l else flux[k, 1]
+            qr = 0.0 if dirac_r else flux[k + 1, 1]
+            hu_new[k] = dt * ((ql - qr) / dx + g * hn * gamma_x[k])
         if k == 0 and left == OUTFLOW:
             outflow -= fl * dt
         if k == n - 1 and right == OUTFLOW:
@@ -304,16 +315,20 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
 @njit(error_model="numpy", cache=True)
 def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                gamma_x, gamma_y, gamma_z, curvature,
-               h, hu, hv, h_new, hu_new, hv_new, flux_h, transport, flag,
+               h, hu, hv, h_new, hu_new, hv_new, flux, transport, flag,
                law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
-               arrival, last_moved):
+               arrival, last_moved, active_faces, n_active, touched, n_touched):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
+
+    Only the ``n_active`` faces of ``active_faces`` (those of the wet cells) and the
+    ``n_touched`` cells of ``touched`` (their two sides) are swept: every other cell is dry,
+    receives nothing and keeps its state, so the cost follows the area the mass covers.
 
     ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
     Normal and tangential components are taken in each face's frame (rotational invariance):
     the normal part uses the kinetic flux, the tangential velocity is carried upwind with the
     mass. ``face_frame`` (see :class:`avflow.mesh.Mesh`) maps each cell's discharge into the
-    face frame and the flux back into the cell's own basis. ``flux_h[f]`` is ``L_f`` times the mass flux through face f along its normal.
+    face frame and the flux back into the cell's own basis. ``flux[f, 0]`` is ``L_f`` times the mass flux through face f along its normal, ``flux[f, 1:5]`` the momentum it brings to side i (x, y) and side j (x, y).
 
     Returns ``(ok, outflow, dt_limit, moving, film, clamped)``: ok is False when a thickness
     would turn negative; outflow the volume that left through open faces in this step;
@@ -322,14 +337,16 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     ``transport`` is a per-cell work array; clamped the number of cells whose normal
     acceleration was clamped at 0.
     """
-    n = h.size
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    h_new[:] = 0.0
-    hu_new[:] = 0.0
-    hv_new[:] = 0.0
+    for c in range(n_touched):
+        i = touched[c]
+        h_new[i] = 0.0
+        hu_new[i] = 0.0
+        hv_new[i] = 0.0
 
     # --- sweep 1a: rectangular fluxes, each side read and written in its own cell's basis
-    for f in range(face_cells.shape[0]):
+    for a in range(n_active):
+        f = active_faces[a]
         i = face_cells[f, 0]
         j = face_cells[f, 1]
         ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
@@ -364,17 +381,30 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
         f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
         fh = (fp_h + gm_h) * length
-        flux_h[f] = fh
+        qix = f_n * ni_x + f_t * ti_x
+        qiy = f_n * ni_y + f_t * ti_y
+        flux[f, 0] = fh
+        flux[f, 1] = qix
+        flux[f, 2] = qiy
         h_new[i] -= fh
-        hu_new[i] -= f_n * ni_x + f_t * ti_x
-        hv_new[i] -= f_n * ni_y + f_t * ti_y
+        hu_new[i] -= qix
+        hv_new[i] -= qiy
         if j >= 0:
+            qjx = f_n * nj_x + f_t * tj_x
+            qjy = f_n * nj_y + f_t * tj_y
+            flux[f, 3] = qjx
+            flux[f, 4] = qjy
             h_new[j] += fh
-            hu_new[j] += f_n * nj_x + f_t * tj_x
-            hv_new[j] += f_n * nj_y + f_t * tj_y
+            hu_new[j] += qjx
+            hv_new[j] += qjy
 
     # --- sweep 1b: trial state and threshold flags
-    for i in range(n):
+    for c in range(n_touched):
+        i = touched[c]
+        if h[i] <= 0.0:  # dry: keep the momentum rate, formed in sweep 2b with its mass
+            flag[i] = DRY
+            h_new[i] = 0.0
+            continue
         inv_area = 1.0 / cell_area[i]
         qx, qy, fi = _trial_momentum(h[i], _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
                                      h_new[i] * inv_area, hu_new[i] * inv_area,
@@ -388,34 +418,50 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
 
     # --- sweep 2a: mass through the faces that keep the rectangular density
     outflow = 0.0
-    transport[:] = 0.0
-    for f in range(face_cells.shape[0]):
+    for c in range(n_touched):
+        transport[touched[c]] = 0.0
+    for a in range(n_active):
+        f = active_faces[a]
         i = face_cells[f, 0]
         j = face_cells[f, 1]
         if _dirac_face(dirac, flag[i], flag[j] if j >= 0 else flag[i]):
+            # A dry side takes momentum only with mass: the Dirac face (u = 0, eq. 53)
+            # carries neither, not even the resting neighbour's pressure.
+            if flag[i] == DRY:
+                hu_new[i] += flux[f, 1]
+                hv_new[i] += flux[f, 2]
+            if j >= 0 and flag[j] == DRY:
+                hu_new[j] -= flux[f, 3]
+                hv_new[j] -= flux[f, 4]
             continue
-        h_new[i] -= flux_h[f]
-        unit = abs(flux_h[f]) / face_length[f]
+        fh = flux[f, 0]
+        h_new[i] -= fh
+        unit = abs(fh) / face_length[f]
         transport[i] = max(transport[i], unit)
         if j >= 0:
-            h_new[j] += flux_h[f]
+            h_new[j] += fh
             transport[j] = max(transport[j], unit)
         elif j == OUTFLOW:
-            outflow += flux_h[f] * dt
+            outflow += fh * dt
 
     # --- sweep 2b: new thickness, projection, observers
     inv_lim = 0.0
     moving = 0.0
     film = 0.0
     clamped = 0
-    for i in range(n):
+    for c in range(n_touched):
+        i = touched[c]
         area = cell_area[i]
         hn = h[i] + dt / area * h_new[i]
         if hn < 0.0:
             return False, 0.0, 0.0, 0.0, 0.0, 0
         speed_n = _speed(h[i], hu[i], hv[i])
-        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, hu_new[i],
-                                     hv_new[i], dt, gamma_z[i], curvature[i],
+        qx = hu_new[i]
+        qy = hv_new[i]
+        if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
+            qx = dt * (qx / area + g * hn * gamma_x[i])
+            qy = dt * (qy / area + g * hn * gamma_y[i])
+        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, qx, qy, dt, gamma_z[i], curvature[i],
                                      law, p0, p1, p2, p3, g)
         h_new[i] = hn
         hu_new[i] = qx
@@ -440,11 +486,40 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
 
 
 @njit(error_model="numpy", cache=True)
+def activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp, cell_stamp,
+             stamp, active_faces, touched):
+    """Faces of the wet cells and the cells on both their sides, each listed once (sorted).
+
+    ``stamp`` marks what this step has listed in ``face_stamp`` / ``cell_stamp``.
+    Returns ``(n_active, n_touched)``.
+    """
+    m = 0
+    k = 0
+    for a in range(n_wet):
+        c = wet[a]
+        for p in range(cell_face_ptr[c], cell_face_ptr[c + 1]):
+            f = cell_face_idx[p]
+            if face_stamp[f] != stamp:
+                face_stamp[f] = stamp
+                active_faces[m] = f
+                m += 1
+                for side in range(2):
+                    d = face_cells[f, side]
+                    if d >= 0 and cell_stamp[d] != stamp:
+                        cell_stamp[d] = stamp
+                        touched[k] = d
+                        k += 1
+    active_faces[:m].sort()  # keep memory order: faces and cells are swept in index order
+    touched[:k].sort()
+    return m, k
+
+
+@njit(error_model="numpy", cache=True)
 def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
             gamma_x, gamma_y, gamma_z, curvature,
-            h, hu, hv, h_work, hu_work, hv_work, flux_h, transport, flag,
+            h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
             law, params, g, dirac, h_dry, cfl, t_target, max_steps, stop_volume,
-            peak_h, peak_speed, arrival, last_moved, stats):
+            peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx, stats):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -459,6 +534,25 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     status = REACHED_TARGET
     steps = 0
+    # Active lists (face kernel): both buffers agree outside the cells touched by the last
+    # step, so a cell left untouched needs no copy; those touched last time are copied.
+    n = h.size
+    nf = face_cells.shape[0]
+    h_work[:] = h
+    hu_work[:] = hu
+    hv_work[:] = hv
+    wet = np.empty(n, dtype=np.int64)
+    touched = np.empty(n, dtype=np.int64)
+    previous = np.empty(n, dtype=np.int64)
+    active_faces = np.empty(nf, dtype=np.int64)
+    face_stamp = np.full(nf, -1, dtype=np.int64)
+    cell_stamp = np.full(n, -1, dtype=np.int64)
+    n_wet = 0
+    for i in range(n):
+        if h[i] > 0.0:
+            wet[n_wet] = i
+            n_wet += 1
+    n_previous = 0
     while t < t_target:
         dt_max = stats[ST_DT_LIMIT]
         dt = cfl * dt_max if dt_max < np.inf else t_target - t
@@ -468,22 +562,31 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             dt = t_target - t
             last = True
         ok = False
+        if not structured:
+            for c in range(n_previous):
+                i = previous[c]
+                nxt_h[i] = cur_h[i]
+                nxt_hu[i] = cur_hu[i]
+                nxt_hv[i] = cur_hv[i]
+            n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells,
+                                           face_stamp, cell_stamp, stats[ST_STEPS] + steps,
+                                           active_faces, touched)
         for _ in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             if structured:
                 ok, out, lim, moving, film, clamped = step_profile(
                     face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                     curvature,
-                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, flag,
+                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, flag,
                     law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved)
             else:
                 ok, out, lim, moving, film, clamped = step_faces(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
-                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux_h, transport, flag,
+                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
                     law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved)
+                    arrival, last_moved, active_faces, n_active, touched, n_touched)
             if ok:
                 break
             dt *= 0.5
@@ -494,6 +597,15 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             break
         t = t_target if last else t + dt
         steps += 1
+        if not structured:
+            n_wet = 0
+            for c in range(n_touched):
+                i = touched[c]
+                previous[c] = i
+                if nxt_h[i] > 0.0:
+                    wet[n_wet] = i
+                    n_wet += 1
+            n_previous = n_touched
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv

@@ -85,11 +85,21 @@ class Solver:
         self._h_work = np.zeros(n)
         self._hu_work = np.zeros(n)
         self._hv_work = np.zeros(n)
-        self._flux_h = np.zeros(m.n_faces)
+        # Per face: mass flux, then the momentum it brings to each side (x, y of side i,
+        # x, y of side j), so a Dirac face can take back what a dry side must not receive.
+        self._flux = np.zeros((m.n_faces, 5))
         # Per-cell factors derived from the geometry once: P / (2 A) for the CFL limit
         # (eq. 41) and 1 / (sqrt(3) g cos(theta)) for the kinetic particle density.
         self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
         self._density = density_factor(self.gravity * self.terrain.gamma_z)
+        # Faces of every cell (CSR), for the active lists of the face kernel.
+        fc = m.face_cells
+        owners = np.concatenate([fc[:, 0], fc[fc[:, 1] >= 0, 1]])
+        faces = np.concatenate([np.arange(m.n_faces), np.flatnonzero(fc[:, 1] >= 0)])
+        order = np.argsort(owners, kind="stable")
+        self._cell_face_idx = np.ascontiguousarray(faces[order], dtype=np.int64)
+        self._cell_face_ptr = np.concatenate(
+            [[0], np.cumsum(np.bincount(owners, minlength=n))]).astype(np.int64)
         self._transport = np.zeros(n)
 
     def new_state(self, h0: np.ndarray) -> State:
@@ -137,8 +147,8 @@ class Solver:
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
-            self._flux_h, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
+            self._flux, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
             bool(self.dirac), float(self.h_dry), float(self.cfl), float(t_target),
             int(max_steps), float(stop_volume), state.peak_h, state.peak_speed, state.arrival,
-            state.last_moved, state.stats)
+            state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats)
         return STATUS_NAMES[status]
