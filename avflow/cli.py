@@ -1,4 +1,4 @@
-"""Command line: ``avflow run SCENARIO.yaml -o OUT.nc``.
+"""Command line: ``avflow run SCENARIO.yaml -o OUT.nc``; ``avflow ensemble``; ``avflow report``.
 
 Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
 Errors in the input are one line naming the file and the field; no output file is left
@@ -83,7 +83,50 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("scenario", help="scenario YAML file")
     r.add_argument("-o", "--output", help="output NetCDF (default: SCENARIO name + .nc)")
     r.set_defaults(func=_cmd_run)
+    e = sub.add_parser("ensemble", help="run an ensemble file on dask; exit 1 if a member "
+                                        "failed")
+    e.add_argument("ensemble", help="ensemble YAML file (base scenario + vary/sample)")
+    e.add_argument("-o", "--output", required=True, help="output folder (resumable)")
+    e.add_argument("--scheduler", help="address (tcp://host:port) or scheduler file of a "
+                                       "running dask scheduler (default: a local cluster)")
+    e.add_argument("--workers", type=int, help="local worker processes (default: one per "
+                                               "core; 0: run in this process, no dask)")
+    e.add_argument("--batch", type=int, help="members per dask task (default: automatic)")
+    e.add_argument("--report", action="store_true", help="write OUTDIR/report.md at the end")
+    e.set_defaults(func=_cmd_ensemble)
+    rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble")
+    rp.add_argument("outdir", help="output folder of `avflow ensemble`")
+    rp.set_defaults(func=_cmd_report)
     return p
+
+
+def _cmd_ensemble(args) -> int:
+    from .ensemble import load_ensemble
+    from .orchestrate import run_ensemble
+
+    if args.workers is not None and args.workers < 0:
+        raise AvflowError(f"--workers must be >= 0, got {args.workers}")
+    if args.batch is not None and args.batch < 1:
+        raise AvflowError(f"--batch must be >= 1, got {args.batch}")
+    ensemble = load_ensemble(args.ensemble)  # every check before any member starts
+    out = Path(args.output)
+    print(f"{ensemble.name}: {len(ensemble.members)} members -> {out}")
+    outcome = run_ensemble(ensemble, out, scheduler=args.scheduler, workers=args.workers,
+                           batch=args.batch)
+    print(f"{outcome.ran} run, {outcome.reused} reused, {outcome.failed} failed "
+          f"({outcome.wall:.1f} s); wrote {out / 'ensemble.nc'} and {out / 'summary.csv'}")
+    if args.report:
+        from .report import write_report
+
+        print(f"wrote {write_report(out)}")
+    return 0 if outcome.ok else 1
+
+
+def _cmd_report(args) -> int:
+    from .report import write_report
+
+    print(f"wrote {write_report(args.outdir)}")
+    return 0
 
 
 def main(argv=None) -> int:

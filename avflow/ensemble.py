@@ -1,0 +1,332 @@
+"""Ensemble files: a base scenario and its variations, expanded into fully resolved members.
+
+An ensemble file names a base scenario (relative to the ensemble file) and how to vary it::
+
+    name: seed-exponential-ensemble
+    base: seed_exponential_coulomb.yaml
+    vary:                               # cartesian product, keys in file order
+      rheology:                         # whole blocks: mixes laws
+        - {law: coulomb, delta_deg: 14.0}
+        - {law: pouliquen, delta1_deg: 13.0, delta2_deg: 20.0, d: 1.0}
+      release.volume_factor: [0.5, 1.0, 2.0]   # any scenario field by dotted path
+    sample:                             # seeded Latin hypercube (scipy.stats.qmc)
+      n: 20
+      seed: 1
+      ranges:
+        rheology.delta_deg: [12.0, 24.0]
+    thresholds: [0.1, 1.0, 5.0]         # m, peak-thickness exceedance maps (grid scenes)
+
+Members are the cartesian product of ``vary`` (first key slowest) crossed with the ``sample``
+points (each vary combination gets every sample point; the sample is applied after the vary
+updates, so a sampled ``rheology.delta_deg`` lands in a varied Coulomb block). Each member is
+a fully resolved, validated :class:`~avflow.scenario.Scenario` and is named on disk by its
+:meth:`~avflow.scenario.Scenario.scenario_hash`.
+
+Everything is checked here, before any member runs: every problem is one
+:class:`EnsembleError` naming the ensemble file, the line:column and the field.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import ScenarioError
+from .scenario import Scenario, _did_you_mean, _position, _read_yaml, load_scenario
+
+__all__ = ["EnsembleError", "Ensemble", "Member", "load_ensemble", "parse_ensemble",
+           "DEFAULT_THRESHOLDS"]
+
+#: Peak-thickness thresholds (m) of the exceedance-probability maps, unless the file says.
+DEFAULT_THRESHOLDS = (0.1, 1.0, 5.0)
+
+_TOP_KEYS = ("name", "description", "base", "vary", "sample", "thresholds")
+_SAMPLE_KEYS = ("n", "seed", "ranges")
+
+
+class EnsembleError(ScenarioError):
+    """A bad ensemble file (same form as scenario errors: ``file:line:col: field: message``)."""
+
+
+@dataclass(frozen=True)
+class Member:
+    """One member: its index, its resolved scenario and the values it was given."""
+
+    index: int
+    scenario: Scenario
+    updates: dict  #: dotted path -> value, as applied to the base scenario
+    scenario_hash: str
+
+    @property
+    def label(self) -> str:
+        parts = []
+        for key, value in self.updates.items():
+            if isinstance(value, dict):
+                inner = ", ".join(f"{k}={_fmt(v)}" for k, v in value.items())
+                parts.append(f"{key}={{{inner}}}")
+            else:
+                parts.append(f"{key}={_fmt(value)}")
+        return " ".join(parts)
+
+
+def _fmt(value: Any) -> str:
+    return f"{value:.6g}" if isinstance(value, float) else str(value)
+
+
+@dataclass
+class Ensemble:
+    """A validated ensemble: base scenario, members and the settings of the outputs."""
+
+    name: str
+    path: str | None
+    text: str
+    base: Scenario
+    members: list[Member]
+    varied: list[str]  #: dotted paths as written under vary/sample (blocks included)
+    thresholds: tuple[float, ...] = DEFAULT_THRESHOLDS
+    description: str = ""
+    sample: dict = field(default_factory=dict)
+
+    def parameters(self) -> dict[str, list]:
+        """Member parameters as columns: every leaf under each varied path, resolved.
+
+        A varied block (``rheology``) gives one column per field found in any member
+        (``rheology.law``, ``rheology.delta_deg``, ...), None where a member's block has no
+        such field. Values are read from the resolved member scenarios (defaults filled in).
+        """
+        dumps = [m.scenario.model_dump(mode="json") for m in self.members]
+        columns: dict[str, list] = {}
+        for path in self.varied:
+            leaves: list[str] = []
+            for d in dumps:
+                for leaf in _leaves(_get(d, path), path):
+                    if leaf not in leaves:
+                        leaves.append(leaf)
+            for leaf in leaves:
+                columns[leaf] = [_get(d, leaf) for d in dumps]
+        law = "rheology.law"
+        if law not in columns:
+            columns = {law: [d["rheology"]["law"] for d in dumps], **columns}
+        else:  # the law first: it is the main grouping of every table and figure
+            columns = {law: columns.pop(law), **columns}
+        return columns
+
+
+def _get(data: Any, dotted: str) -> Any:
+    for key in dotted.split("."):
+        if not isinstance(data, dict) or key not in data:
+            return None
+        data = data[key]
+    return data
+
+
+def _leaves(value: Any, prefix: str) -> list[str]:
+    if isinstance(value, dict):
+        return [leaf for k, v in value.items() for leaf in _leaves(v, f"{prefix}.{k}")]
+    return [prefix] if value is not None else []
+
+
+# =========================================================================================
+# Parsing
+# =========================================================================================
+
+
+def load_ensemble(path: str | os.PathLike) -> Ensemble:
+    """Read, validate and expand an ensemble file; any problem is one :class:`EnsembleError`."""
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise EnsembleError("ensemble file not found", path) from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise EnsembleError(f"cannot read the ensemble file: {err}", path) from None
+    return parse_ensemble(text, source_path=path)
+
+
+def parse_ensemble(text: str, source_path: str | os.PathLike | None = None) -> Ensemble:
+    """Validate ensemble YAML given as text; ``base`` is relative to ``source_path``'s folder."""
+    path = os.path.abspath(source_path) if source_path is not None else None
+    try:
+        data, positions = _read_yaml(text, path)
+    except ScenarioError as err:
+        raise EnsembleError(problems=err.problems) from None
+
+    def fail(keys: tuple, message: str) -> EnsembleError:
+        line_col = _position(positions, keys) or ()
+        return EnsembleError(message, path, ".".join(map(str, keys)) or None, *line_col)
+
+    for key in data:
+        if key not in _TOP_KEYS:
+            hint = _did_you_mean(key, _TOP_KEYS) or f"; expected one of: {', '.join(_TOP_KEYS)}"
+            raise fail((key,), "unknown field" + hint)
+
+    # --- base scenario --------------------------------------------------------------------
+    base_ref = data.get("base")
+    if base_ref is None:
+        raise fail(("base",), "required, but missing: the base scenario file (relative to "
+                              "this file)")
+    if not isinstance(base_ref, str) or not base_ref.strip():
+        raise fail(("base",), f"must be the path of a scenario file, got {base_ref!r}")
+    folder = os.path.dirname(path) if path else os.getcwd()
+    base_path = Path(os.path.normpath(Path(folder) / Path(base_ref).expanduser()))
+    if not base_path.is_file():
+        raise fail(("base",), f"scenario file not found: {base_path} (relative paths start "
+                              "at the ensemble file's folder)")
+    base = load_scenario(base_path)  # its own errors name its own file
+
+    name = data.get("name", base.name)
+    if not isinstance(name, str) or not name.strip():
+        raise fail(("name",), f"must be a non-empty string, got {name!r}")
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        raise fail(("description",), f"must be a string, got {description!r}")
+
+    # --- thresholds -----------------------------------------------------------------------
+    thresholds = data.get("thresholds", list(DEFAULT_THRESHOLDS))
+    if not isinstance(thresholds, list) or not thresholds:
+        raise fail(("thresholds",), "must be a non-empty list of thicknesses (m), got "
+                                    f"{thresholds!r}")
+    for i, t in enumerate(thresholds):
+        if not _is_number(t) or not t > 0:
+            raise fail(("thresholds", i), f"must be a positive number (m), got {t!r}")
+    if len(set(thresholds)) != len(thresholds):
+        raise fail(("thresholds",), "must not repeat a value")
+    thresholds = tuple(float(t) for t in sorted(thresholds))
+
+    # --- vary -----------------------------------------------------------------------------
+    vary = data.get("vary", {})
+    if not isinstance(vary, dict):
+        raise fail(("vary",), "must be a mapping of dotted field -> list of values, got "
+                              f"{vary!r}")
+    for key, values in vary.items():
+        if not isinstance(values, list):
+            raise fail(("vary", key), f"must be a list of values, got {values!r}")
+        if not values:
+            raise fail(("vary", key), "must be a non-empty list of values")
+        if not _shadowed(key, vary):
+            _check_path(base, key, values[0], fail, ("vary", key))
+
+    # --- sample ---------------------------------------------------------------------------
+    sample = data.get("sample")
+    points: list[dict] = [{}]
+    sample_info: dict = {}
+    if sample is not None:
+        points, sample_info = _sample_points(sample, base, vary, fail)
+
+    if not vary and sample is None:
+        raise fail((), "an ensemble needs 'vary:' (cartesian product) or 'sample:' (Latin "
+                       "hypercube), or both")
+
+    # --- members --------------------------------------------------------------------------
+    combos = [dict(zip(vary, values)) for values in itertools.product(*vary.values())]
+    members: list[Member] = []
+    seen: dict[str, int] = {}
+    for combo in combos:
+        for point in points:
+            updates = {**combo, **point}
+            index = len(members)
+            try:
+                scenario = base.with_updates(updates)
+            except ScenarioError as err:
+                raise _member_error(err, index, updates, vary, sample_info, fail) from None
+            digest = scenario.scenario_hash()
+            if digest in seen:
+                first = seen[digest]
+                raise fail(("vary",) if vary else ("sample",),
+                           f"members {first} and {index} are the same scenario "
+                           f"({members[first].label} / {Member(index, scenario, updates, digest).label}):"
+                           " remove the repeated value")
+            seen[digest] = index
+            members.append(Member(index, scenario, updates, digest))
+
+    varied = list(vary) + [k for k in sample_info.get("ranges", {}) if k not in vary]
+    return Ensemble(name=name.strip(), path=path, text=text, base=base, members=members,
+                    varied=varied, thresholds=thresholds, description=description,
+                    sample=sample_info)
+
+
+def _is_number(value: Any) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value))
+
+
+def _check_path(base: Scenario, key: str, value: Any, fail, keys: tuple) -> None:
+    """An unknown dotted path is reported on the ensemble file, before members are built."""
+    if not isinstance(key, str) or not key or any(not part for part in key.split(".")):
+        raise fail(keys, f"must be a dotted field path such as 'rheology.delta_deg', got "
+                         f"{key!r}")
+    try:
+        base.with_updates({key: value})
+    except ScenarioError as err:
+        if err.message.startswith("unknown field"):
+            raise fail(keys, f"{err.field}: {err.message} (in the base scenario "
+                             f"{os.path.basename(base.source_path or '')})") from None
+        # Other problems are about the value: reported with the member that carries it.
+
+
+def _shadowed(key: Any, vary: dict) -> bool:
+    """A field inside a block that is itself varied (``rheology.d`` with ``rheology`` blocks):
+    it exists in some members only, so it is checked member by member."""
+    return isinstance(key, str) and any(key.startswith(f"{k}.") for k in vary)
+
+
+def _sample_points(sample: Any, base: Scenario, vary: dict, fail) -> tuple[list[dict], dict]:
+    """Latin hypercube points over the ranges, scaled to [min, max] (same seed, same points)."""
+    from scipy.stats import qmc
+
+    if not isinstance(sample, dict):
+        raise fail(("sample",), f"must be a mapping with n, seed and ranges, got {sample!r}")
+    for key in sample:
+        if key not in _SAMPLE_KEYS:
+            hint = (_did_you_mean(key, _SAMPLE_KEYS)
+                    or f"; expected one of: {', '.join(_SAMPLE_KEYS)}")
+            raise fail(("sample", key), "unknown field" + hint)
+    n = sample.get("n")
+    if n is None:
+        raise fail(("sample", "n"), "required, but missing: the number of members to draw")
+    if not isinstance(n, int) or isinstance(n, bool) or n <= 0:
+        raise fail(("sample", "n"), f"must be a positive integer, got {n!r}")
+    seed = sample.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise fail(("sample", "seed"), f"must be a non-negative integer, got {seed!r}")
+    ranges = sample.get("ranges")
+    if not isinstance(ranges, dict) or not ranges:
+        raise fail(("sample", "ranges"), "must be a non-empty mapping of dotted field -> "
+                                         f"[min, max], got {ranges!r}")
+    bounds = []
+    for key, pair in ranges.items():
+        keys = ("sample", "ranges", key)
+        if (not isinstance(pair, list) or len(pair) != 2
+                or not all(_is_number(v) for v in pair)):
+            raise fail(keys, f"must be [min, max] (two numbers), got {pair!r}")
+        if not pair[0] < pair[1]:
+            raise fail(keys, f"must be [min, max] with min < max, got {pair!r}")
+        if not _shadowed(key, vary):
+            _check_path(base, key, pair[0], fail, keys)
+        bounds.append((float(pair[0]), float(pair[1])))
+    unit = qmc.LatinHypercube(d=len(bounds), rng=seed).random(n)
+    lo, hi = [b[0] for b in bounds], [b[1] for b in bounds]
+    scaled = qmc.scale(unit, lo, hi)
+    points = [{key: float(v) for key, v in zip(ranges, row)} for row in scaled]
+    return points, {"n": n, "seed": seed, "ranges": dict(ranges)}
+
+
+def _member_error(err: ScenarioError, index: int, updates: dict, vary: dict, sample_info: dict,
+                  fail) -> EnsembleError:
+    """A member that fails validation: reported at the vary/sample entry that made it."""
+    culprit = None
+    for key in list(updates):
+        if err.field and (err.field == key or err.field.startswith(key + ".")
+                          or key.startswith(err.field + ".")):
+            culprit = key
+    culprit = culprit or next(iter(updates))
+    where = ("vary", culprit) if culprit in vary else ("sample", "ranges", culprit)
+    if culprit in vary:
+        value = updates[culprit]
+        where = ("vary", culprit, vary[culprit].index(value))
+    label = Member(index, None, updates, "").label  # type: ignore[arg-type]
+    detail = "; ".join(f"{p.field + ': ' if p.field else ''}{p.message}" for p in err.problems)
+    return fail(where, f"member {index} ({label}) is not a valid scenario: {detail}")

@@ -1,0 +1,208 @@
+"""``OUTDIR/ensemble.nc``: the members of an ensemble as one CF-1.11 Dataset.
+
+Dimensions: ``realization`` (standard_name ``realization``, one per member, in member order),
+and for the maps the member grid (``x`` on profiles, ``y, x`` on 2D grids) and ``threshold``.
+
+- the varied parameters are auxiliary coordinates along ``realization`` (``law`` is a string
+  coordinate; a field that a member's law does not have is NaN);
+- ``status`` and ``error`` (strings) and the summaries (float64, with units) per member;
+- when every member that produced a file has the same grid: ``peak_thickness`` and
+  ``deposit_thickness`` stacked along ``realization`` (NaN for failed members), and
+  ``peak_thickness_exceedance_probability`` over the successful members for every
+  threshold of the ensemble file (default 0.1, 1 and 5 m).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from . import __version__
+from .ensemble import Ensemble
+from .output import SEED_REFERENCE, SUMMARIES, _per_width
+from .orchestrate import OK_STATUSES, SUMMARY_FIELDS
+
+#: Units of scenario fields by their last name (varied-parameter coordinates).
+FIELD_UNITS = {
+    "delta_deg": "degree", "delta1_deg": "degree", "delta2_deg": "degree",
+    "theta_deg": "degree", "theta0_deg": "degree", "slope_deg": "degree",
+    "azimuth_deg": "degree", "d": "m", "a": "m", "length": "m", "dx": "m", "dy": "m",
+    "center": "m", "half_length": "m", "max_thickness": "m", "thickness": "m",
+    "position": "m", "radius": "m", "runout_threshold": "m", "dry_threshold": "m",
+    "elevation_at_center": "m", "xi": "m s-2", "gravity": "m s-2", "density": "kg m-3",
+    "mu": "1", "beta": "1", "volume_factor": "1", "cfl": "1", "stop_fraction": "1",
+    "end": "s", "every": "s",
+}
+
+MAPS = ("peak_thickness", "deposit_thickness")
+
+
+def coordinate_name(dotted: str) -> str:
+    """``rheology.delta_deg`` -> ``rheology_delta_deg``; the law is just ``law``."""
+    return "law" if dotted == "rheology.law" else dotted.replace(".", "_")
+
+
+def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr.Dataset:
+    """The ensemble Dataset from the member table (:func:`avflow.orchestrate.member_table`)."""
+    outdir = Path(outdir)
+    n = len(ensemble.members)
+    profile = ensemble.base.terrain.kind == "profile"
+    coords: dict = {
+        "realization": ("realization", np.arange(n, dtype=np.int32), {
+            "standard_name": "realization", "long_name": "ensemble member number",
+            "units": "1"}),
+        "scenario_hash": ("realization", table["scenario_hash"].astype(str).to_numpy(object), {
+            "long_name": "scenario hash of the member (name of its file in members/)"}),
+    }
+    for dotted, values in ensemble.parameters().items():
+        name = coordinate_name(dotted)
+        attrs = {"long_name": f"scenario field {dotted}"}
+        if all(v is None or isinstance(v, str) for v in values):
+            coords[name] = ("realization", np.array(["" if v is None else v for v in values],
+                                                    dtype=object), attrs)
+        elif all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+                 for v in values):
+            units = FIELD_UNITS.get(dotted.rsplit(".", 1)[-1])
+            if units:
+                attrs["units"] = units
+            coords[name] = ("realization",
+                            np.array([math.nan if v is None else float(v) for v in values]),
+                            attrs)
+        else:  # lists, booleans: as JSON text
+            coords[name] = ("realization", np.array([json.dumps(v) for v in values],
+                                                    dtype=object), attrs)
+    coords["law"][2]["long_name"] = "basal friction law (rheology.law)"
+
+    data: dict = {
+        "status": ("realization", table["status"].astype(str).to_numpy(object), {
+            "long_name": "end state of the member run",
+            "comment": "stopped or completed: success; failed: raised (see error); "
+                       "max_steps: step bound reached"}),
+        "error": ("realization", table["error"].fillna("").astype(str).to_numpy(object), {
+            "long_name": "error message of a failed member (empty when it succeeded)"}),
+    }
+    for name in SUMMARY_FIELDS:
+        units, description = SUMMARIES[name]
+        data[name] = ("realization", table[name].to_numpy(float), {
+            "long_name": name.replace("_", " "), "units": _per_width(units, profile),
+            "comment": description})
+    data["member_time"] = ("realization", table["member_time"].to_numpy(float), {
+        "long_name": "wall-clock time of the member task (read, run, write)", "units": "s",
+        "comment": "NaN for members reused from an earlier run"})
+
+    ok = table["status"].isin(OK_STATUSES).to_numpy()
+    maps, grid_coords, note = _stacked_maps(ensemble, table, outdir, profile)
+    if maps is not None:
+        coords.update(grid_coords)
+        space = ("x",) if profile else ("y", "x")
+        data["peak_thickness"] = (("realization", *space), maps["peak_thickness"], {
+            "long_name": "maximum flow thickness over the member run", "units": "m",
+            "comment": "measured normal to the bed; NaN for failed members"})
+        data["deposit_thickness"] = (("realization", *space), maps["deposit_thickness"], {
+            "long_name": "thickness at the end of the member run", "units": "m",
+            "comment": "measured normal to the bed; NaN for failed members"})
+        thresholds = np.asarray(ensemble.thresholds, dtype=float)
+        coords["threshold"] = ("threshold", thresholds, {
+            "long_name": "peak flow thickness threshold", "units": "m"})
+        peak = maps["peak_thickness"][ok]
+        with np.errstate(invalid="ignore"):
+            if peak.shape[0]:
+                prob = np.stack([(peak > t).mean(axis=0) for t in thresholds])
+                outside = np.isnan(peak).all(axis=0)
+                prob[:, outside] = np.nan
+            else:
+                prob = np.full((len(thresholds), *maps["peak_thickness"].shape[1:]), np.nan)
+        data["peak_thickness_exceedance_probability"] = (("threshold", *space), prob, {
+            "long_name": "probability that the peak flow thickness exceeds the threshold",
+            "units": "1",
+            "comment": f"fraction of the {int(ok.sum())} successful members whose "
+                       "peak_thickness is above the threshold; NaN outside the mesh"})
+    ds = xr.Dataset(data, coords=coords)
+    failed = int((~ok).sum())
+    ds.attrs = {
+        "Conventions": "CF-1.11",
+        "title": f"avflow ensemble {ensemble.name}",
+        "source": f"avflow {__version__}: kinetic scheme with Dirac stopping, one run per member",
+        "references": SEED_REFERENCE,
+        "history": "created by avflow " + __version__,
+        "ensemble_name": ensemble.name,
+        "ensemble": ensemble.text,
+        "ensemble_file": ensemble.path or "",
+        "base_scenario": ensemble.base.source_text,
+        "base_scenario_hash": ensemble.base.scenario_hash(),
+        "varied": " ".join(ensemble.varied),
+        "members": n,
+        "failed_members": failed,
+        "scene": "profile" if profile else "grid",
+        "maps": note,
+        "avflow_version": __version__,
+        "comment": ("one member per realization; each member's full output is "
+                    "members/<scenario_hash>.nc next to this file"),
+    }
+    return ds
+
+
+def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool):
+    """Peak and deposit maps of all members when they share one grid; else (None, {}, why)."""
+    files = [(i, outdir / f) for i, f in zip(table["realization"], table["file"]) if f]
+    if not files:
+        return None, {}, "no member produced a file"
+    maps = {name: None for name in MAPS}
+    grid_coords: dict = {}
+    reference = None
+    for i, path in files:
+        with xr.open_dataset(path, decode_times=False) as ds:
+            names = ["x", "x_horizontal"] if profile else ["y", "x"]
+            here = {c: ds[c].values for c in names if c in ds.coords}
+            if reference is None:
+                reference = here
+                shape = (len(table), *ds["peak_thickness"].shape)
+                for name in MAPS:
+                    maps[name] = np.full(shape, np.nan)
+                for c in names:
+                    if c in ds.coords:
+                        grid_coords[c] = (ds[c].dims, ds[c].values, dict(ds[c].attrs))
+                if "bed_elevation" in ds:
+                    grid_coords["bed_elevation"] = (ds["bed_elevation"].dims,
+                                                    ds["bed_elevation"].values.astype(float),
+                                                    dict(ds["bed_elevation"].attrs))
+            elif any(here[c].shape != reference[c].shape or not np.array_equal(here[c],
+                                                                               reference[c])
+                     for c in reference):
+                return None, {}, "not stacked: the members have different grids"
+            for name in MAPS:
+                maps[name][i] = ds[name].values
+    return maps, grid_coords, "peak_thickness and deposit_thickness stacked"
+
+
+def write_ensemble_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> Path:
+    """Write atomically (temporary file, then rename); summaries stay float64."""
+    path = Path(path)
+    encoding = {}
+    for name, var in ds.variables.items():
+        if var.dtype == object:
+            continue
+        if name in ds.coords:
+            encoding[name] = {"_FillValue": None}
+        elif var.dtype.kind == "f" and var.ndim >= 2:
+            chunks = (1, *var.shape[1:])
+            encoding[name] = {"dtype": "float32", "zlib": True, "complevel": 2,
+                              "shuffle": True, "chunksizes": chunks,
+                              "_FillValue": np.float32(np.nan)}
+        elif var.dtype.kind == "f":
+            encoding[name] = {"_FillValue": np.nan}
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        ds.to_netcdf(tmp, encoding=encoding, engine="netcdf4")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -1,0 +1,406 @@
+"""Running an ensemble on dask.distributed, resuming it, and writing its tables.
+
+The numerical core knows nothing of this module. A member is run by :func:`run_member`, a
+top-level function taking the member's resolved scenario YAML (plain text, so it pickles) and
+the path of its NetCDF file; it writes the file atomically (temporary name, then rename) and
+returns a small dict (the summary, the status, an error message). A member that raises
+becomes a failure record; the others go on.
+
+Layout of OUTDIR::
+
+    members/<scenario_hash>.nc   one CF NetCDF per member (complete, or absent)
+    summary.csv                  one row per member (and summary.parquet with pyarrow)
+    failures.csv                 the failed members and their errors (only if any)
+    ensemble.nc                  CF-1.11, realization dimension (see :mod:`avflow.ensemble_output`)
+
+Re-running skips the members whose file is there and readable.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import dask
+
+from .ensemble import Ensemble, Member
+
+#: Summaries copied into every member row (and into ensemble.nc).
+SUMMARY_FIELDS = ("runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
+                  "deposit_volume", "release_volume", "outflow_volume", "mass_balance_error",
+                  "travel_angle", "wall_time")
+OK_STATUSES = ("stopped", "completed")
+
+
+# =========================================================================================
+# One member (runs on a worker)
+# =========================================================================================
+
+
+def read_member_row(path: str | os.PathLike) -> dict | None:
+    """The summary row stored in a member file, or None if it is missing or unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        import netCDF4
+
+        with netCDF4.Dataset(path) as nc:
+            row = {name: float(nc.variables[name][...]) for name in SUMMARY_FIELDS}
+            row["status"] = str(nc.getncattr("status"))
+            row["scenario_hash"] = str(nc.getncattr("scenario_hash"))
+            row["steps"] = int(nc.getncattr("steps"))
+    except Exception:  # noqa: BLE001 - a truncated or foreign file: run the member again
+        return None
+    row["error"] = "" if row["status"] in OK_STATUSES else f"run ended with status {row['status']}"
+    return row
+
+
+def run_member(scenario_yaml: str, out_path: str) -> dict:
+    """Run one member and write its NetCDF atomically; never raises for a model error.
+
+    Idempotent: if ``out_path`` is already complete (a previous run, or the same task run
+    twice after a lost worker) its stored summary is returned and nothing is recomputed.
+    """
+    started = time.perf_counter()
+    row = read_member_row(out_path)
+    if row is not None:
+        row.update(reused=True, member_time=time.perf_counter() - started)
+        return row
+    from .output import to_dataset, write_netcdf
+    from .runner import simulate
+    from .scenario import parse_scenario
+
+    try:
+        result = simulate(parse_scenario(scenario_yaml))
+        # Inside a dask worker xarray would guard the write with a distributed.Lock (a round
+        # trip to the scheduler, ~0.25 s): each member writes its own file, no lock needed.
+        with dask.config.set(scheduler="synchronous"):
+            write_netcdf(to_dataset(result), out_path)
+        row = {name: float(result.summary[name]) for name in SUMMARY_FIELDS}
+        row.update(status=result.status, steps=int(result.summary["steps"]),
+                   error="" if result.status in OK_STATUSES
+                   else f"run ended with status {result.status}")
+    except Exception as err:  # noqa: BLE001 - recorded, the other members go on
+        problems = getattr(err, "problems", None)  # ScenarioError: field and message
+        message = (" | ".join(f"{p.field + ': ' if p.field else ''}{p.message}"
+                              for p in problems) if problems
+                   else " | ".join(str(err).splitlines()) or repr(err))
+        row = {name: math.nan for name in SUMMARY_FIELDS}
+        row.update(status="failed", steps=0, error=f"{type(err).__name__}: {message}")
+    row.update(reused=False, member_time=time.perf_counter() - started)
+    return row
+
+
+def run_batch(items: list[tuple[int, str, str]]) -> list[tuple[int, dict]]:
+    """Several members in one task (``(index, yaml, out_path)`` each): fewer, longer tasks."""
+    return [(index, run_member(text, out)) for index, text, out in items]
+
+
+def tiny_scenario_yaml(ensemble: Ensemble) -> str | None:
+    """The first member cut to a couple of steps: enough to compile every kernel."""
+    try:
+        return ensemble.members[0].scenario.with_updates(
+            {"time.end": 1e-3, "time.max_steps": 2, "output.every": 1e-3}).source_text
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def warm(scenario_yaml: str | None) -> bool:
+    """Run a tiny scenario and write its file: imports, Numba kernels, NetCDF libraries.
+
+    In the parent before any worker starts, it compiles (or loads) the cache=True kernels
+    once: workers compiling the same cache at once can crash (numba issue 4807). In each
+    worker (``client.run``) it loads them before the first member, so that no member pays.
+    Best effort: a failure here is reported by the member itself.
+    """
+    if scenario_yaml is None:
+        return False
+    from .output import to_dataset, write_netcdf
+    from .runner import simulate
+    from .scenario import parse_scenario
+
+    try:
+        ds = to_dataset(simulate(parse_scenario(scenario_yaml)))
+        with tempfile.TemporaryDirectory(prefix="avflow-warm-") as folder:
+            with dask.config.set(scheduler="synchronous"):
+                write_netcdf(ds, Path(folder) / "warm.nc")
+    except Exception:  # noqa: BLE001
+        return False
+    return True
+
+
+# =========================================================================================
+# The ensemble
+# =========================================================================================
+
+
+@dataclass
+class Outcome:
+    """What :func:`run_ensemble` did."""
+
+    table: object  #: pandas.DataFrame, one row per member, in member order
+    ran: int  #: members computed now
+    reused: int  #: members whose file was already there
+    failed: int
+    wall: float  #: s, from the first task submitted to the last result
+    startup: float  #: s, starting (or connecting to) the cluster, warming included
+    workers: int
+
+    @property
+    def ok(self) -> bool:
+        return self.failed == 0
+
+
+class ProgressLine:
+    """``[#####.....] 12/21 members, 1 failed`` on one terminal line; failures on their own."""
+
+    def __init__(self, total: int, stream=None, live: bool | None = None):
+        stream = stream if stream is not None else sys.stderr
+        self.total, self.stream = total, stream
+        self.live = stream.isatty() if live is None else live
+        self.done = self.failed = 0
+        self.started = time.perf_counter()
+
+    def update(self, done: int, failed: int) -> None:
+        self.done, self.failed = done, failed
+        if not self.live:
+            return
+        width = 30
+        filled = int(width * done / max(self.total, 1))
+        wall = time.perf_counter() - self.started
+        self.stream.write(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} "
+                          f"members, {failed} failed ({wall:5.1f} s)")
+        self.stream.flush()
+
+    def failure(self, member: Member, error: str) -> None:
+        if self.live:
+            self.stream.write("\r\033[K")
+        self.stream.write(f"member {member.index} ({member.scenario_hash}, {member.label}) "
+                          f"failed: {error}\n")
+        self.stream.flush()
+        self.update(self.done, self.failed)
+
+    def close(self) -> None:
+        if self.live:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def member_path(outdir: Path, member: Member) -> Path:
+    return Path(outdir) / "members" / f"{member.scenario_hash}.nc"
+
+
+def _clean_temporaries(folder: Path) -> None:
+    """Temporary files of members whose worker was killed while writing."""
+    for tmp in folder.glob(".*.nc.*.tmp"):
+        tmp.unlink(missing_ok=True)
+
+
+def auto_batch(n_members: int, n_workers: int) -> int:
+    """Members per task: about 16 tasks per worker, so the tail stays short."""
+    return max(1, n_members // max(1, 16 * n_workers))
+
+
+def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: str | None = None,
+                 workers: int | None = None, batch: int | None = None,
+                 progress: ProgressLine | None = None, write_outputs: bool = True,
+                 client=None) -> Outcome:
+    """Run every member not already done, then write summary.csv and ensemble.nc.
+
+    ``scheduler``: address (``tcp://host:port``) or scheduler file of a running cluster;
+    None starts an embedded ``LocalCluster`` with ``workers`` single-threaded worker
+    processes (default: one per core). ``workers=0`` runs the members in this process,
+    one after the other (no dask). ``client``: an existing ``distributed.Client`` to use.
+    """
+    outdir = Path(outdir)
+    folder = outdir / "members"
+    folder.mkdir(parents=True, exist_ok=True)
+    _clean_temporaries(folder)
+    rows: dict[int, dict] = {}
+    todo: list[Member] = []
+    for member in ensemble.members:
+        row = read_member_row(member_path(outdir, member))
+        if row is not None:
+            row.update(reused=True, member_time=math.nan)
+            rows[member.index] = row
+        else:
+            todo.append(member)
+    progress = progress or ProgressLine(len(ensemble.members))
+    n_failed = sum(r["status"] not in OK_STATUSES for r in rows.values())
+    progress.update(len(rows), n_failed)
+
+    def record(member: Member, row: dict) -> None:
+        nonlocal n_failed
+        rows[member.index] = row
+        if row["status"] not in OK_STATUSES:
+            n_failed += 1
+            progress.failure(member, row["error"])
+        progress.update(len(rows), n_failed)
+
+    t0 = time.perf_counter()
+    startup = 0.0
+    n_workers = 0
+    if todo and workers == 0 and scheduler is None and client is None:
+        started = time.perf_counter()
+        for member in todo:
+            record(member, run_member(member.scenario.source_text,
+                                      str(member_path(outdir, member))))
+        wall = time.perf_counter() - started
+    elif todo:
+        tiny = tiny_scenario_yaml(ensemble)
+        warm(tiny)
+        with _client(scheduler, workers, client, tiny) as cl:
+            n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
+                cl, "scheduler_info") else 0
+            startup = time.perf_counter() - t0
+            started = time.perf_counter()
+            _run_on_dask(cl, todo, outdir, batch or auto_batch(len(todo), max(n_workers, 1)),
+                         record)
+            wall = time.perf_counter() - started
+    else:
+        wall = 0.0
+    progress.close()
+    _clean_temporaries(folder)
+
+    table = member_table(ensemble, rows, outdir)
+    if write_outputs:
+        write_tables(table, outdir)
+        from .ensemble_output import ensemble_dataset, write_ensemble_netcdf
+
+        write_ensemble_netcdf(ensemble_dataset(ensemble, table, outdir), outdir / "ensemble.nc")
+    ran = sum(not r.get("reused") for r in rows.values())
+    return Outcome(table, ran, len(rows) - ran, n_failed, wall, startup, n_workers)
+
+
+class _client:
+    """Context manager: a Client on the given scheduler, or on a fresh LocalCluster."""
+
+    def __init__(self, scheduler, workers, client, tiny):
+        self.scheduler, self.workers, self.given, self.tiny = scheduler, workers, client, tiny
+        self.cluster = self.client = None
+
+    def __enter__(self):
+        from distributed import Client, LocalCluster
+
+        if self.given is not None:
+            self.client = self.given
+        elif self.scheduler:
+            if os.path.isfile(self.scheduler):
+                self.client = Client(scheduler_file=self.scheduler, timeout="30s")
+            else:
+                self.client = Client(self.scheduler, timeout="30s")
+        else:
+            n = self.workers or os.cpu_count() or 1
+            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                        dashboard_address=None, silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+        self.client.wait_for_workers(1, timeout=120)
+        self.client.run(warm, self.tiny)
+        return self.client
+
+    def __exit__(self, *exc):
+        if self.given is None:
+            self.client.close()
+            if self.cluster is not None:
+                self.cluster.close()
+
+
+def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
+                 record: Callable[[Member, dict], None]) -> None:
+    """Submit the members in batches; results are recorded as they complete.
+
+    A lost worker is the scheduler's business: its tasks are run again elsewhere (the member
+    function is idempotent and writes atomically). A task that still errors (KilledWorker
+    after repeated losses) marks its members failed.
+    """
+    from distributed import as_completed
+
+    by_index = {m.index: m for m in todo}
+    futures = {}
+    for start in range(0, len(todo), batch):
+        chunk = todo[start:start + batch]
+        items = [(m.index, m.scenario.source_text, str(member_path(outdir, m))) for m in chunk]
+        key = "avflow-member-" + "-".join(m.scenario_hash for m in chunk[:1]) + f"-{len(chunk)}"
+        future = client.submit(run_batch, items, key=key, pure=False, retries=1)
+        futures[future] = chunk
+    for future in as_completed(list(futures), raise_errors=False):
+        chunk = futures.pop(future)
+        try:
+            results = future.result()
+        except Exception as err:  # noqa: BLE001 - infrastructure failure of the whole task
+            for m in chunk:
+                record(m, {**{n: math.nan for n in SUMMARY_FIELDS}, "status": "failed",
+                           "steps": 0, "error": f"{type(err).__name__}: {err}",
+                           "reused": False, "member_time": math.nan})
+            continue
+        finally:
+            future.release()
+        for index, row in results:
+            record(by_index[index], row)
+
+
+# =========================================================================================
+# Tables
+# =========================================================================================
+
+
+def member_table(ensemble: Ensemble, rows: dict[int, dict], outdir: Path):
+    """One row per member, in member order: parameters, status, summaries, file."""
+    import pandas as pd
+
+    params = ensemble.parameters()
+    records = []
+    for member in ensemble.members:
+        row = rows[member.index]
+        record = {"realization": member.index, "scenario_hash": member.scenario_hash,
+                  "status": row["status"], "error": row.get("error", "")}
+        for name, values in params.items():
+            record[name] = values[member.index]
+        for name in SUMMARY_FIELDS:
+            record[name] = row.get(name, math.nan)
+        record["member_time"] = row.get("member_time", math.nan)
+        record["steps"] = row.get("steps", 0)
+        record["file"] = (os.path.relpath(member_path(outdir, member), outdir)
+                          if row["status"] != "failed" else "")
+        records.append(record)
+    return pd.DataFrame.from_records(records)
+
+
+def _atomic(path: Path, write: Callable[[str], None]) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_tables(table, outdir: Path) -> None:
+    """summary.csv (+ summary.parquet when pyarrow is importable) and failures.csv."""
+    outdir = Path(outdir)
+    _atomic(outdir / "summary.csv", lambda tmp: table.to_csv(tmp, index=False))
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        _atomic(outdir / "summary.parquet", lambda tmp: table.to_parquet(tmp, index=False))
+    failed = table[~table["status"].isin(OK_STATUSES)]
+    failures = outdir / "failures.csv"
+    if len(failed):
+        columns = [c for c in table.columns if c not in SUMMARY_FIELDS
+                   and c not in ("member_time", "steps", "file")]
+        _atomic(failures, lambda tmp: failed[columns].to_csv(tmp, index=False))
+    else:
+        failures.unlink(missing_ok=True)
+

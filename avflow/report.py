@@ -1,0 +1,233 @@
+"""``avflow report OUTDIR``: a Markdown report of an ensemble, with PNG figures (matplotlib Agg).
+
+Reads ``OUTDIR/ensemble.nc`` only (the stacked maps are there; member files are read for
+deposit profiles when the members do not share a grid). Writes ``OUTDIR/report.md`` and
+``OUTDIR/report/*.png``:
+
+- runout and time to stop against each varied numeric parameter, coloured by friction law;
+- runout and time to stop per law;
+- profile scenes: the deposit profiles of all members overlaid;
+- grid scenes: the peak-thickness exceedance-probability map of every threshold;
+- a table of the failed members with their errors.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .orchestrate import OK_STATUSES
+
+__all__ = ["write_report"]
+
+_COLORS = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _law_colors(laws) -> dict:
+    return {law: _COLORS[i % len(_COLORS)] for i, law in enumerate(dict.fromkeys(laws))}
+
+
+def _md_table(header: list[str], rows: list[list]) -> str:
+    def cell(v):
+        if isinstance(v, float):
+            return "NaN" if math.isnan(v) else f"{v:.4g}"
+        return str(v).replace("|", "\\|").replace("\n", " ")
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def write_report(outdir: str | os.PathLike) -> Path:
+    """Write ``OUTDIR/report.md`` and its figures; returns the path of the report."""
+    import xarray as xr
+
+    from .errors import AvflowError
+
+    outdir = Path(outdir)
+    path = outdir / "ensemble.nc"
+    if not path.is_file():
+        raise AvflowError(f"{path}: not found (run `avflow ensemble ... -o {outdir}` first)")
+    with xr.open_dataset(path, decode_times=False) as ds:
+        ds = ds.load()
+    figdir = outdir / "report"
+    figdir.mkdir(exist_ok=True)
+    plt = _plt()
+
+    n = ds.sizes["realization"]
+    status = ds["status"].values.astype(str)
+    ok = np.isin(status, OK_STATUSES)
+    laws = ds["law"].values.astype(str)
+    colors = _law_colors(laws)
+    profile = ds.attrs.get("scene") == "profile"
+    params = [name for name, c in ds.coords.items()
+              if c.dims == ("realization",) and c.dtype.kind == "f"
+              and np.isfinite(c.values).any() and np.unique(c.values[np.isfinite(c.values)]).size > 1]
+    x_units = {"runout": "m", "time_to_stop": "s"}
+
+    md = [f"# Ensemble report: {ds.attrs.get('ensemble_name', '')}", ""]
+    md += [f"- members: {n}, succeeded: {int(ok.sum())}, failed: {int((~ok).sum())}",
+           f"- scene: {ds.attrs.get('scene')}; varied: {ds.attrs.get('varied', '')}",
+           f"- base scenario hash: {ds.attrs.get('base_scenario_hash', '')}",
+           f"- source: {ds.attrs.get('source', '')}", ""]
+    figures: list[tuple[str, str]] = []
+
+    # --- runout and time to stop against each varied parameter ---------------------------
+    for param in params:
+        values = ds[param].values
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+        others = [p for p in params if p != param]
+        for ax, name in zip(axes, ("runout", "time_to_stop")):
+            y = ds[name].values
+            sel = ok & np.isfinite(values)
+            # Members that differ only by this parameter are joined by a line.
+            keys = [tuple([laws[i]] + [_key(ds[p].values[i]) for p in others]) for i in range(n)]
+            for key in dict.fromkeys(k for k, s in zip(keys, sel) if s):
+                idx = [i for i in range(n) if sel[i] and keys[i] == key]
+                idx.sort(key=lambda i: values[i])
+                ax.plot(values[idx], y[idx], "-o", color=colors[key[0]], alpha=0.7, ms=4)
+            ax.set_xlabel(f"{ds[param].attrs.get('long_name', param)}"
+                          f" ({ds[param].attrs.get('units', '')})")
+            ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
+            ax.grid(alpha=0.3)
+        for law, c in colors.items():
+            axes[0].plot([], [], "-o", color=c, label=law)
+        axes[0].legend(title="law")
+        fname = f"vs_{param}.png"
+        fig.suptitle(f"runout and time to stop against {param}")
+        fig.savefig(figdir / fname, dpi=110)
+        plt.close(fig)
+        figures.append((f"Runout and time to stop against {param}", fname))
+
+    # --- per law ---------------------------------------------------------------------------
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+    rng = np.random.default_rng(0)
+    for ax, name in zip(axes, ("runout", "time_to_stop")):
+        y = ds[name].values
+        for k, law in enumerate(colors):
+            sel = ok & (laws == law)
+            ax.scatter(k + rng.uniform(-0.15, 0.15, sel.sum()), y[sel], color=colors[law],
+                       alpha=0.8, s=18)
+        ax.set_xticks(range(len(colors)), list(colors))
+        ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
+        ax.grid(alpha=0.3)
+    fig.suptitle("runout and time to stop per friction law")
+    fig.savefig(figdir / "by_law.png", dpi=110)
+    plt.close(fig)
+    figures.append(("Runout and time to stop per friction law", "by_law.png"))
+
+    # --- deposits ---------------------------------------------------------------------------
+    if profile:
+        fig, ax = plt.subplots(figsize=(10, 4), constrained_layout=True)
+        for i in np.flatnonzero(ok):
+            x, h = _deposit_profile(ds, outdir, i)
+            if x is not None:
+                ax.plot(x, h, color=colors[laws[i]], alpha=0.6, lw=1)
+        for law, c in colors.items():
+            ax.plot([], [], color=c, label=law)
+        ax.legend(title="law")
+        ax.set_xlabel("distance along the bed (m)")
+        ax.set_ylabel("deposit thickness (m, normal to the bed)")
+        ax.grid(alpha=0.3)
+        ax.set_title(f"deposit profiles of the {int(ok.sum())} successful members")
+        fig.savefig(figdir / "deposit_profiles.png", dpi=110)
+        plt.close(fig)
+        figures.append(("Deposit profiles, all members overlaid", "deposit_profiles.png"))
+    elif "peak_thickness_exceedance_probability" in ds:
+        prob = ds["peak_thickness_exceedance_probability"]
+        k = prob.sizes["threshold"]
+        xs, ys = ds["x"].values, ds["y"].values
+        aspect = (np.ptp(xs) + 1e-9) / (np.ptp(ys) + 1e-9)
+        if aspect > 2.0:  # long domains: one map under the other
+            fig, axes = plt.subplots(k, 1, figsize=(10, 1.2 + k * 10 / aspect),
+                                     constrained_layout=True, squeeze=False)
+            axes = axes[:, 0]
+        else:
+            fig, axes = plt.subplots(1, k, figsize=(4.2 * k, 4), constrained_layout=True,
+                                     squeeze=False)
+            axes = axes[0]
+        for ax, t in zip(axes, prob["threshold"].values):
+            im = ax.pcolormesh(ds["x"].values, ds["y"].values, prob.sel(threshold=t).values,
+                               vmin=0.0, vmax=1.0, cmap="viridis", shading="nearest")
+            ax.set_aspect("equal")
+            ax.set_title(f"P(peak thickness > {t:g} m)")
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel("y (m)")
+        fig.colorbar(im, ax=list(axes), label="probability")
+        fig.savefig(figdir / "exceedance.png", dpi=110)
+        plt.close(fig)
+        figures.append(("Peak-thickness exceedance probability", "exceedance.png"))
+
+    for title, fname in figures:
+        md += [f"## {title}", "", f"![{title}](report/{fname})", ""]
+
+    # --- tables ----------------------------------------------------------------------------
+    md += ["## Summary per law", ""]
+    rows = []
+    for law in colors:
+        sel = ok & (laws == law)
+        if not sel.any():
+            rows.append([law, 0] + [math.nan] * 6)
+            continue
+        r, t = ds["runout"].values[sel], ds["time_to_stop"].values[sel]
+        rows.append([law, int(sel.sum()), float(np.min(r)), float(np.median(r)),
+                     float(np.max(r)), float(np.nanmin(t)) if np.isfinite(t).any() else math.nan,
+                     float(np.nanmedian(t)) if np.isfinite(t).any() else math.nan,
+                     float(np.nanmax(t)) if np.isfinite(t).any() else math.nan])
+    md += [_md_table(["law", "members", "runout min (m)", "median", "max",
+                      "time to stop min (s)", "median", "max"], rows), ""]
+
+    md += ["## Failed members", ""]
+    failed = np.flatnonzero(~ok)
+    if failed.size:
+        md += [_md_table(["realization", "hash", "law", *params, "status", "error"],
+                         [[int(i), str(ds["scenario_hash"].values[i]), laws[i],
+                           *[float(ds[p].values[i]) for p in params], status[i],
+                           str(ds["error"].values[i])] for i in failed]), ""]
+    else:
+        md += ["None: every member succeeded.", ""]
+
+    if n <= 250:
+        md += ["## All members", ""]
+        names = ["runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
+                 "mass_balance_error", "wall_time"]
+        md += [_md_table(["realization", "law", *params, "status", *names],
+                         [[int(i), laws[i], *[float(ds[p].values[i]) for p in params],
+                           status[i], *[float(ds[m].values[i]) for m in names]]
+                          for i in range(n)]), ""]
+    report = outdir / "report.md"
+    tmp = report.with_name(".report.md.tmp")
+    tmp.write_text("\n".join(md))
+    os.replace(tmp, report)
+    return report
+
+
+def _key(value):
+    """A hashable, NaN-safe grouping key (NaN != NaN would split every group)."""
+    value = float(value)
+    return None if math.isnan(value) else value
+
+
+def _deposit_profile(ds, outdir: Path, i: int):
+    """Deposit thickness along x of member ``i``: from ensemble.nc, else its member file."""
+    if "deposit_thickness" in ds:
+        return ds["x"].values, ds["deposit_thickness"].values[i]
+    import xarray as xr
+
+    path = outdir / "members" / f"{ds['scenario_hash'].values[i]}.nc"
+    if not path.is_file():
+        return None, None
+    with xr.open_dataset(path, decode_times=False) as m:
+        return m["x"].values, m["deposit_thickness"].values
