@@ -117,8 +117,8 @@ def dt_limit(cfl_factor, gamma_z, h, hu, hv, g):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _trial_momentum(h_old, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt, dt_decide,
-                    gx, gy, gz, kappa, law, p0, p1, p2, p3, g):
+def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt,
+                    dt_decide, gx, gy, gz, kappa, law, p0, p1, p2, p3, g):
     """Sweep-1 closure of one cell: q~ of eq. 47 and the threshold test of eq. 49.
 
     ``rate_*``: the flux divergences (mass m/s, momentum m^2/s^2). The trial discharge q~
@@ -130,7 +130,7 @@ def _trial_momentum(h_old, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt, 
     h_star = h_old + dt * rate_h
     qx = hu_old + dt * (rate_x + g * h_star * gx)
     qy = hv_old + dt * (rate_y + g * h_star * gy)
-    if h_old <= 0.0:
+    if h_old <= h_zero:
         return qx, qy, DRY
     hd = h_old + dt_decide * rate_h
     qdx = hu_old + dt_decide * (rate_x + g * hd * gx)
@@ -144,18 +144,33 @@ def _trial_momentum(h_old, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt, 
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _final_momentum(flag, speed_n, h_new, qx, qy, dt, gz, kappa, law, p0, p1, p2, p3, g):
+def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, kappa, law, p0, p1, p2, p3,
+                    g):
     """Sweep-2 momentum of one cell: q = 0 under the threshold (eq. 56), else eq. 50.
 
-    The friction is linearised at time n (speed of ``U^n``), with the new thickness.
+    The friction is linearised at time n (speed of ``U^n``), with the new thickness. A cell
+    left with ``h <= h_zero`` holds a round-off residue of fluxes that nearly emptied it (on
+    real DEMs 1e-28 m at 2 km/s): its momentum is as uncertain as its mass is negligible,
+    so it is set to zero; the mass stays (conservation is untouched).
     Returns ``(qx, qy, clamped)``; clamped is 1 when the normal acceleration hit 0.
     """
-    if flag == UNDER_THRESHOLD or h_new <= 0.0:
+    if flag == UNDER_THRESHOLD or h_new <= h_zero:
         return 0.0, 0.0, 0
     accel, clamped = _normal_accel(g * gz, kappa, speed_n * speed_n)
     tau, drag = friction(law, p0, p1, p2, p3, h_new, speed_n, accel, g)
     qx, qy = _project(qx, qy, tau, drag, dt)
     return qx, qy, clamped
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _emitting(h, h_zero):
+    """Thickness that emits particles: a cell at or below ``h_zero`` is dry for the scheme.
+
+    It keeps its mass and receives, but sends nothing (and holds no momentum, see
+    :func:`_final_momentum`). Without this a film of 1e-30 m spread one cell per step in every
+    direction, whatever the physics, and soon covered the whole DEM.
+    """
+    return h if h > h_zero else 0.0
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -198,7 +213,7 @@ def _dirac_face(dirac, flag_i, flag_j):
 @njit(error_model="numpy", cache=True)
 def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
                  h, hu, hv, h_new, hu_new, hv_new, flux, flag,
-                 law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+                 law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                  arrival, last_moved):
     """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
 
@@ -215,14 +230,15 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
 
     # --- sweep 1: fluxes (every normal along +x), trial state, threshold flags
-    c0 = sound_speed(h[0], g * gamma_z[0])
-    u0 = hu[0] / h[0] if h[0] > 0.0 else 0.0
-    fp_h, fp_q, fm_h, fm_q = half_fluxes(h[0], u0, c0, c0 * density[0])
+    h0 = _emitting(h[0], h_zero)
+    c0 = sound_speed(h0, g * gamma_z[0])
+    u0 = hu[0] / h0 if h0 > 0.0 else 0.0
+    fp_h, fp_q, fm_h, fm_q = half_fluxes(h0, u0, c0, c0 * density[0])
     if left == WALL:  # mirror ghost (h, -u): no mass, twice the pressure
         fl_h = 0.0
         fl_q = 2.0 * fm_q
     else:  # open: the ghost copies cell 0 but cannot push material in
-        gp_h, gp_q, _, _ = half_fluxes(h[0], min(u0, 0.0), c0, c0 * density[0])
+        gp_h, gp_q, _, _ = half_fluxes(h0, min(u0, 0.0), c0, c0 * density[0])
         fl_h = gp_h + fm_h
         fl_q = gp_q + fm_q
     flux[0, 0] = fl_h
@@ -230,9 +246,10 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     u_prev = u0
     for i in range(1, n + 1):
         if i < n:
-            ci = sound_speed(h[i], g * gamma_z[i])
-            ui = hu[i] / h[i] if h[i] > 0.0 else 0.0
-            np_h, np_q, nm_h, nm_q = half_fluxes(h[i], ui, ci, ci * density[i])
+            hi = _emitting(h[i], h_zero)
+            ci = sound_speed(hi, g * gamma_z[i])
+            ui = hu[i] / hi if hi > 0.0 else 0.0
+            np_h, np_q, nm_h, nm_q = half_fluxes(hi, ui, ci, ci * density[i])
             fr_h = fp_h + nm_h
             fr_q = fp_q + nm_q
         else:
@@ -242,16 +259,16 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
                 fr_h = 0.0
                 fr_q = 2.0 * fp_q
             else:
-                um = hu[n - 1] / h[n - 1] if h[n - 1] > 0.0 else 0.0
-                cm = sound_speed(h[n - 1], g * gamma_z[n - 1])
-                _, _, gm_h, gm_q = half_fluxes(h[n - 1], max(um, 0.0), cm,
-                                               cm * density[n - 1])
+                hm = _emitting(h[n - 1], h_zero)
+                um = hu[n - 1] / hm if hm > 0.0 else 0.0
+                cm = sound_speed(hm, g * gamma_z[n - 1])
+                _, _, gm_h, gm_q = half_fluxes(hm, max(um, 0.0), cm, cm * density[n - 1])
                 fr_h = fp_h + gm_h
                 fr_q = fp_q + gm_q
         flux[i, 0] = fr_h
         flux[i, 1] = fr_q
         k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
-        qx, _, fk = _trial_momentum(h[k], abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
+        qx, _, fk = _trial_momentum(h[k], h_zero, abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
                                     (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
                                     gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
         hu_new[k] = qx
@@ -288,7 +305,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         if k == n - 1 and right == OUTFLOW:
             outflow += fr * dt
         speed_n = hv_new[k]
-        qx, _, cl = _final_momentum(fk, speed_n, hn, hu_new[k], 0.0, dt,
+        qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt,
                                     gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
         h_new[k] = hn
         hu_new[k] = qx
@@ -316,7 +333,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
 def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                gamma_x, gamma_y, gamma_z, curvature,
                h, hu, hv, h_new, hu_new, hv_new, flux, transport, flag,
-               law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+               law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                arrival, last_moved, active_faces, n_active, touched, n_touched):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
@@ -352,7 +369,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
         ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
         length = face_length[f]
-        hi = h[i]
+        hi = _emitting(h[i], h_zero)
         uni = 0.0
         uti = 0.0
         if hi > 0.0:
@@ -363,7 +380,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         if j >= 0:
             nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
             tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
-            hj = h[j]
+            hj = _emitting(h[j], h_zero)
             unj = 0.0
             utj = 0.0
             if hj > 0.0:
@@ -401,12 +418,12 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     # --- sweep 1b: trial state and threshold flags
     for c in range(n_touched):
         i = touched[c]
-        if h[i] <= 0.0:  # dry: keep the momentum rate, formed in sweep 2b with its mass
+        if h[i] <= h_zero:  # dry: keep the momentum rate, formed in sweep 2b with its mass
             flag[i] = DRY
             h_new[i] = 0.0
             continue
         inv_area = 1.0 / cell_area[i]
-        qx, qy, fi = _trial_momentum(h[i], _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
+        qx, qy, fi = _trial_momentum(h[i], h_zero, _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
                                      h_new[i] * inv_area, hu_new[i] * inv_area,
                                      hv_new[i] * inv_area, dt, dt_decide, gamma_x[i],
                                      gamma_y[i], gamma_z[i], curvature[i],
@@ -461,7 +478,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
             qx = dt * (qx / area + g * hn * gamma_x[i])
             qy = dt * (qy / area + g * hn * gamma_y[i])
-        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, qx, qy, dt, gamma_z[i], curvature[i],
+        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i], curvature[i],
                                      law, p0, p1, p2, p3, g)
         h_new[i] = hn
         hu_new[i] = qx
@@ -518,7 +535,7 @@ def activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp, c
 def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
             gamma_x, gamma_y, gamma_z, curvature,
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
-            law, params, g, dirac, h_dry, cfl, t_target, max_steps, stop_volume,
+            law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx, stats):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
@@ -549,7 +566,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
     cell_stamp = np.full(n, -1, dtype=np.int64)
     n_wet = 0
     for i in range(n):
-        if h[i] > 0.0:
+        if h[i] > h_zero:
             wet[n_wet] = i
             n_wet += 1
     n_previous = 0
@@ -578,14 +595,14 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                     face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                     curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, flag,
-                    law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved)
             else:
                 ok, out, lim, moving, film, clamped = step_faces(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
-                    law, params, g, dirac, h_dry, dt, dt_decide, t_new, peak_h, peak_speed,
+                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved, active_faces, n_active, touched, n_touched)
             if ok:
                 break
@@ -602,7 +619,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             for c in range(n_touched):
                 i = touched[c]
                 previous[c] = i
-                if nxt_h[i] > 0.0:
+                if nxt_h[i] > h_zero:
                     wet[n_wet] = i
                     n_wet += 1
             n_previous = n_touched

@@ -92,6 +92,10 @@ def _per_width(units: str, profile: bool) -> str:
 def to_dataset(result: RunResult) -> xr.Dataset:
     """The CF Dataset of a run (profiles on (time, x), grids on (time, y, x))."""
     terrain, snaps = result.terrain, result.snapshots
+    if terrain.kind == "triangles":  # fields on the nodes of a UGRID mesh
+        from .ugrid import to_ugrid_dataset
+
+        return to_ugrid_dataset(result)
     profile = terrain.kind == "profile"
     space = ("x",) if profile else ("y", "x")
 

@@ -7,6 +7,11 @@ The velocity is zero at release (eq. 60). Shapes:
 - ``dam``: a reservoir of uniform thickness upslope of ``position`` (seed section 4).
 - ``box``: uniform thickness over an x range (and a y range on grids).
 - ``cylinder``: uniform thickness within a horizontal radius of a centre (grids).
+- ``polygon``: the areas of a shapefile, each with its ``thickness`` attribute or the
+  scenario's thickness (grids; :mod:`avflow.polygons`).
+- ``raster``: a thickness raster sampled bilinearly at the cell centres (grids).
+
+Polygons and rasters must share the DEM's CRS when both carry one.
 
 ``volume_factor`` multiplies the thickness, hence the volume. Values are taken at cell
 centres; the released volume is ``sum h_i A_i``.
@@ -16,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .dem import RasterError, read_raster, same_crs
+from .polygons import PolygonError, rasterize, read_polygons
 from .terrain import Terrain
 
 
@@ -45,9 +52,29 @@ def initial_thickness(release, terrain: Terrain) -> np.ndarray:
             raise ReleaseError("a cylinder release needs a 2D terrain")
         r2 = (x - release.center[0]) ** 2 + (y - release.center[1]) ** 2
         h = np.where(r2 <= release.radius**2, release.thickness, 0.0)
+    elif kind == "polygon":
+        try:
+            areas, wkt = read_polygons(release.path)
+            _check_crs(release.path, wkt, terrain)
+            h = rasterize(areas, x, y, release.thickness, source=release.path)
+        except PolygonError as err:
+            raise ReleaseError(str(err)) from None
+    elif kind == "raster":
+        try:
+            raster = read_raster(release.path)
+        except RasterError as err:
+            raise ReleaseError(str(err)) from None
+        _check_crs(release.path, raster.crs_wkt, terrain)
+        h = np.nan_to_num(raster.sample(x, y), nan=0.0)
+        h = np.maximum(h, 0.0)
     else:
-        raise ReleaseError(f"release kind {kind!r} is not available yet")
+        raise ReleaseError(f"release kind {kind!r} is not available")
     h = np.ascontiguousarray(h * release.volume_factor, dtype=float)
     if not np.any(h > 0.0):
         raise ReleaseError("the release puts no mass on any cell of the domain")
     return h
+
+
+def _check_crs(path, wkt, terrain: Terrain) -> None:
+    if not same_crs(wkt, terrain.crs_wkt):
+        raise ReleaseError(f"{path}: its CRS differs from the DEM's; reproject it first")

@@ -323,10 +323,24 @@ class PolygonRelease(_Release):
         return _data_file(value, info, POLYGON_SUFFIXES)
 
 
+class RasterRelease(_Release):
+    """A raster of release thickness (2D terrains), sampled at the cell centres."""
+
+    kind: Literal["raster"]
+    path: Text
+    """Thickness raster (.asc, .tif, .tiff or .nc; m, normal to the bed), relative to the
+    scenario file; stored absolute. NODATA and negative cells release nothing."""
+
+    @field_validator("path")
+    @classmethod
+    def _existing_raster(cls, value: str, info: ValidationInfo) -> str:
+        return _data_file(value, info, DEM_SUFFIXES)
+
+
 Release = Annotated[Union[ParabolaRelease, DamRelease, BoxRelease, CylinderRelease,
-                          PolygonRelease], Field(discriminator="kind")]
+                          PolygonRelease, RasterRelease], Field(discriminator="kind")]
 PROFILE_RELEASES = ("parabola", "dam")
-GRID_RELEASES = ("cylinder", "polygon")
+GRID_RELEASES = ("cylinder", "polygon", "raster")
 
 # =========================================================================================
 # Rheology: basal friction laws (parameters are turned into numbers in avflow.rheology)
@@ -389,6 +403,17 @@ Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy], Field(discriminator="la
 # =========================================================================================
 
 
+class Refinement(_Model):
+    """Conforming refinement of a triangle mesh where the terrain bends or is steep."""
+
+    levels: Annotated[int, Field(strict=True, ge=1, le=8)] = 2
+    """Rounds of refinement (each bisects the edges of the marked triangles)."""
+    angle_deg: Angle | None = 5.0
+    """Refine triangles whose normal turns by more than this from a neighbour's (degrees)."""
+    slope_deg: Angle | None = None
+    """Refine triangles steeper than this (degrees); null: slope does not mark."""
+
+
 class Grid(_Model):
     """Cell sizes."""
 
@@ -396,6 +421,13 @@ class Grid(_Model):
     """m: along the bed on a profile, horizontal on a 2D grid."""
     dy: Positive | None = None
     """m, horizontal (2D terrains only); null: dy = dx."""
+    mesh: Literal["square", "triangles"] = "square"
+    """2D terrains: square cells, or triangles on the grid nodes with median dual cells
+    (seed section 3.1, Fig. 2; one cell per vertex)."""
+    pattern: Literal["alternate", "criss-cross"] = "alternate"
+    """Triangles only: each square split along alternating diagonals, or into four."""
+    refine: Refinement | None = None
+    """Triangles only: refinement where the terrain bends; null: none."""
 
 
 class Time(_Model):
@@ -524,6 +556,8 @@ class Scenario(_Model):
             raise _problem(f"required on a 2D terrain ({terrain!r})", "release.y")
         if terrain == "profile" and self.grid.dy is not None:
             raise _problem("not allowed on a 'profile' terrain (1D: dx only)", "grid.dy")
+        if terrain == "profile" and self.grid.mesh != "square":
+            raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
         return self
 
     # --- provenance -------------------------------------------------------------------------

@@ -74,6 +74,9 @@ class Solver:
     cfl: float = 0.5
     dirac: bool = True
     h_dry: float = 0.0
+    #: m: a cell thinner than this after a step keeps its mass but no momentum (a round-off
+    #: residue of emptying fluxes, see kernels._final_momentum); 0 disables it.
+    h_zero: float = 0.0
 
     def __post_init__(self):
         if not 0.0 < self.cfl <= 1.0:
@@ -148,7 +151,7 @@ class Solver:
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
             self._flux, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
-            bool(self.dirac), float(self.h_dry), float(self.cfl), float(t_target),
+            bool(self.dirac), float(self.h_dry), float(self.h_zero), float(self.cfl), float(t_target),
             int(max_steps), float(stop_volume), state.peak_h, state.peak_speed, state.arrival,
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats)
         return STATUS_NAMES[status]

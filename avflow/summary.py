@@ -54,6 +54,8 @@ def deposit_extent(terrain: Terrain, h: np.ndarray, threshold: float, h0: np.nda
     along = xx[mask] * direction[0] + yy[mask] * direction[1]
     length = float(along.max() - along.min() + abs(terrain.dx * direction[0])
                    + abs(terrain.dy * direction[1]))
+    if terrain.kind == "triangles":  # the deposit reaches a vertex on the domain's boundary
+        return runout, length, bool(np.any(mask & terrain.extras["boundary_node"]))
     grid_mask = terrain.to_grid(mask.astype(float), fill=0.0) > 0
     touches = bool(grid_mask[0].any() or grid_mask[-1].any() or grid_mask[:, 0].any()
                    or grid_mask[:, -1].any())

@@ -30,7 +30,7 @@ from .mesh import BOUNDARY_CODES, Mesh, _perimeters, grid_mesh, profile_mesh
 class Terrain:
     """A mesh and its bed coefficients, one value per cell (1D arrays over the cells)."""
 
-    kind: str  #: "profile" or "grid"
+    kind: str  #: "profile", "grid" or "triangles" (median dual cells, avflow.trimesh)
     mesh: Mesh
     gamma_x: np.ndarray  #: gravity along the first tangent axis, / g (sin theta on a profile)
     gamma_y: np.ndarray  #: gravity along the second tangent axis, / g
@@ -56,7 +56,9 @@ class Terrain:
 
     @property
     def grid_shape(self) -> tuple:
-        """(nx,) for a profile, (ny, nx) for a grid."""
+        """(nx,) for a profile, (ny, nx) for a grid, (n_vertices,) for triangles."""
+        if self.kind == "triangles":
+            return (self.x.size,)
         return (self.x.size,) if self.y is None else (self.y.size, self.x.size)
 
     def to_grid(self, values: np.ndarray, fill=np.nan) -> np.ndarray:
@@ -70,7 +72,9 @@ class Terrain:
         return out.reshape(values.shape[:-1] + self.grid_shape)
 
     def cell_xy(self):
-        """Horizontal coordinates (x, y) of the cell centres, per cell (grids only)."""
+        """Horizontal coordinates (x, y) of the cell centres, per cell (grids, triangles)."""
+        if self.kind == "triangles":  # cells are the vertices: x, y are per cell already
+            return self.x, self.y
         xx, yy = np.meshgrid(self.x, self.y)
         xx, yy = xx.ravel(), yy.ravel()
         if self.cell_index is not None:
@@ -223,11 +227,29 @@ def _unit(v):
 
 
 def _frames(normal, tangent, basis_i, basis_j):
-    """(k, 2, 2, 2) face frames from 3D face normals/tangents and the two cells' bases."""
+    """(k, 2, 2, 2) face frames from 3D face normals and the two cells' bases.
+
+    Each side sees the face normal as its projection on that cell's tangent plane,
+    *normalised*, and the tangent as that normal turned by +90 degrees in the plane (the
+    orientation of ``tangent = bed x normal``). Each side's frame is then a rotation: a
+    velocity keeps its norm when it is split into (u_n, u_t) and put back, so mass leaving
+    a cell at its own velocity leaves that velocity unchanged, and a discharge crossing into
+    a differently tilted cell keeps its magnitude (transported along the bed, not
+    foreshortened). Projecting without normalising lost the out-of-plane part of the
+    outgoing momentum while the mass left: on a 46 to 84 degree break of a real DEM a thin
+    cell accelerated to 350 m/s.
+    """
     out = np.zeros((normal.shape[0], 2, 2, 2))
     for side, basis in enumerate((basis_i, basis_j)):
-        for row, vec in enumerate((normal, tangent)):
-            out[:, side, row, :] = np.einsum("kc,kbc->kb", vec, basis)
+        n2 = np.einsum("kc,kbc->kb", normal, basis)
+        t2 = np.einsum("kc,kbc->kb", tangent, basis)
+        norm = np.hypot(n2[:, 0], n2[:, 1])
+        n2 = n2 / norm[:, None]
+        rot = np.stack([-n2[:, 1], n2[:, 0]], axis=1)
+        # the 3D tangent fixes the orientation (it is +90 degrees of the normal in 3D)
+        sign = np.where(np.einsum("kb,kb->k", rot, t2) >= 0.0, 1.0, -1.0)
+        out[:, side, 0, :] = n2
+        out[:, side, 1, :] = rot * sign[:, None]
     return out
 
 
@@ -345,11 +367,36 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
     )
 
 
+def terrain_raster(scenario):
+    """The bed of a 2D scenario as a horizontal raster ``(z, x, y, crs_wkt)``.
+
+    A DEM is read (:mod:`avflow.dem`) and resampled to ``grid.dx`` (``dy``) unless its own
+    spacing is within 1% of it; NODATA cells are NaN. A plane is sampled at its cell centres.
+    """
+    t = scenario.terrain
+    if t.kind == "dem":
+        from .dem import read_raster, resample
+
+        raster = resample(read_raster(t.path), scenario.grid.dx, scenario.grid.dy)
+        return raster.values, raster.x, raster.y, raster.crs_wkt
+    if t.kind == "plane":
+        p = plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)
+        return p.bed_elevation.reshape(p.grid_shape), p.x, p.y, None
+    raise ValueError(f"terrain kind {t.kind!r} has no raster")
+
+
 def build_terrain(scenario) -> Terrain:
     """The terrain of a validated scenario."""
     t = scenario.terrain
+    if getattr(scenario.grid, "mesh", "square") == "triangles":  # median dual cells
+        from .trimesh import scenario_triangle_terrain
+
+        return scenario_triangle_terrain(scenario)
     if t.kind == "profile":
         return profile_terrain(t, scenario.grid.dx, scenario.boundary)
     if t.kind == "plane":
         return plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)
-    raise NotImplementedError(f"terrain kind {t.kind!r} is not available yet")
+    if t.kind == "dem":
+        z, x, y, wkt = terrain_raster(scenario)
+        return surface_terrain(z, x, y, scenario.boundary, nodata=t.nodata, crs_wkt=wkt)
+    raise ValueError(f"terrain kind {t.kind!r} is not available")

@@ -5,7 +5,8 @@
 - 1D: the structured profile sweep and the generic face sweep on the same profile (a
   frictionless dam break on 200 000 cells, half dry, and the same with every cell wet), so
   their ratio is measured in one run;
-- 2D: the face sweep on a 400 x 400 grid over a plane (cylinder release, Coulomb);
+- 2D: the face sweep on a 400 x 400 grid over a plane (cylinder release, Coulomb), and on
+  the triangle mesh of the same plane (401 x 401 vertices, median dual cells, avflow.trimesh);
 - the seed's section 6 run (880 cells) from its scenario, wall time of the time loop.
 Compilation is excluded (a warm-up call first).
 """
@@ -25,6 +26,7 @@ from avflow.runner import simulate
 from avflow.scenario import load_scenario
 from avflow.solver import Solver
 from avflow.terrain import plane_terrain, profile_terrain
+from avflow.trimesh import plane_triangle_terrain
 
 WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -60,6 +62,12 @@ def main():
     rows.append(("2D grid face sweep, 400x400",
                  *rate(Solver(ter2, Law.COULOMB, np.array([math.tan(math.radians(20)), 0, 0, 0])),
                        h2, 0.5, 10.0)))
+    ter3 = plane_triangle_terrain(plane, 10.0, None, WALLS)
+    x3, y3 = ter3.cell_xy()
+    h3 = np.where((x3 - 1000) ** 2 + (y3 - 2000) ** 2 < 300**2, 20.0, 0.0)
+    rows.append(("2D triangle dual-cell face sweep, 401x401",
+                 *rate(Solver(ter3, Law.COULOMB, np.array([math.tan(math.radians(20)), 0, 0, 0])),
+                       h3, 0.5, 10.0)))
     print(f"{'kernel':44s} {'cell-upd/s':>11s} {'wall (s)':>9s} {'steps':>6s}")
     for name, r, wall, steps in rows:
         print(f"{name:44s} {r:11.3g} {wall:9.3f} {steps:6d}")

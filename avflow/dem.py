@@ -1,0 +1,301 @@
+"""Rasters in: DEMs and thickness grids from ESRI ASCII (.asc), GeoTIFF (.tif) and NetCDF (.nc).
+
+Every reader returns a :class:`Raster`: values on ascending cell-centre coordinates ``x``,
+``y`` (m, projected), NODATA as NaN, and the CRS as WKT when the file carries one (the
+``.prj`` sidecar of an ESRI grid, the GeoTIFF's own CRS, the ``grid_mapping`` of a NetCDF).
+The solver never sees NaN: :func:`avflow.terrain.surface_terrain` leaves those cells out of
+the mesh. :func:`resample` puts a raster on a coarser (or finer) grid by bilinear
+interpolation; a cell with a NODATA corner stays NODATA. :func:`cf_grid_mapping` turns the
+CRS into the attributes of a CF ``grid_mapping`` variable (CF-1.11 section 5.6).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+SUFFIXES = (".asc", ".tif", ".tiff", ".nc")
+
+#: A DEM whose spacing is within this fraction of the requested ``dx`` is used as it is.
+NATIVE_TOLERANCE = 0.01
+
+
+class RasterError(ValueError):
+    """A raster file that cannot be read or used; the message names the file."""
+
+
+@dataclass(frozen=True)
+class Raster:
+    """Values (ny, nx) on ascending cell-centre coordinates; NaN where NODATA."""
+
+    values: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    crs_wkt: str | None = None
+    path: str | None = None
+
+    @property
+    def dx(self) -> float:
+        return float(self.x[1] - self.x[0])
+
+    @property
+    def dy(self) -> float:
+        return float(self.y[1] - self.y[0])
+
+    def sample(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """Bilinear values at points (NaN outside the raster or next to a NODATA cell)."""
+        fx = (np.asarray(xs, float) - self.x[0]) / self.dx
+        fy = (np.asarray(ys, float) - self.y[0]) / self.dy
+        ny, nx = self.values.shape
+        inside = (fx >= -1e-9) & (fx <= nx - 1 + 1e-9) & (fy >= -1e-9) & (fy <= ny - 1 + 1e-9)
+        fx = np.clip(fx, 0.0, nx - 1)
+        fy = np.clip(fy, 0.0, ny - 1)
+        i0 = np.minimum(np.floor(fx).astype(np.int64), max(nx - 2, 0))
+        j0 = np.minimum(np.floor(fy).astype(np.int64), max(ny - 2, 0))
+        i1 = np.minimum(i0 + 1, nx - 1)
+        j1 = np.minimum(j0 + 1, ny - 1)
+        wx, wy = fx - i0, fy - j0
+        v = self.values
+        out = ((1 - wx) * (1 - wy) * v[j0, i0] + wx * (1 - wy) * v[j0, i1]
+               + (1 - wx) * wy * v[j1, i0] + wx * wy * v[j1, i1])
+        return np.where(inside, out, np.nan)
+
+
+def read_raster(path) -> Raster:
+    """Read a raster by its suffix; any problem is a :class:`RasterError` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise RasterError(f"{path}: no such raster file")
+    suffix = path.suffix.lower()
+    stat = path.stat()
+    try:
+        if suffix == ".asc":
+            return _cached(str(path), stat.st_mtime_ns, stat.st_size, "asc")
+        if suffix in (".tif", ".tiff"):
+            return _cached(str(path), stat.st_mtime_ns, stat.st_size, "tif")
+        if suffix == ".nc":
+            return _cached(str(path), stat.st_mtime_ns, stat.st_size, "nc")
+    except RasterError:
+        raise
+    except Exception as err:  # a reader library's own error: say which file
+        raise RasterError(f"{path}: cannot be read as a raster ({type(err).__name__}: {err})")
+    raise RasterError(f"{path}: unknown raster format (use one of {', '.join(SUFFIXES)})")
+
+
+@functools.lru_cache(maxsize=8)
+def _cached(path: str, mtime_ns: int, size: int, kind: str) -> Raster:
+    """Readers are cached per file version: an ensemble reads its DEM once per process."""
+    raster = {"asc": _read_asc, "tif": _read_tif, "nc": _read_nc}[kind](Path(path))
+    values = raster.values
+    values.setflags(write=False)
+    if not np.isfinite(values).any():
+        raise RasterError(f"{path}: every cell is NODATA")
+    return raster
+
+
+def _read_asc(path: Path) -> Raster:
+    """ESRI ASCII grid: a header of key/value lines, then rows from north to south."""
+    header = {}
+    with open(path, "r", encoding="ascii", errors="replace") as fh:
+        offset = 0
+        while True:
+            pos = fh.tell()
+            line = fh.readline()
+            if not line:
+                break
+            parts = line.split()
+            if len(parts) == 2 and parts[0][0].isalpha():
+                header[parts[0].lower()] = parts[1]
+                offset += 1
+                continue
+            fh.seek(pos)
+            break
+        body = fh.read()
+    try:
+        nx, ny = int(header["ncols"]), int(header["nrows"])
+        if "cellsize" in header:
+            dx = dy = float(header["cellsize"])
+        else:
+            dx, dy = float(header["dx"]), float(header["dy"])
+        if "xllcenter" in header:
+            x0 = float(header["xllcenter"])
+        else:
+            x0 = float(header["xllcorner"]) + 0.5 * dx
+        if "yllcenter" in header:
+            y0 = float(header["yllcenter"])
+        else:
+            y0 = float(header["yllcorner"]) + 0.5 * dy
+        nodata = float(header.get("nodata_value", "nan"))
+    except KeyError as err:
+        raise RasterError(f"{path}: ESRI ASCII header lacks {err.args[0]!r}") from None
+    except ValueError as err:
+        raise RasterError(f"{path}: ESRI ASCII header value is not a number ({err})") from None
+    values = np.array(body.split(), dtype=float)
+    if values.size != nx * ny:
+        raise RasterError(f"{path}: header says {ny} x {nx} = {nx * ny} values, "
+                          f"the file holds {values.size}")
+    values = values.reshape(ny, nx)[::-1].copy()  # south to north: ascending y
+    values[values == nodata] = np.nan
+    prj = path.with_suffix(".prj")
+    wkt = prj.read_text().strip() if prj.is_file() else None
+    return Raster(values, x0 + dx * np.arange(nx), y0 + dy * np.arange(ny), wkt, str(path))
+
+
+def _read_tif(path: Path) -> Raster:
+    import rasterio
+
+    with rasterio.open(path) as src:
+        t = src.transform
+        if t.b != 0.0 or t.d != 0.0:
+            raise RasterError(f"{path}: rotated GeoTIFFs are not supported")
+        band = src.read(1, masked=True).astype(float)
+        values = band.filled(np.nan)
+        wkt = src.crs.to_wkt() if src.crs is not None else None
+        nx, ny = src.width, src.height
+    dx, dy = t.a, t.e  # dy < 0 for north-up rasters
+    x = t.c + dx * (np.arange(nx) + 0.5)
+    y = t.f + dy * (np.arange(ny) + 0.5)
+    if dx < 0:
+        x, values = x[::-1], values[:, ::-1]
+    if dy < 0:
+        y, values = y[::-1], values[::-1]
+    return Raster(np.ascontiguousarray(values), x, y, wkt, str(path))
+
+
+def _read_nc(path: Path) -> Raster:
+    import xarray as xr
+
+    with xr.open_dataset(path, decode_times=False) as ds:
+        candidates = [n for n, v in ds.data_vars.items() if v.ndim == 2]
+        preferred = [n for n in ("elevation", "z", "band_data", "bed_elevation",
+                                 "thickness", "h") if n in candidates]
+        if not candidates:
+            raise RasterError(f"{path}: no 2D variable to read as a raster")
+        name = (preferred or candidates)[0]
+        var = ds[name]
+        ydim, xdim = var.dims
+        x = np.asarray(ds[xdim].values, dtype=float)
+        y = np.asarray(ds[ydim].values, dtype=float)
+        values = np.asarray(var.values, dtype=float)
+        wkt = None
+        gm = var.attrs.get("grid_mapping") or var.encoding.get("grid_mapping")
+        if gm and gm in ds.variables:
+            a = ds[gm].attrs
+            wkt = a.get("crs_wkt") or a.get("spatial_ref")
+    if x.size < 2 or y.size < 2:
+        raise RasterError(f"{path}: variable {name!r} needs at least 2 x 2 cells")
+    if x[1] < x[0]:
+        x, values = x[::-1], values[:, ::-1]
+    if y[1] < y[0]:
+        y, values = y[::-1], values[::-1]
+    for axis, c in (("x", x), ("y", y)):
+        d = np.diff(c)
+        if not np.allclose(d, d[0], rtol=1e-6):
+            raise RasterError(f"{path}: {axis} coordinates are not evenly spaced")
+    return Raster(np.ascontiguousarray(values), x, y, wkt, str(path))
+
+
+def resample(raster: Raster, dx: float, dy: float | None = None) -> Raster:
+    """The raster on a grid of spacing ``dx`` (``dy``) over the same extent, bilinear.
+
+    Returned unchanged when the spacing is already within :data:`NATIVE_TOLERANCE`.
+    """
+    dy = dx if dy is None else dy
+    if (abs(raster.dx - dx) <= NATIVE_TOLERANCE * dx
+            and abs(raster.dy - dy) <= NATIVE_TOLERANCE * dy):
+        return raster
+    nx = int(np.floor((raster.x[-1] - raster.x[0]) / dx + 1e-9)) + 1
+    ny = int(np.floor((raster.y[-1] - raster.y[0]) / dy + 1e-9)) + 1
+    if nx < 2 or ny < 2:
+        raise RasterError(f"{raster.path}: dx = {dx} m leaves fewer than 2 x 2 cells")
+    x = raster.x[0] + dx * np.arange(nx)
+    y = raster.y[0] + dy * np.arange(ny)
+    xx, yy = np.meshgrid(x, y)
+    values = raster.sample(xx, yy)
+    return Raster(values, x, y, raster.crs_wkt, raster.path)
+
+
+def cf_grid_mapping(wkt: str | None) -> dict | None:
+    """Attributes of a CF grid_mapping variable for a CRS given as WKT (None: no CRS).
+
+    pyproj writes the CF parameters (grid_mapping_name, standard parallels, ellipsoid...)
+    and ``crs_wkt``; GDAL reads the latter. A CRS without a CF name keeps ``crs_wkt`` only.
+    """
+    if not wkt:
+        return None
+    try:
+        from pyproj import CRS
+
+        crs = CRS.from_user_input(wkt)
+        attrs = crs.to_cf()
+        attrs["crs_wkt"] = crs.to_wkt()
+    except Exception:  # an unknown or broken CRS still travels as text
+        attrs = {"crs_wkt": wkt}
+    attrs["spatial_ref"] = attrs["crs_wkt"]  # the name GDAL looks up first
+    return {k: v for k, v in attrs.items() if v is not None}
+
+
+def same_crs(a: str | None, b: str | None) -> bool:
+    """True when two WKT strings name the same CRS (or either is absent)."""
+    if not a or not b:
+        return True
+    try:
+        from pyproj import CRS
+
+        return CRS.from_user_input(a).equals(CRS.from_user_input(b), ignore_axis_order=True)
+    except Exception:
+        return a.strip() == b.strip()
+
+
+def write_asc(path, values: np.ndarray, x: np.ndarray, y: np.ndarray, wkt: str | None = None,
+              nodata: float = -9999.0) -> Path:
+    """ESRI ASCII grid (rows north to south) and its .prj, each written atomically."""
+    path = Path(path)
+    dx = float(x[1] - x[0])
+    if not np.isclose(float(y[1] - y[0]), dx, rtol=1e-6):
+        raise RasterError(f"{path}: ESRI ASCII grids need square cells")
+    v = np.where(np.isfinite(values), values, nodata)[::-1]
+    header = (f"ncols {v.shape[1]}\nnrows {v.shape[0]}\n"
+              f"xllcorner {x[0] - 0.5 * dx:.6f}\nyllcorner {y[0] - 0.5 * dx:.6f}\n"
+              f"cellsize {dx:.6f}\nNODATA_value {nodata:g}\n")
+    _atomic_text(path, header + "\n".join(" ".join(f"{a:.6g}" for a in row) for row in v) + "\n")
+    if wkt:
+        _atomic_text(path.with_suffix(".prj"), wkt)
+    return path
+
+
+def write_tif(path, values: np.ndarray, x: np.ndarray, y: np.ndarray,
+              wkt: str | None = None) -> Path:
+    """Single-band float32 GeoTIFF (north up, NaN as nodata), written atomically."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    path = Path(path)
+    dx, dy = float(x[1] - x[0]), float(y[1] - y[0])
+    transform = from_origin(x[0] - 0.5 * dx, y[-1] + 0.5 * dy, dx, dy)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with rasterio.open(tmp, "w", driver="GTiff", width=values.shape[1],
+                           height=values.shape[0], count=1, dtype="float32",
+                           crs=wkt, transform=transform, nodata=np.nan,
+                           compress="deflate") as dst:
+            dst.write(np.asarray(values, dtype=np.float32)[::-1], 1)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
