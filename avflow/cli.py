@@ -1,4 +1,4 @@
-"""Command line: ``avflow run SCENARIO.yaml -o OUT.nc``; ``avflow ensemble``; ``avflow report``.
+"""Command line: ``avflow run SCENARIO.yaml -o OUT.nc``; ensemble; report; export; plot.
 
 Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
 Errors in the input are one line naming the file and the field; no output file is left
@@ -97,6 +97,21 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble")
     rp.add_argument("outdir", help="output folder of `avflow ensemble`")
     rp.set_defaults(func=_cmd_report)
+    x = sub.add_parser("export", help="write the maps of a grid run as GeoTIFF or ESRI ASCII "
+                                      "rasters (<stem>_<variable>.<ext>)")
+    x.add_argument("run_file", help="NetCDF written by `avflow run`")
+    x.add_argument("--format", choices=("tif", "asc"), default="tif",
+                   help="GeoTIFF (default) or ESRI ASCII grid + .prj")
+    x.add_argument("-o", "--output", help="output folder (default: next to RUN_FILE)")
+    x.add_argument("--variables", help="comma-separated maps (default: peak_thickness, "
+                                       "peak_speed, peak_pressure, deposit_thickness, "
+                                       "arrival_time, rest_time)")
+    x.set_defaults(func=_cmd_export)
+    pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness over a hillshade; "
+                                     "bed and snapshots on profiles)")
+    pl.add_argument("run_file", help="NetCDF written by `avflow run`")
+    pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
+    pl.set_defaults(func=_cmd_plot)
     return p
 
 
@@ -126,6 +141,30 @@ def _cmd_report(args) -> int:
     from .report import write_report
 
     print(f"wrote {write_report(args.outdir)}")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from .maps import export_maps
+
+    names = None
+    if args.variables is not None:
+        names = [n.strip() for n in args.variables.split(",") if n.strip()]
+        if not names:
+            raise AvflowError("--variables: give at least one map name")
+
+    def warn(message):
+        print(f"avflow: warning: {message}", file=sys.stderr)
+
+    for path in export_maps(args.run_file, args.format, args.output, names, warn=warn):
+        print(f"wrote {path}")
+    return 0
+
+
+def _cmd_plot(args) -> int:
+    from .maps import plot_run
+
+    print(f"wrote {plot_run(args.run_file, args.output)}")
     return 0
 
 

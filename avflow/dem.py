@@ -119,8 +119,10 @@ def _read_asc(path: Path) -> Raster:
         nx, ny = int(header["ncols"]), int(header["nrows"])
         if "cellsize" in header:
             dx = dy = float(header["cellsize"])
-        else:
+        elif "dx" in header and "dy" in header:
             dx, dy = float(header["dx"]), float(header["dy"])
+        else:
+            raise RasterError(f"{path}: ESRI ASCII header lacks 'cellsize' (or 'dx' and 'dy')")
         if "xllcenter" in header:
             x0 = float(header["xllcenter"])
         else:
@@ -231,6 +233,9 @@ def cf_grid_mapping(wkt: str | None) -> dict | None:
         from pyproj import CRS
 
         crs = CRS.from_user_input(wkt)
+        code = crs.to_epsg(min_confidence=70)  # an ESRI .prj of an EPSG CRS: write EPSG's
+        if code is not None:
+            crs = CRS.from_epsg(code)
         attrs = crs.to_cf()
         attrs["crs_wkt"] = crs.to_wkt()
     except Exception:  # an unknown or broken CRS still travels as text
@@ -246,7 +251,19 @@ def same_crs(a: str | None, b: str | None) -> bool:
     try:
         from pyproj import CRS
 
-        return CRS.from_user_input(a).equals(CRS.from_user_input(b), ignore_axis_order=True)
+        ca, cb = CRS.from_user_input(a), CRS.from_user_input(b)
+        if ca.equals(cb, ignore_axis_order=True):
+            return True
+        # ESRI and EPSG spellings of one CRS (datum names, TOWGS84) compare unequal:
+        # the same EPSG code, or the same projection parameters, is the same CRS.
+        ea, eb = ca.to_epsg(min_confidence=70), cb.to_epsg(min_confidence=70)
+        if ea is not None and ea == eb:
+            return True
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return ca.to_proj4() == cb.to_proj4()
     except Exception:
         return a.strip() == b.strip()
 
@@ -262,9 +279,10 @@ def write_asc(path, values: np.ndarray, x: np.ndarray, y: np.ndarray, wkt: str |
     header = (f"ncols {v.shape[1]}\nnrows {v.shape[0]}\n"
               f"xllcorner {x[0] - 0.5 * dx:.6f}\nyllcorner {y[0] - 0.5 * dx:.6f}\n"
               f"cellsize {dx:.6f}\nNODATA_value {nodata:g}\n")
-    _atomic_text(path, header + "\n".join(" ".join(f"{a:.6g}" for a in row) for row in v) + "\n")
+    # %.9g round-trips float32 exactly
+    _atomic_text(path, header + "\n".join(" ".join(f"{a:.9g}" for a in row) for row in v) + "\n")
     if wkt:
-        _atomic_text(path.with_suffix(".prj"), wkt)
+        _atomic_text(path.with_suffix(".prj"), _esri_wkt(wkt))
     return path
 
 
@@ -289,6 +307,16 @@ def write_tif(path, values: np.ndarray, x: np.ndarray, y: np.ndarray,
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def _esri_wkt(wkt: str) -> str:
+    """WKT1 in ESRI's dialect, the only one GDAL's ESRI ASCII driver reads from a .prj."""
+    try:
+        from pyproj import CRS
+
+        return CRS.from_user_input(wkt).to_wkt("WKT1_ESRI")
+    except Exception:
+        return wkt
 
 
 def _atomic_text(path: Path, text: str) -> None:

@@ -92,6 +92,12 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
         data[name] = ("realization", table[name].to_numpy(float), {
             "long_name": name.replace("_", " "), "units": _per_width(units, profile),
             "comment": description})
+    if "runout_truncated" in table:
+        data["runout_truncated"] = ("realization",
+                                    table["runout_truncated"].fillna(-1).to_numpy(np.int8), {
+            "long_name": "deposit reaches the edge of the domain (runout is a lower bound)",
+            "flag_values": np.array([0, 1], np.int8), "flag_meanings": "inside truncated",
+            "_FillValue": np.int8(-1)})
     data["member_time"] = ("realization", table["member_time"].to_numpy(float), {
         "long_name": "wall-clock time of the member task (read, run, write)", "units": "s",
         "comment": "NaN for members reused from an earlier run"})

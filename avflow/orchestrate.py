@@ -57,6 +57,7 @@ def read_member_row(path: str | os.PathLike) -> dict | None:
             row["status"] = str(nc.getncattr("status"))
             row["scenario_hash"] = str(nc.getncattr("scenario_hash"))
             row["steps"] = int(nc.getncattr("steps"))
+            row["runout_truncated"] = int(nc.getncattr("runout_truncated"))
     except Exception:  # noqa: BLE001 - a truncated or foreign file: run the member again
         return None
     row["error"] = "" if row["status"] in OK_STATUSES else f"run ended with status {row['status']}"
@@ -86,6 +87,7 @@ def run_member(scenario_yaml: str, out_path: str) -> dict:
             write_netcdf(to_dataset(result), out_path)
         row = {name: float(result.summary[name]) for name in SUMMARY_FIELDS}
         row.update(status=result.status, steps=int(result.summary["steps"]),
+                   runout_truncated=int(result.summary["runout_truncated"]),
                    error="" if result.status in OK_STATUSES
                    else f"run ended with status {result.status}")
     except Exception as err:  # noqa: BLE001 - recorded, the other members go on
@@ -366,6 +368,7 @@ def member_table(ensemble: Ensemble, rows: dict[int, dict], outdir: Path):
             record[name] = values[member.index]
         for name in SUMMARY_FIELDS:
             record[name] = row.get(name, math.nan)
+        record["runout_truncated"] = row.get("runout_truncated", -1)
         record["member_time"] = row.get("member_time", math.nan)
         record["steps"] = row.get("steps", 0)
         record["file"] = (os.path.relpath(member_path(outdir, member), outdir)

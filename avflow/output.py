@@ -17,6 +17,7 @@ import numpy as np
 import xarray as xr
 
 from . import __version__
+from .dem import cf_grid_mapping
 from .rheology import law_reference
 from .runner import FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED, RunResult
 
@@ -167,6 +168,12 @@ def to_dataset(result: RunResult) -> xr.Dataset:
     data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                              {**attrs("moving_volume"),
                               "units": _per_width("m3", profile)})
+    crs_attrs = None if profile else cf_grid_mapping(terrain.crs_wkt)
+    if crs_attrs:  # CF 5.6: every map names the CRS; GDAL reads crs_wkt / spatial_ref
+        data["crs"] = ((), np.int32(0), crs_attrs)
+        for name, (dims, _, attributes) in list(data.items()):
+            if dims[-2:] == ("y", "x"):
+                attributes["grid_mapping"] = "crs"
     s = result.summary
     for name, (units, description) in SUMMARIES.items():
         data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),

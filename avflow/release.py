@@ -78,3 +78,15 @@ def initial_thickness(release, terrain: Terrain) -> np.ndarray:
 def _check_crs(path, wkt, terrain: Terrain) -> None:
     if not same_crs(wkt, terrain.crs_wkt):
         raise ReleaseError(f"{path}: its CRS differs from the DEM's; reproject it first")
+
+
+def release_crs(release) -> str | None:
+    """The CRS (WKT) a polygon or raster release carries, None for the analytic shapes."""
+    try:
+        if release.kind == "polygon":
+            return read_polygons(release.path)[1]
+        if release.kind == "raster":
+            return read_raster(release.path).crs_wkt
+    except (PolygonError, RasterError):
+        return None
+    return None

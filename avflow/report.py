@@ -81,7 +81,12 @@ def write_report(outdir: str | os.PathLike) -> Path:
     md += [f"- members: {n}, succeeded: {int(ok.sum())}, failed: {int((~ok).sum())}",
            f"- scene: {ds.attrs.get('scene')}; varied: {ds.attrs.get('varied', '')}",
            f"- base scenario hash: {ds.attrs.get('base_scenario_hash', '')}",
-           f"- source: {ds.attrs.get('source', '')}", ""]
+           f"- source: {ds.attrs.get('source', '')}"]
+    if "runout_truncated" in ds:
+        cut = int((ds["runout_truncated"].values == 1).sum())
+        md += [f"- deposit reaching the domain's edge (runout is a lower bound): {cut} "
+               "member(s)" + (": enlarge the domain" if cut else "")]
+    md += [""]
     figures: list[tuple[str, str]] = []
 
     # --- runout and time to stop against each varied parameter ---------------------------

@@ -6,6 +6,7 @@ The runner is the only place that decides output times; the time loop itself run
 
 from __future__ import annotations
 
+import dataclasses
 import time as _time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -15,7 +16,7 @@ import numpy as np
 from . import kernels as K
 from .dem import RasterError
 from .errors import ScenarioError
-from .release import ReleaseError, initial_thickness
+from .release import ReleaseError, initial_thickness, release_crs
 from .rheology import friction_parameters
 from .solver import Solver, State
 from .summary import deposit_extent, travel_angle
@@ -101,6 +102,12 @@ def prepare(scenario):
         raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
     except ValueError as err:
         raise ScenarioError.at(scenario, "grid.dx", str(err)) from None
+    if terrain.crs_wkt is None and terrain.kind != "profile":
+        # A DEM without a CRS (an .asc without .prj) takes that of its release polygon:
+        # inputs of one scene share one CRS, and the outputs can then be georeferenced.
+        wkt = release_crs(scenario.release)
+        if wkt:
+            terrain = dataclasses.replace(terrain, crs_wkt=wkt)
     try:
         h0 = initial_thickness(scenario.release, terrain)
     except ReleaseError as err:

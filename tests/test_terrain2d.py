@@ -200,3 +200,25 @@ def test_a_resting_edge_pushes_no_momentum_into_dry_cells():
     bound = math.sqrt(3.0) * c0 + G * math.sin(math.radians(30.0)) * 2.0
     assert st.speed().max() < bound, (st.speed().max(), bound)
     assert st.steps < 60, st.steps  # measured 26 (CFL 0.5); 1060 before
+
+
+def test_a_larger_map_changes_nothing():
+    """Cells are swept only where there is mass (and one neighbour): a map four times larger
+    around the same flow gives the same thickness bit for bit (the cost benchmark is
+    workflows/benchmark_area.py)."""
+    results = []
+    for size in ((600.0, 400.0), (1200.0, 800.0)):
+        block = NS(slope_deg=28.0, azimuth_deg=90.0,
+                   extent=NS(x=[0.0, size[0]], y=[0.0, size[1]]), elevation_at_center=0.0)
+        t = plane_terrain(block, 10.0, None, walls())
+        xx, yy = t.cell_xy()
+        h0 = np.where((xx - 100.0) ** 2 + (yy - 200.0) ** 2 <= 40.0**2, 5.0, 0.0)
+        s = Solver(t, Law.COULOMB, np.array([math.tan(math.radians(24.0)), 0, 0, 0]),
+                   h_zero=5e-12)
+        st = s.new_state(h0)
+        s.advance(st, 15.0)
+        results.append(t.to_grid(st.h))
+    small, large = results
+    assert small[:, -1].max() == 0.0 and small[-1].max() == 0.0  # never reached the walls
+    assert np.array_equal(large[: small.shape[0], : small.shape[1]], small)
+    assert large[small.shape[0]:].max() == 0.0 and large[:, small.shape[1]:].max() == 0.0

@@ -1,0 +1,209 @@
+"""``avflow export`` and ``avflow plot``: georeferencing of the run file and of the exported
+rasters as GDAL (rasterio) and rioxarray read them, value round trips, PNGs, bad input."""
+
+import numpy as np
+import pytest
+import rasterio
+import xarray as xr
+from pyproj import CRS
+from rasterio.transform import Affine
+
+from avflow.cli import main
+from avflow.dem import read_raster, same_crs, write_asc
+from avflow.maps import DEFAULT_EXPORT, _nice_levels, hillshade
+from avflow.output import to_dataset, write_netcdf
+from avflow.runner import simulate
+from avflow.scenario import load_scenario
+from conftest import SCENARIOS
+
+EPSG = 31287  # MGI / Austria Lambert
+DX = 10.0
+X0, Y0 = 400000.0, 350000.0  # lower-left corner of the DEM
+NX, NY = 60, 50  # not square: a transposed or flipped map would not fit
+
+
+@pytest.fixture(scope="module")
+def grid_run(tmp_path_factory):
+    """A cylinder on a slope that flattens into a shallow valley, on a DEM with a CRS and a
+    NODATA corner; run through the CLI."""
+    folder = tmp_path_factory.mktemp("grid")
+    x = X0 + DX * (np.arange(NX) + 0.5)
+    y = Y0 + DX * (np.arange(NY) + 0.5)
+    xx, yy = np.meshgrid(x, y)
+    z = 1000.0 + 150.0 * np.exp(-(xx - x[0]) / 150.0) + 5e-4 * (yy - y.mean())**2
+    z[:5, -8:] = np.nan  # south-east corner outside the DEM
+    write_asc(folder / "dem.asc", z, x, y, CRS.from_epsg(EPSG).to_wkt())
+    (folder / "scene.yaml").write_text(f"""\
+name: synthetic-valley
+terrain: {{kind: dem, path: dem.asc}}
+grid: {{dx: {DX}}}
+release: {{kind: cylinder, center: [{X0 + 110.0}, {y.mean()}], radius: 40.0, thickness: 8.0}}
+rheology: {{law: coulomb, delta_deg: 20.0}}
+time: {{end: 12.0}}
+output: {{every: 2.0}}
+""")
+    out = folder / "run.nc"
+    assert main(["run", str(folder / "scene.yaml"), "-o", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def profile_run(tmp_path_factory):
+    scenario = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml").with_updates(
+        {"time.end": 20.0})
+    return write_netcdf(to_dataset(simulate(scenario)),
+                        tmp_path_factory.mktemp("profile") / "profile.nc")
+
+
+@pytest.fixture(scope="module")
+def triangles_run(tmp_path_factory):
+    scenario = load_scenario(SCENARIOS / "plane_cylinder_triangles.yaml").with_updates(
+        {"time.end": 4.0, "output.every": 1.0})
+    return write_netcdf(to_dataset(simulate(scenario)),
+                        tmp_path_factory.mktemp("triangles") / "tri.nc")
+
+
+def _expected_transform():
+    # North-up: the origin is the north-west corner of the north-west cell.
+    return Affine(DX, 0.0, X0, 0.0, -DX, Y0 + NY * DX)
+
+
+def _same_crs(crs) -> bool:
+    return crs is not None and CRS.from_wkt(crs.to_wkt()).equals(CRS.from_epsg(EPSG),
+                                                                  ignore_axis_order=True)
+
+
+def test_netcdf_maps_are_georeferenced_for_gdal(grid_run):
+    with rasterio.open(f"netcdf:{grid_run}:peak_thickness") as src:
+        assert _same_crs(src.crs)
+        assert src.transform.almost_equals(_expected_transform())
+        assert (src.width, src.height) == (NX, NY)
+        band = src.read(1, masked=True).filled(np.nan)
+    ds = xr.open_dataset(grid_run, decode_times=False)
+    np.testing.assert_array_equal(band, ds["peak_thickness"].values[::-1])  # north up
+    assert np.isnan(band[-1, -1]) and np.isfinite(band[0, 0])  # NODATA corner is south-east
+
+
+def test_netcdf_maps_are_georeferenced_for_rioxarray(grid_run):
+    import rioxarray  # noqa: F401  (registers .rio)
+
+    ds = xr.open_dataset(grid_run, decode_coords="all", decode_times=False)
+    for name in ("peak_thickness", "deposit_thickness", "bed_elevation"):
+        assert _same_crs(ds[name].rio.crs), name
+    assert _same_crs(ds.rio.crs)
+    t = ds["peak_thickness"].rio.transform()  # rioxarray keeps the file's ascending y
+    assert t.almost_equals(Affine(DX, 0.0, X0, 0.0, DX, Y0))
+
+
+@pytest.mark.parametrize("fmt", ["tif", "asc"])
+def test_export_round_trip(grid_run, tmp_path, fmt, capsys):
+    assert main(["export", str(grid_run), "--format", fmt, "-o", str(tmp_path)]) == 0
+    printed = capsys.readouterr()
+    assert printed.err == ""  # the file has a CRS: no warning
+    ds = xr.open_dataset(grid_run, decode_times=False)
+    written = sorted(p.name for p in tmp_path.glob(f"*.{fmt}"))
+    assert written == sorted(f"run_{name}.{fmt}" for name in DEFAULT_EXPORT)
+    for name in DEFAULT_EXPORT:
+        with rasterio.open(tmp_path / f"run_{name}.{fmt}") as src:
+            values = src.read(1, masked=True).astype(float).filled(np.nan)[::-1]
+            assert src.transform.almost_equals(_expected_transform())
+            if fmt == "tif":
+                assert _same_crs(src.crs)
+            else:  # the .prj is ESRI WKT1: GDAL recognises the CRS, names differ
+                assert src.crs is not None and src.crs.to_epsg() == EPSG
+        expected = ds[name].values.astype(float)
+        assert np.array_equal(np.isnan(values), np.isnan(expected)), name
+        # GeoTIFF: float32 as stored; ESRI ASCII: the 6 significant digits of dem.write_asc
+        rtol = 0.0 if fmt == "tif" else 1e-5
+        np.testing.assert_allclose(values, expected, rtol=rtol, atol=1e-6, equal_nan=True,
+                                   err_msg=name)
+    # avflow reads its own exports back as DEMs / thickness rasters
+    back = read_raster(tmp_path / f"run_deposit_thickness.{fmt}")
+    np.testing.assert_allclose(back.x, ds["x"].values)
+    np.testing.assert_allclose(back.y, ds["y"].values)
+    assert back.crs_wkt and same_crs(back.crs_wkt, CRS.from_epsg(EPSG).to_wkt())
+    assert np.nanmax(ds["deposit_thickness"].values) > 1.0  # the scene did flow
+
+
+def test_export_selected_variables_next_to_the_file(grid_run, capsys):
+    names = ["bed_elevation", "deposit_thickness"]
+    assert main(["export", str(grid_run), "--variables", ",".join(names)]) == 0
+    out = capsys.readouterr().out
+    for name in names:
+        path = grid_run.parent / f"run_{name}.tif"
+        assert path.is_file() and f"wrote {path}" in out
+        path.unlink()
+    assert not list(grid_run.parent.glob("*.tif"))  # only those asked for
+
+
+def test_export_without_crs_warns(tmp_path, capsys):
+    scenario = load_scenario(SCENARIOS / "plane_box_2d.yaml").with_updates({"time.end": 2.0})
+    path = write_netcdf(to_dataset(simulate(scenario)), tmp_path / "plane.nc")
+    assert main(["export", str(path), "--variables", "peak_thickness"]) == 0
+    assert "no CRS" in capsys.readouterr().err
+    with rasterio.open(tmp_path / "plane_peak_thickness.tif") as src:
+        assert src.crs is None
+        assert src.transform.a == 10.0 and src.transform.e == -10.0
+
+
+def test_plot_grid(grid_run, tmp_path, capsys):
+    png = tmp_path / "map.png"
+    assert main(["plot", str(grid_run), "-o", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    assert main(["plot", str(grid_run)]) == 0  # default: next to the file
+    assert grid_run.with_suffix(".png").is_file()
+
+
+def test_plot_profile(profile_run):
+    assert main(["plot", str(profile_run)]) == 0
+    png = profile_run.with_suffix(".png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+
+
+def test_plot_triangles_and_no_export(triangles_run, capsys):
+    assert main(["plot", str(triangles_run)]) == 0
+    assert triangles_run.with_suffix(".png").stat().st_size > 20_000
+    capsys.readouterr()
+    assert main(["export", str(triangles_run)]) == 2
+    err = capsys.readouterr().err
+    assert "export needs a grid scene" in err and str(triangles_run) in err
+
+
+def test_errors_exit_2_naming_the_file(grid_run, profile_run, tmp_path, capsys):
+    def fails(argv, *words):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("avflow: error: ") and err.count("\n") == 1, err
+        for word in words:
+            assert word in err, (word, err)
+
+    missing = tmp_path / "missing.nc"
+    fails(["export", str(missing)], str(missing), "no such file")
+    fails(["plot", str(missing)], str(missing), "no such file")
+    text = tmp_path / "notes.nc"
+    text.write_text("not NetCDF\n")
+    fails(["export", str(text)], str(text), "NetCDF")
+    fails(["export", str(profile_run)], str(profile_run), "export needs a grid scene",
+          "profile")
+    fails(["export", str(grid_run), "--variables", "peak_thickness,bogus"], "'bogus'",
+          "available:", "deposit_thickness", "slope_angle")
+    fails(["export", str(grid_run), "--variables", " , "], "--variables")
+    assert not list(tmp_path.glob("*.tif"))
+
+
+def test_hillshade_lights_slopes_facing_north_west():
+    x = np.arange(20.0)
+    xx, yy = np.meshgrid(x, x)
+    facing_nw = hillshade(xx - yy, 1.0, 1.0)  # rises to the south-east
+    facing_se = hillshade(yy - xx, 1.0, 1.0)
+    flat = hillshade(np.zeros_like(xx), 1.0, 1.0)
+    assert facing_nw.min() > flat.max() > facing_se.max()
+    z = np.zeros((5, 5))
+    z[0, 0] = np.nan
+    assert np.isnan(hillshade(z, 1.0, 1.0)[0, 0])
+
+
+def test_nice_levels():
+    assert _nice_levels(0.01, 0.3) == [0.01, 0.02, 0.05, 0.1, 0.2, 0.5]
+    levels = _nice_levels(1e-4, 300.0)
+    assert len(levels) <= 10 and levels[0] <= 1e-4 and levels[-1] >= 300.0
