@@ -215,3 +215,20 @@ time: {{end: 1.0}}
     terrain, h0, solver, _ = prepare(sc)
     grid = terrain.to_grid(h0, fill=0.0)
     np.testing.assert_array_equal(grid, np.nan_to_num(thick) * np.isfinite(z))
+
+
+def test_contract_plane_cylinder_runs_unchanged(tmp_path):
+    """../shared/contract/plane_cylinder.yaml through the CLI (about 10 s): the flow slides
+    down the 30 degree plane (Coulomb 20) until it piles against the downslope wall."""
+    contract = ROOT.parent / "shared" / "contract" / "plane_cylinder.yaml"
+    if not contract.is_file():
+        pytest.skip("the shared contract folder is not next to the repository")
+    from avflow.cli import main
+
+    out = tmp_path / "pc.nc"
+    assert main(["run", str(contract), "-o", str(out)]) == 0
+    with xr.open_dataset(out, decode_times=False) as ds:
+        assert float(ds["mass_balance_error"]) < 1e-12
+        assert float(ds["release_volume"]) == pytest.approx(
+            float(ds["deposit_volume"]), rel=1e-12)
+        assert ds.attrs["status"] == "completed"
