@@ -232,3 +232,22 @@ def test_contract_plane_cylinder_runs_unchanged(tmp_path):
         assert float(ds["release_volume"]) == pytest.approx(
             float(ds["deposit_volume"]), rel=1e-12)
         assert ds.attrs["status"] == "completed"
+
+
+def test_a_real_path_runs_from_yaml_to_png(tmp_path):
+    """scenarios/avakot_coulomb.yaml at 20 m for 40 s: run, export, plot through the CLI."""
+    from avflow.cli import main
+
+    sc = load_scenario(ROOT / "scenarios" / "avakot_coulomb.yaml").with_updates(
+        {"grid.dx": 20.0, "time.end": 40.0, "output.every": 10.0})
+    path = tmp_path / "kot.yaml"
+    path.write_text(sc.to_yaml())  # data paths are absolute once loaded
+    out = tmp_path / "kot.nc"
+    assert main(["run", str(path), "-o", str(out)]) == 0
+    assert main(["export", str(out), "--format", "tif"]) == 0
+    assert (tmp_path / "kot_peak_thickness.tif").stat().st_size > 0
+    assert main(["plot", str(out), "-o", str(tmp_path / "kot.png")]) == 0
+    assert (tmp_path / "kot.png").stat().st_size > 10_000
+    with xr.open_dataset(out, decode_times=False) as ds:
+        assert "crs" in ds and ds["peak_thickness"].attrs["grid_mapping"] == "crs"
+        assert float(ds["mass_balance_error"]) < 1e-12
