@@ -232,6 +232,14 @@ class PlaneTerrain(_Model):
     """Horizontal extent of the grid (m)."""
     elevation_at_center: Number = 0.0
     """Bed elevation at the centre of the extent (m)."""
+    domain: Text | None = None
+    """Optional polygon shapefile: only cells whose centre is inside are meshed (walls
+    around); relative to the scenario file; stored absolute."""
+
+    @field_validator("domain")
+    @classmethod
+    def _existing_domain(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else _data_file(value, info, POLYGON_SUFFIXES)
 
 
 class DemTerrain(_Model):
@@ -242,6 +250,14 @@ class DemTerrain(_Model):
     """DEM file (.asc, .tif, .tiff or .nc), relative to the scenario file; stored absolute."""
     nodata: Side = "wall"
     """How the flow treats NODATA cells: as walls or as outflow."""
+    domain: Text | None = None
+    """Optional polygon shapefile: only cells whose centre is inside are meshed (the rest
+    is treated as NODATA); relative to the scenario file; stored absolute."""
+
+    @field_validator("domain")
+    @classmethod
+    def _existing_domain(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else _data_file(value, info, POLYGON_SUFFIXES)
 
     @field_validator("path")
     @classmethod

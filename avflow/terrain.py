@@ -378,11 +378,30 @@ def terrain_raster(scenario):
         from .dem import read_raster, resample
 
         raster = resample(read_raster(t.path), scenario.grid.dx, scenario.grid.dy)
-        return raster.values, raster.x, raster.y, raster.crs_wkt
-    if t.kind == "plane":
+        z, x, y, wkt = raster.values, raster.x, raster.y, raster.crs_wkt
+    elif t.kind == "plane":
         p = plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)
-        return p.bed_elevation.reshape(p.grid_shape), p.x, p.y, None
-    raise ValueError(f"terrain kind {t.kind!r} has no raster")
+        z, x, y, wkt = p.bed_elevation.reshape(p.grid_shape), p.x, p.y, None
+    else:
+        raise ValueError(f"terrain kind {t.kind!r} has no raster")
+    if getattr(t, "domain", None):
+        z = _clip_to_domain(z, x, y, t.domain)
+    return z, x, y, wkt
+
+
+def _clip_to_domain(z, x, y, path):
+    """NaN (outside the mesh) wherever a cell centre lies outside the domain polygons."""
+    from .polygons import PolygonError, rasterize, read_polygons
+
+    try:
+        areas, _ = read_polygons(path)
+    except PolygonError as err:
+        raise ValueError(str(err)) from None
+    xx, yy = np.meshgrid(x, y)
+    inside = rasterize(areas, xx, yy, thickness=1.0) > 0.0
+    if not inside.any():
+        raise ValueError(f"{path}: the domain polygon covers no cell of the terrain")
+    return np.where(inside, z, np.nan)
 
 
 def build_terrain(scenario) -> Terrain:
@@ -394,9 +413,10 @@ def build_terrain(scenario) -> Terrain:
         return scenario_triangle_terrain(scenario)
     if t.kind == "profile":
         return profile_terrain(t, scenario.grid.dx, scenario.boundary)
-    if t.kind == "plane":
+    if t.kind == "plane" and not getattr(t, "domain", None):
         return plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)
-    if t.kind == "dem":
+    if t.kind in ("dem", "plane"):  # a DEM, or a plane cut to a domain polygon
         z, x, y, wkt = terrain_raster(scenario)
-        return surface_terrain(z, x, y, scenario.boundary, nodata=t.nodata, crs_wkt=wkt)
+        return surface_terrain(z, x, y, scenario.boundary,
+                               nodata=getattr(t, "nodata", "wall"), crs_wkt=wkt)
     raise ValueError(f"terrain kind {t.kind!r} is not available")

@@ -425,7 +425,7 @@ def scenario_triangle_terrain(scenario) -> Terrain:
     if ref is not None:
         options.update(refine_angle_deg=ref.angle_deg, refine_slope_deg=ref.slope_deg,
                        refine_levels=ref.levels)
-    if t.kind == "plane":
+    if t.kind == "plane" and not getattr(t, "domain", None):
         return plane_triangle_terrain(t, g.dx, g.dy, scenario.boundary, **options)
     from . import terrain as _terrain_module
 
