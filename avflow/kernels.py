@@ -526,8 +526,27 @@ def activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp, c
                         cell_stamp[d] = stamp
                         touched[k] = d
                         k += 1
-    active_faces[:m].sort()  # keep memory order: faces and cells are swept in index order
-    touched[:k].sort()
+    # Sweep faces and cells in index order (memory order, and the same sums, bit for bit, as
+    # a sweep of the whole mesh): sort short lists, rescan the stamps when the lists are long
+    # (a sort of k entries costs more than a scan of n once k log2 k > n).
+    nf = face_stamp.size
+    if m * math.log2(m + 2.0) > nf:
+        m = 0
+        for f in range(nf):
+            if face_stamp[f] == stamp:
+                active_faces[m] = f
+                m += 1
+    else:
+        active_faces[:m].sort()
+    n = cell_stamp.size
+    if k * math.log2(k + 2.0) > n:
+        k = 0
+        for c in range(n):
+            if cell_stamp[c] == stamp:
+                touched[k] = c
+                k += 1
+    else:
+        touched[:k].sort()
     return m, k
 
 
