@@ -306,11 +306,7 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
         else:
             g[:, 1] = across
             edge = np.stack([np.full_like(g[:, 0], dx), np.zeros_like(g[:, 0]), g[:, 0] * dx], 1)
-        bed = _unit(np.stack([-g[:, 0], -g[:, 1], np.ones_like(g[:, 0])], axis=1))
-        nrm = _unit(np.cross(edge, bed) if along_x else np.cross(bed, edge))
         direction = np.sign((cj - ci) if along_x else (rj - ri))[:, None]
-        nrm = nrm * direction
-        tan = np.cross(bed, nrm)
         i_idx = index[ri, ci]
         if along_x:
             off = np.where(cj < 0, side_code["x_min"], side_code["x_max"])
@@ -320,7 +316,23 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
         bj = np.where(j_valid[:, None, None], basis[np.maximum(index[rjc, cjc], 0)],
                       basis[i_idx])
         cells.append(np.stack([i_idx, j_idx], axis=1))
-        frames.append(_frames(nrm, tan, basis[i_idx], bj))
+        # Each side sees the face as the edge lifted onto its *own* tangent plane, with the
+        # in-plane normal to it (towards j): always a proper direction of that cell. The
+        # normal of the averaged bed plane, projected, can point nowhere near the neighbour
+        # where the gradient turns sharply (78 degree cliffs of a 5 m DEM): a cell moving
+        # downslope then had no face to empty through and gravity sped it up without end.
+        # On a plane both constructions coincide.
+        frame = np.empty((i_idx.size, 2, 2, 2))
+        for side, (grad, b) in enumerate(((gi, basis[i_idx]), (gj, bj))):
+            if along_x:
+                e = np.stack([np.zeros_like(grad[:, 0]), np.ones_like(grad[:, 0]), grad[:, 1]], 1)
+            else:
+                e = np.stack([np.ones_like(grad[:, 0]), np.zeros_like(grad[:, 0]), grad[:, 0]], 1)
+            plane = _unit(np.stack([-grad[:, 0], -grad[:, 1], np.ones_like(grad[:, 0])], 1))
+            n_side = _unit(np.cross(e, plane) if along_x else np.cross(plane, e)) * direction
+            t_side = np.cross(plane, n_side)
+            frame[:, side] = _frames(n_side, t_side, b, b)[:, side]
+        frames.append(frame)
         lengths.append(np.linalg.norm(edge, axis=1))
 
     rr, cc = np.nonzero(valid)
