@@ -25,7 +25,7 @@ import xarray as xr
 
 from . import __version__
 from .ensemble import Ensemble
-from .output import SEED_REFERENCE, SUMMARIES, _per_width
+from .output import SEED_REFERENCE, SUMMARIES, _per_width, publish
 from .orchestrate import OK_STATUSES, SUMMARY_FIELDS
 
 #: Units of scenario fields by their last name (varied-parameter coordinates).
@@ -207,7 +207,7 @@ def write_ensemble_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> Path:
     os.close(fd)
     try:
         ds.to_netcdf(tmp, encoding=encoding, engine="netcdf4")
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -230,6 +230,19 @@ def encoding_for(ds: xr.Dataset) -> dict:
     return enc
 
 
+def _umask_mode() -> int:
+    """rw for whoever the umask allows (mkstemp creates 0600 files)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def publish(tmp, path) -> None:
+    """Give a finished temporary file the usual permissions, then rename it into place."""
+    os.chmod(tmp, _umask_mode())
+    os.replace(tmp, path)
+
+
 def write_netcdf(ds: xr.Dataset, path) -> Path:
     """Write ``ds`` to ``path`` atomically: a temporary file in the same folder, then rename."""
     path = Path(path)
@@ -238,7 +251,7 @@ def write_netcdf(ds: xr.Dataset, path) -> Path:
     os.close(fd)
     try:
         ds.to_netcdf(tmp, encoding=encoding_for(ds), engine="netcdf4")
-        os.replace(tmp, path)
+        publish(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -80,3 +80,17 @@ def test_bad_scenario_exits_2_with_one_line_and_no_output(tmp_path):
 def test_missing_scenario_file_exits_2(tmp_path, capsys):
     assert main(["run", str(tmp_path / "nope.yaml")]) == 2
     assert "nope.yaml" in capsys.readouterr().err
+
+
+def test_output_file_gets_the_usual_permissions(tmp_path):
+    """The atomic write (a private temporary file, then rename) must not leave a 0600 file."""
+    import os
+    import stat
+
+    from avflow.cli import main
+
+    out = tmp_path / "run.nc"
+    assert main(["run", str(SCENARIOS / "seed_dambreak_flat_dx20.yaml"), "-o", str(out)]) == 0
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~mask
