@@ -526,28 +526,27 @@ def activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp, c
                         cell_stamp[d] = stamp
                         touched[k] = d
                         k += 1
-    # Sweep faces and cells in index order (memory order, and the same sums, bit for bit, as
-    # a sweep of the whole mesh): sort short lists, rescan the stamps when the lists are long
-    # (a sort of k entries costs more than a scan of n once k log2 k > n).
-    nf = face_stamp.size
-    if m * math.log2(m + 2.0) > nf:
-        m = 0
-        for f in range(nf):
-            if face_stamp[f] == stamp:
-                active_faces[m] = f
-                m += 1
+    return (_in_index_order(active_faces, m, face_stamp, stamp),
+            _in_index_order(touched, k, cell_stamp, stamp))
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _in_index_order(items, count, stamps, stamp):
+    """Put the ``count`` listed indices (those with ``stamps == stamp``) in increasing order.
+
+    Faces and cells are swept in index order: memory order, and the same sums, bit for bit,
+    as a sweep of the whole mesh. A short list is sorted; a long one is rebuilt by a scan of
+    the stamps (sorting k entries costs more than scanning n once k log2 k > n).
+    """
+    if count * math.log2(count + 2.0) > stamps.size:
+        count = 0
+        for i in range(stamps.size):
+            if stamps[i] == stamp:
+                items[count] = i
+                count += 1
     else:
-        active_faces[:m].sort()
-    n = cell_stamp.size
-    if k * math.log2(k + 2.0) > n:
-        k = 0
-        for c in range(n):
-            if cell_stamp[c] == stamp:
-                touched[k] = c
-                k += 1
-    else:
-        touched[:k].sort()
-    return m, k
+        items[:count].sort()
+    return count
 
 
 @njit(error_model="numpy", cache=True)

@@ -334,36 +334,45 @@ def _plot_grid(ds, plt):
     shown = np.where(np.isfinite(peak) & (peak >= levels[0]), peak, np.nan)
     im = ax.imshow(np.ma.masked_invalid(shown), extent=extent, origin="lower", cmap=cmap,
                    norm=norm, alpha=0.85, interpolation="nearest")
-    handles = []
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    _finish_map(ds, fig, ax, im, lambda v, **kw: ax.contour(x, y, v, **kw),
+                np.nan_to_num(release) > 0, np.nan_to_num(deposit) > threshold, threshold,
+                levels, where, "peak flow thickness (m, normal to the bed)")
+    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+    return fig
+
+
+def _finish_map(ds, fig, ax, im, contour, released, deposited, threshold, levels, where,
+                label):
+    """Release and deposit outlines with their legend, the thickness colourbar, equal-aspect
+    axes in m (with the CRS name) and the title; ``contour(values, **kw)`` draws on the
+    scene's own geometry (grid or triangles)."""
     from matplotlib.lines import Line2D
 
-    if np.nanmax(np.where(np.isfinite(release), release, 0.0)) > 0:
-        ax.contour(x, y, np.where(np.nan_to_num(release) > 0, 1.0, 0.0), levels=[0.5],
-                   colors="tab:blue", linewidths=1.4, linestyles="--")
+    handles = []
+    if released.any():
+        contour(released.astype(float), levels=[0.5], colors="tab:blue", linewidths=1.4,
+                linestyles="--")
         handles.append(Line2D([], [], color="tab:blue", ls="--", lw=1.4, label="release"))
-    dep = np.where(np.nan_to_num(deposit) > threshold, 1.0, 0.0)
-    if dep.any():
-        ax.contour(x, y, dep, levels=[0.5], colors="black", linewidths=1.2)
+    if deposited.any():
+        contour(deposited.astype(float), levels=[0.5], colors="black", linewidths=1.2)
         handles.append(Line2D([], [], color="black", lw=1.2,
                               label=f"deposit (> {threshold:.3g} m)"))
     if handles:
         ax.legend(handles=handles, loc="best", fontsize=8, framealpha=0.8)
     cb = fig.colorbar(im, ax=ax, shrink=0.8, spacing="uniform", location=where,
                       aspect=20 if where == "right" else 40)
-    cb.set_label("peak flow thickness (m, normal to the bed)")
+    cb.set_label(label)
     cb.set_ticks(levels)
     cb.set_ticklabels([f"{v:g}" for v in levels])
-    ax.set_xlim(extent[0], extent[1])
-    ax.set_ylim(extent[2], extent[3])
     ax.set_aspect("equal")
     _plain_ticks(ax)
     crs = _crs_name(ds)
     ax.set_xlabel("x (m)" + (f", {crs}" if crs else ""))
     ax.set_ylabel("y (m)")
     ax.tick_params(labelsize=8)
-    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
     ax.set_title(_title(ds), fontsize=10)
-    return fig
 
 
 def _plot_profile(ds, plt):
@@ -436,31 +445,8 @@ def _plot_triangles(ds, plt):
     tri_wet.set_mask(face_peak < levels[0])
     im = ax.tripcolor(tri_wet, facecolors=face_peak, cmap=cmap, norm=norm, alpha=0.9,
                       edgecolors="face", linewidth=0.2)
-    from matplotlib.lines import Line2D
-
-    handles = []
-    if (release > 0).any():
-        ax.tricontour(tri, (release > 0).astype(float), levels=[0.5], colors="tab:blue",
-                      linewidths=1.4, linestyles="--")
-        handles.append(Line2D([], [], color="tab:blue", ls="--", lw=1.4, label="release"))
-    if (deposit > threshold).any():
-        ax.tricontour(tri, (deposit > threshold).astype(float), levels=[0.5], colors="black",
-                      linewidths=1.2)
-        handles.append(Line2D([], [], color="black", lw=1.2,
-                              label=f"deposit (> {threshold:.3g} m)"))
-    if handles:
-        ax.legend(handles=handles, loc="best", fontsize=8, framealpha=0.8)
-    cb = fig.colorbar(im, ax=ax, shrink=0.8, spacing="uniform", location=where,
-                      aspect=20 if where == "right" else 40)
-    cb.set_label("peak flow thickness on mesh nodes (m, normal to the bed)")
-    cb.set_ticks(levels)
-    cb.set_ticklabels([f"{v:g}" for v in levels])
-    ax.set_aspect("equal")
-    _plain_ticks(ax)
-    crs = _crs_name(ds)
-    ax.set_xlabel("x (m)" + (f", {crs}" if crs else ""))
-    ax.set_ylabel("y (m)")
-    ax.tick_params(labelsize=8)
-    ax.set_title(_title(ds), fontsize=10)
+    _finish_map(ds, fig, ax, im, lambda v, **kw: ax.tricontour(tri, v, **kw), release > 0,
+                deposit > threshold, threshold, levels, where,
+                "peak flow thickness on mesh nodes (m, normal to the bed)")
     return fig
 

@@ -90,6 +90,22 @@ def _per_width(units: str, profile: bool) -> str:
     return {"m3": "m2"}.get(units, units) if profile else units
 
 
+def time_coords(times: np.ndarray) -> dict:
+    """``time`` and the scalar ``time_span`` that the cell_methods of run maxima refer to.
+
+    CF 4.4 wants "unit since reference" for time: the release happens at the epoch, so
+    seconds since release are the stored values (decode_times=False reads them as such).
+    """
+    time_attrs = {"standard_name": "time", "units": TIME_UNITS, "calendar": "proleptic_gregorian",
+                  "units_metadata": "leap_seconds: none"}
+    return {
+        "time": ("time", times, {**time_attrs, "long_name": "time since release",
+                                 "comment": "the reference instant is the release"}),
+        "time_span": ((), times[-1], {**time_attrs, "long_name": "end of the period reduced over",
+                                      "bounds": "time_span_bounds"}),
+    }
+
+
 def to_dataset(result: RunResult) -> xr.Dataset:
     """The CF Dataset of a run (profiles on (time, x), grids on (time, y, x))."""
     terrain, snaps = result.terrain, result.snapshots
@@ -117,18 +133,8 @@ def to_dataset(result: RunResult) -> xr.Dataset:
                     "v": grid(ua * e1[:, 1] + va * e2[:, 1])}
     h = grid(h_cells)
 
-    # CF 4.4 wants "unit since reference" for time: the release happens at the epoch, so
-    # seconds since release are the stored values (decode_times=False reads them as such).
     times = np.asarray(snaps.time, dtype=float)
-    time_attrs = {"standard_name": "time", "units": TIME_UNITS, "calendar": "proleptic_gregorian",
-                  "units_metadata": "leap_seconds: none"}
-    coords = {
-        "time": ("time", times, {**time_attrs, "long_name": "time since release",
-                                 "comment": "the reference instant is the release"}),
-        # Scalar coordinate that the cell_methods of the fields reduced over the run refer to.
-        "time_span": ((), times[-1], {**time_attrs, "long_name": "end of the period reduced over",
-                                      "bounds": "time_span_bounds"}),
-    }
+    coords = time_coords(times)
     if profile:
         coords["x"] = ("x", terrain.x, {
             "long_name": "distance along the bed from the top of the profile", "units": "m"})

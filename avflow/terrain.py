@@ -226,6 +226,20 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def bed_coefficients(basis, cos_theta) -> dict:
+    """Terrain fields of per-cell bed frames ``basis`` (n, 2, 3) with bed-normal z component
+    ``cos_theta``: gravity along e1, e2 and across the bed (``gamma = -(e1_z, e2_z)``,
+    ``gamma_z = cos(theta)``), the slope angle, and no curvature term (2D)."""
+    cos_theta = np.ascontiguousarray(cos_theta)
+    return {
+        "gamma_x": np.ascontiguousarray(-basis[:, 0, 2]),
+        "gamma_y": np.ascontiguousarray(-basis[:, 1, 2]),
+        "gamma_z": cos_theta,
+        "curvature": np.zeros(basis.shape[0]),
+        "slope_deg": np.degrees(np.arccos(np.clip(cos_theta, -1.0, 1.0))),
+    }
+
+
 def _frames(normal, tangent, basis_i, basis_j):
     """(k, 2, 2, 2) face frames from 3D face normals and the two cells' bases.
 
@@ -363,12 +377,8 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
     return Terrain(
         kind="grid",
         mesh=mesh,
-        gamma_x=np.ascontiguousarray(-basis[:, 0, 2]),
-        gamma_y=np.ascontiguousarray(-basis[:, 1, 2]),
-        gamma_z=np.ascontiguousarray(cos_theta),
-        curvature=np.zeros(n),
+        **bed_coefficients(basis, cos_theta),
         bed_elevation=z.ravel()[flat],
-        slope_deg=np.degrees(np.arccos(np.clip(cos_theta, -1.0, 1.0))),
         x=x,
         y=y,
         dx=dx,

@@ -42,7 +42,7 @@ import math
 import numpy as np
 
 from .mesh import BOUNDARY_CODES, Mesh, _perimeters
-from .terrain import Terrain, _frames, _unit
+from .terrain import Terrain, _frames, _unit, bed_coefficients
 
 PATTERNS = ("alternate", "criss-cross")
 _LOCAL_EDGES = ((0, 1), (1, 2), (2, 0))
@@ -343,17 +343,12 @@ def side_codes(edges, xy, box, side_code, hole_code):
 def _terrain(xy, z, tris, boundary_code, dx, dy, crs_wkt=None, extras=None) -> Terrain:
     xyz = np.column_stack([xy, z])
     mesh, normal, basis, boundary_node = dual_mesh(xyz, tris, boundary_code)
-    n = len(z)
     cos_theta = normal[:, 2]
     return Terrain(
         kind="triangles",
         mesh=mesh,
-        gamma_x=np.ascontiguousarray(-basis[:, 0, 2]),
-        gamma_y=np.ascontiguousarray(-basis[:, 1, 2]),
-        gamma_z=np.ascontiguousarray(cos_theta),
-        curvature=np.zeros(n),
+        **bed_coefficients(basis, cos_theta),
         bed_elevation=np.ascontiguousarray(z, dtype=float),
-        slope_deg=np.degrees(np.arccos(np.clip(cos_theta, -1.0, 1.0))),
         x=np.ascontiguousarray(xy[:, 0]),
         y=np.ascontiguousarray(xy[:, 1]),
         dx=float(dx),

@@ -17,7 +17,7 @@ import numpy as np
 import xarray as xr
 
 from .dem import cf_grid_mapping
-from .output import FIELDS, SUMMARIES, TIME_UNITS, _global_attributes
+from .output import FIELDS, SUMMARIES, _global_attributes, time_coords
 
 MESH = "mesh"
 NODE, FACE = "node", "face"
@@ -34,13 +34,8 @@ def to_ugrid_dataset(result) -> xr.Dataset:
     e1, e2 = terrain.tangent_basis[:, 0, :], terrain.tangent_basis[:, 1, :]
 
     times = np.asarray(snaps.time, dtype=float)
-    time_attrs = {"standard_name": "time", "units": TIME_UNITS, "calendar": "proleptic_gregorian",
-                  "units_metadata": "leap_seconds: none"}
     coords = {
-        "time": ("time", times, {**time_attrs, "long_name": "time since release",
-                                 "comment": "the reference instant is the release"}),
-        "time_span": ((), times[-1], {**time_attrs, "long_name": "end of the period reduced over",
-                                      "bounds": "time_span_bounds"}),
+        **time_coords(times),
         "mesh_node_x": (NODE, terrain.x, {"standard_name": "projection_x_coordinate",
                                           "long_name": "x coordinate of mesh node (cell centre)",
                                           "units": "m"}),

@@ -34,6 +34,19 @@ def coulomb(terrain, delta_deg, **kw):
     return Solver(terrain, Law.COULOMB, params, **kw)
 
 
+def cylinder(terrain, centre, radius=80.0, thickness=10.0):
+    """Thickness of a cylinder release (horizontal radius) at the cell centres of a 2D mesh."""
+    xx, yy = terrain.cell_xy()
+    return np.where((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 <= radius**2, thickness, 0.0)
+
+
+def centroid(terrain, h):
+    """Horizontal centre of mass (x, y) of the thickness h."""
+    xx, yy = terrain.cell_xy()
+    w = h * terrain.mesh.cell_area
+    return np.array([np.sum(w * xx), np.sum(w * yy)]) / np.sum(w)
+
+
 @pytest.fixture(scope="session")
 def contract_dir():
     assert CONTRACT.is_dir(), f"shared contract folder not found at {CONTRACT}"

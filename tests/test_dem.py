@@ -38,6 +38,19 @@ def tilted(nx=40, ny=30, dx=5.0, x0=1000.0, y0=2000.0):
     return z, x, y
 
 
+def tilted_dem_scenario(tmp_path, release):
+    """A scenario on the tilted DEM (written to tmp_path/dem.asc) with this release block."""
+    write_asc(tmp_path / "dem.asc", *tilted())
+    return parse_scenario(f"""
+name: tilted
+terrain: {{kind: dem, path: {tmp_path / 'dem.asc'}}}
+grid: {{dx: 5.0}}
+release: {release}
+rheology: {{law: coulomb, delta_deg: 20.0}}
+time: {{end: 1.0}}
+""", source_path=tmp_path / "s.yaml")
+
+
 @pytest.mark.parametrize("suffix", [".asc", ".tif", ".nc"])
 def test_raster_round_trip(tmp_path, suffix):
     """Every reader gives ascending coordinates, NaN for NODATA and the CRS back."""
@@ -181,16 +194,7 @@ time: {end: 1.0}
     w.poly([[[1010, 2010], [1080, 2010], [1080, 2080], [1010, 2080], [1010, 2010]]])
     w.record("a")
     w.close()
-    z, x, y = tilted()
-    write_asc(tmp_path / "dem.asc", z, x, y)
-    sc = parse_scenario(f"""
-name: x
-terrain: {{kind: dem, path: {tmp_path / 'dem.asc'}}}
-grid: {{dx: 5.0}}
-release: {{kind: polygon, path: {tmp_path / 'area.shp'}}}
-rheology: {{law: coulomb, delta_deg: 20.0}}
-time: {{end: 1.0}}
-""", source_path=tmp_path / "s.yaml")
+    sc = tilted_dem_scenario(tmp_path, f"{{kind: polygon, path: {tmp_path / 'area.shp'}}}")
     with pytest.raises(ScenarioError, match="thickness") as err:
         prepare(sc)
     assert "release" in str(err.value) and "area.shp" in str(err.value)
@@ -199,19 +203,11 @@ time: {{end: 1.0}}
 def test_raster_release_samples_the_thickness_grid(tmp_path):
     """A thickness raster on the DEM's grid gives exactly its values; NODATA releases 0."""
     z, x, y = tilted()
-    write_asc(tmp_path / "dem.asc", z, x, y)
     thick = np.zeros_like(z)
     thick[5:10, 5:12] = 2.5
     thick[0, 0] = np.nan
     write_asc(tmp_path / "h0.asc", thick, x, y)
-    sc = parse_scenario(f"""
-name: raster
-terrain: {{kind: dem, path: {tmp_path / 'dem.asc'}}}
-grid: {{dx: 5.0}}
-release: {{kind: raster, path: {tmp_path / 'h0.asc'}}}
-rheology: {{law: coulomb, delta_deg: 20.0}}
-time: {{end: 1.0}}
-""", source_path=tmp_path / "s.yaml")
+    sc = tilted_dem_scenario(tmp_path, f"{{kind: raster, path: {tmp_path / 'h0.asc'}}}")
     terrain, h0, solver, _ = prepare(sc)
     grid = terrain.to_grid(h0, fill=0.0)
     np.testing.assert_array_equal(grid, np.nan_to_num(thick) * np.isfinite(z))

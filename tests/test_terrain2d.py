@@ -10,30 +10,15 @@ import pytest
 from avflow.rheology import Law
 from avflow.solver import Solver
 from avflow.terrain import plane_terrain, surface_terrain
-from conftest import walls
+from conftest import centroid, coulomb, cylinder, walls
 
 G = 9.81
-
-
-def coulomb(terrain, delta):
-    return Solver(terrain, Law.COULOMB, np.array([math.tan(math.radians(delta)), 0, 0, 0]))
 
 
 def plane(slope, azimuth, size=1200.0, dx=10.0):
     block = NS(slope_deg=slope, azimuth_deg=azimuth, extent=NS(x=[0.0, size], y=[0.0, size]),
                elevation_at_center=1000.0)
     return plane_terrain(block, dx, None, walls())
-
-
-def cylinder(terrain, centre, radius=80.0, thickness=10.0):
-    xx, yy = terrain.cell_xy()
-    return np.where((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 <= radius**2, thickness, 0.0)
-
-
-def centroid(terrain, h):
-    xx, yy = terrain.cell_xy()
-    w = h * terrain.mesh.cell_area
-    return np.array([np.sum(w * xx), np.sum(w * yy)]) / np.sum(w)
 
 
 def test_dem_of_a_plane_runs_like_the_plane():

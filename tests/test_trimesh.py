@@ -11,19 +11,13 @@ import xarray as xr
 from avflow.cli import main
 from avflow.errors import ScenarioError
 from avflow.mesh import OUTFLOW, WALL
-from avflow.rheology import Law
 from avflow.scenario import load_scenario, parse_scenario
-from avflow.solver import Solver
 from avflow.terrain import plane_terrain
 from avflow.trimesh import (PATTERNS, mesh_edges, plane_triangle_terrain,
                             triangle_normals, triangle_terrain)
-from conftest import SCENARIOS, walls
+from conftest import SCENARIOS, centroid, coulomb, cylinder, walls
 
 G = 9.81
-
-
-def coulomb(terrain, delta):
-    return Solver(terrain, Law.COULOMB, np.array([math.tan(math.radians(delta)), 0, 0, 0]))
 
 
 def block(slope, azimuth, x=(0.0, 1200.0), y=(0.0, 600.0)):
@@ -33,17 +27,6 @@ def block(slope, azimuth, x=(0.0, 1200.0), y=(0.0, 600.0)):
 
 def tri_plane(slope, azimuth, dx=10.0, **kw):
     return plane_triangle_terrain(block(slope, azimuth, **kw), dx, None, walls())
-
-
-def cylinder(terrain, centre, radius=80.0, thickness=10.0):
-    xx, yy = terrain.cell_xy()
-    return np.where((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 <= radius**2, thickness, 0.0)
-
-
-def centroid(terrain, h):
-    xx, yy = terrain.cell_xy()
-    w = h * terrain.mesh.cell_area
-    return np.array([w @ xx, w @ yy]) / w.sum()
 
 
 def bump(levels=0, pattern="alternate", **bounds):
