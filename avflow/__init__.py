@@ -9,14 +9,14 @@ Public API:
 
 __version__ = "0.1.0"
 
-from .errors import AvflowError, ScenarioError  # noqa: E402
-from .scenario import load_scenario  # noqa: E402
+from avflow.errors import AvflowError, ScenarioError  # noqa: E402
+from avflow.scenario import load_scenario  # noqa: E402
 
 
 def run(scenario, progress=None):
-    """Run a scenario (path or :class:`~avflow.scenario.Scenario`) and return its Dataset."""
-    from .output import to_dataset
-    from .runner import simulate
+    """Run a scenario (path or :class:`~avflow.scenario.schema.Scenario`) and return its Dataset."""
+    from avflow.output.dataset import to_dataset
+    from avflow.simulation.runner import simulate
 
     if not hasattr(scenario, "terrain"):
         scenario = load_scenario(scenario)

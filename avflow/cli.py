@@ -13,8 +13,8 @@ import sys
 import time
 from pathlib import Path
 
-from . import __version__
-from .errors import AvflowError
+from avflow import __version__
+from avflow.errors import AvflowError
 
 
 class Progress:
@@ -56,10 +56,10 @@ def summary_line(ds) -> str:
 
 
 def _cmd_run(args) -> int:
-    from .output import write_netcdf
-    from .scenario import load_scenario
-    from .output import to_dataset
-    from .runner import simulate
+    from avflow.output.netcdf import write_netcdf
+    from avflow.scenario.schema import load_scenario
+    from avflow.output.dataset import to_dataset
+    from avflow.simulation.runner import simulate
 
     scenario = load_scenario(args.scenario)
     out = Path(args.output) if args.output else Path(Path(args.scenario).stem + ".nc")
@@ -116,8 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _cmd_ensemble(args) -> int:
-    from .ensemble import load_ensemble
-    from .orchestrate import run_ensemble
+    from avflow.ensemble.spec import load_ensemble
+    from avflow.ensemble.orchestrate import run_ensemble
 
     if args.workers is not None and args.workers < 0:
         raise AvflowError(f"--workers must be >= 0, got {args.workers}")
@@ -131,21 +131,21 @@ def _cmd_ensemble(args) -> int:
     print(f"{outcome.ran} run, {outcome.reused} reused, {outcome.failed} failed "
           f"({outcome.wall:.1f} s); wrote {out / 'ensemble.nc'} and {out / 'summary.csv'}")
     if args.report:
-        from .report import write_report
+        from avflow.ensemble.report import write_report
 
         print(f"wrote {write_report(out)}")
     return 0 if outcome.ok else 1
 
 
 def _cmd_report(args) -> int:
-    from .report import write_report
+    from avflow.ensemble.report import write_report
 
     print(f"wrote {write_report(args.outdir)}")
     return 0
 
 
 def _cmd_export(args) -> int:
-    from .maps import export_maps
+    from avflow.output.maps import export_maps
 
     names = None
     if args.variables is not None:
@@ -162,7 +162,7 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from .maps import plot_run
+    from avflow.output.maps import plot_run
 
     print(f"wrote {plot_run(args.run_file, args.output)}")
     return 0

@@ -8,9 +8,9 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from avflow.rheology import Law
-from avflow.solver import Solver
-from avflow.terrain import profile_terrain
+from avflow.numerics.rheology import Law
+from avflow.numerics.solver import Solver
+from avflow.terrain.bed import profile_terrain
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "scenarios"

@@ -9,9 +9,10 @@ import pytest
 import xarray as xr
 
 from avflow.cli import main
-from avflow.output import to_dataset, write_netcdf
-from avflow.runner import simulate
-from avflow.scenario import load_scenario
+from avflow.output.dataset import to_dataset
+from avflow.output.netcdf import write_netcdf
+from avflow.simulation.runner import simulate
+from avflow.scenario.schema import load_scenario
 from conftest import SCENARIOS
 
 PROFILE_CONTRACTS = ["seed_exponential_coulomb.yaml", "seed_exponential_pouliquen.yaml",

@@ -8,7 +8,7 @@ tenfold (first order), so the ratio must be at least 4.
 import numpy as np
 import pytest
 
-from avflow.analytic import dam_break, relative_error
+from avflow.numerics.analytic import dam_break, relative_error
 from conftest import coulomb, slope_profile
 
 CASES = [  # theta, delta, t, dh bound at dx = 20, dh bound at dx = 2

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from avflow.dem import RasterError, read_raster, resample, write_asc, write_tif
+from avflow.terrain.raster import RasterError, read_raster, resample, write_asc, write_tif
 from avflow.errors import ScenarioError
-from avflow.polygons import Area, rasterize, read_polygons
-from avflow.runner import prepare, simulate
-from avflow.scenario import load_scenario, parse_scenario
+from avflow.terrain.polygons import Area, rasterize, read_polygons
+from avflow.simulation.runner import prepare, simulate
+from avflow.scenario.schema import load_scenario, parse_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data" / "avaframe"
@@ -77,7 +77,7 @@ def test_raster_round_trip(tmp_path, suffix):
 def test_resampling_a_plane_is_exact_and_keeps_nodata():
     """Bilinear interpolation reproduces a plane; a cell next to NODATA stays NODATA."""
     z, x, y = tilted()
-    from avflow.dem import Raster
+    from avflow.terrain.raster import Raster
 
     coarse = resample(Raster(z, x, y), 10.0)
     assert coarse.dx == pytest.approx(10.0)

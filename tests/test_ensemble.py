@@ -15,12 +15,12 @@ import pytest
 import xarray as xr
 
 from avflow.cli import main
-from avflow.ensemble import DEFAULT_THRESHOLDS, EnsembleError, load_ensemble, parse_ensemble
-from avflow.orchestrate import run_ensemble
-from avflow.output import to_dataset
-from avflow.report import write_report
-from avflow.runner import simulate
-from avflow.scenario import load_scenario, parse_scenario
+from avflow.ensemble.spec import DEFAULT_THRESHOLDS, EnsembleError, load_ensemble, parse_ensemble
+from avflow.ensemble.orchestrate import run_ensemble
+from avflow.output.dataset import to_dataset
+from avflow.ensemble.report import write_report
+from avflow.simulation.runner import simulate
+from avflow.scenario.schema import load_scenario, parse_scenario
 from conftest import REPO, SCENARIOS
 from test_cli_output import compliance_errors
 

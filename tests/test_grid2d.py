@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from avflow.runner import simulate
-from avflow.scenario import load_scenario
+from avflow.simulation.runner import simulate
+from avflow.scenario.schema import load_scenario
 from conftest import SCENARIOS, coulomb, slope_profile
 
 

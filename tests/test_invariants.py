@@ -6,8 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from avflow.rheology import Law
-from avflow.solver import Solver
+from avflow.numerics.rheology import Law
+from avflow.numerics.solver import Solver
 from conftest import coulomb, slope_profile
 
 

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from avflow.kernels import _project
-from avflow.kinetic import SQRT3, density_factor, half_fluxes, sound_speed
-from avflow.rheology import h_stop, pouliquen_mu
+from avflow.numerics.kernels import _project
+from avflow.numerics.kinetic import SQRT3, density_factor, half_fluxes, sound_speed
+from avflow.numerics.rheology import h_stop, pouliquen_mu
 
 G = 9.81
 

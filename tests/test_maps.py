@@ -9,11 +9,12 @@ from pyproj import CRS
 from rasterio.transform import Affine
 
 from avflow.cli import main
-from avflow.dem import read_raster, same_crs, write_asc
-from avflow.maps import DEFAULT_EXPORT, _nice_levels, hillshade
-from avflow.output import to_dataset, write_netcdf
-from avflow.runner import simulate
-from avflow.scenario import load_scenario
+from avflow.terrain.raster import read_raster, same_crs, write_asc
+from avflow.output.maps import DEFAULT_EXPORT, _nice_levels, hillshade
+from avflow.output.dataset import to_dataset
+from avflow.output.netcdf import write_netcdf
+from avflow.simulation.runner import simulate
+from avflow.scenario.schema import load_scenario
 from conftest import SCENARIOS
 
 EPSG = 31287  # MGI / Austria Lambert

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from avflow.errors import AvflowError, ScenarioError
-from avflow.scenario import Scenario, load_scenario, parse_scenario
+from avflow.scenario.schema import Scenario, load_scenario, parse_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("AVFLOW_SHARED", REPO.parent / "shared"))
@@ -354,4 +354,4 @@ def test_with_updates_errors_name_the_field(updates, dotted, words):
 
 def test_json_schema_file_is_up_to_date():
     written = json.loads((REPO / "scenarios" / "schema.json").read_text())
-    assert written == Scenario.model_json_schema(), "run avflow.scenario.write_json_schema"
+    assert written == Scenario.model_json_schema(), "run avflow.scenario.schema.write_json_schema"

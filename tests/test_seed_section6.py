@@ -9,9 +9,9 @@ Measured (dx = 6.25 m): stop 86.05 s, max 67.54 m, front 4506 m; no curvature: f
 import numpy as np
 import pytest
 
-from avflow.rheology import h_stop
-from avflow.runner import simulate
-from avflow.scenario import load_scenario
+from avflow.numerics.rheology import h_stop
+from avflow.simulation.runner import simulate
+from avflow.scenario.schema import load_scenario
 from conftest import SCENARIOS
 
 _cache = {}
@@ -78,7 +78,7 @@ def test_coulomb_24_leaves_a_fluid_like_zone_at_the_rear_at_70_s():
     Measured: flowing cells span 197-303 m (112 m) at 70 s, the deposit front has not moved
     since 55 s, and the run stops at 78.8 s. Accepted: 50-250 m, all in the rear third.
     """
-    from avflow.runner import FLAG_FLOWING
+    from avflow.simulation.runner import FLAG_FLOWING
 
     result = simulate(load_scenario(SCENARIOS / "seed_exponential_coulomb24.yaml"))
     assert result.status == "stopped"
@@ -104,8 +104,8 @@ def test_pouliquen_steady_uniform_flow_has_fr_beta_h_over_h_stop(theta):
     """
     import math
 
-    from avflow.rheology import Law, pouliquen_steady_froude
-    from avflow.solver import Solver
+    from avflow.numerics.rheology import Law, pouliquen_steady_froude
+    from avflow.numerics.solver import Solver
     from conftest import slope_profile
 
     d1, d2, d, beta = 20.7, 32.8, 0.98e-3, 0.136

@@ -7,9 +7,9 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from avflow.rheology import Law
-from avflow.solver import Solver
-from avflow.terrain import plane_terrain, surface_terrain
+from avflow.numerics.rheology import Law
+from avflow.numerics.solver import Solver
+from avflow.terrain.bed import plane_terrain, surface_terrain
 from conftest import centroid, coulomb, cylinder, walls
 
 G = 9.81

@@ -10,10 +10,10 @@ import xarray as xr
 
 from avflow.cli import main
 from avflow.errors import ScenarioError
-from avflow.mesh import OUTFLOW, WALL
-from avflow.scenario import load_scenario, parse_scenario
-from avflow.terrain import plane_terrain
-from avflow.trimesh import (PATTERNS, mesh_edges, plane_triangle_terrain,
+from avflow.terrain.mesh import OUTFLOW, WALL
+from avflow.scenario.schema import load_scenario, parse_scenario
+from avflow.terrain.bed import plane_terrain
+from avflow.terrain.trimesh import (PATTERNS, mesh_edges, plane_triangle_terrain,
                             triangle_normals, triangle_terrain)
 from conftest import SCENARIOS, centroid, coulomb, cylinder, walls
 
@@ -302,7 +302,7 @@ def test_dem_scenario_with_crs_hole_and_refinement(tmp_path):
     no vertex, mass is kept, and the UGRID file names the CRS as its grid mapping."""
     from pyproj import CRS
 
-    from avflow.dem import write_asc
+    from avflow.terrain.raster import write_asc
 
     x, y = 400_000.0 + np.arange(61) * 10.0, 5_000_000.0 + np.arange(31) * 10.0
     xx, yy = np.meshgrid(x, y)

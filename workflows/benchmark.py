@@ -6,7 +6,7 @@
   frictionless dam break on 200 000 cells, half dry, and the same with every cell wet), so
   their ratio is measured in one run;
 - 2D: the face sweep on a 400 x 400 grid over a plane (cylinder release, Coulomb), and on
-  the triangle mesh of the same plane (401 x 401 vertices, median dual cells, avflow.trimesh);
+  the triangle mesh of the same plane (401 x 401 vertices, median dual cells, avflow.terrain.trimesh);
 - the seed's section 6 run (880 cells) from its scenario, wall time of the time loop.
 Compilation is excluded (a warm-up call first).
 """
@@ -21,12 +21,12 @@ from types import SimpleNamespace as NS
 
 import numpy as np
 
-from avflow.rheology import Law
-from avflow.runner import simulate
-from avflow.scenario import load_scenario
-from avflow.solver import Solver
-from avflow.terrain import plane_terrain, profile_terrain
-from avflow.trimesh import plane_triangle_terrain
+from avflow.numerics.rheology import Law
+from avflow.simulation.runner import simulate
+from avflow.scenario.schema import load_scenario
+from avflow.numerics.solver import Solver
+from avflow.terrain.bed import plane_terrain, profile_terrain
+from avflow.terrain.trimesh import plane_triangle_terrain
 
 WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"

@@ -18,9 +18,9 @@ from types import SimpleNamespace as NS
 
 import numpy as np
 
-from avflow.rheology import Law
-from avflow.solver import Solver
-from avflow.terrain import plane_terrain
+from avflow.numerics.rheology import Law
+from avflow.numerics.solver import Solver
+from avflow.terrain.bed import plane_terrain
 
 WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 

@@ -25,8 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from avflow.ensemble import load_ensemble
-from avflow.orchestrate import auto_batch, run_ensemble
+from avflow.ensemble.spec import load_ensemble
+from avflow.ensemble.orchestrate import auto_batch, run_ensemble
 
 ENSEMBLE = Path(__file__).resolve().parents[1] / "scenarios" / "ensembles" / \
     "seed_exponential_benchmark.yaml"

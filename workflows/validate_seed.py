@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from avflow.analytic import dam_break, relative_error
-from avflow.rheology import h_stop
-from avflow.runner import simulate
-from avflow.scenario import load_scenario
+from avflow.numerics.analytic import dam_break, relative_error
+from avflow.numerics.rheology import h_stop
+from avflow.simulation.runner import simulate
+from avflow.scenario.schema import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 ROWS = []

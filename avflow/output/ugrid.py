@@ -1,14 +1,14 @@
 """A run on a triangle mesh as a UGRID-1.0 + CF-1.11 ``xarray.Dataset``.
 
-The cells of a median dual mesh (:mod:`avflow.trimesh`) are the vertices of the triangles,
+The cells of a median dual mesh (:mod:`avflow.terrain.trimesh`) are the vertices of the triangles,
 so every per-cell value lives on the UGRID *nodes*: a mesh topology variable ``mesh``
 (``cf_role: mesh_topology``, ``topology_dimension: 2``) names the node coordinates
 ``mesh_node_x, mesh_node_y`` and the triangles ``mesh_face_nodes`` (0-based), and each field
 carries ``mesh: mesh`` and ``location: node``. Names, units and other attributes of the
-fields and summaries are those of the grid outputs (:data:`avflow.output.FIELDS`,
-:data:`avflow.output.SUMMARIES`); the volumes are m^3, the velocity is the horizontal
+fields and summaries are those of the grid outputs (:data:`avflow.output.cf.FIELDS`,
+:data:`avflow.output.cf.SUMMARIES`); the volumes are m^3, the velocity is the horizontal
 projection of the velocity along the bed, as on grids. With a DEM's CRS, the fields name
-the grid-mapping variable ``crs`` (:func:`avflow.dem.cf_grid_mapping`).
+the grid-mapping variable ``crs`` (:func:`avflow.terrain.raster.cf_grid_mapping`).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from .dem import cf_grid_mapping
-from .output import FIELDS, SUMMARIES, _global_attributes, time_coords
+from avflow.terrain.raster import cf_grid_mapping
+from avflow.output.cf import FIELDS, SUMMARIES, global_attributes, time_coords
 
 MESH = "mesh"
 NODE, FACE = "node", "face"
@@ -102,7 +102,7 @@ def to_ugrid_dataset(result) -> xr.Dataset:
     if crs_attrs:
         data["crs"] = ((), np.int32(0), crs_attrs)
     ds = xr.Dataset(data, coords=coords)
-    ds.attrs = _global_attributes(result)
+    ds.attrs = global_attributes(result)
     ds.attrs["Conventions"] = "CF-1.11 UGRID-1.0"
     ds.attrs["comment"] = ("h is measured normal to the bed; fields live on the nodes of a "
                            "triangular mesh (UGRID), each node the centre of its median dual "

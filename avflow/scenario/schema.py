@@ -18,7 +18,6 @@ The format, for editors, is the JSON Schema in ``scenarios/schema.json``, writte
 from __future__ import annotations
 
 import copy
-import difflib
 import functools
 import hashlib
 import json
@@ -35,7 +34,8 @@ from pydantic import (BaseModel, ConfigDict, Field, PrivateAttr, StringConstrain
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticCustomError
 
-from .errors import Problem, ScenarioError
+from avflow.errors import Problem, ScenarioError
+from avflow.scenario.yamlio import did_you_mean, dotted, dotted_parts, position, read_yaml, show
 
 __all__ = ["Scenario", "load_scenario", "parse_scenario", "write_json_schema"]
 
@@ -48,16 +48,6 @@ POLYGON_SUFFIXES = {".shp": (".shx", ".dbf", ".prj", ".cpg")}
 # =========================================================================================
 # Value types: each carries its own range and says the whole range when a value is outside.
 # =========================================================================================
-
-
-def _show(value: Any) -> str:
-    """A value as the user wrote it in YAML (strings quoted), for 'got ...' in messages."""
-    if isinstance(value, str):
-        return repr(value)
-    if isinstance(value, (bool, type(None), list, dict, tuple)):
-        text = json.dumps(value, default=str)
-        return text if len(text) <= 60 else text[:57] + "..."
-    return repr(value)
 
 
 def _problem(message: str, field: str | None = None) -> PydanticCustomError:
@@ -95,7 +85,7 @@ def _interval(lo: float | None = None, hi: float | None = None, *, lo_open: bool
             return handler(value)
         except ValidationError as err:
             if err.errors()[0]["type"] in _BOUND_ERRORS:
-                raise _problem(f"{wanted}, got {_show(value)}") from None
+                raise _problem(f"{wanted}, got {show(value)}") from None
             raise
 
     return Annotated[float, Field(strict=True, allow_inf_nan=False, **bounds),
@@ -110,11 +100,11 @@ def _pair(what: str, increasing: bool) -> Any:
             pair = handler(value)
         except ValidationError as err:
             if err.errors()[0]["type"] in ("too_short", "too_long", "missing", "tuple_type"):
-                raise _problem(f"must be a list of two numbers {what}, got {_show(value)}"
+                raise _problem(f"must be a list of two numbers {what}, got {show(value)}"
                                ) from None
             raise
         if increasing and not pair[0] < pair[1]:
-            raise _problem(f"must be {what} with min < max, got {_show(list(pair))}")
+            raise _problem(f"must be {what} with min < max, got {show(list(pair))}")
         return pair
 
     return Annotated[tuple[Number, Number], WrapValidator(check)]
@@ -144,7 +134,7 @@ def _data_file(value: str, info: ValidationInfo, suffixes: Mapping[str, Any]) ->
     """Absolute path of a data file named relative to the scenario file; it must exist."""
     path = Path(value).expanduser()
     if path.suffix.lower() not in suffixes:
-        raise _problem(f"must be a {', '.join(suffixes)} file, got {_show(value)}")
+        raise _problem(f"must be a {', '.join(suffixes)} file, got {show(value)}")
     base_dir = (info.context or {}).get("base_dir") or os.getcwd()
     path = Path(os.path.normpath(Path(base_dir) / path))  # unchanged when already absolute
     if not path.is_file():
@@ -188,7 +178,7 @@ class TableSlope(_Model):
     @model_validator(mode="after")
     def _check_table(self) -> TableSlope:
         if any(b <= a for a, b in zip(self.x, self.x[1:])):
-            raise _problem(f"must be strictly increasing, got {_show(list(self.x))}", "x")
+            raise _problem(f"must be strictly increasing, got {show(list(self.x))}", "x")
         if len(self.theta_deg) != len(self.x):
             raise _problem(f"must have one angle per x ({len(self.x)}), "
                            f"got {len(self.theta_deg)}", "theta_deg")
@@ -359,7 +349,7 @@ PROFILE_RELEASES = ("parabola", "dam")
 GRID_RELEASES = ("cylinder", "polygon", "raster")
 
 # =========================================================================================
-# Rheology: basal friction laws (parameters are turned into numbers in avflow.rheology)
+# Rheology: basal friction laws (parameters are turned into numbers in avflow.numerics.rheology)
 # =========================================================================================
 
 
@@ -485,7 +475,7 @@ class Boundaries(_Model):
         if not isinstance(data, str):
             return data
         if data not in get_args(Side):
-            raise _problem(f"must be 'wall', 'outflow' or a mapping of sides, got {_show(data)}")
+            raise _problem(f"must be 'wall', 'outflow' or a mapping of sides, got {show(data)}")
         return dict.fromkeys(SIDES, data)
 
     @classmethod
@@ -591,7 +581,7 @@ class Scenario(_Model):
     def locate(self, field: str) -> tuple[int, int] | None:
         """(line, column), 1-based, of a dotted field in the source text, or of its closest
         written parent; None when the scenario was not read from text."""
-        return _position(self._positions, _dotted_parts(field))
+        return position(self._positions, dotted_parts(field))
 
     # --- identity and export ----------------------------------------------------------------
 
@@ -629,135 +619,11 @@ class Scenario(_Model):
         """
         written = copy.deepcopy(self._written if self._written is not None
                                 else self.model_dump(mode="json"))
-        for dotted, value in updates.items():
-            _set_dotted(written, dotted, _plain(value), self)
+        for key, value in updates.items():
+            _set_dotted(written, key, _plain(value), self)
         scenario = _validate(written, path=self._source_path, base_dir=self._base_dir)
         scenario._source_text = scenario.to_yaml()
         return scenario
-
-
-# =========================================================================================
-# YAML with positions
-# =========================================================================================
-
-_BOOL, _INT, _FLOAT, _TIMESTAMP = (f"tag:yaml.org,2002:{name}"
-                                   for name in ("bool", "int", "float", "timestamp"))
-
-
-class _YamlLoader(yaml.SafeLoader):
-    """PyYAML's safe loader with the scalars of YAML 1.2's core schema.
-
-    PyYAML follows YAML 1.1, where ``1e-3`` is a string (a float needs a dot), ``yes``,
-    ``no``, ``on`` and ``off`` are booleans, ``010`` is octal, ``1:30`` is 90 and
-    ``2024-01-01`` a date. Here only true/false are booleans, integers are decimal, decimal
-    and exponent notations are floats, and everything else stays a string.
-    """
-
-
-_YamlLoader.yaml_implicit_resolvers = {
-    first: [(tag, regexp) for tag, regexp in resolvers
-            if tag not in (_BOOL, _INT, _FLOAT, _TIMESTAMP)]
-    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
-}
-_YamlLoader.add_implicit_resolver(
-    _BOOL, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
-_YamlLoader.add_implicit_resolver(  # before floats: a plain integer stays an int
-    _INT, re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
-_YamlLoader.add_implicit_resolver(
-    _FLOAT, re.compile(r"""^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
-                          |[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""", re.X),
-    list("-+0123456789."))
-_YamlLoader.add_constructor(_INT, lambda loader, node: int(loader.construct_scalar(node), 10))
-
-_MERGE = "tag:yaml.org,2002:merge"
-
-
-def _read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, int]]]:
-    """Plain Python data from YAML text, and the (line, column) of every key and item.
-
-    Positions are keyed by the path of keys and list indices, e.g. ``("terrain", "slope")``
-    or ``("terrain", "extent", "x", 1)``; ``()`` is the top-level node.
-    """
-    positions: dict[tuple, tuple[int, int]] = {}
-
-    def where(node: yaml.Node) -> tuple[int, int]:
-        return node.start_mark.line + 1, node.start_mark.column + 1
-
-    def fail(message: str, node: yaml.Node, keys: tuple = ()) -> ScenarioError:
-        return ScenarioError(message, path, _dotted(keys), *where(node))
-
-    def scalar(node: yaml.Node, keys: tuple) -> Any:
-        try:
-            return loader.construct_object(node)
-        except (ValueError, yaml.YAMLError) as err:
-            raise fail(f"cannot read {node.value!r} as {node.tag}: {err}", node, keys) from None
-
-    def build(node: yaml.Node, keys: tuple) -> Any:
-        """Data of ``node``, written at ``keys``; records where its keys and items are."""
-        if isinstance(node, yaml.MappingNode):
-            mapping: dict[str, Any] = {}
-            for key_node, value_node in node.value:
-                if key_node.tag == _MERGE:
-                    raise fail("merge keys (<<) are not supported", key_node, keys)
-                key = scalar(key_node, keys) if isinstance(key_node, yaml.ScalarNode) else None
-                if not isinstance(key, str):
-                    raise fail(f"keys must be names, got {_show(key)}", key_node, keys)
-                if key in mapping:
-                    first_line = positions[keys + (key,)][0]
-                    raise fail(f"duplicate key (first written at line {first_line})",
-                               key_node, keys + (key,))
-                positions[keys + (key,)] = where(key_node)  # the key, not its value
-                mapping[key] = build(value_node, keys + (key,))
-            return mapping
-        if isinstance(node, yaml.SequenceNode):
-            items = []
-            for i, item in enumerate(node.value):
-                positions[keys + (i,)] = where(item)
-                items.append(build(item, keys + (i,)))
-            return items
-        return scalar(node, keys)
-
-    loader = _YamlLoader(text)
-    try:
-        root = loader.get_single_node()
-        if root is not None:
-            positions[()] = where(root)
-        data = None if root is None else build(root, ())
-    except yaml.MarkedYAMLError as err:
-        mark = err.problem_mark or err.context_mark
-        detail = f" ({err.context})" if err.context else ""
-        raise ScenarioError(f"YAML syntax error: {err.problem}{detail}", path, None,
-                            *((mark.line + 1, mark.column + 1) if mark else ())) from None
-    except yaml.YAMLError as err:
-        raise ScenarioError(f"YAML error: {err}", path) from None
-    finally:
-        loader.dispose()
-    if data is None:
-        raise ScenarioError("empty scenario: expected a mapping of fields (name: ..., "
-                            "terrain: ..., ...)", path, None, 1, 1)
-    if not isinstance(data, dict):
-        raise ScenarioError(f"expected a mapping of fields (name: ..., terrain: ..., ...), "
-                            f"got {_show(data)}", path, None, *positions[()])
-    return data, positions
-
-
-def _dotted(keys: tuple) -> str | None:
-    return ".".join(str(k) for k in keys) or None
-
-
-def _dotted_parts(field: str | None) -> tuple:
-    """``"terrain.extent.x.1"`` -> ``("terrain", "extent", "x", 1)`` (list items by index)."""
-    if not field:
-        return ()
-    return tuple(int(p) if p.isdigit() else p for p in field.split("."))
-
-
-def _position(positions: Mapping[tuple, tuple[int, int]], keys: tuple) -> tuple[int, int] | None:
-    """Position of ``keys``, or of its closest parent that was written (a missing field)."""
-    for n in range(len(keys), -1, -1):
-        if keys[:n] in positions:
-            return positions[keys[:n]]
-    return None
 
 
 # =========================================================================================
@@ -803,11 +669,6 @@ def _walk(loc: tuple) -> tuple[tuple, SchemaNode]:
     return tuple(keys), node
 
 
-def _did_you_mean(word: str, choices: Any) -> str:
-    close = difflib.get_close_matches(str(word), list(choices), n=1, cutoff=0.6)
-    return f" (did you mean {close[0]!r}?)" if close else ""
-
-
 _TYPE_NAMES = {"float": "a number", "int": "an integer", "bool": "true or false",
                "string": "a string", "list": "a list", "tuple": "a list",
                "dict": "a mapping (key: value)", "model": "a mapping (key: value)",
@@ -818,13 +679,13 @@ def _explain(error: Mapping[str, Any]) -> tuple[tuple, str]:
     """YAML keys and message of one pydantic error."""
     kind, loc, ctx = error["type"], error["loc"], error.get("ctx") or {}
     keys, node = _walk(loc)
-    got = _show(error.get("input"))
+    got = show(error.get("input"))
     if kind == "missing":
         return keys, "required, but missing"
     if kind == "extra_forbidden":
         _, parent = _walk(loc[:-1])
         allowed = parent.model_fields if isinstance(parent, type) else ()
-        hint = _did_you_mean(loc[-1], allowed) or f"; expected one of: {', '.join(allowed)}"
+        hint = did_you_mean(loc[-1], allowed) or f"; expected one of: {', '.join(allowed)}"
         return keys, "unknown field" + hint
     if kind in ("union_tag_invalid", "union_tag_not_found") and isinstance(node, _Union):
         known = ", ".join(node.members)
@@ -832,10 +693,10 @@ def _explain(error: Mapping[str, Any]) -> tuple[tuple, str]:
             return keys + (node.discriminator,), f"required, one of: {known}"
         tag = ctx.get("tag", "")
         return (keys + (node.discriminator,),
-                f"unknown {node.discriminator} {tag!r}{_did_you_mean(tag, node.members)}; "
+                f"unknown {node.discriminator} {tag!r}{did_you_mean(tag, node.members)}; "
                 f"known: {known}")
     if kind == "scenario":  # ours, from _problem
-        return keys + _dotted_parts(ctx.get("field")), error["msg"]
+        return keys + dotted_parts(ctx.get("field")), error["msg"]
     if kind == "finite_number":
         return keys, f"must be a finite number, got {got}"
     if kind == "string_too_short":
@@ -859,7 +720,7 @@ def _scenario_error(err: ValidationError, path: str | None,
     # A misspelt key also makes the right spelling "missing": the hint already says it.
     hinted = {keys[:-1] + (m.group(1),) for keys, message in explained
               if (m := re.search(r"did you mean '([^']+)'", message))}
-    problems = [Problem(message, path, _dotted(keys), *(_position(positions, keys) or ()))
+    problems = [Problem(message, path, dotted(keys), *(position(positions, keys) or ()))
                 for keys, message in explained
                 if not (message == "required, but missing" and keys in hinted)]
     problems.sort(key=lambda p: (p.line is None, p.line or 0, p.column or 0))
@@ -899,9 +760,9 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def _set_dotted(written: dict[str, Any], dotted: str, value: Any, scenario: Scenario) -> None:
-    """Set ``written[a][b][c] = value`` for ``dotted = "a.b.c"``, checking the path first."""
-    keys = tuple(dotted.split("."))
+def _set_dotted(written: dict[str, Any], path: str, value: Any, scenario: Scenario) -> None:
+    """Set ``written[a][b][c] = value`` for ``path = "a.b.c"``, checking the path first."""
+    keys = tuple(path.split("."))
     node: SchemaNode = Scenario
     block: Any = written
     for depth, key in enumerate(keys):
@@ -914,8 +775,8 @@ def _set_dotted(written: dict[str, Any], dotted: str, value: Any, scenario: Scen
         model = next((m for m in models if key in m.model_fields), None)
         if model is None:
             known = sorted({name for m in models for name in m.model_fields})
-            where = _dotted(keys[:depth + 1])
-            raise ScenarioError(f"unknown field{_did_you_mean(key, known)}",
+            where = dotted(keys[:depth + 1])
+            raise ScenarioError(f"unknown field{did_you_mean(key, known)}",
                                 scenario.source_path, where)
         if depth == len(keys) - 1:
             block[key] = value
@@ -969,7 +830,7 @@ def parse_scenario(text: str, source_path: str | os.PathLike | None = None,
     (default: the folder of ``source_path``, else the working directory).
     """
     path = os.path.abspath(source_path) if source_path is not None else None
-    written, positions = _read_yaml(text, path)
+    written, positions = read_yaml(text, path)
     scenario = _validate(written, path=path, positions=positions,
                          base_dir=os.path.abspath(base_dir) if base_dir is not None else None)
     scenario._source_text = text

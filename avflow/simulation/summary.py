@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from .terrain import Terrain
+from avflow.terrain.bed import Terrain
 
 
 def deposit_extent(terrain: Terrain, h: np.ndarray, threshold: float, h0: np.ndarray):

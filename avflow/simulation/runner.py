@@ -1,7 +1,7 @@
 """Run one scenario: terrain, release and law from the scenario, the solver, the snapshots.
 
 The runner is the only place that decides output times; the time loop itself runs inside
-:meth:`avflow.solver.Solver.advance` between two output times.
+:meth:`avflow.numerics.solver.Solver.advance` between two output times.
 """
 
 from __future__ import annotations
@@ -13,14 +13,15 @@ from typing import Callable
 
 import numpy as np
 
-from . import kernels as K
-from .dem import RasterError
-from .errors import ScenarioError
-from .release import ReleaseError, initial_thickness, release_crs
-from .rheology import friction_parameters
-from .solver import Solver, State
-from .summary import deposit_extent, travel_angle
-from .terrain import Terrain, build_terrain
+from avflow.numerics import kernels as K
+from avflow.terrain.raster import RasterError
+from avflow.errors import ScenarioError
+from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
+from avflow.numerics.rheology import friction_parameters
+from avflow.numerics.solver import Solver, State
+from avflow.simulation.summary import deposit_extent, travel_angle
+from avflow.terrain.bed import Terrain
+from avflow.terrain.build import build_terrain
 
 #: Default dry threshold and runout threshold, relative to the largest released thickness.
 DEFAULT_THRESHOLD_FRACTION = 1e-3
@@ -79,7 +80,7 @@ def cell_flags(state: State) -> np.ndarray:
 
 @dataclass
 class RunResult:
-    """Everything a run produced, before it becomes a Dataset (see :mod:`avflow.output`)."""
+    """Everything a run produced, before it becomes a Dataset (see :mod:`avflow.output.dataset`)."""
 
     scenario: object
     terrain: Terrain
@@ -165,7 +166,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
 
 
 def summarize(result: RunResult, v0: float) -> dict:
-    """The scalar summaries of a run (see :mod:`avflow.summary` for the definitions)."""
+    """The scalar summaries of a run (see :mod:`avflow.simulation.summary` for the definitions)."""
     state, terrain = result.state, result.terrain
     v_end = result.solver.volume(state)
     v_out = float(state.stats[K.ST_OUTFLOW])

@@ -1,6 +1,6 @@
 """Maps out of a run file: ``avflow export`` (GeoTIFF / ESRI ASCII rasters) and ``avflow plot``.
 
-Both read one ``avflow run`` NetCDF (:func:`avflow.output.to_dataset`).
+Both read one ``avflow run`` NetCDF (:func:`avflow.output.dataset.to_dataset`).
 
 - :func:`export_maps` writes the (y, x) maps of a grid scene (terrain ``plane`` or ``dem``)
   as north-up rasters named ``<stem>_<variable>.tif|.asc``, georeferenced with the CRS of
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import AvflowError
+from avflow.errors import AvflowError
 
 __all__ = ["DEFAULT_EXPORT", "MapsError", "export_maps", "plot_run", "scene_kind"]
 
@@ -105,7 +105,7 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
     ``variables`` defaults to :data:`DEFAULT_EXPORT`. ``warn(message)`` is told when the
     file has no CRS (the rasters are then written without one).
     """
-    from .dem import RasterError, write_asc, write_tif
+    from avflow.terrain.raster import RasterError, write_asc, write_tif
 
     path = Path(path)
     if fmt not in FORMATS:

@@ -11,7 +11,7 @@ Layout of OUTDIR::
     members/<scenario_hash>.nc   one CF NetCDF per member (complete, or absent)
     summary.csv                  one row per member (and summary.parquet with pyarrow)
     failures.csv                 the failed members and their errors (only if any)
-    ensemble.nc                  CF-1.11, realization dimension (see :mod:`avflow.ensemble_output`)
+    ensemble.nc                  CF-1.11, realization dimension (see :mod:`avflow.ensemble.dataset`)
 
 Re-running skips the members whose file is there and readable.
 """
@@ -30,13 +30,8 @@ from typing import Callable
 
 import dask
 
-from .ensemble import Ensemble, Member
+from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, Ensemble, Member
 
-#: Summaries copied into every member row (and into ensemble.nc).
-SUMMARY_FIELDS = ("runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
-                  "deposit_volume", "release_volume", "outflow_volume", "mass_balance_error",
-                  "travel_angle", "wall_time")
-OK_STATUSES = ("stopped", "completed")
 
 
 # =========================================================================================
@@ -75,9 +70,10 @@ def run_member(scenario_yaml: str, out_path: str) -> dict:
     if row is not None:
         row.update(reused=True, member_time=time.perf_counter() - started)
         return row
-    from .output import to_dataset, write_netcdf
-    from .runner import simulate
-    from .scenario import parse_scenario
+    from avflow.output.dataset import to_dataset
+    from avflow.output.netcdf import write_netcdf
+    from avflow.simulation.runner import simulate
+    from avflow.scenario.schema import parse_scenario
 
     try:
         result = simulate(parse_scenario(scenario_yaml))
@@ -125,9 +121,10 @@ def warm(scenario_yaml: str | None) -> bool:
     """
     if scenario_yaml is None:
         return False
-    from .output import to_dataset, write_netcdf
-    from .runner import simulate
-    from .scenario import parse_scenario
+    from avflow.output.dataset import to_dataset
+    from avflow.output.netcdf import write_netcdf
+    from avflow.simulation.runner import simulate
+    from avflow.scenario.schema import parse_scenario
 
     try:
         ds = to_dataset(simulate(parse_scenario(scenario_yaml)))
@@ -275,7 +272,7 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     table = member_table(ensemble, rows, outdir)
     if write_outputs:
         write_tables(table, outdir)
-        from .ensemble_output import ensemble_dataset, write_ensemble_netcdf
+        from avflow.ensemble.dataset import ensemble_dataset, write_ensemble_netcdf
 
         write_ensemble_netcdf(ensemble_dataset(ensemble, table, outdir), outdir / "ensemble.nc")
     ran = sum(not r.get("reused") for r in rows.values())
@@ -382,7 +379,7 @@ def _atomic(path: Path, write: Callable[[str], None]) -> None:
     os.close(fd)
     try:
         write(tmp)
-        from .output import publish
+        from avflow.output.netcdf import publish
 
         publish(tmp, path)
     except BaseException:

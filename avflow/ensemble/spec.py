@@ -19,8 +19,8 @@ An ensemble file names a base scenario (relative to the ensemble file) and how t
 Members are the cartesian product of ``vary`` (first key slowest) crossed with the ``sample``
 points (each vary combination gets every sample point; the sample is applied after the vary
 updates, so a sampled ``rheology.delta_deg`` lands in a varied Coulomb block). Each member is
-a fully resolved, validated :class:`~avflow.scenario.Scenario` and is named on disk by its
-:meth:`~avflow.scenario.Scenario.scenario_hash`.
+a fully resolved, validated :class:`~avflow.scenario.schema.Scenario` and is named on disk by its
+:meth:`~avflow.scenario.schema.Scenario.scenario_hash`.
 
 Everything is checked here, before any member runs: every problem is one
 :class:`EnsembleError` naming the ensemble file, the line:column and the field.
@@ -35,8 +35,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import ScenarioError
-from .scenario import Scenario, _did_you_mean, _position, _read_yaml, load_scenario
+from avflow.errors import ScenarioError
+from avflow.scenario.schema import Scenario, load_scenario
+from avflow.scenario.yamlio import did_you_mean, position, read_yaml
 
 __all__ = ["EnsembleError", "Ensemble", "Member", "load_ensemble", "parse_ensemble",
            "DEFAULT_THRESHOLDS"]
@@ -46,6 +47,12 @@ DEFAULT_THRESHOLDS = (0.1, 1.0, 5.0)
 
 _TOP_KEYS = ("name", "description", "base", "vary", "sample", "thresholds")
 _SAMPLE_KEYS = ("n", "seed", "ranges")
+
+#: Summaries copied into every member row (and into ensemble.nc).
+SUMMARY_FIELDS = ("runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
+                  "deposit_volume", "release_volume", "outflow_volume", "mass_balance_error",
+                  "travel_angle", "wall_time")
+OK_STATUSES = ("stopped", "completed")
 
 
 class EnsembleError(ScenarioError):
@@ -150,17 +157,17 @@ def parse_ensemble(text: str, source_path: str | os.PathLike | None = None) -> E
     """Validate ensemble YAML given as text; ``base`` is relative to ``source_path``'s folder."""
     path = os.path.abspath(source_path) if source_path is not None else None
     try:
-        data, positions = _read_yaml(text, path)
+        data, positions = read_yaml(text, path)
     except ScenarioError as err:
         raise EnsembleError(problems=err.problems) from None
 
     def fail(keys: tuple, message: str) -> EnsembleError:
-        line_col = _position(positions, keys) or ()
+        line_col = position(positions, keys) or ()
         return EnsembleError(message, path, ".".join(map(str, keys)) or None, *line_col)
 
     for key in data:
         if key not in _TOP_KEYS:
-            hint = _did_you_mean(key, _TOP_KEYS) or f"; expected one of: {', '.join(_TOP_KEYS)}"
+            hint = did_you_mean(key, _TOP_KEYS) or f"; expected one of: {', '.join(_TOP_KEYS)}"
             raise fail((key,), "unknown field" + hint)
 
     # --- base scenario --------------------------------------------------------------------
@@ -281,7 +288,7 @@ def _sample_points(sample: Any, base: Scenario, vary: dict, fail) -> tuple[list[
         raise fail(("sample",), f"must be a mapping with n, seed and ranges, got {sample!r}")
     for key in sample:
         if key not in _SAMPLE_KEYS:
-            hint = (_did_you_mean(key, _SAMPLE_KEYS)
+            hint = (did_you_mean(key, _SAMPLE_KEYS)
                     or f"; expected one of: {', '.join(_SAMPLE_KEYS)}")
             raise fail(("sample", key), "unknown field" + hint)
     n = sample.get("n")

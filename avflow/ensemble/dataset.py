@@ -23,10 +23,11 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from . import __version__
-from .ensemble import Ensemble
-from .output import SEED_REFERENCE, SUMMARIES, _per_width, publish
-from .orchestrate import OK_STATUSES, SUMMARY_FIELDS
+from avflow import __version__
+from avflow.ensemble.spec import Ensemble
+from avflow.output.cf import SEED_REFERENCE, SUMMARIES, per_width
+from avflow.output.netcdf import publish
+from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS
 
 #: Units of scenario fields by their last name (varied-parameter coordinates).
 FIELD_UNITS = {
@@ -49,7 +50,7 @@ def coordinate_name(dotted: str) -> str:
 
 
 def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr.Dataset:
-    """The ensemble Dataset from the member table (:func:`avflow.orchestrate.member_table`)."""
+    """The ensemble Dataset from the member table (:func:`avflow.ensemble.orchestrate.member_table`)."""
     outdir = Path(outdir)
     n = len(ensemble.members)
     profile = ensemble.base.terrain.kind == "profile"
@@ -90,7 +91,7 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
     for name in SUMMARY_FIELDS:
         units, description = SUMMARIES[name]
         data[name] = ("realization", table[name].to_numpy(float), {
-            "long_name": name.replace("_", " "), "units": _per_width(units, profile),
+            "long_name": name.replace("_", " "), "units": per_width(units, profile),
             "comment": description})
     if "runout_truncated" in table:
         data["runout_truncated"] = ("realization",

@@ -5,7 +5,7 @@ a particular control volume which is the median based dual cell": one finite-vol
 vertex ``P_i``, bounded by the segments that join the midpoints of the edges at ``P_i`` to
 the centres of mass of the triangles around it (Fig. 2a); on the boundary, the cell is closed
 by the two half-edges at the vertex (Fig. 2b). This module builds that mesh as the arrays of
-:class:`~avflow.mesh.Mesh`, so the face kernel of :mod:`avflow.kernels` runs on it unchanged.
+:class:`~avflow.terrain.mesh.Mesh`, so the face kernel of :mod:`avflow.numerics.kernels` runs on it unchanged.
 
 - :func:`raster_triangles`: triangles over the nodes of a horizontal raster (NaN = outside),
   each quad split along alternating diagonals ("union jack", pattern ``alternate``, so no
@@ -24,12 +24,12 @@ by the two half-edges at the vertex (Fig. 2b). This module builds that mesh as t
   (each normal lying in its triangle's plane), which is exact for the flux of a constant
   state, and makes every interior cell closed (``sum_j L_ij n_ij = 0``) on a plane. Each
   boundary edge also gives its two vertices one wall/open face each: the half-edge.
-  Every vertex has its own tangent basis, as :func:`avflow.terrain.surface_terrain` builds
+  Every vertex has its own tangent basis, as :func:`avflow.terrain.bed.surface_terrain` builds
   it: z along the vertex normal (area-weighted normals of the triangles around it), x the
   projection of the horizontal x axis, y = z ^ x; a face's normal is projected onto each
   side's tangent plane and read in that side's basis (the mesh's face frames).
 - :func:`triangle_terrain` (a raster) and :func:`plane_triangle_terrain` (a scenario's plane)
-  return a :class:`~avflow.terrain.Terrain` of kind ``"triangles"``: cells are the vertices
+  return a :class:`~avflow.terrain.bed.Terrain` of kind ``"triangles"``: cells are the vertices
   (``x``, ``y`` hold the vertex coordinates), ``extras["triangles"]`` the (nt, 3) vertex
   indices (counter-clockwise seen from above), ``extras["boundary_node"]`` the vertices on
   the domain's boundary.
@@ -41,8 +41,8 @@ import math
 
 import numpy as np
 
-from .mesh import BOUNDARY_CODES, Mesh, _perimeters
-from .terrain import Terrain, _frames, _unit, bed_coefficients
+from avflow.terrain.mesh import BOUNDARY_CODES, Mesh, _perimeters
+from avflow.terrain.bed import Terrain, _frames, _unit, bed_coefficients
 
 PATTERNS = ("alternate", "criss-cross")
 _LOCAL_EDGES = ((0, 1), (1, 2), (2, 0))
@@ -250,7 +250,7 @@ def _in_plane(vec, normal):
 
 
 def dual_mesh(xyz, tris, boundary_code):
-    """The median-dual :class:`~avflow.mesh.Mesh` of a triangulated bed.
+    """The median-dual :class:`~avflow.terrain.mesh.Mesh` of a triangulated bed.
 
     ``xyz`` (nv, 3) vertex positions, ``tris`` (nt, 3) counter-clockwise seen from above.
     ``boundary_code(edges, xy)`` gives the code (WALL / OUTFLOW) of each boundary edge
@@ -410,23 +410,3 @@ def plane_triangle_terrain(terrain, dx: float, dy: float | None, boundary, **opt
     xc, yc = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
     z = terrain.elevation_at_center + grad[0] * (xx - xc) + grad[1] * (yy - yc)
     return triangle_terrain(z, x, y, boundary, **options)
-
-
-def scenario_triangle_terrain(scenario) -> Terrain:
-    """The triangle terrain of a validated scenario with ``grid.mesh: triangles``."""
-    t, g = scenario.terrain, scenario.grid
-    ref = getattr(g, "refine", None)
-    options = {"pattern": getattr(g, "pattern", None) or "alternate"}
-    if ref is not None:
-        options.update(refine_angle_deg=ref.angle_deg, refine_slope_deg=ref.slope_deg,
-                       refine_levels=ref.levels)
-    if t.kind == "plane" and not getattr(t, "domain", None):
-        return plane_triangle_terrain(t, g.dx, g.dy, scenario.boundary, **options)
-    from . import terrain as _terrain_module
-
-    raster = getattr(_terrain_module, "terrain_raster", None)
-    if raster is not None:  # DEMs: the raster the square-grid builder would use
-        z, x, y, crs_wkt = raster(scenario)
-        return triangle_terrain(z, x, y, scenario.boundary,
-                                getattr(t, "nodata", "wall") or "wall", crs_wkt, **options)
-    raise NotImplementedError(f"triangle meshes are not available for terrain kind {t.kind!r}")

@@ -15,7 +15,7 @@ mass of the cell it comes from, which is why h stays >= 0 under the CFL conditio
 A zero temperature (``c = 0``) gives the Dirac density of eqs. 51, 53 and 55: particles move
 with the fluid velocity and no pressure wave propagates.
 
-These functions are scalar and inlined into the sweeps of :mod:`avflow.solver`.
+These functions are scalar and inlined into the sweeps of :mod:`avflow.numerics.solver`.
 """
 
 from __future__ import annotations

@@ -1,12 +1,12 @@
-"""Solver and state (the Clawpack split: the Riemann part is :mod:`avflow.kinetic`).
+"""Solver and state (the Clawpack split: the Riemann part is :mod:`avflow.numerics.kinetic`).
 
 - :class:`State` holds ``h`` and the discharge ``(hu, hv)`` in the bed's tangent basis, the
   time and the running observers (peak thickness, peak speed) of one run.
-- :class:`Solver` binds a :class:`~avflow.terrain.Terrain` and a friction law to the Numba
-  kernels of :mod:`avflow.kernels`; :meth:`Solver.advance` runs the whole time loop inside
+- :class:`Solver` binds a :class:`~avflow.terrain.bed.Terrain` and a friction law to the Numba
+  kernels of :mod:`avflow.numerics.kernels`; :meth:`Solver.advance` runs the whole time loop inside
   Numba up to a target time, so no Python runs per step and no array is allocated per step.
 
-Nothing here reads files or knows of scenarios: :mod:`avflow.runner` wires those.
+Nothing here reads files or knows of scenarios: :mod:`avflow.simulation.runner` wires those.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import kernels as K
-from .rheology import Law
-from .kinetic import density_factor
-from .terrain import Terrain
+from avflow.numerics import kernels as K
+from avflow.numerics.rheology import Law
+from avflow.numerics.kinetic import density_factor
+from avflow.terrain.bed import Terrain
 
 STATUS_NAMES = {
     K.REACHED_TARGET: "running",

@@ -8,7 +8,7 @@ The velocity is zero at release (eq. 60). Shapes:
 - ``box``: uniform thickness over an x range (and a y range on grids).
 - ``cylinder``: uniform thickness within a horizontal radius of a centre (grids).
 - ``polygon``: the areas of a shapefile, each with its ``thickness`` attribute or the
-  scenario's thickness (grids; :mod:`avflow.polygons`).
+  scenario's thickness (grids; :mod:`avflow.terrain.polygons`).
 - ``raster``: a thickness raster sampled bilinearly at the cell centres (grids).
 
 Polygons and rasters must share the DEM's CRS when both carry one.
@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .dem import RasterError, read_raster, same_crs
-from .polygons import PolygonError, rasterize, read_polygons
-from .terrain import Terrain
+from avflow.terrain.raster import RasterError, read_raster, same_crs
+from avflow.terrain.polygons import PolygonError, rasterize, read_polygons
+from avflow.terrain.bed import Terrain
 
 
 class ReleaseError(ValueError):

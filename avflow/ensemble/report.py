@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .orchestrate import OK_STATUSES
+from avflow.ensemble.spec import OK_STATUSES
 
 __all__ = ["write_report"]
 
@@ -54,7 +54,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
     """Write ``OUTDIR/report.md`` and its figures; returns the path of the report."""
     import xarray as xr
 
-    from .errors import AvflowError
+    from avflow.errors import AvflowError
 
     outdir = Path(outdir)
     path = outdir / "ensemble.nc"

@@ -7,7 +7,7 @@ the Coulomb threshold (eqs. 12, 19-20), ``(gamma_x, gamma_y)`` drive the flow. A
 carries the curvature ``1/R = -d theta / ds`` of eqs. 61-62 (positive where the slope flattens
 downhill, which presses the mass onto the bed and adds friction).
 
-Builders return a :class:`Terrain`: the finite-volume :class:`~avflow.mesh.Mesh` plus those
+Builders return a :class:`Terrain`: the finite-volume :class:`~avflow.terrain.mesh.Mesh` plus those
 per-cell coefficients and the coordinates that outputs need. Everything is computed once.
 
 - :func:`profile_terrain`: a transversally uniform slope solved in 1D along the bed (x is the
@@ -23,14 +23,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .mesh import BOUNDARY_CODES, Mesh, _perimeters, grid_mesh, profile_mesh
+from avflow.terrain.mesh import BOUNDARY_CODES, Mesh, _perimeters, grid_mesh, profile_mesh
 
 
 @dataclass(frozen=True)
 class Terrain:
     """A mesh and its bed coefficients, one value per cell (1D arrays over the cells)."""
 
-    kind: str  #: "profile", "grid" or "triangles" (median dual cells, avflow.trimesh)
+    kind: str  #: "profile", "grid" or "triangles" (median dual cells, avflow.terrain.trimesh)
     mesh: Mesh
     gamma_x: np.ndarray  #: gravity along the first tangent axis, / g (sin theta on a profile)
     gamma_y: np.ndarray  #: gravity along the second tangent axis, / g
@@ -276,7 +276,7 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
     ``gamma = (-e1_z, -e2_z)`` and ``gamma_z = n_z = cos(theta)``; the bed area of a cell is
     ``dx dy / cos(theta)``. A face between two cells lies on the bed plane of the averaged
     gradient (the difference across the face, the mean along it); its normal and tangent
-    are read in each cell's basis (:class:`~avflow.mesh.Mesh` face frames), so a discharge
+    are read in each cell's basis (:class:`~avflow.terrain.mesh.Mesh` face frames), so a discharge
     crosses from one basis to the other through the face. Faces towards NODATA cells are
     walls or open (``nodata``); the curvature term of eqs. 61-62 is not used in 2D (the seed
     notes it is ill-defined when the bed is not transversally uniform).
@@ -387,58 +387,3 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
         cell_index=None if valid.all() else flat,
         crs_wkt=crs_wkt,
     )
-
-
-def terrain_raster(scenario):
-    """The bed of a 2D scenario as a horizontal raster ``(z, x, y, crs_wkt)``.
-
-    A DEM is read (:mod:`avflow.dem`) and resampled to ``grid.dx`` (``dy``) unless its own
-    spacing is within 1% of it; NODATA cells are NaN. A plane is sampled at its cell centres.
-    """
-    t = scenario.terrain
-    if t.kind == "dem":
-        from .dem import read_raster, resample
-
-        raster = resample(read_raster(t.path), scenario.grid.dx, scenario.grid.dy)
-        z, x, y, wkt = raster.values, raster.x, raster.y, raster.crs_wkt
-    elif t.kind == "plane":
-        p = plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)
-        z, x, y, wkt = p.bed_elevation.reshape(p.grid_shape), p.x, p.y, None
-    else:
-        raise ValueError(f"terrain kind {t.kind!r} has no raster")
-    if getattr(t, "domain", None):
-        z = _clip_to_domain(z, x, y, t.domain)
-    return z, x, y, wkt
-
-
-def _clip_to_domain(z, x, y, path):
-    """NaN (outside the mesh) wherever a cell centre lies outside the domain polygons."""
-    from .polygons import PolygonError, rasterize, read_polygons
-
-    try:
-        areas, _ = read_polygons(path)
-    except PolygonError as err:
-        raise ValueError(str(err)) from None
-    xx, yy = np.meshgrid(x, y)
-    inside = rasterize(areas, xx, yy, thickness=1.0) > 0.0
-    if not inside.any():
-        raise ValueError(f"{path}: the domain polygon covers no cell of the terrain")
-    return np.where(inside, z, np.nan)
-
-
-def build_terrain(scenario) -> Terrain:
-    """The terrain of a validated scenario."""
-    t = scenario.terrain
-    if getattr(scenario.grid, "mesh", "square") == "triangles":  # median dual cells
-        from .trimesh import scenario_triangle_terrain
-
-        return scenario_triangle_terrain(scenario)
-    if t.kind == "profile":
-        return profile_terrain(t, scenario.grid.dx, scenario.boundary)
-    if t.kind == "plane" and not getattr(t, "domain", None):
-        return plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)
-    if t.kind in ("dem", "plane"):  # a DEM, or a plane cut to a domain polygon
-        z, x, y, wkt = terrain_raster(scenario)
-        return surface_terrain(z, x, y, scenario.boundary,
-                               nodata=getattr(t, "nodata", "wall"), crs_wkt=wkt)
-    raise ValueError(f"terrain kind {t.kind!r} is not available")

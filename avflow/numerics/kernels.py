@@ -35,9 +35,9 @@ import math
 import numpy as np
 from numba import njit
 
-from .kinetic import SQRT3, half_fluxes, sound_speed
-from .mesh import OUTFLOW, WALL
-from .rheology import friction
+from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.terrain.mesh import OUTFLOW, WALL
+from avflow.numerics.rheology import friction
 
 # Per-cell flag of sweep 1 (kept for output): which density the cell takes in sweep 2.
 FLOWING = 0  #: above the Coulomb threshold: rectangular density
@@ -344,7 +344,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
     Normal and tangential components are taken in each face's frame (rotational invariance):
     the normal part uses the kinetic flux, the tangential velocity is carried upwind with the
-    mass. ``face_frame`` (see :class:`avflow.mesh.Mesh`) maps each cell's discharge into the
+    mass. ``face_frame`` (see :class:`avflow.terrain.mesh.Mesh`) maps each cell's discharge into the
     face frame and the flux back into the cell's own basis. ``flux[f, 0]`` is ``L_f`` times the mass flux through face f along its normal, ``flux[f, 1:5]`` the momentum it brings to side i (x, y) and side j (x, y).
 
     Returns ``(ok, outflow, dt_limit, moving, film, clamped)``: ok is False when a thickness

@@ -3,7 +3,7 @@
 Every reader returns a :class:`Raster`: values on ascending cell-centre coordinates ``x``,
 ``y`` (m, projected), NODATA as NaN, and the CRS as WKT when the file carries one (the
 ``.prj`` sidecar of an ESRI grid, the GeoTIFF's own CRS, the ``grid_mapping`` of a NetCDF).
-The solver never sees NaN: :func:`avflow.terrain.surface_terrain` leaves those cells out of
+The solver never sees NaN: :func:`avflow.terrain.bed.surface_terrain` leaves those cells out of
 the mesh. :func:`resample` puts a raster on a coarser (or finer) grid by bilinear
 interpolation; a cell with a NODATA corner stays NODATA. :func:`cf_grid_mapping` turns the
 CRS into the attributes of a CF ``grid_mapping`` variable (CF-1.11 section 5.6).

@@ -1,0 +1,127 @@
+"""CF-1.11 vocabulary shared by every avflow file: variables, summaries, time, attributes.
+
+One table, :data:`FIELDS`, declares every output variable (units, names, cell_methods);
+the grid builder (:mod:`avflow.output.dataset`), the UGRID builder (:mod:`avflow.output.ugrid`)
+and the tests read it. No CF standard name exists for a granular flow thickness or velocity,
+so those carry a ``long_name`` and a ``comment`` (thickness is measured normal to the bed).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from avflow import __version__
+from avflow.numerics.rheology import law_reference
+from avflow.simulation.runner import FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED
+
+SEED_REFERENCE = (
+    "Mangeney-Castelnau, A., Vilotte, J.-P., Bristeau, M.-O., Perthame, B., Bouchut, F., "
+    "Simeoni, C., Yerneni, S. (2003). Numerical modeling of avalanches based on Saint Venant "
+    "equations using a kinetic scheme. J. Geophys. Res. 108(B11), 2527, doi:10.1029/2002JB002024"
+)
+
+TIME_UNITS = "seconds since 1970-01-01 00:00:00"
+
+H_COMMENT = "measured normal to the bed (topography-linked frame of the seed, Fig. 1)"
+
+#: name -> attributes. "kind": field (time, space), reduced (space), summary (0-d), coord.
+FIELDS = {
+    "h": dict(kind="field", long_name="flow thickness", units="m", comment=H_COMMENT),
+    "u": dict(kind="field", long_name="depth-averaged velocity along the bed, x component",
+              units="m s-1"),
+    "v": dict(kind="field", long_name="depth-averaged velocity along the bed, y component",
+              units="m s-1", grid_only=True),
+    "flow_state": dict(kind="flag", long_name="state of the cell after the step",
+                       flag_values=np.array([FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED], np.int8),
+                       flag_meanings="dry flowing under_coulomb_threshold"),
+    "peak_thickness": dict(kind="reduced", long_name="maximum flow thickness over the run",
+                           units="m", cell_methods="time_span: maximum", comment=H_COMMENT),
+    "peak_speed": dict(kind="reduced", long_name="maximum speed over the run", units="m s-1",
+                       cell_methods="time_span: maximum"),
+    "deposit_thickness": dict(kind="reduced", long_name="thickness at the end of the run",
+                              units="m", cell_methods="time_span: point", comment=H_COMMENT),
+    "bed_elevation": dict(kind="static", standard_name="ground_level_altitude", units="m"),
+    "slope_angle": dict(kind="static", standard_name="ground_slope_angle", units="degree"),
+    "peak_pressure": dict(kind="reduced", long_name="maximum dynamic pressure rho |u|^2",
+                          units="Pa", cell_methods="time_span: maximum"),
+    "arrival_time": dict(kind="reduced", long_name="time of first arrival (h > dry threshold)",
+                         units="s", comment="seconds since release; NaN where never reached"),
+    "rest_time": dict(kind="reduced", long_name="time the cell came to rest for good",
+                      units="s", comment=("end of the last step in which the material of the "
+                                          "cell moved; NaN where dry or still moving at the end")),
+    "moving_volume": dict(kind="series", long_name="volume of material still moving",
+                          units="m3"),
+    "center_of_mass_x": dict(kind="series", long_name="centre of mass, x", units="m"),
+    "center_of_mass_y": dict(kind="series", long_name="centre of mass, y", units="m"),
+    "center_of_mass_z": dict(kind="series", long_name="centre of mass, bed elevation",
+                             units="m"),
+}
+
+SUMMARIES = {
+    "runout": ("m", "downslope end of the deposit (h > runout_threshold); along the bed "
+                    "from the top on profiles, horizontal distance from the release centroid "
+                    "on grids"),
+    "time_to_stop": ("s", "first time the moving volume (u != 0, h > dry_threshold) is below "
+                          "stop_fraction of the released volume; NaN if never"),
+    "deposit_max_thickness": ("m", "largest final thickness"),
+    "deposit_length": ("m", "extent of the deposit (h > runout_threshold) along the flow"),
+    "deposit_volume": ("m3", "material on the mesh at the end, film included"),
+    "release_volume": ("m3", "released volume"),
+    "outflow_volume": ("m3", "volume that left through open boundaries"),
+    "film_volume": ("m3", "volume still moving at the end with h <= dry_threshold"),
+    "mass_balance_error": ("1", "|V_end + V_out - V_0| / V_0"),
+    "wall_time": ("s", "wall-clock time of the time loop"),
+    "travel_length": ("m", "horizontal distance from the highest released cell to the farthest "
+                           "deposit cell"),
+    "drop_height": ("m", "elevation drop over travel_length"),
+    "travel_angle": ("degree", "atan(drop_height / travel_length), the Fahrboeschung"),
+}
+
+
+def per_width(units: str, profile: bool) -> str:
+    """Volumes on a profile are per metre of width."""
+    return {"m3": "m2"}.get(units, units) if profile else units
+
+
+def time_coords(times: np.ndarray) -> dict:
+    """``time`` and the scalar ``time_span`` that the cell_methods of run maxima refer to.
+
+    CF 4.4 wants "unit since reference" for time: the release happens at the epoch, so
+    seconds since release are the stored values (decode_times=False reads them as such).
+    """
+    time_attrs = {"standard_name": "time", "units": TIME_UNITS, "calendar": "proleptic_gregorian",
+                  "units_metadata": "leap_seconds: none"}
+    return {
+        "time": ("time", times, {**time_attrs, "long_name": "time since release",
+                                 "comment": "the reference instant is the release"}),
+        "time_span": ((), times[-1], {**time_attrs, "long_name": "end of the period reduced over",
+                                      "bounds": "time_span_bounds"}),
+    }
+
+
+def global_attributes(result) -> dict:
+    sc, s = result.scenario, result.summary
+    th = result.thresholds
+    return {
+        "Conventions": "CF-1.11",
+        "title": f"avflow run of scenario {sc.name}",
+        "source": f"avflow {__version__}: kinetic scheme with Dirac stopping (seed eqs. 26-56)",
+        "references": f"{SEED_REFERENCE}; friction law: {law_reference(result.solver.law)}",
+        "history": "created by avflow " + __version__,
+        "scenario_name": sc.name,
+        "scenario_hash": sc.scenario_hash(),
+        "scenario": sc.source_text,
+        "avflow_version": __version__,
+        "status": s["status"],
+        "runout_threshold_m": th["runout"],
+        "dry_threshold_m": th["dry"],
+        "stop_fraction": th["stop_fraction"],
+        "steps": int(s["steps"]),
+        "dt_min_s": s["dt_min"],
+        "dt_max_s": s["dt_max"],
+        "runout_truncated": int(s["runout_truncated"]),
+        "clamped_normal_cells": s["clamped_normal_cells"],
+        "halved_steps": s["halved_steps"],
+        "comment": ("h is measured normal to the bed; on profiles x is the distance along the "
+                    "bed and volumes are per metre of width"),
+    }

@@ -1,0 +1,154 @@
+"""YAML reading with positions, shared by scenario and ensemble files.
+
+PyYAML's safe loader restricted to YAML 1.2's core scalars, and every key and list item
+recorded with its (line, column), so that a validation error can name ``file:line:col`` and
+the dotted field. Knows nothing of the scenario schema.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import re
+from typing import Any, Mapping
+
+import yaml
+
+from avflow.errors import ScenarioError
+
+# =========================================================================================
+
+_BOOL, _INT, _FLOAT, _TIMESTAMP = (f"tag:yaml.org,2002:{name}"
+                                   for name in ("bool", "int", "float", "timestamp"))
+
+
+class YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with the scalars of YAML 1.2's core schema.
+
+    PyYAML follows YAML 1.1, where ``1e-3`` is a string (a float needs a dot), ``yes``,
+    ``no``, ``on`` and ``off`` are booleans, ``010`` is octal, ``1:30`` is 90 and
+    ``2024-01-01`` a date. Here only true/false are booleans, integers are decimal, decimal
+    and exponent notations are floats, and everything else stays a string.
+    """
+
+
+YamlLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers
+            if tag not in (_BOOL, _INT, _FLOAT, _TIMESTAMP)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+YamlLoader.add_implicit_resolver(
+    _BOOL, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
+YamlLoader.add_implicit_resolver(  # before floats: a plain integer stays an int
+    _INT, re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
+YamlLoader.add_implicit_resolver(
+    _FLOAT, re.compile(r"""^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
+                          |[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
+YamlLoader.add_constructor(_INT, lambda loader, node: int(loader.construct_scalar(node), 10))
+
+_MERGE = "tag:yaml.org,2002:merge"
+
+
+def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, int]]]:
+    """Plain Python data from YAML text, and the (line, column) of every key and item.
+
+    Positions are keyed by the path of keys and list indices, e.g. ``("terrain", "slope")``
+    or ``("terrain", "extent", "x", 1)``; ``()`` is the top-level node.
+    """
+    positions: dict[tuple, tuple[int, int]] = {}
+
+    def where(node: yaml.Node) -> tuple[int, int]:
+        return node.start_mark.line + 1, node.start_mark.column + 1
+
+    def fail(message: str, node: yaml.Node, keys: tuple = ()) -> ScenarioError:
+        return ScenarioError(message, path, dotted(keys), *where(node))
+
+    def scalar(node: yaml.Node, keys: tuple) -> Any:
+        try:
+            return loader.construct_object(node)
+        except (ValueError, yaml.YAMLError) as err:
+            raise fail(f"cannot read {node.value!r} as {node.tag}: {err}", node, keys) from None
+
+    def build(node: yaml.Node, keys: tuple) -> Any:
+        """Data of ``node``, written at ``keys``; records where its keys and items are."""
+        if isinstance(node, yaml.MappingNode):
+            mapping: dict[str, Any] = {}
+            for key_node, value_node in node.value:
+                if key_node.tag == _MERGE:
+                    raise fail("merge keys (<<) are not supported", key_node, keys)
+                key = scalar(key_node, keys) if isinstance(key_node, yaml.ScalarNode) else None
+                if not isinstance(key, str):
+                    raise fail(f"keys must be names, got {show(key)}", key_node, keys)
+                if key in mapping:
+                    first_line = positions[keys + (key,)][0]
+                    raise fail(f"duplicate key (first written at line {first_line})",
+                               key_node, keys + (key,))
+                positions[keys + (key,)] = where(key_node)  # the key, not its value
+                mapping[key] = build(value_node, keys + (key,))
+            return mapping
+        if isinstance(node, yaml.SequenceNode):
+            items = []
+            for i, item in enumerate(node.value):
+                positions[keys + (i,)] = where(item)
+                items.append(build(item, keys + (i,)))
+            return items
+        return scalar(node, keys)
+
+    loader = YamlLoader(text)
+    try:
+        root = loader.get_single_node()
+        if root is not None:
+            positions[()] = where(root)
+        data = None if root is None else build(root, ())
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark or err.context_mark
+        detail = f" ({err.context})" if err.context else ""
+        raise ScenarioError(f"YAML syntax error: {err.problem}{detail}", path, None,
+                            *((mark.line + 1, mark.column + 1) if mark else ())) from None
+    except yaml.YAMLError as err:
+        raise ScenarioError(f"YAML error: {err}", path) from None
+    finally:
+        loader.dispose()
+    if data is None:
+        raise ScenarioError("empty scenario: expected a mapping of fields (name: ..., "
+                            "terrain: ..., ...)", path, None, 1, 1)
+    if not isinstance(data, dict):
+        raise ScenarioError(f"expected a mapping of fields (name: ..., terrain: ..., ...), "
+                            f"got {show(data)}", path, None, *positions[()])
+    return data, positions
+
+
+def dotted(keys: tuple) -> str | None:
+    return ".".join(str(k) for k in keys) or None
+
+
+def dotted_parts(field: str | None) -> tuple:
+    """``"terrain.extent.x.1"`` -> ``("terrain", "extent", "x", 1)`` (list items by index)."""
+    if not field:
+        return ()
+    return tuple(int(p) if p.isdigit() else p for p in field.split("."))
+
+
+def position(positions: Mapping[tuple, tuple[int, int]], keys: tuple) -> tuple[int, int] | None:
+    """Position of ``keys``, or of its closest parent that was written (a missing field)."""
+    for n in range(len(keys), -1, -1):
+        if keys[:n] in positions:
+            return positions[keys[:n]]
+    return None
+
+
+
+def show(value: Any) -> str:
+    """A value as the user wrote it in YAML (strings quoted), for 'got ...' in messages."""
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, (bool, type(None), list, dict, tuple)):
+        text = json.dumps(value, default=str)
+        return text if len(text) <= 60 else text[:57] + "..."
+    return repr(value)
+
+
+def did_you_mean(word: str, choices: Any) -> str:
+    close = difflib.get_close_matches(str(word), list(choices), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
