@@ -202,6 +202,19 @@ def _observe(h, q_norm, cfl_factor, gz, g):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
+def _open_mass(f_out):
+    """Mass flux (outward) through an open side: what leaves, never anything that enters.
+
+    The ghost copies the cell with its outward normal velocity (``max(u_n, 0)``), so a state
+    leaving the map passes through unchanged (the two half fluxes of one state add up to the
+    exact flux ``h u_n``). A cell moving inward would still receive the ghost's particles,
+    mass from outside the map: an open side lets material leave and nothing enter, so the
+    net is cut at 0 (then the face holds the material like a wall, pressure included).
+    """
+    return f_out if f_out > 0.0 else 0.0
+
+
+@njit(error_model="numpy", cache=True, inline="always")
 def _dirac_face(dirac, flag_i, flag_j):
     """True when a face carries the Dirac (zero) mass flux: both cells at zero temperature.
 
@@ -237,9 +250,9 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     if left == WALL:  # mirror ghost (h, -u): no mass, twice the pressure
         fl_h = 0.0
         fl_q = 2.0 * fm_q
-    else:  # open: the ghost copies cell 0 but cannot push material in
+    else:  # open: transmissive for what leaves, closed to what would enter
         gp_h, gp_q, _, _ = half_fluxes(h0, min(u0, 0.0), c0, c0 * density[0])
-        fl_h = gp_h + fm_h
+        fl_h = _open_mass(-(gp_h + fm_h)) * -1.0
         fl_q = gp_q + fm_q
     flux[0, 0] = fl_h
     flux[0, 1] = fl_q
@@ -263,7 +276,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
                 um = hu[n - 1] / hm if hm > 0.0 else 0.0
                 cm = sound_speed(hm, g * gamma_z[n - 1])
                 _, _, gm_h, gm_q = half_fluxes(hm, max(um, 0.0), cm, cm * density[n - 1])
-                fr_h = fp_h + gm_h
+                fr_h = _open_mass(fp_h + gm_h)
                 fr_q = fp_q + gm_q
         flux[i, 0] = fr_h
         flux[i, 1] = fr_q
@@ -301,9 +314,9 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
             qr = 0.0 if dirac_r else flux[k + 1, 1]
             hu_new[k] = dt * ((ql - qr) / dx + g * hn * gamma_x[k])
         if k == 0 and left == OUTFLOW:
-            outflow -= fl * dt
+            outflow += max(-fl, 0.0) * dt
         if k == n - 1 and right == OUTFLOW:
-            outflow += fr * dt
+            outflow += max(fr, 0.0) * dt
         speed_n = hv_new[k]
         qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt,
                                     gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
@@ -392,8 +405,9 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             gm_h = -fp_h
             gm_q = fp_q
             utj = uti
-        else:  # open boundary: the ghost copies the cell but cannot push material in
+        else:  # open boundary: transmissive for what leaves, closed to what would enter
             _, _, gm_h, gm_q = half_fluxes(hi, max(uni, 0.0), ci, ci * density[i])
+            gm_h = _open_mass(fp_h + gm_h) - fp_h
             utj = uti
         f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
         f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
@@ -459,7 +473,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             h_new[j] += fh
             transport[j] = max(transport[j], unit)
         elif j == OUTFLOW:
-            outflow += fh * dt
+            outflow += max(fh, 0.0) * dt
 
     # --- sweep 2b: new thickness, projection, observers
     inv_lim = 0.0
