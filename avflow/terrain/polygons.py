@@ -38,10 +38,27 @@ def read_polygons(path) -> tuple[list[Area], str | None]:
     path = Path(path)
     if not path.is_file():
         raise PolygonError(f"{path}: no such shapefile")
+    # Without its .dbf (the attribute table: each polygon's thickness) pyshp fails late, deep
+    # inside; a missing .shx it works around.
+    if not any(path.with_suffix(s).is_file() for s in (".dbf", ".DBF")):
+        raise PolygonError(f"{path.with_suffix('.dbf')}: not found; a shapefile needs its .dbf "
+                           "(attribute table) beside the .shp")
     try:
         reader = shapefile.Reader(str(path))
     except Exception as err:
         raise PolygonError(f"{path}: cannot be read as a shapefile ({err})") from None
+    try:
+        return _read_areas(reader, path)
+    except PolygonError:
+        raise
+    except Exception as err:  # a damaged .shp/.shx/.dbf: pyshp fails while iterating
+        raise PolygonError(f"{path}: cannot be read as a shapefile "
+                           f"({type(err).__name__}: {err})") from None
+
+
+def _read_areas(reader, path: Path) -> tuple[list[Area], str | None]:
+    import shapefile  # pyshp
+
     with reader:
         if reader.shapeType not in (shapefile.POLYGON, shapefile.POLYGONZ, shapefile.POLYGONM):
             raise PolygonError(f"{path}: holds {reader.shapeTypeName} shapes, not polygons")
