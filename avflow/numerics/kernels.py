@@ -9,7 +9,7 @@ basis) runs in two sweeps:
    the rectangular density (eq. 54). Per cell the trial thickness ``h*`` (eq. 42) and the
    trial discharge without friction ``q~ = q^n - sum alpha F_q + g h* gamma_t dt`` (eq. 47)
    are formed, and the Coulomb threshold of eq. 49 is tested: a wet cell with
-   ``|q~| < tau dt`` (``tau = mu g cos(theta) h``, plus the curvature term of eqs. 61-62) is
+   ``|q~| < tau dt`` (``tau = mu h (g cos(theta) + u.K.u)``, the curvature term of eqs. 61-62) is
    *under the threshold*. A cell dry at time n is also at zero temperature: it has no
    particles of its own.
 2. **Mass with the Dirac switch, momentum by projection.** A face whose two cells are both
@@ -73,12 +73,23 @@ N_STATS = 10
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _normal_accel(g_normal, curvature, speed2):
-    """Bed-normal acceleration g cos(theta) + u^2 / R (eqs. 61-62), clamped at 0 on convex beds."""
-    n = g_normal + curvature * speed2
+def _normal_accel(g_normal, centripetal):
+    """Bed-normal acceleration ``g cos(theta) + u.K.u`` (eqs. 61-62: ``u^2 / R`` on a profile),
+    clamped at 0 where a convex bed would lift the material off (counted: returns 1)."""
+    n = g_normal + centripetal
     if n < 0.0:
         return 0.0, 1
     return n, 0
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _centripetal(curvature, i, h, hu, hv):
+    """``u.K.u`` (m/s^2) of cell i at time n: ``curvature[i] = (K11, K12, K22)`` in its basis."""
+    if h <= 0.0:
+        return 0.0
+    u1 = hu / h
+    u2 = hv / h
+    return curvature[i, 0] * u1 * u1 + 2.0 * curvature[i, 1] * u1 * u2 + curvature[i, 2] * u2 * u2
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -118,7 +129,7 @@ def dt_limit(cfl_factor, gamma_z, h, hu, hv, g):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt,
-                    dt_decide, gx, gy, gz, kappa, law, p0, p1, p2, p3, g):
+                    dt_decide, gx, gy, gz, centripetal, law, p0, p1, p2, p3, g):
     """Sweep-1 closure of one cell: q~ of eq. 47 and the threshold test of eq. 49.
 
     ``rate_*``: the flux divergences (mass m/s, momentum m^2/s^2). The trial discharge q~
@@ -135,7 +146,7 @@ def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate
     hd = h_old + dt_decide * rate_h
     qdx = hu_old + dt_decide * (rate_x + g * hd * gx)
     qdy = hv_old + dt_decide * (rate_y + g * hd * gy)
-    accel, _ = _normal_accel(g * gz, kappa, speed_n * speed_n)
+    accel, _ = _normal_accel(g * gz, centripetal)
     tau, _ = friction(law, p0, p1, p2, p3, hd, speed_n, accel, g)
     limit = tau * dt_decide
     if qdx * qdx + qdy * qdy < limit * limit:
@@ -144,7 +155,7 @@ def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, kappa, law, p0, p1, p2, p3,
+def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, law, p0, p1, p2, p3,
                     g):
     """Sweep-2 momentum of one cell: q = 0 under the threshold (eq. 56), else eq. 50.
 
@@ -156,7 +167,7 @@ def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, kappa, law, p0
     """
     if flag == UNDER_THRESHOLD or h_new <= h_zero:
         return 0.0, 0.0, 0
-    accel, clamped = _normal_accel(g * gz, kappa, speed_n * speed_n)
+    accel, clamped = _normal_accel(g * gz, centripetal)
     tau, drag = friction(law, p0, p1, p2, p3, h_new, speed_n, accel, g)
     qx, qy = _project(qx, qy, tau, drag, dt)
     return qx, qy, clamped
@@ -283,7 +294,8 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
         qx, _, fk = _trial_momentum(h[k], h_zero, abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
                                     (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
-                                    gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
+                                    gamma_z[k], curvature[k, 0] * (u_prev * u_prev),
+                                    law, p0, p1, p2, p3, g)
         hu_new[k] = qx
         hv_new[k] = abs(u_prev)  # scratch: |u^n| for sweep 2 (hv is identically 0 on a line)
         flag[k] = fk
@@ -318,8 +330,9 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         if k == n - 1 and right == OUTFLOW:
             outflow += max(fr, 0.0) * dt
         speed_n = hv_new[k]
-        qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt,
-                                    gamma_z[k], curvature[k], law, p0, p1, p2, p3, g)
+        qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt, gamma_z[k],
+                                    curvature[k, 0] * (speed_n * speed_n),
+                                    law, p0, p1, p2, p3, g)
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0
@@ -440,7 +453,8 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         qx, qy, fi = _trial_momentum(h[i], h_zero, _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
                                      h_new[i] * inv_area, hu_new[i] * inv_area,
                                      hv_new[i] * inv_area, dt, dt_decide, gamma_x[i],
-                                     gamma_y[i], gamma_z[i], curvature[i],
+                                     gamma_y[i], gamma_z[i],
+                                     _centripetal(curvature, i, h[i], hu[i], hv[i]),
                                      law, p0, p1, p2, p3, g)
         hu_new[i] = qx
         hv_new[i] = qy
@@ -492,7 +506,8 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
             qx = dt * (qx / area + g * hn * gamma_x[i])
             qy = dt * (qy / area + g * hn * gamma_y[i])
-        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i], curvature[i],
+        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
+                                     _centripetal(curvature, i, h[i], hu[i], hv[i]),
                                      law, p0, p1, p2, p3, g)
         h_new[i] = hn
         hu_new[i] = qx

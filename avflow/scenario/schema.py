@@ -243,6 +243,9 @@ class DemTerrain(_Model):
     domain: Text | None = None
     """Optional polygon shapefile: only cells whose centre is inside are meshed (the rest
     is treated as NODATA); relative to the scenario file; stored absolute."""
+    curvature: Flag = True
+    """Include the bed-curvature term of eqs. 61-62 in 2D: the normal acceleration
+    g cos(theta) + u.K.u, with K the curvature tensor of the DEM (README)."""
 
     @field_validator("domain")
     @classmethod
@@ -494,6 +497,12 @@ class Physics(_Model):
     """The seed's zero-temperature (Dirac) flux; false only for studies."""
     density: Positive = 2000.0
     """Bulk density of the flowing material (kg/m^3)."""
+    min_flow_thickness: NonNegative | None = None
+    """Material thinner than this (m) does not flow: it keeps its mass where it lies (in the
+    deposit), sends and takes no momentum and plays no part in the time step. null: 1 mm
+    (GeoClaw's dry tolerance), or the dry threshold when that is smaller (a release under
+    1 m thick: 1e-3 of its thickness); 0: no such rule (only round-off residues, 1e-12 of
+    the largest release thickness, are held)."""
 
 
 class Scenario(_Model):

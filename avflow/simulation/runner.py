@@ -31,6 +31,10 @@ DEFAULT_THRESHOLD_FRACTION = 1e-3
 #: neighbours' thickness), so a real film keeps its speed and a residue cannot race ahead.
 ZERO_THICKNESS_FRACTION = 1e-12
 
+#: Default minimum flowing thickness (m), unless the dry threshold is smaller: GeoClaw's
+#: dry tolerance. Thinner material holds its mass but does not flow (films that stop).
+DEFAULT_MIN_FLOW = 1e-3
+
 # Cell states written to the output flag variable.
 FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED = 0, 1, 2
 
@@ -123,9 +127,13 @@ def prepare(scenario):
         else DEFAULT_THRESHOLD_FRACTION * h_max,
         "stop_fraction": out.stop_fraction,
     }
+    min_flow = scenario.physics.min_flow_thickness
+    thresholds["min_flow"] = (min(DEFAULT_MIN_FLOW, thresholds["dry"]) if min_flow is None
+                              else min_flow)
     solver = Solver(terrain, law, params, gravity=scenario.physics.gravity,
                     cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
-                    h_dry=thresholds["dry"], h_zero=ZERO_THICKNESS_FRACTION * h_max)
+                    h_dry=thresholds["dry"],
+                    h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]))
     return terrain, h0, solver, thresholds
 
 

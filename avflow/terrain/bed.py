@@ -35,7 +35,10 @@ class Terrain:
     gamma_x: np.ndarray  #: gravity along the first tangent axis, / g (sin theta on a profile)
     gamma_y: np.ndarray  #: gravity along the second tangent axis, / g
     gamma_z: np.ndarray  #: bed-normal gravity, / g (cos theta)
-    curvature: np.ndarray  #: 1/R (1/m), >0 where the bed is concave; 0 when curvature is off
+    #: (n_cells, 3): (K11, K12, K22), the bed's curvature tensor (second fundamental form) in
+    #: the cell's tangent basis, 1/m; u.K.u > 0 where the bed is concave along u (1/R of eqs.
+    #: 61-62 on a profile, K11 = -d theta / ds); all 0 when the curvature term is off
+    curvature: np.ndarray
     bed_elevation: np.ndarray  #: m
     slope_deg: np.ndarray  #: steepest slope angle theta, degrees
     x: np.ndarray  #: cell-centre coordinate along the grid's x axis (along the bed for profiles)
@@ -133,7 +136,9 @@ def profile_terrain(terrain, dx: float, boundary) -> Terrain:
     horiz = _cumulative(lambda v: np.cos(theta(v)), nodes)[1::2]
     drop = _cumulative(lambda v: np.sin(theta(v)), nodes)
     elevation = drop[-1] - drop[1::2]
-    curvature = -dtheta(s) if terrain.curvature else np.zeros(n)
+    curvature = np.zeros((n, 3))
+    if terrain.curvature:
+        curvature[:, 0] = -dtheta(s)
     return Terrain(
         kind="profile",
         mesh=mesh,
@@ -196,7 +201,7 @@ def plane_terrain(terrain, dx: float, dy: float | None, boundary) -> Terrain:
         gamma_x=np.full(n, basis[0] @ g_vec),
         gamma_y=np.full(n, basis[1] @ g_vec),
         gamma_z=np.full(n, math.cos(th)),
-        curvature=np.zeros(n),
+        curvature=np.zeros((n, 3)),
         bed_elevation=z.ravel(),
         slope_deg=np.full(n, terrain.slope_deg),
         x=x,
@@ -222,22 +227,63 @@ def _gradient(z, d, axis):
                     np.where(np.isfinite(fwd), fwd, np.where(np.isfinite(bwd), bwd, 0.0)))
 
 
+def _per_cell(fields, flat):
+    """Raster fields at the cells (the valid raster nodes ``flat``)."""
+    return tuple(np.ascontiguousarray(f.ravel()[flat]) for f in fields)
+
+
 def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def bed_coefficients(basis, cos_theta) -> dict:
+def bed_coefficients(basis, cos_theta, hessian=None) -> dict:
     """Terrain fields of per-cell bed frames ``basis`` (n, 2, 3) with bed-normal z component
     ``cos_theta``: gravity along e1, e2 and across the bed (``gamma = -(e1_z, e2_z)``,
-    ``gamma_z = cos(theta)``), the slope angle, and no curvature term (2D)."""
+    ``gamma_z = cos(theta)``), the slope angle, and the curvature tensor from the bed's
+    ``hessian`` (per cell ``(b_xx, b_xy, b_yy)``, 1/m; None: no curvature term)."""
     cos_theta = np.ascontiguousarray(cos_theta)
+    n = basis.shape[0]
     return {
         "gamma_x": np.ascontiguousarray(-basis[:, 0, 2]),
         "gamma_y": np.ascontiguousarray(-basis[:, 1, 2]),
         "gamma_z": cos_theta,
-        "curvature": np.zeros(basis.shape[0]),
+        "curvature": (np.zeros((n, 3)) if hessian is None
+                      else curvature_tensor(basis, cos_theta, *hessian)),
         "slope_deg": np.degrees(np.arccos(np.clip(cos_theta, -1.0, 1.0))),
     }
+
+
+def bed_hessian(z, dx, dy):
+    """Second derivatives ``(b_xx, b_xy, b_yy)`` (1/m) of a raster bed, NaN where it is NaN.
+
+    The derivative of the central gradient (:func:`_gradient`), so a stencil of 2 dx: the
+    curvature is read over the same cells that give each cell its normal, and the noise of
+    a 5 m DEM's three-point second difference is halved. NaN (NODATA) neighbours and the
+    map's edges switch to one-sided differences; b_xy is symmetrised.
+    """
+    valid = np.isfinite(z)
+    bx = np.where(valid, _gradient(z, dx, 1), np.nan)
+    by = np.where(valid, _gradient(z, dy, 0), np.nan)
+    bxx, byy = _gradient(bx, dx, 1), _gradient(by, dy, 0)
+    bxy = 0.5 * (_gradient(bx, dy, 0) + _gradient(by, dx, 1))
+    return tuple(np.where(valid, d, np.nan) for d in (bxx, bxy, byy))
+
+
+def curvature_tensor(basis, cos_theta, bxx, bxy, byy):
+    """(n, 3) curvature tensor ``(K11, K12, K22)`` of a bed ``z = b(x, y)`` in cell bases.
+
+    The centripetal acceleration of material moving along the bed at velocity ``u`` (tangent)
+    is ``u . K u`` along the bed normal: the second fundamental form
+    ``II(u, u) = u_h^T H u_h / sqrt(1 + |grad b|^2)`` with ``u_h`` the horizontal projection
+    of ``u`` and ``H`` the Hessian of ``b``. With ``u = u1 e1 + u2 e2``,
+    ``K_ab = cos(theta) (e_a)_h^T H (e_b)_h``. On a transversally uniform bed it gives
+    ``K11 = b'' cos^3(theta) = 1/R`` along the slope (eqs. 61-62).
+    """
+    hess = np.empty((cos_theta.size, 2, 2))
+    hess[:, 0, 0], hess[:, 0, 1], hess[:, 1, 0], hess[:, 1, 1] = bxx, bxy, bxy, byy
+    horiz = basis[:, :, :2]
+    k = cos_theta[:, None, None] * np.einsum("nai,nij,nbj->nab", horiz, hess, horiz)
+    return np.ascontiguousarray(np.stack([k[:, 0, 0], k[:, 0, 1], k[:, 1, 1]], axis=1))
 
 
 def _frames(normal, tangent, basis_i, basis_j):
@@ -267,7 +313,8 @@ def _frames(normal, tangent, basis_i, basis_j):
     return out
 
 
-def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=None) -> Terrain:
+def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=None,
+                    curvature: bool = True) -> Terrain:
     """Any bed ``z = b(x, y)`` on a horizontal grid (a DEM); NaN cells lie outside the domain.
 
     Every cell is the lift of its grid cell onto the bed, with its own tangent basis (seed
@@ -278,8 +325,8 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
     gradient (the difference across the face, the mean along it); its normal and tangent
     are read in each cell's basis (:class:`~avflow.terrain.mesh.Mesh` face frames), so a discharge
     crosses from one basis to the other through the face. Faces towards NODATA cells are
-    walls or open (``nodata``); the curvature term of eqs. 61-62 is not used in 2D (the seed
-    notes it is ill-defined when the bed is not transversally uniform).
+    walls or open (``nodata``). With ``curvature``, each cell carries the bed's curvature
+    tensor (:func:`curvature_tensor` of :func:`bed_hessian`), the 2D form of eqs. 61-62.
     """
     z = np.asarray(elevation, dtype=float)
     ny, nx = z.shape
@@ -377,7 +424,8 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
     return Terrain(
         kind="grid",
         mesh=mesh,
-        **bed_coefficients(basis, cos_theta),
+        **bed_coefficients(basis, cos_theta, _per_cell(bed_hessian(z, dx, dy), flat)
+                           if curvature else None),
         bed_elevation=z.ravel()[flat],
         x=x,
         y=y,

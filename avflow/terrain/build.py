@@ -60,7 +60,8 @@ def build_terrain(scenario) -> Terrain:
     if t.kind in ("dem", "plane"):  # a DEM, or a plane cut to a domain polygon
         z, x, y, wkt = terrain_raster(scenario)
         return surface_terrain(z, x, y, scenario.boundary,
-                               nodata=getattr(t, "nodata", "wall"), crs_wkt=wkt)
+                               nodata=getattr(t, "nodata", "wall"), crs_wkt=wkt,
+                               curvature=_curved(t))
     raise ValueError(f"terrain kind {t.kind!r} is not available")
 
 
@@ -77,4 +78,10 @@ def scenario_triangle_terrain(scenario) -> Terrain:
     # DEMs (and planes cut to a domain): the raster the square-grid builder would use
     z, x, y, crs_wkt = terrain_raster(scenario)
     return triangle_terrain(z, x, y, scenario.boundary,
-                            getattr(t, "nodata", "wall") or "wall", crs_wkt, **options)
+                            getattr(t, "nodata", "wall") or "wall", crs_wkt,
+                            curvature=_curved(t), **options)
+
+
+def _curved(terrain) -> bool:
+    """Whether the bed-curvature term applies: DEMs unless switched off (a plane has none)."""
+    return terrain.kind == "dem" and terrain.curvature

@@ -42,7 +42,7 @@ import math
 import numpy as np
 
 from avflow.terrain.mesh import BOUNDARY_CODES, Mesh, _perimeters
-from avflow.terrain.bed import Terrain, _frames, _unit, bed_coefficients
+from avflow.terrain.bed import Terrain, _frames, _unit, bed_coefficients, bed_hessian
 
 PATTERNS = ("alternate", "criss-cross")
 _LOCAL_EDGES = ((0, 1), (1, 2), (2, 0))
@@ -340,14 +340,17 @@ def side_codes(edges, xy, box, side_code, hole_code):
 # --------------------------------------------------------------------------------------------
 
 
-def _terrain(xy, z, tris, boundary_code, dx, dy, crs_wkt=None, extras=None) -> Terrain:
+def _terrain(xy, z, tris, boundary_code, dx, dy, crs_wkt=None, extras=None,
+             hessian=None) -> Terrain:
+    """``hessian``: None (no curvature term) or a callable (x, y) -> (b_xx, b_xy, b_yy)."""
     xyz = np.column_stack([xy, z])
     mesh, normal, basis, boundary_node = dual_mesh(xyz, tris, boundary_code)
     cos_theta = normal[:, 2]
+    at_cells = None if hessian is None else hessian(xy[:, 0], xy[:, 1])
     return Terrain(
         kind="triangles",
         mesh=mesh,
-        **bed_coefficients(basis, cos_theta),
+        **bed_coefficients(basis, cos_theta, at_cells),
         bed_elevation=np.ascontiguousarray(z, dtype=float),
         x=np.ascontiguousarray(xy[:, 0]),
         y=np.ascontiguousarray(xy[:, 1]),
@@ -371,15 +374,22 @@ def _refined(xy, z, tris, elevation, refine_angle_deg, refine_slope_deg, refine_
 
 def triangle_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=None, *,
                      pattern: str = "alternate", refine_angle_deg=None, refine_slope_deg=None,
-                     refine_levels: int = 0) -> Terrain:
+                     refine_levels: int = 0, curvature: bool = True) -> Terrain:
     """The median-dual terrain of a raster ``z = b(x, y)`` (the inputs of surface_terrain).
 
     Vertices on the raster nodes with a finite elevation; faces on the outer box are the
     ``boundary`` sides, faces around NODATA holes ``nodata``. With ``refine_levels > 0``,
     up to that many rounds of :func:`refine` on the triangles marked by
-    :func:`curvature_marks`, new elevations by bilinear interpolation of the raster.
+    :func:`curvature_marks`, new elevations by bilinear interpolation of the raster. With
+    ``curvature``, the raster's Hessian (:func:`~avflow.terrain.bed.bed_hessian`) is
+    interpolated bilinearly to the vertices for the curvature term.
     """
     z, x, y = _increasing(elevation, x, y)
+    hessian = None
+    if curvature:
+        parts = bed_hessian(z, x[1] - x[0], y[1] - y[0])
+        parts = [np.where(np.isfinite(p), p, 0.0) for p in parts]  # NODATA: the mesh's edge
+        hessian = lambda px, py: tuple(bilinear(p, x, y, px, py) for p in parts)  # noqa: E731
     xy, zv, tris = raster_triangles(z, x, y, pattern)
     xy, zv, tris = _refined(xy, zv, tris, lambda px, py: bilinear(z, x, y, px, py),
                             refine_angle_deg, refine_slope_deg, refine_levels)
@@ -388,7 +398,7 @@ def triangle_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=No
     box = (x[0], x[-1], y[0], y[-1])
     return _terrain(xy, zv, tris,
                     lambda e, p: side_codes(e, p, box, sides, BOUNDARY_CODES[nodata]),
-                    x[1] - x[0], y[1] - y[0], crs_wkt)
+                    x[1] - x[0], y[1] - y[0], crs_wkt, hessian=hessian)
 
 
 def plane_triangle_terrain(terrain, dx: float, dy: float | None, boundary, **options) -> Terrain:
