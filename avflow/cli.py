@@ -56,20 +56,31 @@ def summary_line(ds) -> str:
 
 
 def _cmd_run(args) -> int:
-    from avflow.output.netcdf import write_netcdf
+    from avflow.output.netcdf import (OutputWriteError, check_output_path,
+                                      remove_stale_temporaries, write_netcdf)
     from avflow.scenario.schema import load_scenario
     from avflow.output.dataset import to_dataset
     from avflow.simulation.runner import simulate
 
     scenario = load_scenario(args.scenario)
     out = Path(args.output) if args.output else Path(Path(args.scenario).stem + ".nc")
+    # The output is checked before the run (exit 2): not an input, not a folder, writable.
+    inputs = [args.scenario] + [getattr(block, name, None)
+                                for block in (scenario.terrain, scenario.release)
+                                for name in ("path", "domain")]
+    check_output_path(out, inputs)
+    remove_stale_temporaries(out)  # left by a write that was killed
     progress = Progress()
     try:
         result = simulate(scenario, progress=progress)
     finally:
         progress.close()
     ds = to_dataset(result)
-    write_netcdf(ds, out)
+    try:
+        write_netcdf(ds, out)
+    except OutputWriteError as err:  # full disk after the run: exit 1, nothing left behind
+        print(f"avflow: error: {err}", file=sys.stderr)
+        return 1
     print(summary_line(ds))
     print(f"wrote {out}")
     return 0 if result.status in ("stopped", "completed") else 1

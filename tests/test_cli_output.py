@@ -3,6 +3,7 @@
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -54,6 +55,70 @@ def test_cf_compliance_has_no_errors(scenario, tmp_path):
     assert compliance_errors(path) == []
 
 
+def strict_messages(path):
+    """Every message of ``compliance-checker --test cf:1.11 --criteria strict`` (all levels)."""
+    import json
+
+    from compliance_checker.runner import CheckSuite, ComplianceChecker
+
+    CheckSuite.load_all_available_checkers()
+    report = path.with_suffix(".strict.json")
+    ComplianceChecker.run_checker(str(path), ["cf:1.11"], 0, "strict",
+                                  output_filename=str(report), output_format="json")
+    results = json.loads(report.read_text())["cf:1.11"]
+    return sorted(m for k in ("high_priorities", "medium_priorities", "low_priorities")
+                  for item in results.get(k, []) for m in item["msgs"])
+
+
+# The checker's mistake: CF 7.1 asks the bounds of a coordinate to have one dimension more
+# than the coordinate (n-d coordinate -> (n+1)-d bounds), so the bounds of the 0-d scalar
+# coordinate `time_span` (the period that `cell_methods: time_span: maximum` reduces over)
+# are correctly 1-d (nv = 2); the checker wants at least two dimensions whatever the rank.
+TIME_SPAN_BOUNDS = ("Boundary variable time_span_bounds specified by time_span should have at "
+                    "least two dimensions to enclose the base case of a one dimensionsal "
+                    "variable")
+# On UGRID files only, the checker does not know UGRID, which CF-1.11 includes by reference
+# (see tests/test_trimesh.py::ugrid_errors): it takes the mesh's cf_role for a wrong
+# discrete-geometry role, and the node dimension (spatial, the mesh's location) for a
+# non-spatial one that should sit left of time.
+UGRID_ROLE = ("mesh_topology is not a valid cf_role value. It must be one of timeseries_id, "
+              "profile_id, trajectory_id")
+
+
+def ugrid_order(name):
+    return (f"{name}'s spatio-temporal dimensions are not in the recommended order T, Z, Y, X "
+            "and/or further dimensions are not located left of T, Z, Y, X. The dimensions "
+            "(and their guessed types) are time (T), node (A) (with U: other/unknown; L: "
+            "unlimited).")
+
+
+def _ensemble_file(tmp_path):
+    from avflow.ensemble.orchestrate import run_ensemble
+    from avflow.ensemble.spec import load_ensemble
+
+    text = (SCENARIOS / "seed_exponential_coulomb15.yaml").read_text()
+    (tmp_path / "base.yaml").write_text(text.replace("dx: 6.25", "dx: 50.0"))
+    (tmp_path / "ens.yaml").write_text("base: base.yaml\nvary:\n"
+                                       "  rheology.delta_deg: [15.0, 20.0]\n")
+    assert run_ensemble(load_ensemble(tmp_path / "ens.yaml"), tmp_path / "ens", workers=0).ok
+    return tmp_path / "ens" / "ensemble.nc"
+
+
+@pytest.mark.parametrize("kind", ["profile", "grid", "triangles", "ensemble"])
+def test_strict_cf_leaves_only_the_checkers_own_mistakes(kind, tmp_path):
+    scenario = {"profile": "seed_dambreak_flat_dx20.yaml", "grid": "plane_box_2d.yaml",
+                "triangles": "plane_cylinder_triangles.yaml"}.get(kind)
+    if scenario is None:
+        path, allowed = _ensemble_file(tmp_path), []  # ensemble.nc has no time_span
+    else:
+        path = write_netcdf(to_dataset(simulate(load_scenario(SCENARIOS / scenario))),
+                            tmp_path / "run.nc")
+        allowed = [TIME_SPAN_BOUNDS]
+        if kind == "triangles":
+            allowed += [UGRID_ROLE] + [ugrid_order(n) for n in ("flow_state", "h", "u", "v")]
+    assert strict_messages(path) == sorted(allowed)
+
+
 def test_round_trip_and_summary_from_file(tmp_path):
     result = simulate(load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml"))
     ds = to_dataset(result)
@@ -95,3 +160,110 @@ def test_output_file_gets_the_usual_permissions(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~mask
+
+
+# --- output paths: checked before the run; a full disk is one line; stale temporaries -------
+
+FAST = SCENARIOS / "seed_dambreak_flat_dx20.yaml"
+
+
+@pytest.fixture
+def no_run(monkeypatch):
+    """Fail the test if the simulation starts."""
+    import avflow.simulation.runner as runner
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(runner, "simulate", refuse)
+
+
+def refused(capsys, args, *words):
+    """`avflow run ARGS` exits 2 with one line on stderr that holds every word."""
+    assert main(["run", *map(str, args)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    for word in words:
+        assert word in err, err
+    return err
+
+
+def test_output_equal_to_the_scenario_file_is_refused(tmp_path, capsys, no_run):
+    scenario = tmp_path / "sc.yaml"
+    shutil.copy(FAST, scenario)
+    text = scenario.read_text()
+    refused(capsys, [scenario, "-o", scenario], "sc.yaml", "input")
+    refused(capsys, [scenario, "-o", tmp_path / "sub" / ".." / "sc.yaml"], "input")
+    (tmp_path / "link.nc").symlink_to(scenario)
+    refused(capsys, [scenario, "-o", tmp_path / "link.nc"], "input")
+    assert scenario.read_text() == text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.nc", "sc.yaml"]
+
+
+def test_output_that_is_a_folder_is_refused(tmp_path, capsys, no_run):
+    refused(capsys, [FAST, "-o", tmp_path], str(tmp_path), "folder")
+    assert list(tmp_path.iterdir()) == []
+
+
+def unwritable_folder(tmp_path):
+    """A read-only folder; root ignores mode bits, so then /sys (no one creates files there)."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    for candidate in (folder, Path("/sys")):
+        try:
+            (candidate / ".avflow-probe").touch()
+        except OSError:
+            return candidate
+        (candidate / ".avflow-probe").unlink()
+    pytest.skip("no folder that this user cannot write")
+
+
+def test_output_in_a_read_only_folder_is_refused(tmp_path, capsys, no_run):
+    folder = unwritable_folder(tmp_path)
+    try:
+        refused(capsys, [FAST, "-o", folder / "out.nc"], str(folder / "out.nc"), "cannot write")
+        assert not (folder / "out.nc").exists()
+        refused(capsys, [FAST, "-o", folder / "new" / "out.nc"], "cannot create")
+    finally:
+        (tmp_path / "ro").chmod(0o755)
+
+
+def test_output_whose_folder_cannot_be_created_is_refused(tmp_path, capsys, no_run):
+    (tmp_path / "afile").write_text("x")
+    refused(capsys, [FAST, "-o", tmp_path / "afile" / "sub" / "out.nc"], "afile", "not a folder")
+    assert [p.name for p in tmp_path.iterdir()] == ["afile"]
+
+
+@pytest.mark.parametrize("error", [OSError(28, "No space left on device"),
+                                   RuntimeError("NetCDF: HDF error")])
+def test_full_disk_is_one_line_exit_1_no_temporary_and_the_old_file_intact(
+        error, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out.nc"
+    out.write_bytes(b"old result")
+
+    def full(self, path, *args, **kwargs):
+        Path(path).write_bytes(b"partial")  # the disk fills up mid-write
+        raise error
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", full)
+    assert main(["run", str(FAST), "-o", str(out)]) == 1
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and str(out) in err, err
+    assert ("No space left on device" in err) if isinstance(error, OSError) else "HDF" in err
+    assert "wrote" not in captured.out
+    assert [p.name for p in tmp_path.iterdir()] == ["out.nc"]  # no temporary left
+    assert out.read_bytes() == b"old result"
+
+
+def test_stale_temporaries_of_a_killed_write_are_removed_by_the_next_run(tmp_path):
+    out = tmp_path / "out.nc"
+    stale = [tmp_path / ".out.nc.k3_9zq0a.tmp", tmp_path / ".out.nc.abcdefgh.tmp"]
+    kept = [tmp_path / ".out.nc.short.tmp", tmp_path / ".other.nc.abcdefgh.tmp",
+            tmp_path / ".out.nc.ABCDEFGH.tmp", tmp_path / "out.nc.abcdefgh.tmp",
+            tmp_path / ".out.nc.abcdefgh.tmp.keep"]
+    for p in stale + kept:
+        p.write_bytes(b"half a file")
+    assert main(["run", str(FAST), "-o", str(out)]) == 0
+    assert sorted(tmp_path.iterdir()) == sorted(kept + [out])

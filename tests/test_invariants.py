@@ -42,6 +42,40 @@ def test_pile_under_its_friction_angle_stays_exactly_at_rest():
     assert not state.hu.any()
 
 
+REST_PROFILE = """
+name: rest-profile
+terrain: {kind: profile, length: 1000.0, slope: {kind: constant, theta_deg: 10.0}}
+grid: {dx: 5.0}
+release: {kind: parabola, center: 500.0, half_length: 100.0, max_thickness: 5.0}
+rheology: {law: coulomb, delta_deg: 20.0}
+time: {end: 60.0, cfl: 0.5}
+output: {every: 10.0}
+"""
+REST_PLANE = """
+name: rest-cylinder
+terrain: {kind: plane, slope_deg: 10.0, azimuth_deg: 90.0,
+          extent: {x: [0.0, 600.0], y: [0.0, 600.0]}}
+grid: {dx: 20.0}
+release: {kind: cylinder, center: [300.0, 300.0], radius: 100.0, thickness: 10.0}
+rheology: {law: coulomb, delta_deg: 20.0}
+time: {end: 60.0, cfl: 0.5}
+output: {every: 10.0}
+"""
+
+
+def test_a_mass_that_never_moves_stops_at_time_zero():
+    """Slope 10 deg under Coulomb 20 deg: nothing ever moves, so time_to_stop is 0 (not the
+    end of the first step or the first output time)."""
+    from avflow.scenario.schema import parse_scenario
+    from avflow.simulation.runner import simulate
+
+    for text in (REST_PROFILE, REST_PLANE):
+        result = simulate(parse_scenario(text))
+        assert result.status == "stopped"
+        assert np.array_equal(result.state.h, result.h0)
+        assert result.time_to_stop == 0.0 and result.summary["time_to_stop"] == 0.0
+
+
 def test_without_dirac_the_pile_keeps_spreading():
     """The classical kinetic scheme (rectangular density everywhere) never stops (sec. 3.3)."""
     terrain = slope_profile(1000.0, 5.0, 20.0)

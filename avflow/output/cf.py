@@ -62,7 +62,8 @@ SUMMARIES = {
                     "from the top on profiles, horizontal distance from the release centroid "
                     "on grids"),
     "time_to_stop": ("s", "first time the moving volume (u != 0, h > dry_threshold) is below "
-                          "stop_fraction of the released volume; NaN if never"),
+                          "stop_fraction of the released volume; 0 if nothing ever moved, "
+                          "NaN if never"),
     "deposit_max_thickness": ("m", "largest final thickness"),
     "deposit_length": ("m", "extent of the deposit (h > runout_threshold) along the flow"),
     "deposit_volume": ("m3", "material on the mesh at the end, film included"),
@@ -92,7 +93,7 @@ def time_coords(times: np.ndarray) -> dict:
     time_attrs = {"standard_name": "time", "units": TIME_UNITS, "calendar": "proleptic_gregorian",
                   "units_metadata": "leap_seconds: none"}
     return {
-        "time": ("time", times, {**time_attrs, "long_name": "time since release",
+        "time": ("time", times, {**time_attrs, "axis": "T", "long_name": "time since release",
                                  "comment": "the reference instant is the release"}),
         "time_span": ((), times[-1], {**time_attrs, "long_name": "end of the period reduced over",
                                       "bounds": "time_span_bounds"}),

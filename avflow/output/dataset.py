@@ -43,8 +43,12 @@ def to_dataset(result: RunResult) -> xr.Dataset:
     times = np.asarray(snaps.time, dtype=float)
     coords = time_coords(times)
     if profile:
+        # The profile unrolled along the bed is the X axis of its own frame: CF names a
+        # metric X axis that is not a longitude projection_x_coordinate (as on grids).
         coords["x"] = ("x", terrain.x, {
-            "long_name": "distance along the bed from the top of the profile", "units": "m"})
+            "standard_name": "projection_x_coordinate",
+            "long_name": "distance along the bed from the top of the profile", "units": "m",
+            "axis": "X"})
         coords["x_horizontal"] = ("x", terrain.x_horizontal, {
             "long_name": "horizontal distance from the top of the profile", "units": "m"})
     else:

@@ -1,17 +1,110 @@
 """Atomic NetCDF writes: a temporary file in the target folder, then a rename.
 
 Fields are stored as float32 with zlib + shuffle, one chunk per snapshot; summaries and
-coordinates stay float64.
+coordinates stay float64. The temporary file is ``.{name}.XXXXXXXX.tmp`` (``mkstemp``) next
+to the output: a write killed by SIGKILL leaves one, and :func:`remove_stale_temporaries`
+(called by ``avflow run`` before it runs) removes those of that output name only.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
+
+from avflow.errors import AvflowError
+
+
+class OutputError(AvflowError):
+    """An output path that cannot be used (found before the run: exit code 2)."""
+
+    exit_code = 2
+
+
+class OutputWriteError(OutputError):
+    """A write that failed after the run (full disk, failing file system): exit code 1."""
+
+    exit_code = 1
+
+
+def _temporary_prefix(path: Path) -> str:
+    return f".{path.name}."
+
+
+def _stale_pattern(path: Path) -> re.Pattern:
+    """The names ``mkstemp(prefix=".{name}.", suffix=".tmp")`` makes: 8 of [a-z0-9_]."""
+    return re.compile(re.escape(_temporary_prefix(path)) + r"[a-z0-9_]{8}\.tmp")
+
+
+def remove_stale_temporaries(path) -> list[Path]:
+    """Remove the temporaries that killed writes of ``path`` left next to it; return them.
+
+    Only names of avflow's own pattern for that output name are touched. A write of the same
+    path still running in another process would lose its temporary: run one at a time.
+    """
+    path = Path(path)
+    pattern = _stale_pattern(path)
+    removed = []
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return removed
+    for entry in entries:
+        if pattern.fullmatch(entry.name) and entry.is_file(follow_symlinks=False):
+            try:
+                os.unlink(entry.path)
+            except FileNotFoundError:
+                continue
+            removed.append(Path(entry.path))
+    return removed
+
+
+def check_output_path(path, inputs=()) -> Path:
+    """Refuse, before anything runs, an output ``path`` that cannot take the result.
+
+    Not one of ``inputs`` (the scenario file, its DEM...: compared after resolving links and
+    ``..``), not a folder, and its folder writable (or, when missing, creatable: the nearest
+    existing folder above it writable). Raises :class:`OutputError` naming the path and why.
+    Nothing is created (a probe file made to test the folder is removed at once).
+    """
+    path = Path(path)
+    target = path.resolve()
+    for item in inputs:
+        if item is None:
+            continue
+        same = Path(item).resolve() == target
+        if not same and target.exists() and Path(item).exists():
+            same = os.path.samefile(item, target)
+        if same:
+            raise OutputError(f"output {path}: is an input of the run ({item}); "
+                              "choose another file name")
+    if path.is_dir():
+        raise OutputError(f"output {path}: is a folder; give a file name, "
+                          f"e.g. {path / 'out.nc'}")
+    if path.exists() and not path.is_file():
+        raise OutputError(f"output {path}: exists and is not a regular file")
+    folder = path.parent
+    missing = False
+    while not folder.exists():
+        if folder.is_symlink():  # a dangling link: mkdir would fail
+            raise OutputError(f"output {path}: cannot create its folder: {folder} is a "
+                              "broken link")
+        folder, missing = folder.parent, True
+    if not folder.is_dir():
+        raise OutputError(f"output {path}: cannot create its folder: {folder} is not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=_temporary_prefix(path), suffix=".tmp", dir=folder)
+    except OSError as err:
+        what = "cannot create its folder in" if missing else "cannot write in"
+        raise OutputError(f"output {path}: {what} {folder}: "
+                          f"{err.strerror or err}") from None
+    os.close(fd)
+    os.unlink(probe)
+    return path
 
 
 def encoding_for(ds: xr.Dataset) -> dict:
@@ -47,13 +140,22 @@ def publish(tmp, path) -> None:
 def write_netcdf(ds: xr.Dataset, path) -> Path:
     """Write ``ds`` to ``path`` atomically: a temporary file in the same folder, then rename."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path), suffix=".tmp",
+                                   dir=path.parent)
+    except OSError as err:
+        raise OutputWriteError(f"cannot write {path}: {err.strerror or err}") from err
     os.close(fd)
     try:
         ds.to_netcdf(tmp, encoding=encoding_for(ds), engine="netcdf4")
         publish(tmp, path)
-    except BaseException:
+    except BaseException as err:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(err, OSError):  # ENOSPC, EDQUOT, EIO...
+            raise OutputWriteError(f"cannot write {path}: {err.strerror or err}") from err
+        if isinstance(err, RuntimeError) and str(err).startswith("NetCDF:"):
+            # netCDF-C reports a full disk during an HDF5 write as "NetCDF: HDF error"
+            raise OutputWriteError(f"cannot write {path}: {err} (is the disk full?)") from err
         raise
     return path

@@ -160,7 +160,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
         if progress is not None:
             progress(state.t, t_end)
         if status == "stopped":
-            time_to_stop = state.t
+            # A mass that never moved (no cell ever had a speed) was at rest from the release.
+            time_to_stop = state.t if state.peak_speed.any() else 0.0
             break
         if status != "running" or target >= t_end:
             status = "completed" if status == "running" else status
