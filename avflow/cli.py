@@ -100,6 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("-o", "--output", required=True, help="output folder (resumable)")
     e.add_argument("--scheduler", help="address (tcp://host:port) or scheduler file of a "
                                        "running dask scheduler (default: a local cluster)")
+    e.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
+                   help="seconds to reach --scheduler before giving up (default: 10)")
     e.add_argument("--workers", type=int, help="local worker processes (default: one per "
                                                "core; 0: run in this process, no dask)")
     e.add_argument("--batch", type=int, help="members per dask task (default: automatic)")
@@ -128,17 +130,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _cmd_ensemble(args) -> int:
     from avflow.ensemble.spec import load_ensemble
-    from avflow.ensemble.orchestrate import run_ensemble
+    from avflow.ensemble.orchestrate import Interrupted, run_ensemble
 
     if args.workers is not None and args.workers < 0:
         raise AvflowError(f"--workers must be >= 0, got {args.workers}")
     if args.batch is not None and args.batch < 1:
         raise AvflowError(f"--batch must be >= 1, got {args.batch}")
+    if not args.connect_timeout > 0:
+        raise AvflowError(f"--connect-timeout must be > 0, got {args.connect_timeout}")
     ensemble = load_ensemble(args.ensemble)  # every check before any member starts
     out = Path(args.output)
     print(f"{ensemble.name}: {len(ensemble.members)} members -> {out}")
-    outcome = run_ensemble(ensemble, out, scheduler=args.scheduler, workers=args.workers,
-                           batch=args.batch)
+    try:
+        outcome = run_ensemble(ensemble, out, scheduler=args.scheduler, workers=args.workers,
+                               batch=args.batch, connect_timeout=args.connect_timeout)
+    except Interrupted as err:  # the cluster is closed; say what finished
+        print(f"avflow: {err}", file=sys.stderr)
+        return 130
     print(f"{outcome.ran} run, {outcome.reused} reused, {outcome.failed} failed "
           f"({outcome.wall:.1f} s); wrote {out / 'ensemble.nc'} and {out / 'summary.csv'}")
     if args.report:

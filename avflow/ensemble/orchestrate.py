@@ -9,20 +9,27 @@ becomes a failure record; the others go on.
 Layout of OUTDIR::
 
     members/<scenario_hash>.nc   one CF NetCDF per member (complete, or absent)
+    checksums/<scenario_hash>.sha256   its sha256 (``sha256sum`` format), written after it
     summary.csv                  one row per member (and summary.parquet with pyarrow)
     failures.csv                 the failed members and their errors (only if any)
     ensemble.nc                  CF-1.11, realization dimension (see :mod:`avflow.ensemble.dataset`)
 
-Re-running skips the members whose file is there and readable.
+Re-running skips the members whose file it can trust: its sha256 equals the one written
+right after the file was (so every byte reads back as written: data, summaries, attributes),
+and its global attribute ``scenario_hash`` is the member's (not another member's file copied
+into its slot). Any other file is run again, with one line on stderr saying why.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
+import signal
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +38,18 @@ from typing import Callable
 import dask
 
 from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, Ensemble, Member
+from avflow.errors import AvflowError
 
+CONNECT_TIMEOUT = 10.0  #: s, to reach a given ``--scheduler``
+WORKER_TIMEOUT = 120.0  #: s, for its first worker
+
+
+class ClusterError(AvflowError):
+    """The dask scheduler given cannot be used: unreachable, no such file, no worker."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during an ensemble; the message says what finished (the cluster is closed)."""
 
 
 # =========================================================================================
@@ -39,12 +57,50 @@ from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, Ensemble, Member
 # =========================================================================================
 
 
-def read_member_row(path: str | os.PathLike) -> dict | None:
-    """The summary row stored in a member file, or None if it is missing or unreadable."""
+def checksum_path(path: str | os.PathLike) -> Path:
+    """``OUTDIR/checksums/<hash>.sha256`` of the member file ``OUTDIR/members/<hash>.nc``."""
     path = Path(path)
+    return path.parent.parent / "checksums" / f"{path.stem}.sha256"
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_checksum(path: str | os.PathLike) -> Path:
+    """The sha256 of a finished member file, atomically, in ``sha256sum`` format (check by
+    hand with ``cd OUTDIR/members && sha256sum -c ../checksums/*.sha256``)."""
+    path = Path(path)
+    target = checksum_path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    line = f"{file_sha256(path)}  {path.name}\n"
+    _atomic(target, lambda tmp: Path(tmp).write_text(line))
+    return target
+
+
+def check_member_file(path: str | os.PathLike,
+                      scenario_hash: str | None = None) -> tuple[dict | None, str]:
+    """``(row, "")`` for a member file resume can trust, else ``(None, why)``.
+
+    Trusted: its sha256 equals the one kept in ``checksums/`` (every byte as written), it
+    reads, and its ``scenario_hash`` attribute is ``scenario_hash`` (default: the file's
+    stem). ``why`` is "" when the file is simply absent.
+    """
+    path = Path(path)
+    scenario_hash = scenario_hash or path.stem
     if not path.is_file():
-        return None
+        return None, ""
     try:
+        expected = checksum_path(path).read_text().split()[0]
+    except (OSError, IndexError):
+        return None, "it has no checksum in checksums/ (never finished, or older than checksums)"
+    try:
+        if file_sha256(path) != expected:
+            return None, "its checksum does not match (the file was changed or damaged)"
         import netCDF4
 
         with netCDF4.Dataset(path) as nc:
@@ -53,10 +109,19 @@ def read_member_row(path: str | os.PathLike) -> dict | None:
             row["scenario_hash"] = str(nc.getncattr("scenario_hash"))
             row["steps"] = int(nc.getncattr("steps"))
             row["runout_truncated"] = int(nc.getncattr("runout_truncated"))
-    except Exception:  # noqa: BLE001 - a truncated or foreign file: run the member again
-        return None
+    except Exception as err:  # noqa: BLE001 - a foreign file: run the member again
+        return None, f"it cannot be read ({type(err).__name__}: {' '.join(str(err).split())})"
+    if row["scenario_hash"] != scenario_hash:
+        return None, (f"it holds the run of scenario {row['scenario_hash']}, not this member's "
+                      "(another member's file)")
     row["error"] = "" if row["status"] in OK_STATUSES else f"run ended with status {row['status']}"
-    return row
+    return row, ""
+
+
+def read_member_row(path: str | os.PathLike, scenario_hash: str | None = None) -> dict | None:
+    """The summary row stored in a member file, or None unless resume can trust it
+    (:func:`check_member_file`)."""
+    return check_member_file(path, scenario_hash)[0]
 
 
 def run_member(scenario_yaml: str, out_path: str) -> dict:
@@ -77,10 +142,12 @@ def run_member(scenario_yaml: str, out_path: str) -> dict:
 
     try:
         result = simulate(parse_scenario(scenario_yaml))
+        checksum_path(out_path).unlink(missing_ok=True)  # stale: the file is replaced
         # Inside a dask worker xarray would guard the write with a distributed.Lock (a round
         # trip to the scheduler, ~0.25 s): each member writes its own file, no lock needed.
         with dask.config.set(scheduler="synchronous"):
             write_netcdf(to_dataset(result), out_path)
+        write_checksum(out_path)
         row = {name: float(result.summary[name]) for name in SUMMARY_FIELDS}
         row.update(status=result.status, steps=int(result.summary["steps"]),
                    runout_truncated=int(result.summary["runout_truncated"]),
@@ -187,6 +254,14 @@ class ProgressLine:
         self.stream.flush()
         self.update(self.done, self.failed)
 
+    def note(self, message: str) -> None:
+        """One line of its own (the progress line is redrawn after it)."""
+        if self.live:
+            self.stream.write("\r\033[K")
+        self.stream.write(message + "\n")
+        self.stream.flush()
+        self.update(self.done, self.failed)
+
     def close(self) -> None:
         if self.live:
             self.stream.write("\n")
@@ -201,6 +276,8 @@ def _clean_temporaries(folder: Path) -> None:
     """Temporary files of members whose worker was killed while writing."""
     for tmp in folder.glob(".*.nc.*.tmp"):
         tmp.unlink(missing_ok=True)
+    for tmp in (folder.parent / "checksums").glob(".*.sha256.*.tmp"):
+        tmp.unlink(missing_ok=True)
 
 
 def auto_batch(n_members: int, n_workers: int) -> int:
@@ -211,13 +288,15 @@ def auto_batch(n_members: int, n_workers: int) -> int:
 def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: str | None = None,
                  workers: int | None = None, batch: int | None = None,
                  progress: ProgressLine | None = None, write_outputs: bool = True,
-                 client=None) -> Outcome:
+                 client=None, connect_timeout: float = CONNECT_TIMEOUT) -> Outcome:
     """Run every member not already done, then write summary.csv and ensemble.nc.
 
-    ``scheduler``: address (``tcp://host:port``) or scheduler file of a running cluster;
-    None starts an embedded ``LocalCluster`` with ``workers`` single-threaded worker
-    processes (default: one per core). ``workers=0`` runs the members in this process,
-    one after the other (no dask). ``client``: an existing ``distributed.Client`` to use.
+    ``scheduler``: address (``tcp://host:port``) or scheduler file of a running cluster,
+    reached within ``connect_timeout`` s or :class:`ClusterError`; None starts an embedded
+    ``LocalCluster`` with ``workers`` single-threaded worker processes (default: one per
+    core). ``workers=0`` runs the members in this process, one after the other (no dask).
+    ``client``: an existing ``distributed.Client`` to use. Ctrl-C closes the cluster and
+    raises :class:`Interrupted` saying how many members finished (a rerun resumes).
     """
     outdir = Path(outdir)
     folder = outdir / "members"
@@ -225,14 +304,19 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     _clean_temporaries(folder)
     rows: dict[int, dict] = {}
     todo: list[Member] = []
+    progress = progress or ProgressLine(len(ensemble.members))
     for member in ensemble.members:
-        row = read_member_row(member_path(outdir, member))
+        path = member_path(outdir, member)
+        row, why = check_member_file(path, member.scenario_hash)
         if row is not None:
             row.update(reused=True, member_time=math.nan)
             rows[member.index] = row
         else:
+            if why:
+                progress.note(f"member {member.index} ({member.scenario_hash}, {member.label}): "
+                              f"not reusing {path.relative_to(outdir)}: {why}; running it "
+                              "again")
             todo.append(member)
-    progress = progress or ProgressLine(len(ensemble.members))
     n_failed = sum(r["status"] not in OK_STATUSES for r in rows.values())
     progress.update(len(rows), n_failed)
 
@@ -247,25 +331,32 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     t0 = time.perf_counter()
     startup = 0.0
     n_workers = 0
-    if todo and workers == 0 and scheduler is None and client is None:
-        started = time.perf_counter()
-        for member in todo:
-            record(member, run_member(member.scenario.source_text,
-                                      str(member_path(outdir, member))))
-        wall = time.perf_counter() - started
-    elif todo:
-        tiny = tiny_scenario_yaml(ensemble)
-        warm(tiny)
-        with _client(scheduler, workers, client, tiny) as cl:
-            n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
-                cl, "scheduler_info") else 0
-            startup = time.perf_counter() - t0
+    try:
+        if todo and workers == 0 and scheduler is None and client is None:
             started = time.perf_counter()
-            _run_on_dask(cl, todo, outdir, batch or auto_batch(len(todo), max(n_workers, 1)),
-                         record)
+            for member in todo:
+                record(member, run_member(member.scenario.source_text,
+                                          str(member_path(outdir, member))))
             wall = time.perf_counter() - started
-    else:
-        wall = 0.0
+        elif todo:
+            with _client(scheduler, workers, client, tiny_scenario_yaml(ensemble),
+                         connect_timeout) as cl:
+                n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
+                    cl, "scheduler_info") else 0
+                startup = time.perf_counter() - t0
+                started = time.perf_counter()
+                _run_on_dask(cl, todo, outdir,
+                             batch or auto_batch(len(todo), max(n_workers, 1)), record)
+                wall = time.perf_counter() - started
+        else:
+            wall = 0.0
+    except KeyboardInterrupt:  # the cluster is closed by now (_client.__exit__)
+        progress.close()
+        _clean_temporaries(folder)
+        kept = sum(checksum_path(member_path(outdir, m)).is_file() for m in ensemble.members)
+        raise Interrupted(f"interrupted: {kept} of {len(ensemble.members)} members finished "
+                          f"and kept in {folder}; run the same command again to resume "
+                          "(the others run then)") from None
     progress.close()
     _clean_temporaries(folder)
 
@@ -282,34 +373,103 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
 class _client:
     """Context manager: a Client on the given scheduler, or on a fresh LocalCluster."""
 
-    def __init__(self, scheduler, workers, client, tiny):
+    def __init__(self, scheduler, workers, client, tiny, connect_timeout=CONNECT_TIMEOUT):
         self.scheduler, self.workers, self.given, self.tiny = scheduler, workers, client, tiny
+        self.connect_timeout = connect_timeout
         self.cluster = self.client = None
 
     def __enter__(self):
+        try:
+            self._start()
+        except BaseException:  # Ctrl-C or an error while starting: nothing left running
+            self.__exit__()
+            raise
+        return self.client
+
+    def _start(self) -> None:
         from distributed import Client, LocalCluster
 
         if self.given is not None:
+            warm(self.tiny)
             self.client = self.given
         elif self.scheduler:
-            if os.path.isfile(self.scheduler):
-                self.client = Client(scheduler_file=self.scheduler, timeout="30s")
-            else:
-                self.client = Client(self.scheduler, timeout="30s")
+            self.client = _connect(self.scheduler, self.connect_timeout)
+            warm(self.tiny)
         else:
+            warm(self.tiny)  # before any worker starts (see warm)
             n = self.workers or os.cpu_count() or 1
-            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                        dashboard_address=None, silence_logs=logging.ERROR)
+            # The workers inherit SIGINT ignored: a terminal's Ctrl-C, sent to the whole
+            # process group, acts only in this process, which closes the cluster (else each
+            # worker prints its own KeyboardInterrupt tracebacks).
+            with _sigint_ignored():
+                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                            dashboard_address=None,
+                                            silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
-        self.client.wait_for_workers(1, timeout=120)
+            self.client.register_plugin(_ignore_sigint_plugin())  # restarted workers too
+        try:
+            self.client.wait_for_workers(1, timeout=WORKER_TIMEOUT)
+        except TimeoutError:
+            where = f"the scheduler {self.scheduler}" if self.scheduler else "the cluster"
+            raise ClusterError(f"no dask worker joined {where} within {WORKER_TIMEOUT:g} s; "
+                               "start one with `dask worker ADDRESS`") from None
         self.client.run(warm, self.tiny)
-        return self.client
 
     def __exit__(self, *exc):
         if self.given is None:
-            self.client.close()
+            if self.client is not None:
+                self.client.close()
             if self.cluster is not None:
                 self.cluster.close()
+
+
+def _connect(scheduler: str, timeout: float):
+    """A Client on a scheduler address or scheduler file, or one line saying why not."""
+    from distributed import Client
+
+    is_file = os.path.isfile(scheduler)
+    if not is_file and "://" not in scheduler and (scheduler.endswith(".json")
+                                                   or os.sep in scheduler):
+        raise ClusterError(f"--scheduler {scheduler}: no such scheduler file")
+    try:
+        if is_file:
+            return Client(scheduler_file=scheduler, timeout=f"{timeout}s")
+        return Client(scheduler, timeout=f"{timeout}s")
+    except (OSError, TimeoutError, ValueError) as err:
+        detail = " ".join(str(err).split()) or type(err).__name__
+        raise ClusterError(f"--scheduler {scheduler}: cannot connect within {timeout:g} s "
+                           f"({detail}); is the dask scheduler running there?") from None
+
+
+def _ignore_sigint_plugin():
+    """A worker plugin: SIGINT ignored in the workers of the embedded cluster, including those
+    a nanny restarts after the first ones (which inherited it ignored, see _sigint_ignored)."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class IgnoreSigint(WorkerPlugin):
+        name = "avflow-ignore-sigint"
+
+        def setup(self, worker):
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    return IgnoreSigint()
+
+
+class _sigint_ignored:
+    """SIGINT ignored for a while: the processes started meanwhile keep ignoring it (Python
+    installs no KeyboardInterrupt handler where SIGINT is ignored at start). A Ctrl-C in
+    that while is lost. Main thread only (elsewhere: nothing)."""
+
+    def __enter__(self):
+        self.active = threading.current_thread() is threading.main_thread()
+        if self.active:
+            self.old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def __exit__(self, *exc):
+        if self.active:  # None: a handler set outside Python; the default is the closest
+            signal.signal(signal.SIGINT, signal.default_int_handler if self.old is None
+                          else self.old)
 
 
 def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
