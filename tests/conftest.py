@@ -1,4 +1,5 @@
-"""Shared helpers: small scenes built directly on the solver API, paths to shared/."""
+"""Shared helpers: small scenes built directly on the solver API, the project's paths and
+the optional ../shared/contract folder (contract tests skip without it)."""
 
 import math
 import os
@@ -49,5 +50,9 @@ def centroid(terrain, h):
 
 @pytest.fixture(scope="session")
 def contract_dir():
-    assert CONTRACT.is_dir(), f"shared contract folder not found at {CONTRACT}"
+    """../shared/contract (or $AVFLOW_SHARED/contract): only for the tests whose point is that
+    the shared contract files run unchanged; they skip where it is absent (a fresh clone)."""
+    if not CONTRACT.is_dir():
+        pytest.skip(f"contract files not found at {CONTRACT} (set AVFLOW_SHARED): this test "
+                    "checks that the shared contract files run unchanged")
     return CONTRACT

@@ -24,15 +24,15 @@ from avflow.scenario.schema import load_scenario, parse_scenario
 from conftest import REPO, SCENARIOS
 from test_cli_output import compliance_errors
 
+SECTION6 = SCENARIOS / "seed_exponential_coulomb15.yaml"
+ENSEMBLE = SCENARIOS / "ensembles" / "seed_exponential_ensemble.yaml"  # the contract's, here
 SUMMARIES = ("runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
              "deposit_volume", "mass_balance_error")
 
 
 def coarse_base(tmp_path, dx=25.0):
-    """The section-6 scene (contract file) on a coarser grid, next to the ensemble file."""
-    from conftest import CONTRACT
-
-    text = (CONTRACT / "seed_exponential_coulomb.yaml").read_text()
+    """The section-6 scene (scenarios/) on a coarser grid, next to the ensemble file."""
+    text = SECTION6.read_text()
     path = tmp_path / "base.yaml"
     path.write_text(text.replace("dx: 6.25", f"dx: {dx}"))
     return path
@@ -45,23 +45,22 @@ def write(tmp_path, text, name="ens.yaml"):
 
 
 # =========================================================================================
-# The contract file, unchanged, on a LocalCluster with two worker processes
+# The section-6 ensemble (scenarios/ensembles/) on a LocalCluster with two worker processes
 # =========================================================================================
 
 
 @pytest.fixture(scope="module")
-def contract_run(tmp_path_factory, contract_dir):
-    out = tmp_path_factory.mktemp("contract") / "out"
+def section6_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("section6") / "out"
     started = time.perf_counter()
-    code = main(["ensemble", str(contract_dir / "seed_exponential_ensemble.yaml"), "-o",
-                 str(out), "--workers", "2"])
+    code = main(["ensemble", str(ENSEMBLE), "-o", str(out), "--workers", "2"])
     return code, out, time.perf_counter() - started
 
 
-def test_contract_ensemble_runs_unchanged(contract_run, contract_dir):
-    code, out, _ = contract_run
+def test_section6_ensemble_runs_on_two_workers(section6_run):
+    code, out, _ = section6_run
     assert code == 0
-    ens = load_ensemble(contract_dir / "seed_exponential_ensemble.yaml")
+    ens = load_ensemble(ENSEMBLE)
     assert len(ens.members) == 21
     files = sorted(p.name for p in (out / "members").iterdir())
     assert files == sorted(f"{m.scenario_hash}.nc" for m in ens.members)
@@ -84,16 +83,15 @@ def test_contract_ensemble_runs_unchanged(contract_run, contract_dir):
         assert (np.diff(runout, axis=1) > 0).all()
 
 
-def test_ensemble_members_equal_single_runs_bit_for_bit(contract_run, contract_dir, tmp_path):
-    _, out, _ = contract_run
-    ens = load_ensemble(contract_dir / "seed_exponential_ensemble.yaml")
+def test_ensemble_members_equal_single_runs_bit_for_bit(section6_run, tmp_path):
+    _, out, _ = section6_run
+    ens = load_ensemble(ENSEMBLE)
     ds = xr.open_dataset(out / "ensemble.nc", decode_times=False)
-    # Member 4 (Coulomb 15 degrees, volume x1) is the contract scenario itself: same hash,
+    # Member 4 (Coulomb 15 degrees, volume x1) is the base scenario itself: same hash,
     # and `avflow run` of that file gives the same numbers to the bit.
-    base = load_scenario(contract_dir / "seed_exponential_coulomb.yaml")
+    base = load_scenario(SECTION6)
     assert ens.members[4].scenario_hash == base.scenario_hash()
-    assert main(["run", str(contract_dir / "seed_exponential_coulomb.yaml"), "-o",
-                 str(tmp_path / "single.nc")]) == 0
+    assert main(["run", str(SECTION6), "-o", str(tmp_path / "single.nc")]) == 0
     single = xr.open_dataset(tmp_path / "single.nc", decode_times=False)
     member = xr.open_dataset(out / "members" / f"{base.scenario_hash()}.nc", decode_times=False)
     for name in SUMMARIES:
@@ -110,8 +108,8 @@ def test_ensemble_members_equal_single_runs_bit_for_bit(contract_run, contract_d
                                   result.state.h.astype(np.float32))
 
 
-def test_ensemble_and_member_files_are_cf_compliant(contract_run, tmp_path):
-    _, out, _ = contract_run
+def test_ensemble_and_member_files_are_cf_compliant(section6_run, tmp_path):
+    _, out, _ = section6_run
     shutil.copy(out / "ensemble.nc", tmp_path / "ensemble.nc")
     member = next((out / "members").iterdir())
     shutil.copy(member, tmp_path / "member.nc")
@@ -119,8 +117,8 @@ def test_ensemble_and_member_files_are_cf_compliant(contract_run, tmp_path):
     assert compliance_errors(tmp_path / "member.nc") == []
 
 
-def test_report_of_profile_ensemble(contract_run, tmp_path):
-    _, out, _ = contract_run
+def test_report_of_profile_ensemble(section6_run, tmp_path):
+    _, out, _ = section6_run
     shutil.copytree(out, tmp_path / "out")
     assert main(["report", str(tmp_path / "out")]) == 0
     text = (tmp_path / "out" / "report.md").read_text()
@@ -131,10 +129,10 @@ def test_report_of_profile_ensemble(contract_run, tmp_path):
     assert "None: every member succeeded." in text
 
 
-def test_resume_skips_done_members(contract_run, contract_dir, tmp_path, capsys):
-    _, out, _ = contract_run
+def test_resume_skips_done_members(section6_run, tmp_path, capsys):
+    _, out, _ = section6_run
     shutil.copytree(out, tmp_path / "out")
-    ens = load_ensemble(contract_dir / "seed_exponential_ensemble.yaml")
+    ens = load_ensemble(ENSEMBLE)
     members = tmp_path / "out" / "members"
     removed = [ens.members[i].scenario_hash for i in (3, 17)]
     for h in removed:
@@ -153,13 +151,29 @@ def test_resume_skips_done_members(contract_run, contract_dir, tmp_path, capsys)
         np.testing.assert_array_equal(again.table[name].values, original[name].values)
 
 
+def test_contract_ensemble_runs_unchanged(contract_dir, section6_run, tmp_path):
+    """../shared/contract/seed_exponential_ensemble.yaml, unchanged: the same 21 members as
+    the project's copy (scenarios/ensembles/), and the same numbers to the bit."""
+    contract = load_ensemble(contract_dir / "seed_exponential_ensemble.yaml")
+    ours = load_ensemble(ENSEMBLE)
+    assert [m.updates for m in contract.members] == [m.updates for m in ours.members]
+    out = tmp_path / "out"
+    assert main(["ensemble", str(contract_dir / "seed_exponential_ensemble.yaml"), "-o",
+                 str(out), "--workers", "0"]) == 0
+    table = pd.read_csv(out / "summary.csv")
+    expected = pd.read_csv(section6_run[1] / "summary.csv")
+    assert set(table["status"]) == {"stopped"} and len(table) == 21
+    for name in SUMMARIES:
+        np.testing.assert_array_equal(table[name].values, expected[name].values)
+
+
 # =========================================================================================
 # Expansion
 # =========================================================================================
 
 
-def test_cartesian_expansion_mixes_whole_rheology_blocks(contract_dir):
-    ens = load_ensemble(contract_dir / "seed_exponential_ensemble.yaml")
+def test_cartesian_expansion_mixes_whole_rheology_blocks():
+    ens = load_ensemble(ENSEMBLE)
     assert ens.varied == ["rheology", "release.volume_factor"]
     laws = [m.scenario.rheology.law for m in ens.members]
     assert laws == ["coulomb"] * 12 + ["pouliquen"] * 9
@@ -403,7 +417,7 @@ def _stop(proc):
             proc.wait(10)
 
 
-def test_killed_worker_every_member_done_exactly_once(tmp_path, contract_dir):
+def test_killed_worker_every_member_done_exactly_once(tmp_path):
     from distributed import Client
 
     sched_file = tmp_path / "scheduler.json"
@@ -421,9 +435,9 @@ def test_killed_worker_every_member_done_exactly_once(tmp_path, contract_dir):
         procs += workers
         with Client(scheduler_file=str(sched_file), timeout="60s") as client:
             client.wait_for_workers(2, timeout=90)
-        # Section-6 scene at its contract resolution: 24 members of ~0.1 s, one per task.
+        # Section-6 scene at its seed resolution: 24 members of ~0.1 s, one per task.
         base = tmp_path / "base.yaml"
-        shutil.copy(contract_dir / "seed_exponential_coulomb.yaml", base)
+        shutil.copy(SECTION6, base)
         ens_path = write(tmp_path, """
 base: base.yaml
 vary:
