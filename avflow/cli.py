@@ -46,7 +46,16 @@ def summary_line(ds) -> str:
         v = float(ds[name])
         return "NaN" if math.isnan(v) else format(v, fmt)
 
-    return (f"{ds.attrs['scenario_name']}: {ds.attrs['status']}"
+    status = ds.attrs["status"]
+    ended_by = ds.attrs.get("ended_by", "")
+    if status == "stopped" and ended_by == "kinetic_energy":
+        moving = float(ds["moving_volume_end"]) / max(float(ds["release_volume"]), 1e-300)
+        status += f" (kinetic-energy rule, {100 * moving:.0f}% of the volume still moving)"
+    elif status != "stopped" and ended_by:
+        status += f" ({ended_by}: not a deposit at rest)"
+    if int(ds.attrs.get("runout_truncated", 0)):
+        status += ", RUNOUT TRUNCATED by the map's edge (a lower bound: enlarge the map)"
+    return (f"{ds.attrs['scenario_name']}: {status}"
             f", time_to_stop {f('time_to_stop', '.2f')} s"
             f", runout {f('runout', '.1f')} m"
             f", deposit max {f('deposit_max_thickness', '.2f')} m"
@@ -81,6 +90,9 @@ def _cmd_run(args) -> int:
     except OutputWriteError as err:  # full disk after the run: exit 1, nothing left behind
         print(f"avflow: error: {err}", file=sys.stderr)
         return 1
+    if int(ds.attrs.get("runout_truncated", 0)):
+        print(f"avflow: warning: {args.scenario}: material reached the edge of the map; the "
+              "runout is a lower bound (enlarge the map or the DEM)", file=sys.stderr)
     print(summary_line(ds))
     print(f"wrote {out}")
     return 0 if result.status in ("stopped", "completed") else 1

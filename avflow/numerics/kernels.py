@@ -69,7 +69,9 @@ ST_FILM = 6  #: volume of cells with u != 0 and 0 < h <= h_dry (a vanishing film
 ST_OUTFLOW = 7  #: cumulative volume that left through open boundaries
 ST_CLAMPED = 8  #: cumulative count of cell-steps whose normal acceleration was clamped at 0
 ST_RETRIES = 9  #: cumulative count of halved steps
-N_STATS = 10
+ST_KINETIC = 10  #: kinetic energy / density, sum of h A |u|^2 / 2 (m^5 s^-2), after the last step
+ST_KINETIC_PEAK = 11  #: its largest value so far
+N_STATS = 12
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -244,7 +246,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     Same arithmetic as :func:`step_faces`, with the face loop fused into the cell loops.
     ``flux[k, 0]`` is the mass flux (m^2/s) through face k towards +x, ``flux[k, 1]`` its
     momentum flux. Returns
-    ``(ok, outflow, dt_limit, moving, film, clamped)`` (see :func:`step_faces`).
+    ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)`` (see :func:`step_faces`).
     """
     n = h.size
     dx = cell_area[0]
@@ -310,6 +312,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     moving = 0.0
     film = 0.0
     clamped = 0
+    kinetic = 0.0
     for k in range(n):
         fk = flag[k]
         dirac_l = _dirac_face(dirac, fk, flag[k - 1] if k > 0 else fk)
@@ -318,7 +321,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         fr = 0.0 if dirac_r else flux[k + 1, 0]
         hn = h[k] + r * (fl - fr)
         if hn < 0.0:
-            return False, 0.0, 0.0, 0.0, 0.0, 0
+            return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
         if fk == DRY and (dirac_l or dirac_r):
             # A dry cell takes momentum only with mass: a Dirac face (a resting neighbour)
             # carries neither, not even its pressure (zero temperature, eq. 53).
@@ -347,12 +350,13 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
             arrival[k] = t_new
         if speed > 0.0:
             last_moved[k] = t_new
+        kinetic += hn * dx * speed * speed
         if _moves(speed, speed_n, max(abs(fl), abs(fr)), hn):
             if hn > h_dry:
                 moving += hn * dx
             else:
                 film += hn * dx
-    return True, outflow, _limit(inv_lim), moving, film, clamped
+    return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
 
 
 @njit(error_model="numpy", cache=True)
@@ -373,12 +377,12 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     mass. ``face_frame`` (see :class:`avflow.terrain.mesh.Mesh`) maps each cell's discharge into the
     face frame and the flux back into the cell's own basis. ``flux[f, 0]`` is ``L_f`` times the mass flux through face f along its normal, ``flux[f, 1:5]`` the momentum it brings to side i (x, y) and side j (x, y).
 
-    Returns ``(ok, outflow, dt_limit, moving, film, clamped)``: ok is False when a thickness
+    Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``: ok is False when a thickness
     would turn negative; outflow the volume that left through open faces in this step;
     dt_limit the CFL limit of the new state; moving and film the volumes of the cells that
     transport mass (u != 0 and a face flux above TRANSPORT_EPS h |u|) above and below h_dry;
     ``transport`` is a per-cell work array; clamped the number of cells whose normal
-    acceleration was clamped at 0.
+    acceleration was clamped at 0; kinetic the sum of h A |u|^2 of the new state.
     """
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     for c in range(n_touched):
@@ -494,12 +498,13 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     moving = 0.0
     film = 0.0
     clamped = 0
+    kinetic = 0.0
     for c in range(n_touched):
         i = touched[c]
         area = cell_area[i]
         hn = h[i] + dt / area * h_new[i]
         if hn < 0.0:
-            return False, 0.0, 0.0, 0.0, 0.0, 0
+            return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
         speed_n = _speed(h[i], hu[i], hv[i])
         qx = hu_new[i]
         qy = hv_new[i]
@@ -523,12 +528,13 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             arrival[i] = t_new
         if speed > 0.0:
             last_moved[i] = t_new
+        kinetic += hn * area * speed * speed
         if _moves(speed, speed_n, transport[i], hn):
             if hn > h_dry:
                 moving += hn * area
             else:
                 film += hn * area
-    return True, outflow, _limit(inv_lim), moving, film, clamped
+    return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
 
 
 @njit(error_model="numpy", cache=True)
@@ -583,14 +589,17 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             gamma_x, gamma_y, gamma_z, curvature,
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
-            peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx, stats):
+            stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
+            stats):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
     one call to the next. Observers updated every step: ``peak_h``, ``peak_speed``,
     ``arrival`` (first time h > h_dry, NaN before) and ``last_moved`` (end of the last step
-    with u != 0: the time a cell came to rest for good once it stays at rest). The run is *stopped* once the moving volume (cells with u != 0 and
-    h > h_dry) falls below ``stop_volume``; a negative ``stop_volume`` never stops.
+    with u != 0: the time a cell came to rest for good once it stays at rest). The run is
+    *stopped* once the moving volume (cells with u != 0 and h > h_dry) falls below
+    ``stop_volume``, or once the kinetic energy is at most ``stop_kinetic`` times its peak so
+    far (AvaFrame's rule); a negative value switches that rule off.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
     """
     t = stats[ST_TIME]
@@ -638,14 +647,14 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
         for _ in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             if structured:
-                ok, out, lim, moving, film, clamped = step_profile(
+                ok, out, lim, moving, film, clamped, kinetic = step_profile(
                     face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                     curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, flag,
                     law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved)
             else:
-                ok, out, lim, moving, film, clamped = step_faces(
+                ok, out, lim, moving, film, clamped, kinetic = step_faces(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
@@ -676,11 +685,16 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
         stats[ST_DT_LIMIT] = lim
         stats[ST_MOVING] = moving
         stats[ST_FILM] = film
+        stats[ST_KINETIC] = 0.5 * kinetic
+        stats[ST_KINETIC_PEAK] = max(stats[ST_KINETIC_PEAK], 0.5 * kinetic)
         stats[ST_CLAMPED] += clamped
         stats[ST_OUTFLOW] += out
         stats[ST_DT_MIN] = min(stats[ST_DT_MIN], dt)
         stats[ST_DT_MAX] = max(stats[ST_DT_MAX], dt)
         if stop_volume >= 0.0 and moving < stop_volume:
+            status = STOPPED
+            break
+        if stop_kinetic >= 0.0 and kinetic <= stop_kinetic * (2.0 * stats[ST_KINETIC_PEAK]):
             status = STOPPED
             break
         if stats[ST_STEPS] + steps >= max_steps:

@@ -137,12 +137,13 @@ class Solver:
         return math.fsum(state.h * self.terrain.mesh.cell_area)
 
     def advance(self, state: State, t_target: float, *, stop_volume: float = -1.0,
-                max_steps: int = 10**9) -> str:
+                stop_kinetic: float = -1.0, max_steps: int = 10**9) -> str:
         """Run the time loop until ``t_target`` (s), a stop, or ``max_steps`` steps in all.
 
         The run counts as stopped once the volume still moving (u != 0 with mass crossing a
         face of the cell, h > h_dry) is below
-        ``stop_volume`` (negative: never). Returns ``"running"`` (target reached),
+        ``stop_volume`` (negative: never), or once the kinetic energy is at most
+        ``stop_kinetic`` times its peak (negative: never). Returns ``"running"`` (target reached),
         ``"stopped"``, ``"max_steps"`` or ``"failed"``.
         """
         m, t = self.terrain.mesh, self.terrain
@@ -152,6 +153,6 @@ class Solver:
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
             self._flux, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
             bool(self.dirac), float(self.h_dry), float(self.h_zero), float(self.cfl), float(t_target),
-            int(max_steps), float(stop_volume), state.peak_h, state.peak_speed, state.arrival,
+            int(max_steps), float(stop_volume), float(stop_kinetic), state.peak_h, state.peak_speed, state.arrival,
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats)
         return STATUS_NAMES[status]

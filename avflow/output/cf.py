@@ -61,9 +61,10 @@ SUMMARIES = {
     "runout": ("m", "downslope end of the deposit (h > runout_threshold); along the bed "
                     "from the top on profiles, horizontal distance from the release centroid "
                     "on grids"),
-    "time_to_stop": ("s", "first time the moving volume (u != 0, h > dry_threshold) is below "
-                          "stop_fraction of the released volume; 0 if nothing ever moved, "
-                          "NaN if never"),
+    "time_to_stop": ("s", "time the stop rule ended the run (stop_rule attribute): the moving "
+                          "volume (u != 0, h > dry_threshold) below stop_fraction of the "
+                          "released volume, or the kinetic energy at most stop_fraction of its "
+                          "peak; 0 if nothing ever moved, NaN if the run reached time.end"),
     "deposit_max_thickness": ("m", "largest final thickness"),
     "deposit_length": ("m", "extent of the deposit (h > runout_threshold) along the flow"),
     "deposit_volume": ("m3", "material on the mesh at the end, film included"),
@@ -71,6 +72,9 @@ SUMMARIES = {
     "outflow_volume": ("m3", "volume that left through open boundaries"),
     "film_volume": ("m3", "volume still moving at the end with h <= dry_threshold"),
     "mass_balance_error": ("1", "|V_end + V_out - V_0| / V_0"),
+    "moving_volume_end": ("m3", "volume still moving (u != 0, h > dry_threshold) at the end"),
+    "kinetic_energy_end": ("J", "kinetic energy sum rho h A |u|^2 / 2 at the end"),
+    "kinetic_energy_peak": ("J", "largest kinetic energy of the run (after a step)"),
     "wall_time": ("s", "wall-clock time of the time loop"),
     "travel_length": ("m", "horizontal distance from the highest released cell to the farthest "
                            "deposit cell"),
@@ -81,7 +85,7 @@ SUMMARIES = {
 
 def per_width(units: str, profile: bool) -> str:
     """Volumes on a profile are per metre of width."""
-    return {"m3": "m2"}.get(units, units) if profile else units
+    return {"m3": "m2", "J": "J m-1"}.get(units, units) if profile else units
 
 
 def time_coords(times: np.ndarray) -> dict:
@@ -116,7 +120,10 @@ def global_attributes(result) -> dict:
         "status": s["status"],
         "runout_threshold_m": th["runout"],
         "dry_threshold_m": th["dry"],
+        "stop_rule": th["stop_rule"],
         "stop_fraction": th["stop_fraction"],
+        "ended_by": s["ended_by"],
+        "min_flow_thickness_m": th["min_flow"],
         "steps": int(s["steps"]),
         "dt_min_s": s["dt_min"],
         "dt_max_s": s["dt_max"],

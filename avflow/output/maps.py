@@ -197,6 +197,14 @@ def _nice_levels(lo: float, hi: float, most: int = 9) -> list[float]:
     return [v for _, v in steps]
 
 
+def at_rest(ds) -> bool:
+    """Whether the run ended with its mass at rest (the moving-volume rule), so that its
+    final thickness is a deposit. Files older than the stop rules: when it stopped."""
+    ended_by = ds.attrs.get("ended_by", "moving_volume" if ds.attrs.get("status") == "stopped"
+                            else "time.end")
+    return ended_by == "moving_volume"
+
+
 def _fmt(ds, name: str, fmt: str, unit: str) -> str | None:
     if name not in ds.variables:
         return None
@@ -216,6 +224,10 @@ def _title(ds) -> str:
     ) if p]
     name = ds.attrs.get("scenario_name", "?")
     status = ds.attrs.get("status")
+    if status and not at_rest(ds):
+        status += ", still moving"
+    if int(ds.attrs.get("runout_truncated", 0)):
+        parts.append("runout truncated by the map's edge (a lower bound)")
     head = f"{name}" + (f" ({status})" if status else "")
     return head + ("\n" + ", ".join(parts) if parts else "")
 
@@ -356,9 +368,13 @@ def _finish_map(ds, fig, ax, im, contour, released, deposited, threshold, levels
                 linestyles="--")
         handles.append(Line2D([], [], color="tab:blue", ls="--", lw=1.4, label="release"))
     if deposited.any():
-        contour(deposited.astype(float), levels=[0.5], colors="black", linewidths=1.2)
-        handles.append(Line2D([], [], color="black", lw=1.2,
-                              label=f"deposit (> {threshold:.3g} m)"))
+        # a deposit only when the mass is at rest; a flow in motion gets its last outline
+        style = dict(ls="-" if at_rest(ds) else ":", lw=1.2)
+        contour(deposited.astype(float), levels=[0.5], colors="black",
+                linewidths=style["lw"], linestyles=style["ls"])
+        what = "deposit" if at_rest(ds) else "end of run, still moving"
+        handles.append(Line2D([], [], color="black", **style,
+                              label=f"{what} (> {threshold:.3g} m)"))
     if handles:
         ax.legend(handles=handles, loc="best", fontsize=8, framealpha=0.8)
     cb = fig.colorbar(im, ax=ax, shrink=0.8, spacing="uniform", location=where,
@@ -389,8 +405,10 @@ def _plot_profile(ds, plt):
     ax.plot(xh, bed, color="0.2", lw=1.2, label="bed")
     lowest = np.nanmin(bed)
     ax.fill_between(xh, lowest - 0.05 * np.ptp(bed), bed, color="0.85", lw=0)
+    what = "deposit" if at_rest(ds) else "end of run, still moving"
     ax.fill_between(xh, bed, bed + deposit * vertical, where=deposit > 0, color="tab:brown",
-                    alpha=0.6, lw=0, label=f"deposit (t = {times[-1]:.1f} s)")
+                    alpha=0.6 if at_rest(ds) else 0.25, lw=0,
+                    label=f"{what} (t = {times[-1]:.1f} s)")
     colors = plt.get_cmap("viridis")(np.linspace(0.0, 0.85, picks.size))
     for c, i in zip(colors, picks):
         hi = np.nan_to_num(np.asarray(h.isel(time=int(i)).values, dtype=float))

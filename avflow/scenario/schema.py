@@ -450,6 +450,11 @@ class Time(_Model):
     """Bound on the number of time steps."""
 
 
+#: Default stop_fraction of each stop rule: 1e-3 of the release still moving, or 1% of the
+#: peak kinetic energy (AvaFrame com1DFA's stopCrit).
+STOP_FRACTIONS = {"moving_volume": 1e-3, "kinetic_energy": 0.01}
+
+
 class Output(_Model):
     """What is stored, and when the run counts as stopped."""
 
@@ -457,9 +462,25 @@ class Output(_Model):
     """Time between stored snapshots (s); default time.end / 20."""
     runout_threshold: Positive | None = None
     """Thickness (m) above which a cell counts in the deposit and the runout; null: automatic."""
-    stop_fraction: Fraction = 1e-3
-    """The run stops when the moving volume falls below this fraction of the release; 0:
-    never stop before time.end."""
+    stop_rule: Literal["moving_volume", "kinetic_energy"] = "moving_volume"
+    """When the run ends before time.end. moving_volume: the volume still moving (u != 0,
+    h above the dry threshold, mass crossing a face) falls below stop_fraction of the
+    release: what remains is a deposit at rest. kinetic_energy: the kinetic energy falls
+    to stop_fraction of its peak (AvaFrame's rule): a third to a half of the mass may still
+    be moving, slowly; the final thickness is then a snapshot, not a deposit at rest."""
+    stop_fraction: Fraction | None = None
+    """The fraction of the stop rule; null: 1e-3 (moving_volume) or 0.01 (kinetic_energy,
+    AvaFrame's stopCrit); 0: never stop before time.end (kinetic_energy: only at rest)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_stop_fraction(cls, data: Any) -> Any:
+        """stop_fraction follows the rule unless written (resolved, so a file says it)."""
+        if isinstance(data, dict) and data.get("stop_fraction") is None:
+            rule = data.get("stop_rule", "moving_volume")
+            if rule in STOP_FRACTIONS:
+                data = {**data, "stop_fraction": STOP_FRACTIONS[rule]}
+        return data
     dry_threshold: Positive | None = None
     """Thickness (m) below which a cell counts as dry in decisions; null: automatic."""
 

@@ -19,7 +19,7 @@ from avflow.errors import ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
 from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
-from avflow.simulation.summary import deposit_extent, travel_angle
+from avflow.simulation.summary import deposit_extent, runout_truncated, travel_angle
 from avflow.terrain.bed import Terrain
 from avflow.terrain.build import build_terrain
 
@@ -34,6 +34,9 @@ ZERO_THICKNESS_FRACTION = 1e-12
 #: Default minimum flowing thickness (m), unless the dry threshold is smaller: GeoClaw's
 #: dry tolerance. Thinner material holds its mass but does not flow (films that stop).
 DEFAULT_MIN_FLOW = 1e-3
+
+#: What ended a run that did not stop by its stop rule (summary ``ended_by``).
+ENDED_BY = {"completed": "time.end, still moving", "max_steps": "time.max_steps, still moving"}
 
 # Cell states written to the output flag variable.
 FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED = 0, 1, 2
@@ -125,6 +128,7 @@ def prepare(scenario):
         else DEFAULT_THRESHOLD_FRACTION * h_max,
         "runout": out.runout_threshold if out.runout_threshold is not None
         else DEFAULT_THRESHOLD_FRACTION * h_max,
+        "stop_rule": out.stop_rule,
         "stop_fraction": out.stop_fraction,
     }
     min_flow = scenario.physics.min_flow_thickness
@@ -145,7 +149,9 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
     terrain, h0, solver, thresholds = prepare(scenario)
     state = solver.new_state(h0)
     v0 = solver.volume(state)
-    stop_volume = thresholds["stop_fraction"] * v0
+    by_volume = thresholds["stop_rule"] == "moving_volume"
+    stop = {"stop_volume": thresholds["stop_fraction"] * v0 if by_volume else -1.0,
+            "stop_kinetic": -1.0 if by_volume else thresholds["stop_fraction"]}
     t_end, every = scenario.time.end, scenario.output.every
     snaps = Snapshots()
     snaps.record(state, 0.0, terrain)
@@ -154,8 +160,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
     time_to_stop = np.nan
     while True:
         target = min(k * every, t_end)
-        status = solver.advance(state, target, stop_volume=stop_volume,
-                                max_steps=scenario.time.max_steps)
+        status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
         snaps.record(state, float(state.stats[K.ST_MOVING]), terrain)
         if progress is not None:
             progress(state.t, t_end)
@@ -179,8 +184,10 @@ def summarize(result: RunResult, v0: float) -> dict:
     state, terrain = result.state, result.terrain
     v_end = result.solver.volume(state)
     v_out = float(state.stats[K.ST_OUTFLOW])
-    runout, length, touches = deposit_extent(terrain, state.h, result.thresholds["runout"],
-                                             result.h0)
+    rho = result.scenario.physics.density
+    truncated = runout_truncated(terrain, state.peak_h, result.thresholds["runout"],
+                                 result.scenario.terrain.kind == "dem", v_out)
+    runout, length = deposit_extent(terrain, state.h, result.thresholds["runout"], result.h0)
     travel, drop, angle = travel_angle(terrain, result.h0, state.h, result.thresholds["runout"])
     return {
         "travel_length": travel,
@@ -195,8 +202,13 @@ def summarize(result: RunResult, v0: float) -> dict:
         "outflow_volume": v_out,
         "film_volume": float(state.stats[K.ST_FILM]),
         "moving_volume": float(state.stats[K.ST_MOVING]),
+        "moving_volume_end": float(state.stats[K.ST_MOVING]),
+        "kinetic_energy_end": rho * float(state.stats[K.ST_KINETIC]),
+        "kinetic_energy_peak": rho * float(state.stats[K.ST_KINETIC_PEAK]),
+        "ended_by": ENDED_BY.get(result.status, result.status) if result.status != "stopped"
+        else result.thresholds["stop_rule"],
         "mass_balance_error": abs(v_end + v_out - v0) / v0,
-        "runout_truncated": touches,
+        "runout_truncated": truncated,
         "status": result.status,
         "steps": state.steps,
         "dt_min": float(state.stats[K.ST_DT_MIN]),

@@ -14,6 +14,9 @@ Definitions (documented in the NetCDF attributes too):
   the dry threshold) falls below ``stop_fraction`` of the released volume; NaN when the run
   reaches its end time first.
 - ``mass_balance_error``: ``|V_end + V_out - V_0| / V_0`` (V_out: left through open faces).
+- ``runout_truncated``: material above ``runout_threshold`` reached, at any time, the edge
+  of what is modelled (a DEM's border or NODATA hole, an open side) or left the map: the
+  runout is a lower bound, enlarge the map.
 - ``travel_length`` (m, horizontal), ``drop_height`` (m) and ``travel_angle`` (degrees, the
   Fahrboeschung ``atan(drop / length)``): from the highest released cell to the deposit cell
   (h > runout_threshold) farthest from it horizontally.
@@ -26,20 +29,20 @@ import math
 import numpy as np
 
 from avflow.terrain.bed import Terrain
+from avflow.terrain.mesh import OUTFLOW
 
 
 def deposit_extent(terrain: Terrain, h: np.ndarray, threshold: float, h0: np.ndarray):
-    """``(runout, deposit_length, touches_boundary)`` of a final thickness field."""
+    """``(runout, deposit_length)`` of a final thickness field."""
     mask = h > threshold
     if not mask.any():
-        return math.nan, 0.0, False
+        return math.nan, 0.0
     if terrain.kind == "profile":
         idx = np.nonzero(mask)[0]
         half = 0.5 * terrain.dx
         runout = float(terrain.x[idx[-1]] + half)
         length = float(terrain.x[idx[-1]] - terrain.x[idx[0]] + 2 * half)
-        touches = bool(idx[0] == 0 or idx[-1] == h.size - 1)
-        return runout, length, touches
+        return runout, length
     xx, yy = terrain.cell_xy()
     weights = h0 * terrain.mesh.cell_area
     cx, cy = np.average(xx, weights=weights), np.average(yy, weights=weights)
@@ -54,12 +57,26 @@ def deposit_extent(terrain: Terrain, h: np.ndarray, threshold: float, h0: np.nda
     along = xx[mask] * direction[0] + yy[mask] * direction[1]
     length = float(along.max() - along.min() + abs(terrain.dx * direction[0])
                    + abs(terrain.dy * direction[1]))
-    if terrain.kind == "triangles":  # the deposit reaches a vertex on the domain's boundary
-        return runout, length, bool(np.any(mask & terrain.extras["boundary_node"]))
-    grid_mask = terrain.to_grid(mask.astype(float), fill=0.0) > 0
-    touches = bool(grid_mask[0].any() or grid_mask[-1].any() or grid_mask[:, 0].any()
-                   or grid_mask[:, -1].any())
-    return runout, length, touches
+    return runout, length
+
+
+def edge_cells(terrain: Terrain, walls_are_edges: bool) -> np.ndarray:
+    """Cells with a face on the edge of what is modelled: every open (outflow) side, and the
+    walls too when ``walls_are_edges`` (a DEM: its border and its NODATA holes are where the
+    data end, not a wall of the terrain). A profile's or a plane's walls are the scene's
+    own geometry (a channel end, the seed's closed profiles) and are not counted."""
+    faces = terrain.mesh.face_cells
+    j = faces[:, 1]
+    edge = (j < 0) if walls_are_edges else (j == OUTFLOW)
+    return np.unique(faces[edge, 0])
+
+
+def runout_truncated(terrain: Terrain, peak_h: np.ndarray, threshold: float,
+                     walls_are_edges: bool, outflow_volume: float) -> bool:
+    """True when material above the runout threshold reached the edge of the map at any
+    time (:func:`edge_cells`) or left it: the runout is then a lower bound."""
+    cells = edge_cells(terrain, walls_are_edges)
+    return bool(outflow_volume > 0.0 or np.any(peak_h[cells] > threshold))
 
 
 def travel_angle(terrain: Terrain, h0: np.ndarray, h: np.ndarray, threshold: float):
