@@ -81,7 +81,7 @@ def _cmd_run(args) -> int:
     remove_stale_temporaries(out)  # left by a write that was killed
     progress = Progress()
     try:
-        result = simulate(scenario, progress=progress)
+        result = simulate(scenario, progress=progress, max_memory=args.max_memory)
     finally:
         progress.close()
     ds = to_dataset(result)
@@ -105,6 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run one scenario and write a CF NetCDF file")
     r.add_argument("scenario", help="scenario YAML file")
     r.add_argument("-o", "--output", help="output NetCDF (default: SCENARIO name + .nc)")
+    r.add_argument("--max-memory", metavar="SIZE", help="refuse a run estimated to need more "
+                   "(bytes, or 8G, 512M; 'none': no check; default: $AVFLOW_MAX_MEMORY, "
+                   "else half of this machine's memory)")
     r.set_defaults(func=_cmd_run)
     e = sub.add_parser("ensemble", help="run an ensemble file on dask; exit 1 if a member "
                                         "failed")
@@ -117,6 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--workers", type=int, help="local worker processes (default: one per "
                                                "core; 0: run in this process, no dask)")
     e.add_argument("--batch", type=int, help="members per dask task (default: automatic)")
+    e.add_argument("--max-memory", metavar="SIZE", help="refuse a member estimated to need "
+                   "more (as for `avflow run`; passed to local workers as $AVFLOW_MAX_MEMORY)")
     e.add_argument("--report", action="store_true", help="write OUTDIR/report.md at the end")
     e.set_defaults(func=_cmd_ensemble)
     rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble")
@@ -151,6 +156,7 @@ def _cmd_ensemble(args) -> int:
     if not args.connect_timeout > 0:
         raise AvflowError(f"--connect-timeout must be > 0, got {args.connect_timeout}")
     ensemble = load_ensemble(args.ensemble)  # every check before any member starts
+    _check_members_fit(ensemble, args.max_memory)
     out = Path(args.output)
     print(f"{ensemble.name}: {len(ensemble.members)} members -> {out}")
     try:
@@ -166,6 +172,23 @@ def _cmd_ensemble(args) -> int:
 
         print(f"wrote {write_report(out)}")
     return 0 if outcome.ok else 1
+
+
+def _check_members_fit(ensemble, max_memory) -> None:
+    """Every member's cells and snapshots against the memory limit, before any runs; the
+    limit then travels to the local workers through the environment."""
+    import os
+
+    from avflow.simulation.resources import ENV_MAX_MEMORY, check_resources, parse_bytes
+
+    if max_memory is not None:
+        try:
+            parse_bytes(max_memory)
+        except AvflowError as err:
+            raise AvflowError(f"--max-memory: {err}") from None
+        os.environ[ENV_MAX_MEMORY] = max_memory
+    for member in ensemble.members:
+        check_resources(member.scenario)
 
 
 def _cmd_report(args) -> int:
@@ -203,9 +226,9 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except AvflowError as err:
+    except AvflowError as err:  # bad input: 2; a run that failed numerically: 1
         print(f"avflow: error: {err}", file=sys.stderr)
-        return 2
+        return err.exit_code
     except KeyboardInterrupt:
         print("avflow: interrupted", file=sys.stderr)
         return 130

@@ -17,6 +17,21 @@ from typing import Any, Iterable
 class AvflowError(Exception):
     """Base class of the errors avflow reports to its users (the CLI exits with code 2)."""
 
+    exit_code = 2  #: of the command line: 2 bad input
+
+
+class RunFailed(AvflowError):
+    """A run that failed numerically: a non-finite state (h, hu, hv or the mass balance),
+    or no time step that keeps h >= 0. Never a result: the command line writes no output
+    file and exits with code 1; ``result`` holds the run up to the failure (in process only).
+    """
+
+    exit_code = 1
+
+    def __init__(self, message: str, result: Any = None):
+        super().__init__(message)
+        self.result = result
+
 
 @dataclass(frozen=True)
 class Problem:

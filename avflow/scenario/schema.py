@@ -351,6 +351,13 @@ Release = Annotated[Union[ParabolaRelease, DamRelease, BoxRelease, CylinderRelea
 PROFILE_RELEASES = ("parabola", "dam")
 GRID_RELEASES = ("cylinder", "polygon", "raster")
 
+#: Largest map (m along a profile, or a side of a plane's extent): 10 000 km, a quarter of
+#: the Earth's circumference, where a flat bed without the Earth's curvature means nothing.
+MAX_EXTENT = 1e7
+#: Most snapshots a run stores (time.end / output.every): one every 0.04 s (a film's frame)
+#: for an hour is 90 000; each costs a copy of the state and a return to Python.
+MAX_SNAPSHOTS = 100_000
+
 # =========================================================================================
 # Rheology: basal friction laws (parameters are turned into numbers in avflow.numerics.rheology)
 # =========================================================================================
@@ -594,6 +601,50 @@ class Scenario(_Model):
             raise _problem("not allowed on a 'profile' terrain (1D: dx only)", "grid.dy")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
+        return self
+
+    @model_validator(mode="after")
+    def _physical_sense(self) -> Scenario:
+        """Sizes that no shallow debris flow on Earth has, refused before any allocation.
+
+        The map is at most MAX_EXTENT; it holds at least 2 cells along each axis; a release
+        is not thicker than the map is long (the depth-averaged equations need a layer thin
+        compared with its length: 1e200 m only overflows); at most MAX_SNAPSHOTS snapshots.
+        DEM extents and thicknesses read from files are checked when the terrain is built.
+        """
+        t, g, r = self.terrain, self.grid, self.release
+        if t.kind == "profile":
+            spans = {"terrain.length": (t.length, g.dx, "grid.dx")}
+        elif t.kind == "plane":
+            (x0, x1), (y0, y1) = t.extent.x, t.extent.y
+            spans = {"terrain.extent.x": (x1 - x0, g.dx, "grid.dx"),
+                     "terrain.extent.y": (y1 - y0, g.dy or g.dx, "grid.dy" if g.dy else "grid.dx")}
+        else:
+            spans = {}
+        for name, (span, d, d_name) in spans.items():
+            if span > MAX_EXTENT:
+                raise _problem(f"a map of {span:g} m is larger than the {MAX_EXTENT:g} m this "
+                               "flat-bed model allows (a quarter of the Earth's circumference)",
+                               name)
+            if d > span / 2:
+                raise _problem(f"must leave at least 2 cells along {name} ({span:g} m), "
+                               f"got {d:g} m", d_name)
+        field = "max_thickness" if r.kind == "parabola" else "thickness"
+        thickness = getattr(r, field, None)
+        if spans and thickness is not None:
+            size = max(span for span, _, _ in spans.values())
+            h = thickness * r.volume_factor
+            if h > size:
+                scaled = f" ({thickness:g} m x volume_factor {r.volume_factor:g})" if \
+                    r.volume_factor != 1.0 else ""
+                raise _problem(f"a release {h:g} m thick{scaled} is thicker than the map is "
+                               f"long ({size:g} m): the depth-averaged equations need a layer "
+                               "thin compared with the flow's length", f"release.{field}")
+        n = self.time.end / self.output.every
+        if n > MAX_SNAPSHOTS:
+            raise _problem(f"time.end / output.every = {n:.4g} snapshots, more than the "
+                           f"{MAX_SNAPSHOTS} a run stores: use output.every >= "
+                           f"{self.time.end / MAX_SNAPSHOTS:.4g} s", "output.every")
         return self
 
     # --- provenance -------------------------------------------------------------------------

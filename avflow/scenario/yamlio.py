@@ -49,6 +49,12 @@ YamlLoader.add_constructor(_INT, lambda loader, node: int(loader.construct_scala
 
 _MERGE = "tag:yaml.org,2002:merge"
 
+#: Values that aliases (``*name``) may add in all, beyond those written in the text. Anchors
+#: and aliases are fine for reuse (an ensemble naming one rheology block twice adds a few
+#: values); a "billion laughs" file of 300 bytes would expand to 1e9 values and 9 GB. Values
+#: written out in full are not counted: their number is bounded by the file's size.
+MAX_ALIAS_VALUES = 10_000
+
 
 def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, int]]]:
     """Plain Python data from YAML text, and the (line, column) of every key and item.
@@ -70,8 +76,32 @@ def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, 
         except (ValueError, yaml.YAMLError) as err:
             raise fail(f"cannot read {node.value!r} as {node.tag}: {err}", node, keys) from None
 
+    built: set[int] = set()  # nodes built once: building one again expands an alias
+    inside: set[int] = set()  # collections being built (an alias to one of them is a loop)
+    expanded = 0
+
     def build(node: yaml.Node, keys: tuple) -> Any:
         """Data of ``node``, written at ``keys``; records where its keys and items are."""
+        nonlocal expanded
+        if id(node) in inside:
+            raise fail("an alias refers to a collection that contains it (a recursive "
+                       "structure has no finite value)", node, keys)
+        if id(node) in built:
+            expanded += 1
+            if expanded > MAX_ALIAS_VALUES:
+                raise fail(f"aliases (*name) expand to more than {MAX_ALIAS_VALUES} values "
+                           "(a YAML alias bomb?); write the values out or use fewer aliases",
+                           node, keys)
+        built.add(id(node))
+        if isinstance(node, (yaml.MappingNode, yaml.SequenceNode)):
+            inside.add(id(node))
+            try:
+                return build_collection(node, keys)
+            finally:
+                inside.discard(id(node))
+        return scalar(node, keys)
+
+    def build_collection(node: yaml.Node, keys: tuple) -> Any:
         if isinstance(node, yaml.MappingNode):
             mapping: dict[str, Any] = {}
             for key_node, value_node in node.value:
@@ -93,7 +123,6 @@ def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, 
                 positions[keys + (i,)] = where(item)
                 items.append(build(item, keys + (i,)))
             return items
-        return scalar(node, keys)
 
     loader = YamlLoader(text)
     try:

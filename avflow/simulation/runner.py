@@ -7,6 +7,7 @@ The runner is the only place that decides output times; the time loop itself run
 from __future__ import annotations
 
 import dataclasses
+import math
 import time as _time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -15,10 +16,11 @@ import numpy as np
 
 from avflow.numerics import kernels as K
 from avflow.terrain.raster import RasterError
-from avflow.errors import ScenarioError
+from avflow.errors import Problem, RunFailed, ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
 from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
+from avflow.simulation.resources import check_resources
 from avflow.simulation.summary import deposit_extent, runout_truncated, travel_angle
 from avflow.terrain.bed import Terrain
 from avflow.terrain.build import build_terrain
@@ -102,9 +104,15 @@ class RunResult:
     summary: dict
 
 
-def prepare(scenario):
-    """Terrain, initial thickness and solver of a validated scenario (no time stepping)."""
+def prepare(scenario, max_memory=None):
+    """Terrain, initial thickness and solver of a validated scenario (no time stepping).
+
+    First the cells and snapshots are counted against the memory limit
+    (:func:`~avflow.simulation.resources.check_resources`; ``max_memory`` bytes or "8G",
+    None: ``AVFLOW_MAX_MEMORY`` or half the machine's memory), before anything is allocated.
+    """
     try:
+        check_resources(scenario, max_memory)
         terrain = build_terrain(scenario)
     except RasterError as err:
         raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
@@ -120,6 +128,7 @@ def prepare(scenario):
         h0 = initial_thickness(scenario.release, terrain)
     except ReleaseError as err:
         raise ScenarioError.at(scenario, "release", str(err)) from None
+    _check_release_size(scenario, terrain, h0)
     law, params = friction_parameters(scenario.rheology)
     h_max = float(h0.max())
     out = scenario.output
@@ -141,12 +150,46 @@ def prepare(scenario):
     return terrain, h0, solver, thresholds
 
 
-def simulate(scenario, progress: Callable[[float, float], None] | None = None) -> RunResult:
+def _check_release_size(scenario, terrain: Terrain, h0: np.ndarray) -> None:
+    """A release thicker than the map is wide is no shallow flow (DEMs, rasters, polygons:
+    the YAML thicknesses on profiles and planes are checked when the scenario is loaded)."""
+    h_max = float(h0.max()) if h0.size else 0.0
+    xs = [terrain.x] if terrain.kind == "profile" else list(terrain.cell_xy())
+    span = max(float(np.ptp(v)) for v in xs) + max(terrain.dx, terrain.dy)
+    if not h_max <= span:
+        raise ScenarioError.at(
+            scenario, "release", f"the release is {h_max:.6g} m thick, more than the map's "
+            f"{span:.6g} m extent: the depth-averaged equations need a layer thin compared "
+            "with the flow's length (check the thickness and its units)")
+
+
+def _non_finite(state: State, terrain: Terrain) -> str | None:
+    """None when h, hu and hv are finite everywhere; else what is not, in a few words."""
+    bad = {name: ~np.isfinite(getattr(state, name)) for name in ("h", "hu", "hv")}
+    if not any(b.any() for b in bad.values()):
+        return None
+    cells = np.flatnonzero(bad["h"] | bad["hu"] | bad["hv"])
+    which = ", ".join(name for name, b in bad.items() if b.any())
+    x = terrain.x[cells[0]] if terrain.kind == "profile" else terrain.cell_xy()[0][cells[0]]
+    return (f"{which} not finite in {cells.size} of {state.h.size} cells (first at x = "
+            f"{float(x):.6g} m): the scheme blew up")
+
+
+def _failure(scenario, t: float, reason: str) -> str:
+    """One line: the scenario file (or name), the time and what went wrong."""
+    return str(Problem(f"run failed at t = {t:.6g} s: {reason}",
+                       scenario.source_path or scenario.name))
+
+
+def simulate(scenario, progress: Callable[[float, float], None] | None = None, *,
+             max_memory=None) -> RunResult:
     """Run a validated scenario to its end time or until the mass stops.
 
-    ``progress(t, t_end)`` is called after every output time.
+    ``progress(t, t_end)`` is called after every output time. A non-finite state (h, hu,
+    hv, checked at every output time, or the mass balance) or a step that cannot keep
+    h >= 0 raises :class:`~avflow.errors.RunFailed`: a blow-up is never a result.
     """
-    terrain, h0, solver, thresholds = prepare(scenario)
+    terrain, h0, solver, thresholds = prepare(scenario, max_memory)
     state = solver.new_state(h0)
     v0 = solver.volume(state)
     by_volume = thresholds["stop_rule"] == "moving_volume"
@@ -162,6 +205,13 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
         target = min(k * every, t_end)
         status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
         snaps.record(state, float(state.stats[K.ST_MOVING]), terrain)
+        failure = _non_finite(state, terrain)
+        if status == "failed" and failure is None:
+            failure = (f"no time step kept h >= 0 after {K.MAX_RETRIES} halvings "
+                       f"(time.cfl {scenario.time.cfl:g})")
+        if failure is not None:
+            status = "failed"
+            break
         if progress is not None:
             progress(state.t, t_end)
         if status == "stopped":
@@ -175,7 +225,15 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None) -
     wall = _time.perf_counter() - started
     result = RunResult(scenario, terrain, solver, state, h0, snaps, status, time_to_stop,
                        wall, thresholds, {})
-    result.summary = summarize(result, v0)
+    if failure is None:
+        result.summary = summarize(result, v0)
+        if not math.isfinite(result.summary["mass_balance_error"]):
+            failure = (f"the mass balance is not finite (released {v0:.6g}, on the map "
+                       f"{result.summary['deposit_volume']:.6g}, out "
+                       f"{result.summary['outflow_volume']:.6g})")
+    if failure is not None:
+        result.status = "failed"
+        raise RunFailed(_failure(scenario, state.t, failure), result)
     return result
 
 

@@ -1,0 +1,190 @@
+"""What a run will need, checked before anything large is allocated.
+
+:func:`check_resources` counts the cells a scenario's mesh will have (from the extent and
+``grid.dx``; a DEM's extent from the DEM at its own spacing, before any resampling) and the
+snapshots it stores, estimates the bytes, and refuses a run that would not fit the memory
+limit with a :class:`~avflow.errors.ScenarioError` naming the field (``grid.dx`` or
+``output.every``), the estimate and the limit, instead of growing until the system kills it.
+
+The limit is ``--max-memory`` (``avflow run``), else the environment variable
+``AVFLOW_MAX_MEMORY``, else half of the machine's physical memory. Sizes are written as
+bytes or with a binary suffix: ``512M``, ``8G``, ``1.5GiB``; ``none`` switches the check off.
+
+The bytes per cell were measured (peak resident memory, ``workflows``-sized runs on planes,
+profiles and triangle meshes, through the NetCDF write) and rounded up: about 560-750 B per
+grid cell, 1800 per profile cell, 2100 per triangle-mesh vertex while the mesh is built, and
+60-70 B per cell and snapshot (``h``, ``hu``, ``hv``, flags, then the Dataset's copies).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass
+
+from avflow.errors import AvflowError, ScenarioError
+
+ENV_MAX_MEMORY = "AVFLOW_MAX_MEMORY"
+
+#: Bytes per cell for the mesh, the terrain, the solver and the state, by mesh kind.
+BYTES_PER_CELL = {"profile": 2000, "grid": 1000, "triangles": 2500}
+#: Bytes per cell and stored snapshot (the snapshot lists, then the output Dataset).
+BYTES_PER_CELL_SNAPSHOT = 80
+
+_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40, "P": 2**50}
+
+
+def parse_bytes(text: str | int | float) -> int | None:
+    """``"8G"`` -> 8 GiB in bytes; plain numbers are bytes; ``"none"`` -> None (no limit)."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value, unit = float(text), ""
+    else:
+        word = str(text).strip()
+        if word.lower() in ("none", "off", "unlimited"):
+            return None
+        m = re.fullmatch(r"([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([kKmMgGtTpP]?)(?:i?[bB])?",
+                         word)
+        if not m:
+            raise AvflowError(f"memory size {text!r}: expected bytes or a number with K, M, "
+                              "G or T (binary units, e.g. 8G, 512M), or 'none'")
+        value, unit = float(m.group(1)), m.group(2).upper()
+    size = value * _UNITS[unit]
+    if not (math.isfinite(size) and size > 0):
+        raise AvflowError(f"memory size {text!r}: must be a positive size")
+    return int(size)
+
+
+def physical_memory() -> int | None:
+    """Bytes of physical memory of this machine (None when the system does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        pass
+    try:
+        import psutil  # a dependency of dask.distributed; Windows has no sysconf
+
+        return int(psutil.virtual_memory().total)
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def default_max_memory() -> tuple[int | None, str]:
+    """The limit when none is given, and where it comes from (for messages)."""
+    env = os.environ.get(ENV_MAX_MEMORY)
+    if env:
+        try:
+            return parse_bytes(env), f"{ENV_MAX_MEMORY}={env}"
+        except AvflowError as err:
+            raise AvflowError(f"{ENV_MAX_MEMORY}: {err}") from None
+    total = physical_memory()
+    if total is None:
+        return None, "no limit: the machine's memory is unknown"
+    return total // 2, f"half of this machine's {human(total)}"
+
+
+def human(n: float) -> str:
+    """Bytes in binary units: ``12.3 GiB``."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} EiB"
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Cells, snapshots and bytes a scenario's run will hold (before the run)."""
+
+    kind: str  #: "profile", "grid" or "triangles"
+    shape: tuple  #: cells along x (and y); nodes for triangles
+    cells: int
+    snapshots: int
+    mesh_bytes: float
+    snapshot_bytes: float
+    what: str  #: the mesh in words, for messages
+
+    @property
+    def bytes(self) -> float:
+        return self.mesh_bytes + self.snapshot_bytes
+
+
+def snapshot_count(scenario) -> int:
+    """Snapshots a run stores at most: t = 0, every ``output.every``, and ``time.end``."""
+    end, every = scenario.time.end, scenario.output.every
+    return int(math.ceil(end / every - 1e-9)) + 1
+
+
+def estimate(scenario) -> Estimate:
+    """Cells and bytes of a validated scenario's run, from its extent and grid.dx only.
+
+    A DEM is read at its own spacing (cached; nothing is resampled) for its extent. Triangle
+    meshes count the grid's nodes before refinement (refinement adds where the bed bends).
+    """
+    t, g = scenario.terrain, scenario.grid
+    dx = g.dx
+    dy = g.dy if getattr(g, "dy", None) is not None else dx
+    if t.kind == "profile":
+        n = max(int(round(t.length / dx)), 1)
+        kind, shape, what = "profile", (n,), f"{t.length:g} m at dx = {dx:g} m"
+    else:
+        if t.kind == "dem":
+            from avflow.terrain.raster import NATIVE_TOLERANCE, RasterError, read_raster
+
+            try:
+                raster = read_raster(t.path)
+            except RasterError as err:
+                raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
+            span_x, span_y = raster.x[-1] - raster.x[0], raster.y[-1] - raster.y[0]
+            if (abs(raster.dx - dx) <= NATIVE_TOLERANCE * dx
+                    and abs(raster.dy - dy) <= NATIVE_TOLERANCE * dy):
+                nx, ny = raster.x.size, raster.y.size
+            else:  # as avflow.terrain.raster.resample will
+                nx = int(math.floor(span_x / dx + 1e-9)) + 1
+                ny = int(math.floor(span_y / dy + 1e-9)) + 1
+            what = f"the DEM's {span_x:g} x {span_y:g} m"
+        else:
+            (x0, x1), (y0, y1) = t.extent.x, t.extent.y
+            nx, ny = max(int(round((x1 - x0) / dx)), 1), max(int(round((y1 - y0) / dy)), 1)
+            what = f"{x1 - x0:g} x {y1 - y0:g} m"
+        what += f" at dx = {dx:g} m" + (f", dy = {dy:g} m" if dy != dx else "")
+        if getattr(g, "mesh", "square") == "triangles":
+            kind, shape = "triangles", (nx + 1, ny + 1)
+            n = (nx + 1) * (ny + 1) * (2 if getattr(g, "pattern", "") == "criss-cross" else 1)
+        else:
+            kind, shape, n = "grid", (nx, ny), nx * ny
+    snaps = snapshot_count(scenario)
+    return Estimate(kind, shape, n, snaps, float(n) * BYTES_PER_CELL[kind],
+                    float(n) * snaps * BYTES_PER_CELL_SNAPSHOT, what)
+
+
+def check_resources(scenario, max_memory: int | str | None = None) -> Estimate:
+    """The estimate of a scenario's run; a :class:`ScenarioError` when it exceeds the limit.
+
+    ``max_memory``: bytes, or a size such as ``"8G"``; None: the default
+    (:func:`default_max_memory`).
+    """
+    if max_memory is None:
+        limit, source = default_max_memory()
+    else:
+        try:
+            limit, source = parse_bytes(max_memory), "--max-memory"
+        except AvflowError as err:
+            raise AvflowError(f"--max-memory: {err}") from None
+    est = estimate(scenario)
+    if limit is None or est.bytes <= limit:
+        return est
+    unit = "nodes" if est.kind == "triangles" else "cells"
+    count = f"{est.cells:.3g} {unit}"
+    if len(est.shape) > 1:
+        count = " x ".join(str(n) for n in est.shape) + " = " + count
+    need = (f"{est.what} makes {count}; with {est.snapshots} "
+            f"snapshots a run needs about {human(est.bytes)} ({human(est.mesh_bytes)} mesh "
+            f"and state, {human(est.snapshot_bytes)} snapshots), more than the memory limit "
+            f"of {human(limit)} ({source})")
+    if est.mesh_bytes > limit:  # the mesh alone does not fit: the cells are too small
+        field, fix = "grid.dx", "use a larger grid.dx"
+    else:  # the mesh fits, its snapshots do not
+        field = "output.every"
+        fix = "store fewer snapshots (a larger output.every) or use a larger grid.dx"
+    raise ScenarioError.at(scenario, field, f"{need}: {fix}, or raise --max-memory")
