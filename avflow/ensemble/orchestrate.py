@@ -339,14 +339,16 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
                                           str(member_path(outdir, member))))
             wall = time.perf_counter() - started
         elif todo:
-            with _client(scheduler, workers, client, tiny_scenario_yaml(ensemble),
-                         connect_timeout) as cl:
+            with _deferred_sigint() as sigint, _client(
+                    scheduler, workers, client, tiny_scenario_yaml(ensemble), connect_timeout,
+                    sigint.check) as cl:
                 n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
                     cl, "scheduler_info") else 0
                 startup = time.perf_counter() - t0
                 started = time.perf_counter()
                 _run_on_dask(cl, todo, outdir,
-                             batch or auto_batch(len(todo), max(n_workers, 1)), record)
+                             batch or auto_batch(len(todo), max(n_workers, 1)), record,
+                             sigint.check)
                 wall = time.perf_counter() - started
         else:
             wall = 0.0
@@ -373,9 +375,10 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
 class _client:
     """Context manager: a Client on the given scheduler, or on a fresh LocalCluster."""
 
-    def __init__(self, scheduler, workers, client, tiny, connect_timeout=CONNECT_TIMEOUT):
+    def __init__(self, scheduler, workers, client, tiny, connect_timeout=CONNECT_TIMEOUT,
+                 check: Callable[[], None] = lambda: None):
         self.scheduler, self.workers, self.given, self.tiny = scheduler, workers, client, tiny
-        self.connect_timeout = connect_timeout
+        self.connect_timeout, self.check = connect_timeout, check
         self.cluster = self.client = None
 
     def __enter__(self):
@@ -397,6 +400,7 @@ class _client:
             warm(self.tiny)
         else:
             warm(self.tiny)  # before any worker starts (see warm)
+            self.check()
             n = self.workers or os.cpu_count() or 1
             # The workers inherit SIGINT ignored: a terminal's Ctrl-C, sent to the whole
             # process group, acts only in this process, which closes the cluster (else each
@@ -407,6 +411,7 @@ class _client:
                                             silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
             self.client.register_plugin(_ignore_sigint_plugin())  # restarted workers too
+        self.check()
         try:
             self.client.wait_for_workers(1, timeout=WORKER_TIMEOUT)
         except TimeoutError:
@@ -414,6 +419,7 @@ class _client:
             raise ClusterError(f"no dask worker joined {where} within {WORKER_TIMEOUT:g} s; "
                                "start one with `dask worker ADDRESS`") from None
         self.client.run(warm, self.tiny)
+        self.check()
 
     def __exit__(self, *exc):
         if self.given is None:
@@ -456,6 +462,34 @@ def _ignore_sigint_plugin():
     return IgnoreSigint()
 
 
+class _deferred_sigint:
+    """Ctrl-C only noted while dask is in use; ``check()`` raises KeyboardInterrupt at points
+    where that is safe. (Raised inside distributed's blocking calls it trips their cleanup,
+    which logs tracebacks from the event loop thread.) A second Ctrl-C raises at once.
+    Main thread only (elsewhere: nothing)."""
+
+    def __enter__(self):
+        self.hit = False
+        self.active = threading.current_thread() is threading.main_thread()
+        if self.active:
+            self.old = signal.signal(signal.SIGINT, self._noted)
+        return self
+
+    def _noted(self, signum, frame):
+        if self.hit:
+            raise KeyboardInterrupt
+        self.hit = True
+
+    def check(self) -> None:
+        if self.hit:
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        if self.active:
+            signal.signal(signal.SIGINT, signal.default_int_handler if self.old is None
+                          else self.old)
+
+
 class _sigint_ignored:
     """SIGINT ignored for a while: the processes started meanwhile keep ignoring it (Python
     installs no KeyboardInterrupt handler where SIGINT is ignored at start). A Ctrl-C in
@@ -473,12 +507,14 @@ class _sigint_ignored:
 
 
 def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
-                 record: Callable[[Member, dict], None]) -> None:
+                 record: Callable[[Member, dict], None],
+                 check: Callable[[], None] = lambda: None) -> None:
     """Submit the members in batches; results are recorded as they complete.
 
     A lost worker is the scheduler's business: its tasks are run again elsewhere (the member
     function is idempotent and writes atomically). A task that still errors (KilledWorker
-    after repeated losses) marks its members failed.
+    after repeated losses) marks its members failed. ``check`` is called every 50 ms while
+    waiting (it raises on a Ctrl-C noted meanwhile, see :class:`_deferred_sigint`).
     """
     from distributed import as_completed
 
@@ -490,20 +526,31 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
         key = "avflow-member-" + "-".join(m.scenario_hash for m in chunk[:1]) + f"-{len(chunk)}"
         future = client.submit(run_batch, items, key=key, pure=False, retries=1)
         futures[future] = chunk
-    for future in as_completed(list(futures), raise_errors=False):
-        chunk = futures.pop(future)
-        try:
-            results = future.result()
-        except Exception as err:  # noqa: BLE001 - infrastructure failure of the whole task
-            for m in chunk:
-                record(m, {**{n: math.nan for n in SUMMARY_FIELDS}, "status": "failed",
-                           "steps": 0, "error": f"{type(err).__name__}: {err}",
-                           "reused": False, "member_time": math.nan})
-            continue
-        finally:
-            future.release()
-        for index, row in results:
-            record(by_index[index], row)
+        check()
+    pending = as_completed(list(futures), raise_errors=False)
+    while not pending.is_empty():
+        check()
+        done = pending.next_batch(block=False)
+        if not done:
+            time.sleep(0.05)
+        for future in done:
+            _record_task(future, futures.pop(future), by_index, record)
+
+
+def _record_task(future, chunk: list[Member], by_index: dict, record) -> None:
+    """The rows of one finished task, or its members failed with the task's error."""
+    try:
+        results = future.result()
+    except Exception as err:  # noqa: BLE001 - infrastructure failure of the whole task
+        for m in chunk:
+            record(m, {**{n: math.nan for n in SUMMARY_FIELDS}, "status": "failed",
+                       "steps": 0, "error": f"{type(err).__name__}: {err}",
+                       "reused": False, "member_time": math.nan})
+        return
+    finally:
+        future.release()
+    for index, row in results:
+        record(by_index[index], row)
 
 
 # =========================================================================================
