@@ -38,7 +38,7 @@ FIELD_UNITS = {
     "position": "m", "radius": "m", "runout_threshold": "m", "dry_threshold": "m",
     "elevation_at_center": "m", "xi": "m s-2", "gravity": "m s-2", "density": "kg m-3",
     "mu": "1", "beta": "1", "volume_factor": "1", "cfl": "1", "stop_fraction": "1",
-    "end": "s", "every": "s",
+    "end": "s", "every": "s", "tau0": "Pa", "Rs0": "1", "kappa": "1", "R": "m", "B": "1",
 }
 
 MAPS = ("peak_thickness", "deposit_thickness")

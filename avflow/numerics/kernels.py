@@ -131,7 +131,7 @@ def dt_limit(cfl_factor, gamma_z, h, hu, hv, g):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt,
-                    dt_decide, gx, gy, gz, centripetal, law, p0, p1, p2, p3, g):
+                    dt_decide, gx, gy, gz, centripetal, law, p0, p1, p2, p3, p4, p5, p6, p7, g):
     """Sweep-1 closure of one cell: q~ of eq. 47 and the threshold test of eq. 49.
 
     ``rate_*``: the flux divergences (mass m/s, momentum m^2/s^2). The trial discharge q~
@@ -149,7 +149,7 @@ def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate
     qdx = hu_old + dt_decide * (rate_x + g * hd * gx)
     qdy = hv_old + dt_decide * (rate_y + g * hd * gy)
     accel, _ = _normal_accel(g * gz, centripetal)
-    tau, _ = friction(law, p0, p1, p2, p3, hd, speed_n, accel, g)
+    tau, _ = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, hd, speed_n, accel, g)
     limit = tau * dt_decide
     if qdx * qdx + qdy * qdy < limit * limit:
         return qx, qy, UNDER_THRESHOLD
@@ -158,7 +158,7 @@ def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, law, p0, p1, p2, p3,
-                    g):
+                    p4, p5, p6, p7, g):
     """Sweep-2 momentum of one cell: q = 0 under the threshold (eq. 56), else eq. 50.
 
     The friction is linearised at time n (speed of ``U^n``), with the new thickness. A cell
@@ -170,7 +170,7 @@ def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, l
     if flag == UNDER_THRESHOLD or h_new <= h_zero:
         return 0.0, 0.0, 0
     accel, clamped = _normal_accel(g * gz, centripetal)
-    tau, drag = friction(law, p0, p1, p2, p3, h_new, speed_n, accel, g)
+    tau, drag = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h_new, speed_n, accel, g)
     qx, qy = _project(qx, qy, tau, drag, dt)
     return qx, qy, clamped
 
@@ -254,6 +254,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     left = face_cells[0, 1]
     right = face_cells[n, 1]
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
+    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
 
     # --- sweep 1: fluxes (every normal along +x), trial state, threshold flags
     h0 = _emitting(h[0], h_zero)
@@ -297,7 +298,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         qx, _, fk = _trial_momentum(h[k], h_zero, abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
                                     (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
                                     gamma_z[k], curvature[k, 0] * (u_prev * u_prev),
-                                    law, p0, p1, p2, p3, g)
+                                    law, p0, p1, p2, p3, p4, p5, p6, p7, g)
         hu_new[k] = qx
         hv_new[k] = abs(u_prev)  # scratch: |u^n| for sweep 2 (hv is identically 0 on a line)
         flag[k] = fk
@@ -335,7 +336,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         speed_n = hv_new[k]
         qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt, gamma_z[k],
                                     curvature[k, 0] * (speed_n * speed_n),
-                                    law, p0, p1, p2, p3, g)
+                                    law, p0, p1, p2, p3, p4, p5, p6, p7, g)
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0
@@ -385,6 +386,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     acceleration was clamped at 0; kinetic the sum of h A |u|^2 of the new state.
     """
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
+    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
     for c in range(n_touched):
         i = touched[c]
         h_new[i] = 0.0
@@ -459,7 +461,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
                                      hv_new[i] * inv_area, dt, dt_decide, gamma_x[i],
                                      gamma_y[i], gamma_z[i],
                                      _centripetal(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, g)
+                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g)
         hu_new[i] = qx
         hv_new[i] = qy
         flag[i] = fi
@@ -513,7 +515,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             qy = dt * (qy / area + g * hn * gamma_y[i])
         qx, qy, cl = _final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
                                      _centripetal(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, g)
+                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

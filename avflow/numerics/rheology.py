@@ -8,7 +8,8 @@ plus the curvature term u^2/R of eqs. 61-62), what is
 - ``tau``: the Coulomb-type part of the basal shear stress divided by the density (m^2/s^2),
   ``mu(h, |u|) * h * normal_accel`` (eqs. 12, 44), the threshold of the projection (eq. 49);
 - ``drag``: a velocity-proportional rate (1/s) treated implicitly after the projection,
-  zero for Coulomb and Pouliquen, ``g |u| / (xi h)`` for Voellmy's turbulent term.
+  zero for Coulomb and Pouliquen, ``g |u| / (xi h)`` for Voellmy's turbulent term,
+  ``|u| / (D(h)^2 h)`` for samosAT's (:func:`samosat_drag_factor`).
 
 The law is chosen by name once, outside the time loop (:class:`Law`), and enters the Numba
 kernels as an integer with a float64 parameter vector; there is no config object in a kernel.
@@ -31,6 +32,7 @@ __all__ = [
     "pouliquen_mu",
     "h_stop",
     "pouliquen_steady_froude",
+    "samosat_drag_factor",
 ]
 
 
@@ -40,14 +42,19 @@ class Law(IntEnum):
     COULOMB = 1  #: constant friction angle delta, eq. 11-14
     POULIQUEN = 2  #: flow-dependent angle of Pouliquen (1999), eq. 15, static branch below Fr = beta
     VOELLMY = 3  #: Coulomb plus turbulent drag g u^2 / xi (Voellmy 1955; Salm 1993)
+    SAMOSAT = 4  #: AvaFrame's snow law: Coulomb reduced with speed, plus drag depending on h
 
 
 # Plain ints for the kernels: Numba freezes module globals as compile-time constants.
 COULOMB = int(Law.COULOMB)
 POULIQUEN = int(Law.POULIQUEN)
 VOELLMY = int(Law.VOELLMY)
+SAMOSAT = int(Law.SAMOSAT)
 
-N_PARAMS = 4  # length of the parameter vector every law is packed into
+N_PARAMS = 8  # length of the parameter vector every law is packed into (zeros where unused)
+
+#: Pa: AvaFrame's regularisation of the normal stress in samosAT's Rs (SamosATfric).
+SAMOSAT_P_EPS = 0.001
 
 _REFERENCES = {
     Law.COULOMB: "Mangeney-Castelnau et al. (2003), J. Geophys. Res. 108(B11), 2527, eqs. 11-14",
@@ -56,6 +63,11 @@ _REFERENCES = {
         "133 (static branch below Fr = beta); as used by Mangeney-Castelnau et al. (2003), eq. 15"
     ),
     Law.VOELLMY: "Voellmy (1955), Schweiz. Bauzeitung 73; Salm (1993), Ann. Glaciol. 18, 221",
+    Law.SAMOSAT: (
+        "samosAT: Sampl and Zwinger (2004), Ann. Glaciol. 38, 393-398, as implemented in "
+        "AvaFrame com1DFA (DFAToolsCython.SamosATfric; Tonnel et al. (2023), Geosci. Model "
+        "Dev. 16, 7013-7035; https://docs.avaframe.org, com1DFA theory, friction models)"
+    ),
 }
 
 
@@ -64,20 +76,23 @@ def law_reference(law: Law) -> str:
     return _REFERENCES[Law(law)]
 
 
-def friction_parameters(rheology) -> tuple[Law, np.ndarray]:
+def friction_parameters(rheology, density: float | None = None) -> tuple[Law, np.ndarray]:
     """Map a validated rheology block (``scenario.rheology``) to ``(Law, params)``.
 
-    Parameter vectors (float64, length 4):
-    - Coulomb: ``[tan(delta), 0, 0, 0]``
+    ``density`` (kg/m^3, ``scenario.physics.density``) is needed by samosAT only, whose
+    stresses (Pa) are divided by it. Parameter vectors (float64, length N_PARAMS = 8, zeros
+    after the last slot shown):
+    - Coulomb: ``[tan(delta)]``
     - Pouliquen: ``[tan(delta1), tan(delta2), d (m), beta]``
-    - Voellmy: ``[mu, xi (m/s^2), 0, 0]``
+    - Voellmy: ``[mu, xi (m/s^2)]``
+    - samosAT: ``[mu, tau0 / rho (m^2/s^2), Rs0, 0.001 Pa / rho (m^2/s^2), kappa, R (m), B]``
     """
     params = np.zeros(N_PARAMS)
     law = Law[rheology.law.upper()]
     if law is Law.COULOMB:
         params[0] = math.tan(math.radians(rheology.delta_deg))
     elif law is Law.POULIQUEN:
-        params[:] = (
+        params[:4] = (
             math.tan(math.radians(rheology.delta1_deg)),
             math.tan(math.radians(rheology.delta2_deg)),
             rheology.d,
@@ -87,6 +102,12 @@ def friction_parameters(rheology) -> tuple[Law, np.ndarray]:
         mu = rheology.mu if rheology.mu is not None else math.tan(math.radians(rheology.delta_deg))
         params[0] = mu
         params[1] = rheology.xi
+    elif law is Law.SAMOSAT:
+        if density is None or not density > 0.0:
+            raise ValueError("samosAT needs the density (kg/m^3, physics.density), "
+                             f"got {density!r}")
+        params[:7] = (rheology.mu, rheology.tau0 / density, rheology.Rs0,
+                      SAMOSAT_P_EPS / density, rheology.kappa, rheology.R, rheology.B)
     return law, params
 
 
@@ -109,20 +130,56 @@ def pouliquen_mu(h, speed, g, tan1, tan2, d, beta):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def friction(law, p0, p1, p2, p3, h, speed, normal_accel, g):
+def samosat_drag_factor(h, kappa, r, b):
+    """samosAT's turbulent factor ``1 / D(h)^2``, ``D = ln(max(h / R, 1)) / kappa + B``.
+
+    The turbulent stress is ``rho |u|^2 / D^2``: a logarithmic (rough-wall) velocity profile
+    over a roughness length R, floored at ``B`` for layers thinner than R. No g in it.
+    """
+    d = b
+    if h > r:
+        d += math.log(h / r) / kappa
+    return 1.0 / (d * d)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g):
     """Basal friction of one cell: ``(tau, drag)`` as described in the module docstring.
 
     ``tau`` (m^2/s^2) is compared with ``|q~| / dt`` in the threshold test of eq. 49 and
     removed in the projection of eq. 50; ``drag`` (1/s) divides the projected discharge
     implicitly, ``q <- q / (1 + drag dt)``, so it can slow a cell but never reverse it.
-    ``p0..p3`` is the parameter vector of :func:`friction_parameters`, passed as scalars
+    ``p0..p7`` is the parameter vector of :func:`friction_parameters`, passed as scalars
     (array arguments cost reference counting at every call in Numba).
+
+    samosAT (AvaFrame com1DFA's ``SamosATfric``, Sampl and Zwinger 2004), in Pa::
+
+        tau_b = tau0 + mu sigma (1 + Rs0 / (Rs0 + Rs)) + rho |u|^2 / D(h)^2,
+        Rs = rho |u|^2 / (sigma + 0.001 Pa),  D(h) = ln(max(h / R, 1)) / kappa + B,
+
+    with ``sigma = rho h N`` the basal normal stress. Divided by rho (avflow's kinematic
+    units, N = ``normal_accel``)::
+
+        tau  = tau0/rho + mu h N (1 + Rs0 / (Rs0 + Rs)),  Rs = |u|^2 / (h N + 0.001/rho)
+        drag = |u| / (D(h)^2 h)          (|u|^2 / D^2 on q = h u, implicit like Voellmy's)
+
+    The speed-dependent Coulomb part, between ``2 mu h N`` at rest and ``mu h N`` when
+    Rs >> Rs0, is linearised at time n like Pouliquen's law (seed section 3.3).
     """
     if law == COULOMB:
         return p0 * h * normal_accel, 0.0
     if law == POULIQUEN:
         mu = pouliquen_mu(h, speed, g, p0, p1, p2, p3)
         return mu * h * normal_accel, 0.0
+    if law == SAMOSAT:
+        # p0..p6 = mu, tau0/rho, Rs0, 0.001 Pa/rho, kappa, R, B (friction_parameters)
+        hn = h * normal_accel
+        rs = speed * speed / (hn + p3)
+        tau = p1 + p0 * hn * (1.0 + p2 / (p2 + rs))
+        drag = 0.0
+        if h > 0.0:
+            drag = speed * samosat_drag_factor(h, p4, p5, p6) / h
+        return tau, drag
     # VOELLMY: tau_b / rho = mu h N + g |u|^2 / xi; the turbulent part as an implicit drag
     # on q = h u: g |u| u / xi = (g |u| / (xi h)) q.
     drag = 0.0

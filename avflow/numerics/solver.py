@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from avflow.numerics import kernels as K
-from avflow.numerics.rheology import Law
+from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.terrain.bed import Terrain
 
@@ -81,7 +81,13 @@ class Solver:
     def __post_init__(self):
         if not 0.0 < self.cfl <= 1.0:
             raise ValueError("cfl must be in (0, 1]: positivity of h needs it (eq. 41)")
-        self.params = np.ascontiguousarray(self.params, dtype=float)
+        # The kernels read N_PARAMS slots: a shorter vector (e.g. [tan(delta), 0, 0, 0]) is
+        # padded with zeros, never read past its end.
+        given = np.asarray(self.params, dtype=float).ravel()
+        if given.size > N_PARAMS:
+            raise ValueError(f"params holds at most {N_PARAMS} values, got {given.size}")
+        self.params = np.zeros(N_PARAMS)
+        self.params[:given.size] = given
         m = self.terrain.mesh
         n = m.n_cells
         # Work buffers, allocated once per solver and reused by every step.

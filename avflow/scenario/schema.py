@@ -412,7 +412,41 @@ class Voellmy(_Model):
         return self
 
 
-Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy], Field(discriminator="law")]
+class SamosAT(_Model):
+    """samosAT, AvaFrame com1DFA's standard snow friction law (Sampl and Zwinger 2004).
+
+    Basal shear stress (Pa), with ``sigma = rho h N`` the basal normal stress (N the normal
+    acceleration, g cos(theta) plus the curvature term; rho = physics.density)::
+
+        tau_b = tau0 + mu sigma (1 + Rs0 / (Rs0 + Rs)) + rho |u|^2 / D^2
+        Rs = rho |u|^2 / (sigma + 0.001 Pa),   D = ln(max(h / R, 1)) / kappa + B
+
+    A Coulomb friction that falls from ``2 mu`` at rest to ``mu`` in fast flow (Rs >> Rs0),
+    plus a turbulent drag of a logarithmic velocity profile over a roughness length R.
+    Defaults: AvaFrame's standard ("samosAT", large avalanches). AvaFrame's default
+    ``samosATAuto`` takes mu = 0.22 (samosATSmall) for releases under 25 000 m^3 and
+    mu = 0.17 (samosATMedium) under 60 000 m^3, the other parameters unchanged.
+    Set ``physics.density`` to AvaFrame's 200 kg/m^3 for snow (it enters tau0 / rho and Rs).
+    """
+
+    law: Literal["samosat"]
+    mu: NonNegative = 0.155
+    """Coulomb friction coefficient (-), the fast-flow limit; 0.22 samosATSmall, 0.17
+    samosATMedium."""
+    tau0: NonNegative = 0.0
+    """Minimum shear stress, a yield stress (Pa)."""
+    Rs0: Positive = 0.222
+    """Scale of Rs = rho |u|^2 / sigma (-): the Coulomb factor 1 + Rs0 / (Rs0 + Rs) is 2 at
+    rest, 1.5 at Rs = Rs0, tends to 1 in fast flow."""
+    kappa: Positive = 0.43
+    """Von Karman constant of the turbulent term (-)."""
+    R: Positive = 0.05
+    """Roughness length of the turbulent term (m): flows thinner than R have D = B."""
+    B: Positive = 4.13
+    """Offset of the turbulent term's logarithmic profile (-)."""
+
+
+Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy, SamosAT], Field(discriminator="law")]
 
 # =========================================================================================
 # Grid, time, output, boundaries, physics

@@ -129,7 +129,7 @@ def prepare(scenario, max_memory=None):
     except ReleaseError as err:
         raise ScenarioError.at(scenario, "release", str(err)) from None
     _check_release_size(scenario, terrain, h0)
-    law, params = friction_parameters(scenario.rheology)
+    law, params = friction_parameters(scenario.rheology, scenario.physics.density)
     h_max = float(h0.max())
     out = scenario.output
     thresholds = {
