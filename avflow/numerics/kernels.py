@@ -36,6 +36,7 @@ import numpy as np
 from numba import njit
 
 from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.numerics.reconstruction import N_WORK, reconstruct_faces, reconstruct_profile
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.rheology import friction
 
@@ -71,7 +72,8 @@ ST_CLAMPED = 8  #: cumulative count of cell-steps whose normal acceleration was 
 ST_RETRIES = 9  #: cumulative count of halved steps
 ST_KINETIC = 10  #: kinetic energy / density, sum of h A |u|^2 / 2 (m^5 s^-2), after the last step
 ST_KINETIC_PEAK = 11  #: its largest value so far
-N_STATS = 12
+ST_FALLBACK = 12  #: cumulative count of cell-steps where order 2 fell back to order 1
+N_STATS = 13
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -131,8 +133,14 @@ def dt_limit(cfl_factor, gamma_z, h, hu, hv, g):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt,
-                    dt_decide, gx, gy, gz, centripetal, law, p0, p1, p2, p3, p4, p5, p6, p7, g):
+                    dt_decide, gx, gy, gz, centripetal, law, p0, p1, p2, p3, p4, p5, p6, p7, g,
+                    explicit):
     """Sweep-1 closure of one cell: q~ of eq. 47 and the threshold test of eq. 49.
+
+    Gravity acts on ``h*``, the thickness after the fluxes (eq. 47), or with ``explicit``
+    (a Runge-Kutta stage of order 2) on the stage's own ``h`` when it is wet: Heun's average
+    of two stages is second order only when each stage is an explicit Euler step. (A cell
+    dry at the stage's start keeps ``h*``, as friction does: a front is first order.)
 
     ``rate_*``: the flux divergences (mass m/s, momentum m^2/s^2). The trial discharge q~
     (returned for the projection) uses the step ``dt``; the threshold is tested with
@@ -140,7 +148,7 @@ def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate
     and a deposit at rest stays at rest when a step is shortened to land on an output time.
     Returns ``(q~x, q~y, flag)``.
     """
-    h_star = h_old + dt * rate_h
+    h_star = h_old if explicit and h_old > h_zero else h_old + dt * rate_h
     qx = hu_old + dt * (rate_x + g * h_star * gx)
     qy = hv_old + dt * (rate_y + g * h_star * gy)
     if h_old <= h_zero:
@@ -158,10 +166,12 @@ def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, law, p0, p1, p2, p3,
-                    p4, p5, p6, p7, g):
+                    p4, p5, p6, p7, g, h_old, explicit):
     """Sweep-2 momentum of one cell: q = 0 under the threshold (eq. 56), else eq. 50.
 
-    The friction is linearised at time n (speed of ``U^n``), with the new thickness. A cell
+    The friction is linearised at time n (speed of ``U^n``), with the new thickness (with
+    ``explicit``, a Runge-Kutta stage, with the stage's own thickness when wet, as gravity
+    in :func:`_trial_momentum`). A cell
     left with ``h <= h_zero`` holds a round-off residue of fluxes that nearly emptied it (on
     real DEMs 1e-28 m at 2 km/s): its momentum is as uncertain as its mass is negligible,
     so it is set to zero; the mass stays (conservation is untouched).
@@ -170,7 +180,8 @@ def _final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, l
     if flag == UNDER_THRESHOLD or h_new <= h_zero:
         return 0.0, 0.0, 0
     accel, clamped = _normal_accel(g * gz, centripetal)
-    tau, drag = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h_new, speed_n, accel, g)
+    h_fric = h_old if explicit and h_old > h_zero else h_new
+    tau, drag = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h_fric, speed_n, accel, g)
     qx, qy = _project(qx, qy, tau, drag, dt)
     return qx, qy, clamped
 
@@ -236,14 +247,84 @@ def _dirac_face(dirac, flag_i, flag_j):
     return dirac and flag_i != FLOWING and flag_j != FLOWING
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _record(i, hn, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved):
+    """Observers of cell i after a step: peaks, first arrival, last motion."""
+    if hn > peak_h[i]:
+        peak_h[i] = hn
+    if speed > peak_speed[i]:
+        peak_speed[i] = speed
+    if hn > h_dry and math.isnan(arrival[i]):
+        arrival[i] = t_new
+    if speed > 0.0:
+        last_moved[i] = t_new
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _side_fluxes(hf, uf, k, h, h_zero, density, gamma_z, g):
+    """Half fluxes of cell k's reconstructed state (hf, uf) at one of its faces."""
+    if h[k] <= h_zero:
+        return 0.0, 0.0, 0.0, 0.0
+    c = sound_speed(hf, g * gamma_z[k])
+    return half_fluxes(hf, uf, c, c * density[k])
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _face_side(f, side, c, h, hu, hv, h_zero, order2, face_state):
+    """What cell c shows face f: its average (order 1) or its reconstructed state (order 2);
+    nothing at or below h_zero (such a cell emits no particles)."""
+    if h[c] <= h_zero:
+        return 0.0, 0.0, 0.0
+    if order2:
+        return face_state[f, side, 0], face_state[f, side, 1], face_state[f, side, 2]
+    return h[c], hu[c], hv[c]
+
+
+@njit(error_model="numpy", cache=True)
+def _profile_fluxes2(recon, h, h_zero, density, gamma_z, g, left, right, flux):
+    """Face fluxes of a profile from the reconstructed states (order 2); boundaries as in
+    :func:`step_profile` (mirror walls; open ends closed to what would enter)."""
+    n = h.size
+    _, _, fm_h, fm_q = _side_fluxes(recon[0, 0], recon[0, 1], 0, h, h_zero, density, gamma_z, g)
+    if left == WALL:
+        flux[0, 0] = 0.0
+        flux[0, 1] = 2.0 * fm_q
+    else:
+        gp_h, gp_q, _, _ = _side_fluxes(recon[0, 0], min(recon[0, 1], 0.0), 0, h, h_zero,
+                                        density, gamma_z, g)
+        flux[0, 0] = -_open_mass(-(gp_h + fm_h))
+        flux[0, 1] = gp_q + fm_q
+    for i in range(1, n):
+        fp_h, fp_q, _, _ = _side_fluxes(recon[i - 1, 2], recon[i - 1, 3], i - 1, h, h_zero,
+                                        density, gamma_z, g)
+        _, _, fm_h, fm_q = _side_fluxes(recon[i, 0], recon[i, 1], i, h, h_zero, density,
+                                        gamma_z, g)
+        flux[i, 0] = fp_h + fm_h
+        flux[i, 1] = fp_q + fm_q
+    fp_h, fp_q, _, _ = _side_fluxes(recon[n - 1, 2], recon[n - 1, 3], n - 1, h, h_zero, density,
+                                    gamma_z, g)
+    if right == WALL:
+        flux[n, 0] = 0.0
+        flux[n, 1] = 2.0 * fp_q
+    else:
+        _, _, gm_h, gm_q = _side_fluxes(recon[n - 1, 2], max(recon[n - 1, 3], 0.0), n - 1, h,
+                                        h_zero, density, gamma_z, g)
+        flux[n, 0] = _open_mass(fp_h + gm_h)
+        flux[n, 1] = fp_q + gm_q
+
+
 @njit(error_model="numpy", cache=True)
 def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
                  h, hu, hv, h_new, hu_new, hv_new, flux, flag,
                  law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                 arrival, last_moved):
+                 arrival, last_moved, order2, recon, observe):
     """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
 
     Same arithmetic as :func:`step_faces`, with the face loop fused into the cell loops.
+    With ``order2`` the faces see the reconstructed states ``recon`` (h_L, u_L, h_R, u_R per
+    cell, :func:`avflow.numerics.reconstruction.reconstruct_profile`) instead of the averages.
+    ``observe``: update the observers (peaks, arrival, last motion); False for a
+    Runge-Kutta stage, whose state is not one of the run's.
     ``flux[k, 0]`` is the mass flux (m^2/s) through face k towards +x, ``flux[k, 1]`` its
     momentum flux. Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)`` (see :func:`step_faces`).
@@ -257,55 +338,70 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
 
     # --- sweep 1: fluxes (every normal along +x), trial state, threshold flags
-    h0 = _emitting(h[0], h_zero)
-    c0 = sound_speed(h0, g * gamma_z[0])
-    u0 = hu[0] / h0 if h0 > 0.0 else 0.0
-    fp_h, fp_q, fm_h, fm_q = half_fluxes(h0, u0, c0, c0 * density[0])
-    if left == WALL:  # mirror ghost (h, -u): no mass, twice the pressure
-        fl_h = 0.0
-        fl_q = 2.0 * fm_q
-    else:  # open: transmissive for what leaves, closed to what would enter
-        gp_h, gp_q, _, _ = half_fluxes(h0, min(u0, 0.0), c0, c0 * density[0])
-        fl_h = _open_mass(-(gp_h + fm_h)) * -1.0
-        fl_q = gp_q + fm_q
-    flux[0, 0] = fl_h
-    flux[0, 1] = fl_q
-    u_prev = u0
-    for i in range(1, n + 1):
-        if i < n:
-            hi = _emitting(h[i], h_zero)
-            ci = sound_speed(hi, g * gamma_z[i])
-            ui = hu[i] / hi if hi > 0.0 else 0.0
-            np_h, np_q, nm_h, nm_q = half_fluxes(hi, ui, ci, ci * density[i])
-            fr_h = fp_h + nm_h
-            fr_q = fp_q + nm_q
-        else:
-            ui = 0.0
-            np_h = np_q = 0.0
-            if right == WALL:
-                fr_h = 0.0
-                fr_q = 2.0 * fp_q
+    if order2:
+        _profile_fluxes2(recon, h, h_zero, density, gamma_z, g, left, right, flux)
+        for k in range(n):
+            hk = _emitting(h[k], h_zero)
+            uk = abs(hu[k] / hk) if hk > 0.0 else 0.0
+            qx, _, fk = _trial_momentum(h[k], h_zero, uk, hu[k], 0.0,
+                                        (flux[k, 0] - flux[k + 1, 0]) / dx,
+                                        (flux[k, 1] - flux[k + 1, 1]) / dx, 0.0, dt, dt_decide,
+                                        gamma_x[k], 0.0, gamma_z[k],
+                                        curvature[k, 0] * (uk * uk),
+                                        law, p0, p1, p2, p3, p4, p5, p6, p7, g, order2)
+            hu_new[k] = qx
+            hv_new[k] = uk  # scratch: |u^n| for sweep 2
+            flag[k] = fk
+    else:
+        h0 = _emitting(h[0], h_zero)
+        c0 = sound_speed(h0, g * gamma_z[0])
+        u0 = hu[0] / h0 if h0 > 0.0 else 0.0
+        fp_h, fp_q, fm_h, fm_q = half_fluxes(h0, u0, c0, c0 * density[0])
+        if left == WALL:  # mirror ghost (h, -u): no mass, twice the pressure
+            fl_h = 0.0
+            fl_q = 2.0 * fm_q
+        else:  # open: transmissive for what leaves, closed to what would enter
+            gp_h, gp_q, _, _ = half_fluxes(h0, min(u0, 0.0), c0, c0 * density[0])
+            fl_h = _open_mass(-(gp_h + fm_h)) * -1.0
+            fl_q = gp_q + fm_q
+        flux[0, 0] = fl_h
+        flux[0, 1] = fl_q
+        u_prev = u0
+        for i in range(1, n + 1):
+            if i < n:
+                hi = _emitting(h[i], h_zero)
+                ci = sound_speed(hi, g * gamma_z[i])
+                ui = hu[i] / hi if hi > 0.0 else 0.0
+                np_h, np_q, nm_h, nm_q = half_fluxes(hi, ui, ci, ci * density[i])
+                fr_h = fp_h + nm_h
+                fr_q = fp_q + nm_q
             else:
-                hm = _emitting(h[n - 1], h_zero)
-                um = hu[n - 1] / hm if hm > 0.0 else 0.0
-                cm = sound_speed(hm, g * gamma_z[n - 1])
-                _, _, gm_h, gm_q = half_fluxes(hm, max(um, 0.0), cm, cm * density[n - 1])
-                fr_h = _open_mass(fp_h + gm_h)
-                fr_q = fp_q + gm_q
-        flux[i, 0] = fr_h
-        flux[i, 1] = fr_q
-        k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
-        qx, _, fk = _trial_momentum(h[k], h_zero, abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
-                                    (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
-                                    gamma_z[k], curvature[k, 0] * (u_prev * u_prev),
-                                    law, p0, p1, p2, p3, p4, p5, p6, p7, g)
-        hu_new[k] = qx
-        hv_new[k] = abs(u_prev)  # scratch: |u^n| for sweep 2 (hv is identically 0 on a line)
-        flag[k] = fk
-        u_prev = ui
-        fl_h = fr_h
-        fl_q = fr_q
-        fp_h, fp_q = np_h, np_q
+                ui = 0.0
+                np_h = np_q = 0.0
+                if right == WALL:
+                    fr_h = 0.0
+                    fr_q = 2.0 * fp_q
+                else:
+                    hm = _emitting(h[n - 1], h_zero)
+                    um = hu[n - 1] / hm if hm > 0.0 else 0.0
+                    cm = sound_speed(hm, g * gamma_z[n - 1])
+                    _, _, gm_h, gm_q = half_fluxes(hm, max(um, 0.0), cm, cm * density[n - 1])
+                    fr_h = _open_mass(fp_h + gm_h)
+                    fr_q = fp_q + gm_q
+            flux[i, 0] = fr_h
+            flux[i, 1] = fr_q
+            k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
+            qx, _, fk = _trial_momentum(h[k], h_zero, abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
+                                        (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
+                                        gamma_z[k], curvature[k, 0] * (u_prev * u_prev),
+                                        law, p0, p1, p2, p3, p4, p5, p6, p7, g, order2)
+            hu_new[k] = qx
+            hv_new[k] = abs(u_prev)  # scratch: |u^n| for sweep 2 (hv is identically 0 on a line)
+            flag[k] = fk
+            u_prev = ui
+            fl_h = fr_h
+            fl_q = fr_q
+            fp_h, fp_q = np_h, np_q
 
     # --- sweep 2: mass with the Dirac switch, projection, observers
     outflow = 0.0
@@ -336,21 +432,15 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         speed_n = hv_new[k]
         qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt, gamma_z[k],
                                     curvature[k, 0] * (speed_n * speed_n),
-                                    law, p0, p1, p2, p3, p4, p5, p6, p7, g)
+                                    law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[k], order2)
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0
         clamped += cl
         speed, inv_k = _observe(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
         inv_lim = max(inv_lim, inv_k)
-        if hn > peak_h[k]:
-            peak_h[k] = hn
-        if speed > peak_speed[k]:
-            peak_speed[k] = speed
-        if hn > h_dry and math.isnan(arrival[k]):
-            arrival[k] = t_new
-        if speed > 0.0:
-            last_moved[k] = t_new
+        if observe:
+            _record(k, hn, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved)
         kinetic += hn * dx * speed * speed
         if _moves(speed, speed_n, max(abs(fl), abs(fr)), hn):
             if hn > h_dry:
@@ -365,7 +455,8 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
                gamma_x, gamma_y, gamma_z, curvature,
                h, hu, hv, h_new, hu_new, hv_new, flux, transport, flag,
                law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-               arrival, last_moved, active_faces, n_active, touched, n_touched):
+               arrival, last_moved, active_faces, n_active, touched, n_touched, order2,
+               face_state, observe):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
     Only the ``n_active`` faces of ``active_faces`` (those of the wet cells) and the
@@ -401,23 +492,23 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
         ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
         length = face_length[f]
-        hi = _emitting(h[i], h_zero)
+        hi, qi1, qi2 = _face_side(f, 0, i, h, hu, hv, h_zero, order2, face_state)
         uni = 0.0
         uti = 0.0
         if hi > 0.0:
-            uni = (hu[i] * ni_x + hv[i] * ni_y) / hi
-            uti = (hu[i] * ti_x + hv[i] * ti_y) / hi
+            uni = (qi1 * ni_x + qi2 * ni_y) / hi
+            uti = (qi1 * ti_x + qi2 * ti_y) / hi
         ci = sound_speed(hi, g * gamma_z[i])
         fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci, ci * density[i])
         if j >= 0:
             nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
             tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
-            hj = _emitting(h[j], h_zero)
+            hj, qj1, qj2 = _face_side(f, 1, j, h, hu, hv, h_zero, order2, face_state)
             unj = 0.0
             utj = 0.0
             if hj > 0.0:
-                unj = (hu[j] * nj_x + hv[j] * nj_y) / hj
-                utj = (hu[j] * tj_x + hv[j] * tj_y) / hj
+                unj = (qj1 * nj_x + qj2 * nj_y) / hj
+                utj = (qj1 * tj_x + qj2 * tj_y) / hj
             cj = sound_speed(hj, g * gamma_z[j])
             _, _, gm_h, gm_q = half_fluxes(hj, unj, cj, cj * density[j])
         elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
@@ -461,7 +552,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
                                      hv_new[i] * inv_area, dt, dt_decide, gamma_x[i],
                                      gamma_y[i], gamma_z[i],
                                      _centripetal(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g)
+                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, order2)
         hu_new[i] = qx
         hv_new[i] = qy
         flag[i] = fi
@@ -515,21 +606,15 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             qy = dt * (qy / area + g * hn * gamma_y[i])
         qx, qy, cl = _final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
                                      _centripetal(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g)
+                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[i], order2)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy
         clamped += cl
         speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
-        if hn > peak_h[i]:
-            peak_h[i] = hn
-        if speed > peak_speed[i]:
-            peak_speed[i] = speed
-        if hn > h_dry and math.isnan(arrival[i]):
-            arrival[i] = t_new
-        if speed > 0.0:
-            last_moved[i] = t_new
+        if observe:
+            _record(i, hn, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved)
         kinetic += hn * area * speed * speed
         if _moves(speed, speed_n, transport[i], hn):
             if hn > h_dry:
@@ -537,6 +622,109 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             else:
                 film += hn * area
     return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _heun_cell(i, h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero, h_new, hu_new, hv_new):
+    """Heun's average of cell i, ``U^{n+1} = (U^n + U**) / 2``, with the local fallback.
+
+    A cell that the first stage (a first-order step from U^n) put under the Coulomb
+    threshold takes the first-order answer, q = 0: the average would give it q^n / 2 and a
+    mass that stops would never quite stop. Mass is always averaged (each stage conserves
+    it, so their average does). Returns 1 when the fallback changed the cell.
+    """
+    hn = 0.5 * (h0[i] + h2[i])
+    qx = 0.5 * (hu0[i] + hu2[i])
+    qy = 0.5 * (hv0[i] + hv2[i])
+    fell = 0
+    if hn <= h_zero or flag1[i] == UNDER_THRESHOLD:
+        if (qx != 0.0 or qy != 0.0) and flag1[i] == UNDER_THRESHOLD:
+            fell = 1
+        qx = 0.0
+        qy = 0.0
+    h_new[i] = hn
+    hu_new[i] = qx
+    hv_new[i] = qy
+    return hn, qx, qy, fell
+
+
+@njit(error_model="numpy", cache=True)
+def heun_profile(h0, hu0, hv0, h2, hu2, hv2, flag1, flag, flux, dirac, dx, cfl_factor, gamma_z, g,
+                 h_dry, h_zero, t_new, peak_h, peak_speed, arrival, last_moved, h_new, hu_new,
+                 hv_new):
+    """Order 2 on a profile: the average of the two stages and the step's observers.
+
+    Returns ``(dt_limit, moving, film, kinetic, fallbacks)`` as :func:`step_profile` does
+    (moving cells: u != 0 and a face that carried mass in the second stage).
+    """
+    n = h0.size
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    fallbacks = 0
+    for k in range(n):
+        hn, qx, _, fell = _heun_cell(k, h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero, h_new,
+                                     hu_new, hv_new)
+        hv_new[k] = 0.0
+        fallbacks += fell
+        speed, inv_k = _observe(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
+        inv_lim = max(inv_lim, inv_k)
+        _record(k, hn, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved)
+        kinetic += hn * dx * speed * speed
+        fk = flag[k]
+        fl = 0.0 if _dirac_face(dirac, fk, flag[k - 1] if k > 0 else fk) else flux[k, 0]
+        fr = 0.0 if _dirac_face(dirac, fk, flag[k + 1] if k < n - 1 else fk) else flux[k + 1, 0]
+        speed_n = _speed(h0[k], hu0[k], 0.0)
+        if _moves(speed, speed_n, max(abs(fl), abs(fr)), hn):
+            if hn > h_dry:
+                moving += hn * dx
+            else:
+                film += hn * dx
+    return _limit(inv_lim), moving, film, kinetic, fallbacks
+
+
+@njit(error_model="numpy", cache=True)
+def heun_faces(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cell_area,
+               cfl_factor, gamma_z, g, h_dry, h_zero, t_new, peak_h, peak_speed, arrival,
+               last_moved, h_new, hu_new, hv_new):
+    """Order 2 on any mesh: :func:`heun_profile` over the ``n_cells`` listed ``cells`` (those
+    either stage changed); ``transport`` holds the face fluxes of the stage that last swept
+    each cell. Returns ``(dt_limit, moving, film, kinetic, fallbacks)``."""
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    fallbacks = 0
+    for c in range(n_cells):
+        i = cells[c]
+        hn, qx, qy, fell = _heun_cell(i, h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero, h_new,
+                                      hu_new, hv_new)
+        fallbacks += fell
+        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        inv_lim = max(inv_lim, inv_i)
+        _record(i, hn, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved)
+        area = cell_area[i]
+        kinetic += hn * area * speed * speed
+        if _moves(speed, _speed(h0[i], hu0[i], hv0[i]), transport[i], hn):
+            if hn > h_dry:
+                moving += hn * area
+            else:
+                film += hn * area
+    return _limit(inv_lim), moving, film, kinetic, fallbacks
+
+
+@njit(error_model="numpy", cache=True)
+def merge_lists(first, n_first, second, n_second, stamps, stamp, out):
+    """``out``: the cells of both lists, each once (marked with ``stamp``); returns the count."""
+    k = 0
+    for c in range(n_first + n_second):
+        i = first[c] if c < n_first else second[c - n_first]
+        if stamps[i] != stamp:
+            stamps[i] = stamp
+            out[k] = i
+            k += 1
+    return k
 
 
 @njit(error_model="numpy", cache=True)
@@ -592,7 +780,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
-            stats):
+            stats, order, limiter, face_offset):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -602,9 +790,28 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
     *stopped* once the moving volume (cells with u != 0 and h > h_dry) falls below
     ``stop_volume``, or once the kinetic energy is at most ``stop_kinetic`` times its peak so
     far (AvaFrame's rule); a negative value switches that rule off.
+    ``order`` 2: limited reconstruction (``limiter``, :mod:`avflow.numerics.reconstruction`;
+    ``face_offset[f, side]``: from each cell's centre half the way to its neighbour's, in its
+    basis) and Heun's two stages, each a full step of the seed's scheme (threshold, Dirac
+    faces, projection), averaged by :func:`heun_profile` / :func:`heun_faces`.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
     """
     t = stats[ST_TIME]
+    order2 = order == 2
+    # order-2 work arrays: one allocation per call, none per step
+    m2 = h.size if order2 else 0
+    f2 = face_cells.shape[0] if order2 else 0
+    recon = np.zeros((m2 if structured else 0, 4))
+    work = np.zeros((0 if structured else m2, N_WORK))
+    face_state = np.zeros((0 if structured else f2, 2, 3))
+    s_h = np.zeros(m2)
+    s_hu = np.zeros(m2)
+    s_hv = np.zeros(m2)
+    flag1 = np.full(m2, DRY, dtype=flag.dtype)  # stage-1 flags; DRY outside a step
+    wet2 = np.empty(0 if structured else m2, dtype=np.int64)
+    touched2 = np.empty(0 if structured else m2, dtype=np.int64)
+    union = np.empty(0 if structured else m2, dtype=np.int64)
+    active2 = np.empty(0 if structured else f2, dtype=np.int64)
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     status = REACHED_TARGET
@@ -644,24 +851,99 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                 nxt_hu[i] = cur_hu[i]
                 nxt_hv[i] = cur_hv[i]
             n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells,
-                                           face_stamp, cell_stamp, stats[ST_STEPS] + steps,
+                                           face_stamp, cell_stamp,
+                                           (3 if order2 else 1) * (stats[ST_STEPS] + steps),
                                            active_faces, touched)
+        n_changed = n_touched if not structured else 0
         for _ in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
-            if structured:
+            fallbacks = 0
+            if structured and not order2:
                 ok, out, lim, moving, film, clamped, kinetic = step_profile(
                     face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                     curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, flag,
                     law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved)
-            else:
+                    arrival, last_moved, False, recon, True)
+            elif not order2:
                 ok, out, lim, moving, film, clamped, kinetic = step_faces(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
                     law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved, active_faces, n_active, touched, n_touched)
+                    arrival, last_moved, active_faces, n_active, touched, n_touched, False,
+                    face_state, True)
+            elif structured:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
+                reconstruct_profile(cur_h, cur_hu, h_zero, limiter, recon)
+                ok, out, lim, moving, film, clamped, kinetic = step_profile(
+                    face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
+                    curvature,
+                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, flag,
+                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
+                    arrival, last_moved, True, recon, False)
+                if ok:
+                    flag1[:] = flag
+                    reconstruct_profile(nxt_h, nxt_hu, h_zero, limiter, recon)
+                    ok, out2, lim, moving, film, clamped2, kinetic = step_profile(
+                        face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
+                        curvature,
+                        nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, flag,
+                        law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+                        peak_speed, arrival, last_moved, True, recon, False)
+                if ok:
+                    out = 0.5 * (out + out2)
+                    clamped += clamped2
+                    lim, moving, film, kinetic, fallbacks = heun_profile(
+                        cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1, flag, flux, dirac,
+                        cell_area[0], cfl_factor, gamma_z, g, h_dry, h_zero, t_new, peak_h,
+                        peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
+            else:  # order 2 on faces, each stage on its own active lists
+                reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_area,
+                                  cur_h, cur_hu, cur_hv, h_zero, active_faces, n_active, touched,
+                                  n_touched, work, face_state)
+                ok, out, lim, moving, film, clamped, kinetic = step_faces(
+                    face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+                    gamma_x, gamma_y, gamma_z, curvature,
+                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
+                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
+                    arrival, last_moved, active_faces, n_active, touched, n_touched, True,
+                    face_state, False)
+                if ok:
+                    n_wet2 = 0
+                    for c in range(n_touched):
+                        i = touched[c]
+                        flag1[i] = flag[i]
+                        s_h[i] = nxt_h[i]  # stage 2 rewrites only its own touched cells
+                        s_hu[i] = nxt_hu[i]
+                        s_hv[i] = nxt_hv[i]
+                        if nxt_h[i] > h_zero:
+                            wet2[n_wet2] = i
+                            n_wet2 += 1
+                    stamp = 3 * (stats[ST_STEPS] + steps)  # stage 1 listed with this stamp
+                    n_active2, n_touched2 = activate(wet2, n_wet2, cell_face_ptr, cell_face_idx,
+                                                     face_cells, face_stamp, cell_stamp,
+                                                     stamp + 1, active2, touched2)
+                    reconstruct_faces(face_cells, face_frame, face_length, face_offset,
+                                      cell_area, nxt_h, nxt_hu, nxt_hv, h_zero, active2,
+                                      n_active2, touched2, n_touched2, work, face_state)
+                    ok, out2, lim, moving, film, clamped2, kinetic = step_faces(
+                        face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+                        gamma_x, gamma_y, gamma_z, curvature,
+                        nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag,
+                        law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+                        peak_speed, arrival, last_moved, active2, n_active2, touched2,
+                        n_touched2, True, face_state, False)
+                if ok:
+                    out = 0.5 * (out + out2)
+                    clamped += clamped2
+                    n_changed = merge_lists(touched, n_touched, touched2, n_touched2, cell_stamp,
+                                            stamp + 2, union)
+                    lim, moving, film, kinetic, fallbacks = heun_faces(
+                        union, n_changed, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
+                        transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new,
+                        peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
+                    for c in range(n_changed):
+                        flag1[union[c]] = DRY
             if ok:
                 break
             dt *= 0.5
@@ -673,14 +955,16 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
         t = t_target if last else t + dt
         steps += 1
         if not structured:
+            changed = union if order2 else touched
             n_wet = 0
-            for c in range(n_touched):
-                i = touched[c]
+            for c in range(n_changed):
+                i = changed[c]
                 previous[c] = i
                 if nxt_h[i] > h_zero:
                     wet[n_wet] = i
                     n_wet += 1
-            n_previous = n_touched
+            n_previous = n_changed
+        stats[ST_FALLBACK] += fallbacks
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv

@@ -19,6 +19,7 @@ import numpy as np
 from avflow.numerics import kernels as K
 from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
+from avflow.numerics.reconstruction import LIMITERS
 from avflow.terrain.bed import Terrain
 
 STATUS_NAMES = {
@@ -58,6 +59,26 @@ class State:
         return np.where(self.h > 0.0, s, 0.0)
 
 
+def face_offsets(terrain: Terrain) -> np.ndarray:
+    """(n_faces, 2, 2): from each side's cell centre half the way to the other's, in that
+    cell's tangent basis (zero on boundary faces): where order 2 evaluates its slopes.
+
+    On a grid the point is the face's midpoint; on the triangles' median dual cells the
+    midpoint of the edge between the two vertices, which the dual face crosses.
+    """
+    xx, yy = terrain.cell_xy()
+    centre = np.stack([xx, yy, terrain.bed_elevation], axis=1)
+    basis = terrain.tangent_basis
+    fc = terrain.mesh.face_cells
+    inner = fc[:, 1] >= 0
+    i, j = fc[inner, 0], fc[inner, 1]
+    half = 0.5 * (centre[j] - centre[i])
+    out = np.zeros((fc.shape[0], 2, 2))
+    out[inner, 0] = np.einsum("kc,kbc->kb", half, basis[i])
+    out[inner, 1] = np.einsum("kc,kbc->kb", -half, basis[j])
+    return np.ascontiguousarray(out)
+
+
 @dataclass
 class Solver:
     """The kinetic scheme of the seed on one terrain with one friction law.
@@ -77,8 +98,16 @@ class Solver:
     #: m: a cell thinner than this after a step keeps its mass but no momentum (a round-off
     #: residue of emptying fluxes, see kernels._final_momentum); 0 disables it.
     h_zero: float = 0.0
+    #: 1: the seed's first-order scheme; 2: limited linear reconstruction and Heun's two
+    #: stages (:mod:`avflow.numerics.reconstruction`)
+    order: int = 1
+    limiter: str = "minmod"
 
     def __post_init__(self):
+        if self.order not in (1, 2):
+            raise ValueError(f"order must be 1 or 2, got {self.order}")
+        if self.limiter not in LIMITERS:
+            raise ValueError(f"limiter must be one of {', '.join(LIMITERS)}, got {self.limiter!r}")
         if not 0.0 < self.cfl <= 1.0:
             raise ValueError("cfl must be in (0, 1]: positivity of h needs it (eq. 41)")
         # The kernels read N_PARAMS slots: a shorter vector (e.g. [tan(delta), 0, 0, 0]) is
@@ -110,6 +139,8 @@ class Solver:
         self._cell_face_ptr = np.concatenate(
             [[0], np.cumsum(np.bincount(owners, minlength=n))]).astype(np.int64)
         self._transport = np.zeros(n)
+        self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
+                             else np.zeros((0, 2, 2)))
 
     def new_state(self, h0: np.ndarray) -> State:
         """A state at rest (eq. 60) with thickness ``h0`` (m) per cell."""
@@ -160,5 +191,6 @@ class Solver:
             self._flux, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
             bool(self.dirac), float(self.h_dry), float(self.h_zero), float(self.cfl), float(t_target),
             int(max_steps), float(stop_volume), float(stop_kinetic), state.peak_h, state.peak_speed, state.arrival,
-            state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats)
+            state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
+            int(self.order), LIMITERS[self.limiter], self._face_offset)
         return STATUS_NAMES[status]

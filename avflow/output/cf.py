@@ -130,6 +130,9 @@ def global_attributes(result) -> dict:
         "runout_truncated": int(s["runout_truncated"]),
         "clamped_normal_cells": s["clamped_normal_cells"],
         "halved_steps": s["halved_steps"],
+        "numerics_order": sc.numerics.order,
+        "limiter": sc.numerics.limiter,
+        "order2_fallbacks": s["order2_fallbacks"],
         "comment": ("h is measured normal to the bed; on profiles x is the distance along the "
                     "bed and volumes are per metre of width"),
     }

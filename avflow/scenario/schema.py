@@ -550,6 +550,18 @@ class Boundaries(_Model):
                 "title": sides.get("title", cls.__name__), "description": cls.__doc__}
 
 
+class Numerics(_Model):
+    """The scheme: the seed's first order, or its second-order kinetic form."""
+
+    order: Literal[1, 2] = 1
+    """1: the seed's scheme (its figures are reproduced with it); 2: limited linear
+    reconstruction of thickness and velocity at the faces and Heun's two-stage
+    Runge-Kutta, each stage keeping the threshold, Dirac faces and projection (README)."""
+    limiter: Literal["minmod", "mc"] = "minmod"
+    """Limited slopes of order 2: minmod (robust at wet/dry fronts; Barth-Jespersen on grids
+    and triangles) or mc (monotonized central on profiles, sharper at smooth extrema)."""
+
+
 class Physics(_Model):
     """Physical constants."""
 
@@ -589,6 +601,7 @@ class Scenario(_Model):
     output: Output = Output()
     boundary: Boundaries = Boundaries()
     physics: Physics = Physics()
+    numerics: Numerics = Numerics()
 
     _source_path: str | None = PrivateAttr(None)
     _source_text: str | None = PrivateAttr(None)

@@ -145,6 +145,7 @@ def prepare(scenario, max_memory=None):
                               else min_flow)
     solver = Solver(terrain, law, params, gravity=scenario.physics.gravity,
                     cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
+                    order=scenario.numerics.order, limiter=scenario.numerics.limiter,
                     h_dry=thresholds["dry"],
                     h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]))
     return terrain, h0, solver, thresholds
@@ -273,6 +274,7 @@ def summarize(result: RunResult, v0: float) -> dict:
         "dt_max": float(state.stats[K.ST_DT_MAX]),
         "clamped_normal_cells": int(state.stats[K.ST_CLAMPED]),
         "halved_steps": int(state.stats[K.ST_RETRIES]),
+        "order2_fallbacks": int(state.stats[K.ST_FALLBACK]),
         "wall_time": result.wall_time,
         "cell_updates_per_second": state.steps * terrain.n_cells / max(result.wall_time, 1e-9),
     }
