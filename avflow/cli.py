@@ -78,6 +78,10 @@ def _cmd_run(args) -> int:
                                 for block in (scenario.terrain, scenario.release)
                                 for name in ("path", "domain")]
     check_output_path(out, inputs)
+    if scenario.output.path is not None and scenario.output.path.line:
+        from avflow.output.path import read_line
+
+        read_line(scenario.output.path.line)  # a bad path line: exit 2 before the run
     remove_stale_temporaries(out)  # left by a write that was killed
     progress = Progress()
     try:
@@ -95,7 +99,35 @@ def _cmd_run(args) -> int:
               "runout is a lower bound (enlarge the map or the DEM)", file=sys.stderr)
     print(summary_line(ds))
     print(f"wrote {out}")
+    if scenario.output.path is not None:
+        _run_path(ds, scenario.output.path, out)
     return 0 if result.status in ("stopped", "completed") else 1
+
+
+def _run_path(ds, block, out: Path) -> None:
+    """output.path of a run: OUT_path.csv/.md/.png and one line; a warning if impossible."""
+    from avflow.output.path import PathSettings, summary_line as path_line, write_run_path
+
+    try:
+        result, written = write_run_path(ds, PathSettings.from_scenario(block),
+                                         out.with_name(out.stem + "_path"))
+    except AvflowError as err:
+        print(f"avflow: warning: path analysis: {err}", file=sys.stderr)
+        return
+    truncated = bool(int(ds.attrs.get("runout_truncated", 0)))
+    print(path_line(result, float(ds["runout"]), truncated))
+    print("wrote " + ", ".join(str(w) for w in written))
+
+
+def _cmd_path(args) -> int:
+    from avflow.output.path import analyse_target
+
+    text, written = analyse_target(args.target, line=args.line, field=args.field,
+                                   threshold=args.threshold, width=args.width,
+                                   output=args.output)
+    print(text)
+    print("wrote " + ", ".join(str(w) for w in written))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -142,6 +174,22 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("run_file", help="NetCDF written by `avflow run`")
     pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
     pl.set_defaults(func=_cmd_plot)
+    pa = sub.add_parser("path", help="runout along the avalanche path (AvaFrame's AIMEC): "
+                                     "table and PNG of a run file or an ensemble folder")
+    pa.add_argument("target", help="NetCDF written by `avflow run`, or an `avflow ensemble` "
+                                   "folder")
+    pa.add_argument("--line", help="path line (.shp, .geojson, .json, .csv of x, y; 'com': "
+                                   "the flow's centre-of-mass track; default: the "
+                                   "scenario's output.path.line, else 'com')")
+    pa.add_argument("--field", choices=("pressure", "thickness"),
+                    help="peak field that marks the runout point (default: pressure)")
+    pa.add_argument("--threshold", type=float, help="kPa for pressure (default 1), m for "
+                    "thickness (default: the run's runout threshold)")
+    pa.add_argument("--width", type=float, help="width (m) of the band around the line "
+                                                "whose cells count (default: every cell)")
+    pa.add_argument("-o", "--output", help="output stem (default: RUN_path next to the run "
+                                           "file, OUTDIR/path for an ensemble)")
+    pa.set_defaults(func=_cmd_path)
     return p
 
 

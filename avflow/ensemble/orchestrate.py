@@ -363,11 +363,16 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     _clean_temporaries(folder)
 
     table = member_table(ensemble, rows, outdir)
+    path_ds = _path_analysis(ensemble, table, outdir)  # adds the path_* columns
     if write_outputs:
         write_tables(table, outdir)
         from avflow.ensemble.dataset import ensemble_dataset, write_ensemble_netcdf
 
-        write_ensemble_netcdf(ensemble_dataset(ensemble, table, outdir), outdir / "ensemble.nc")
+        ds = ensemble_dataset(ensemble, table, outdir)
+        if path_ds is not None:
+            ds = ds.merge(path_ds)
+            ds.attrs.update(path_ds.attrs)
+        write_ensemble_netcdf(ds, outdir / "ensemble.nc")
     ran = sum(not r.get("reused") for r in rows.values())
     return Outcome(table, ran, len(rows) - ran, n_failed, wall, startup, n_workers)
 
@@ -558,6 +563,21 @@ def _record_task(future, chunk: list[Member], by_index: dict, record) -> None:
 # =========================================================================================
 
 
+def _path_analysis(ensemble: Ensemble, table, outdir: Path):
+    """Runout along one path for every member (:mod:`avflow.output.path`; the base
+    scenario's ``output.path``, else the farthest-travelling member's centre-of-mass track):
+    ``path_*`` columns in ``table`` and the ``ensemble.nc`` variables, or None with a line
+    on stderr when it cannot be done (the members' files are untouched)."""
+    from avflow.output.path import PathSettings, ensemble_path
+
+    try:
+        return ensemble_path(table, outdir, PathSettings.from_scenario(ensemble.base.output.path))
+    except Exception as err:  # noqa: BLE001 - the members are done; say why, go on
+        print(f"avflow: warning: path analysis skipped: {' '.join(str(err).split())}",
+              file=sys.stderr)
+        return None
+
+
 def member_table(ensemble: Ensemble, rows: dict[int, dict], outdir: Path):
     """One row per member, in member order: parameters, status, summaries, file."""
     import pandas as pd
@@ -608,7 +628,7 @@ def write_tables(table, outdir: Path) -> None:
     failures = outdir / "failures.csv"
     if len(failed):
         columns = [c for c in table.columns if c not in SUMMARY_FIELDS
-                   and c not in ("member_time", "steps", "file")]
+                   and c not in ("member_time", "steps", "file") and not c.startswith("path_")]
         _atomic(failures, lambda tmp: failed[columns].to_csv(tmp, index=False))
     else:
         failures.unlink(missing_ok=True)

@@ -496,6 +496,32 @@ class Time(_Model):
 STOP_FRACTIONS = {"moving_volume": 1e-3, "kinetic_energy": 0.01}
 
 
+#: Path line files of output.path (a shapefile's companions count in its content).
+LINE_SUFFIXES = {".shp": (".shx", ".dbf", ".prj"), ".geojson": (), ".json": (), ".csv": ()}
+
+
+class PathAnalysis(_Model):
+    """Runout along the avalanche path (AvaFrame's AIMEC; avflow/output/path.py): `avflow
+    run` writes OUT_path.csv/.md/.png beside the NetCDF, ensembles add path_* columns to
+    summary.csv and ensemble.nc. Post-processing only: not part of the scenario hash."""
+
+    line: Text | None = None
+    """Path line file (.shp, .geojson, .json, or .csv of x, y), relative to the scenario
+    file; stored absolute; null: the flow's own centre-of-mass track."""
+    field: Literal["pressure", "thickness"] = "pressure"
+    """Peak field whose threshold marks the runout point."""
+    threshold: Positive | None = None
+    """kPa for pressure (null: 1 kPa, AIMEC's default), m for thickness (null: the run's
+    runout threshold)."""
+    width: Positive | None = None
+    """Width (m) of the band around the line whose cells count; null: every cell."""
+
+    @field_validator("line")
+    @classmethod
+    def _existing_line(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else _data_file(value, info, LINE_SUFFIXES)
+
+
 class Output(_Model):
     """What is stored, and when the run counts as stopped."""
 
@@ -524,6 +550,9 @@ class Output(_Model):
         return data
     dry_threshold: Positive | None = None
     """Thickness (m) below which a cell counts as dry in decisions; null: automatic."""
+    path: PathAnalysis | None = None
+    """Runout along the avalanche path (line, field, threshold, width); null: not done by
+    `avflow run` (ensembles use the centre-of-mass track)."""
 
 
 class Boundaries(_Model):
@@ -646,6 +675,9 @@ class Scenario(_Model):
             raise _problem(f"required on a 2D terrain ({terrain!r})", "release.y")
         if terrain == "profile" and self.grid.dy is not None:
             raise _problem("not allowed on a 'profile' terrain (1D: dx only)", "grid.dy")
+        if terrain == "profile" and self.output.path is not None and self.output.path.line:
+            raise _problem("not allowed on a 'profile' terrain (the profile is its own path)",
+                           "output.path.line")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
         return self
@@ -720,6 +752,7 @@ class Scenario(_Model):
         files count by their content (with their companion files), not by their path.
         """
         data = self.model_dump(mode="json")
+        data["output"].pop("path", None)  # post-processing: the run does not depend on it
         for block in ("terrain", "release"):
             if "path" in data[block]:
                 try:
