@@ -52,6 +52,9 @@ MAX_STEPS = 2
 FAILED = 3
 
 MAX_RETRIES = 12
+#: Order 2 marks its lists with distinct stamps: stage 1, then stage 2 and the union of
+#: both for every attempt of a step (a halved step lists again).
+STAMPS_PER_STEP = 2 * MAX_RETRIES + 1
 
 #: A cell counts as moving when u != 0 and one of its faces carries a mass flux above this
 #: fraction of h |u|. A kinetic scheme can hold a cell at a steady u != 0 whose face fluxes
@@ -852,10 +855,11 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                 nxt_hv[i] = cur_hv[i]
             n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells,
                                            face_stamp, cell_stamp,
-                                           (3 if order2 else 1) * (stats[ST_STEPS] + steps),
+                                           (STAMPS_PER_STEP if order2 else 1)
+                                           * (stats[ST_STEPS] + steps),
                                            active_faces, touched)
         n_changed = n_touched if not structured else 0
-        for _ in range(MAX_RETRIES):
+        for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             fallbacks = 0
             if structured and not order2:
@@ -919,7 +923,8 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                         if nxt_h[i] > h_zero:
                             wet2[n_wet2] = i
                             n_wet2 += 1
-                    stamp = 3 * (stats[ST_STEPS] + steps)  # stage 1 listed with this stamp
+                    # fresh stamps for each attempt: stage 1 listed with the step's first
+                    stamp = STAMPS_PER_STEP * (stats[ST_STEPS] + steps) + 2 * attempt
                     n_active2, n_touched2 = activate(wet2, n_wet2, cell_face_ptr, cell_face_idx,
                                                      face_cells, face_stamp, cell_stamp,
                                                      stamp + 1, active2, touched2)

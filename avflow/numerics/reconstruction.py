@@ -11,8 +11,11 @@ Limiters (``numerics.limiter``):
 - ``minmod`` (default): on profiles the smaller of the two one-sided differences when they
   agree in sign, else 0; on grids and triangles the Barth-Jespersen limiter of a Green-Gauss
   gradient, its multidimensional counterpart (face values stay within the cell's and its
-  neighbours' range). Robust at wet/dry fronts: a face thickness is never negative and never
-  above the largest neighbouring thickness.
+  neighbours' range). Robust at wet/dry fronts: a face thickness is never negative, never
+  above the largest neighbouring thickness, and never above twice the cell's own (on a
+  profile ``(h_L + h_R) / 2 = h`` gives that; on grids and triangles, whose face offsets are
+  not exactly opposite on a curved bed and have none on the map's edge, it is enforced), so
+  that with ``time.cfl <= 0.5`` no face sends more than the cell holds.
 - ``mc`` (monotonized central) on profiles: ``minmod(2 a, 2 b, (a + b) / 2)``, sharper at
   smooth extrema, still monotone; on grids and triangles the same Barth-Jespersen limiter.
 
@@ -167,6 +170,8 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
                 centre = h[c] if v == 0 else work[c, v - 1]  # _U1, _U2
                 if d > 0.0:
                     ratio = (work[c, _HI + v] - centre) / d
+                    if v == 0:  # a face thickness at most 2 h: no more than the cell holds
+                        ratio = min(ratio, centre / d)
                 elif d < 0.0:
                     ratio = (work[c, _LO + v] - centre) / d
                 else:
