@@ -160,3 +160,14 @@ def test_plane_walls_are_geometry_not_a_truncation():
     scene's channel, not the end of the data."""
     result = simulate(load_scenario(PLANE).with_updates({"time.end": 10.0}))
     assert not result.summary["runout_truncated"]
+
+
+def test_a_release_drawn_up_to_the_dem_edge_has_not_travelled_there(tmp_path):
+    """avaHit's release touches its DEM's NODATA edge: material spreading along the edge at
+    the release's height has not reached the end of the map; a runout is not 'truncated'."""
+    path = slope_dem(tmp_path)
+    text = path.read_text().replace("x: [20.0, 60.0]", "x: [0.0, 40.0]")
+    path.write_text(text)
+    result = simulate(load_scenario(path).with_updates({"time.end": 2.0}))
+    assert result.h0[result.terrain.cell_xy()[0] < 5.0].max() > 0.0  # released at the edge
+    assert not result.summary["runout_truncated"]

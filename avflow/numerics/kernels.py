@@ -283,6 +283,18 @@ def _face_side(f, side, c, h, hu, hv, h_zero, order2, face_state):
     return h[c], hu[c], hv[c]
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _in_face_frame(f, side, c, h, hu, hv, h_zero, order2, face_state, face_frame, g_normal):
+    """``(h, u_n, u_t, c)`` that cell c shows face f on ``side``, velocity in the face frame."""
+    hc, q1, q2 = _face_side(f, side, c, h, hu, hv, h_zero, order2, face_state)
+    un = 0.0
+    ut = 0.0
+    if hc > 0.0:
+        un = (q1 * face_frame[f, side, 0, 0] + q2 * face_frame[f, side, 0, 1]) / hc
+        ut = (q1 * face_frame[f, side, 1, 0] + q2 * face_frame[f, side, 1, 1]) / hc
+    return hc, un, ut, sound_speed(hc, g_normal)
+
+
 @njit(error_model="numpy", cache=True)
 def _profile_fluxes2(recon, h, h_zero, density, gamma_z, g, left, right, flux):
     """Face fluxes of a profile from the reconstructed states (order 2); boundaries as in
@@ -495,24 +507,14 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
         ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
         length = face_length[f]
-        hi, qi1, qi2 = _face_side(f, 0, i, h, hu, hv, h_zero, order2, face_state)
-        uni = 0.0
-        uti = 0.0
-        if hi > 0.0:
-            uni = (qi1 * ni_x + qi2 * ni_y) / hi
-            uti = (qi1 * ti_x + qi2 * ti_y) / hi
-        ci = sound_speed(hi, g * gamma_z[i])
+        hi, uni, uti, ci = _in_face_frame(f, 0, i, h, hu, hv, h_zero, order2, face_state,
+                                          face_frame, g * gamma_z[i])
         fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci, ci * density[i])
         if j >= 0:
             nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
             tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
-            hj, qj1, qj2 = _face_side(f, 1, j, h, hu, hv, h_zero, order2, face_state)
-            unj = 0.0
-            utj = 0.0
-            if hj > 0.0:
-                unj = (qj1 * nj_x + qj2 * nj_y) / hj
-                utj = (qj1 * tj_x + qj2 * tj_y) / hj
-            cj = sound_speed(hj, g * gamma_z[j])
+            hj, unj, utj, cj = _in_face_frame(f, 1, j, h, hu, hv, h_zero, order2, face_state,
+                                              face_frame, g * gamma_z[j])
             _, _, gm_h, gm_q = half_fluxes(hj, unj, cj, cj * density[j])
         elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
             gm_h = -fp_h

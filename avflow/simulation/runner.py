@@ -245,7 +245,7 @@ def summarize(result: RunResult, v0: float) -> dict:
     v_out = float(state.stats[K.ST_OUTFLOW])
     rho = result.scenario.physics.density
     truncated = runout_truncated(terrain, state.peak_h, result.thresholds["runout"],
-                                 result.scenario.terrain.kind == "dem", v_out)
+                                 result.scenario.terrain.kind == "dem", v_out, result.h0)
     runout, length = deposit_extent(terrain, state.h, result.thresholds["runout"], result.h0)
     travel, drop, angle = travel_angle(terrain, result.h0, state.h, result.thresholds["runout"])
     return {

@@ -15,8 +15,8 @@ Definitions (documented in the NetCDF attributes too):
   reaches its end time first.
 - ``mass_balance_error``: ``|V_end + V_out - V_0| / V_0`` (V_out: left through open faces).
 - ``runout_truncated``: material above ``runout_threshold`` reached, at any time, the edge
-  of what is modelled (a DEM's border or NODATA hole, an open side) or left the map: the
-  runout is a lower bound, enlarge the map.
+  of what is modelled (a DEM's border or NODATA hole, an open side) below the lowest
+  released cell, or left the map: the runout is a lower bound, enlarge the map.
 - ``travel_length`` (m, horizontal), ``drop_height`` (m) and ``travel_angle`` (degrees, the
   Fahrboeschung ``atan(drop / length)``): from the highest released cell to the deposit cell
   (h > runout_threshold) farthest from it horizontally.
@@ -72,10 +72,16 @@ def edge_cells(terrain: Terrain, walls_are_edges: bool) -> np.ndarray:
 
 
 def runout_truncated(terrain: Terrain, peak_h: np.ndarray, threshold: float,
-                     walls_are_edges: bool, outflow_volume: float) -> bool:
+                     walls_are_edges: bool, outflow_volume: float, h0: np.ndarray) -> bool:
     """True when material above the runout threshold reached the edge of the map at any
-    time (:func:`edge_cells`) or left it: the runout is then a lower bound."""
+    time (:func:`edge_cells`) below the lowest released cell, or left the map: the runout is
+    then a lower bound. Contact higher up cannot cut a runout: a release drawn up to a DEM's
+    border (avaHit's touches its NODATA edge) spreads along it without travelling."""
     cells = edge_cells(terrain, walls_are_edges)
+    z = terrain.bed_elevation
+    released = h0 > 0.0
+    if released.any():
+        cells = cells[z[cells] < z[released].min()]
     return bool(outflow_volume > 0.0 or np.any(peak_h[cells] > threshold))
 
 
