@@ -20,9 +20,9 @@ from avflow.errors import AvflowError
 class Progress:
     """Simulated time against end time on one terminal line (silent when not a terminal)."""
 
-    def __init__(self, stream=sys.stderr):
+    def __init__(self, stream=sys.stderr, quiet: bool = False):
         self.stream = stream
-        self.live = stream.isatty()
+        self.live = stream.isatty() and not quiet
         self.started = time.perf_counter()
 
     def __call__(self, t: float, t_end: float) -> None:
@@ -61,17 +61,35 @@ def summary_line(ds) -> str:
             f", deposit max {f('deposit_max_thickness', '.2f')} m"
             f", length {f('deposit_length', '.1f')} m"
             f", mass error {f('mass_balance_error', '.1e')}"
-            f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s")
+            f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s"
+            + _compile_note(ds))
+
+
+def _compile_note(ds) -> str:
+    """`` (+ 9.81 s compiling)``: Numba's compilation, apart from the time loop (shown from
+    0.05 s: loading the kernels from Numba's cache takes a few hundredths)."""
+    if "compile_time" not in ds:
+        return ""
+    seconds = float(ds["compile_time"])
+    return f" (+ {seconds:.2f} s compiling)" if seconds >= 0.05 else ""
+
+
+def _load_with_sets(args):
+    """The scenario of ``avflow run``, with the ``--set KEY=VALUE`` changes applied."""
+    from avflow.ensemble.spec import apply_overrides, parse_overrides
+    from avflow.scenario.schema import load_scenario
+
+    overrides = parse_overrides(args.set)  # a malformed --set: exit 2 before reading
+    return apply_overrides(load_scenario(args.scenario), overrides)
 
 
 def _cmd_run(args) -> int:
     from avflow.output.netcdf import (OutputWriteError, check_output_path,
                                       remove_stale_temporaries, write_netcdf)
-    from avflow.scenario.schema import load_scenario
     from avflow.output.dataset import to_dataset
     from avflow.simulation.runner import simulate
 
-    scenario = load_scenario(args.scenario)
+    scenario = _load_with_sets(args)
     out = Path(args.output) if args.output else Path(Path(args.scenario).stem + ".nc")
     # The output is checked before the run (exit 2): not an input, not a folder, writable.
     inputs = [args.scenario] + [getattr(block, name, None)
@@ -83,7 +101,7 @@ def _cmd_run(args) -> int:
 
         read_line(scenario.output.path.line)  # a bad path line: exit 2 before the run
     remove_stale_temporaries(out)  # left by a write that was killed
-    progress = Progress()
+    progress = Progress(quiet=args.quiet)
     try:
         result = simulate(scenario, progress=progress, max_memory=args.max_memory)
     finally:
@@ -97,8 +115,9 @@ def _cmd_run(args) -> int:
     if int(ds.attrs.get("runout_truncated", 0)):
         print(f"avflow: warning: {args.scenario}: material reached the edge of the map; the "
               "runout is a lower bound (enlarge the map or the DEM)", file=sys.stderr)
-    print(summary_line(ds))
-    print(f"wrote {out}")
+    if not args.quiet:
+        print(summary_line(ds))
+        print(f"wrote {out}")
     if scenario.output.path is not None:
         _run_path(ds, scenario.output.path, out)
     return 0 if result.status in ("stopped", "completed") else 1
@@ -134,33 +153,44 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="avflow", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"avflow {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="run one scenario and write a CF NetCDF file")
+    quiet = argparse.ArgumentParser(add_help=False)
+    quiet.add_argument("-q", "--quiet", action="store_true", help="print nothing but warnings "
+                       "and errors (no progress, no summary line)")
+    sets = argparse.ArgumentParser(add_help=False)
+    sets.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
+                      help="change one scenario field by its dotted path, the value in YAML "
+                      "(e.g. --set grid.dx=5 --set rheology.delta_deg=18); repeatable; data "
+                      "paths still start at the scenario file's folder")
+    r = sub.add_parser("run", help="run one scenario and write a CF NetCDF file",
+                       parents=[quiet, sets])
     r.add_argument("scenario", help="scenario YAML file")
     r.add_argument("-o", "--output", help="output NetCDF (default: SCENARIO name + .nc)")
     r.add_argument("--max-memory", metavar="SIZE", help="refuse a run estimated to need more "
                    "(bytes, or 8G, 512M; 'none': no check; default: $AVFLOW_MAX_MEMORY, "
                    "else half of this machine's memory)")
     r.set_defaults(func=_cmd_run)
-    e = sub.add_parser("ensemble", help="run an ensemble file on dask; exit 1 if a member "
-                                        "failed")
+    e = sub.add_parser("ensemble", help="run an ensemble file (here or on dask); exit 1 if "
+                                        "a member failed", parents=[quiet, sets])
     e.add_argument("ensemble", help="ensemble YAML file (base scenario + vary/sample)")
     e.add_argument("-o", "--output", required=True, help="output folder (resumable)")
     e.add_argument("--scheduler", help="address (tcp://host:port) or scheduler file of a "
                                        "running dask scheduler (default: a local cluster)")
     e.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
                    help="seconds to reach --scheduler before giving up (default: 10)")
-    e.add_argument("--workers", type=int, help="local worker processes (default: one per "
-                                               "core; 0: run in this process, no dask)")
+    e.add_argument("--workers", type=int, help="local worker processes (0: run in this "
+                   "process, no dask; default: chosen by the size of the members, said on "
+                   "stderr: a few short members run here, others on one worker per core)")
     e.add_argument("--batch", type=int, help="members per dask task (default: automatic)")
     e.add_argument("--max-memory", metavar="SIZE", help="refuse a member estimated to need "
                    "more (as for `avflow run`; passed to local workers as $AVFLOW_MAX_MEMORY)")
     e.add_argument("--report", action="store_true", help="write OUTDIR/report.md at the end")
     e.set_defaults(func=_cmd_ensemble)
-    rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble")
+    rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble",
+                        parents=[quiet])
     rp.add_argument("outdir", help="output folder of `avflow ensemble`")
     rp.set_defaults(func=_cmd_report)
     x = sub.add_parser("export", help="write the maps of a grid run as GeoTIFF or ESRI ASCII "
-                                      "rasters (<stem>_<variable>.<ext>)")
+                                      "rasters (<stem>_<variable>.<ext>)", parents=[quiet])
     x.add_argument("run_file", help="NetCDF written by `avflow run`")
     x.add_argument("--format", choices=("tif", "asc"), default="tif",
                    help="GeoTIFF (default) or ESRI ASCII grid + .prj")
@@ -170,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
                                        "arrival_time, rest_time)")
     x.set_defaults(func=_cmd_export)
     pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness over a hillshade; "
-                                     "bed and snapshots on profiles)")
+                                     "bed and snapshots on profiles)", parents=[quiet])
     pl.add_argument("run_file", help="NetCDF written by `avflow run`")
     pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
     pl.set_defaults(func=_cmd_plot)
@@ -203,22 +233,33 @@ def _cmd_ensemble(args) -> int:
         raise AvflowError(f"--batch must be >= 1, got {args.batch}")
     if not args.connect_timeout > 0:
         raise AvflowError(f"--connect-timeout must be > 0, got {args.connect_timeout}")
-    ensemble = load_ensemble(args.ensemble)  # every check before any member starts
+    from avflow.ensemble.orchestrate import ProgressLine
+    from avflow.ensemble.spec import parse_overrides
+
+    overrides = parse_overrides(args.set)
+    # every check before any member starts
+    ensemble = load_ensemble(args.ensemble, overrides=overrides)
     _check_members_fit(ensemble, args.max_memory)
     out = Path(args.output)
-    print(f"{ensemble.name}: {len(ensemble.members)} members -> {out}")
+    say = (lambda *a, **k: None) if args.quiet else print
+    say(f"{ensemble.name}: {len(ensemble.members)} members -> {out}")
+    progress = ProgressLine(len(ensemble.members), quiet=args.quiet)
     try:
         outcome = run_ensemble(ensemble, out, scheduler=args.scheduler, workers=args.workers,
-                               batch=args.batch, connect_timeout=args.connect_timeout)
+                               batch=args.batch, connect_timeout=args.connect_timeout,
+                               progress=progress)
     except Interrupted as err:  # the cluster is closed; say what finished
         print(f"avflow: {err}", file=sys.stderr)
         return 130
-    print(f"{outcome.ran} run, {outcome.reused} reused, {outcome.failed} failed "
-          f"({outcome.wall:.1f} s); wrote {out / 'ensemble.nc'} and {out / 'summary.csv'}")
+    # The time of the progress line: from the start to the last member (tables not included)
+    say(f"{outcome.ran} run, {outcome.reused} reused, {outcome.failed} failed "
+        f"({outcome.elapsed:.1f} s, {outcome.where}); wrote {out / 'ensemble.nc'} and "
+        f"{out / 'summary.csv'}")
     if args.report:
         from avflow.ensemble.report import write_report
 
-        print(f"wrote {write_report(out)}")
+        written = write_report(out)
+        say(f"wrote {written}")
     return 0 if outcome.ok else 1
 
 
@@ -242,7 +283,9 @@ def _check_members_fit(ensemble, max_memory) -> None:
 def _cmd_report(args) -> int:
     from avflow.ensemble.report import write_report
 
-    print(f"wrote {write_report(args.outdir)}")
+    written = write_report(args.outdir)
+    if not args.quiet:
+        print(f"wrote {written}")
     return 0
 
 
@@ -259,14 +302,17 @@ def _cmd_export(args) -> int:
         print(f"avflow: warning: {message}", file=sys.stderr)
 
     for path in export_maps(args.run_file, args.format, args.output, names, warn=warn):
-        print(f"wrote {path}")
+        if not args.quiet:
+            print(f"wrote {path}")
     return 0
 
 
 def _cmd_plot(args) -> int:
     from avflow.output.maps import plot_run
 
-    print(f"wrote {plot_run(args.run_file, args.output)}")
+    written = plot_run(args.run_file, args.output)
+    if not args.quiet:
+        print(f"wrote {written}")
     return 0
 
 

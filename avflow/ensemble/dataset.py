@@ -101,7 +101,8 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
             "_FillValue": np.int8(-1)})
     data["member_time"] = ("realization", table["member_time"].to_numpy(float), {
         "long_name": "wall-clock time of the member task (read, run, write)", "units": "s",
-        "comment": "NaN for members reused from an earlier run"})
+        "comment": "reused members keep the time of the run that made them (from the "
+                   "summary.csv of that run; NaN where it is gone)"})
 
     ok = table["status"].isin(OK_STATUSES).to_numpy()
     maps, grid_coords, note = _stacked_maps(ensemble, table, outdir, profile)

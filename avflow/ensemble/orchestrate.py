@@ -42,6 +42,11 @@ from avflow.errors import AvflowError
 
 CONNECT_TIMEOUT = 10.0  #: s, to reach a given ``--scheduler``
 WORKER_TIMEOUT = 120.0  #: s, for its first worker
+#: s, what starting a local cluster costs before its first result: worker processes spawned,
+#: importing avflow and loading the Numba kernels each (10-20 s on a 2-core machine).
+CLUSTER_START_S = 10.0
+#: Members with more cells (estimated before anything runs) go to the cluster unprobed.
+PROBE_MAX_CELLS = 100_000
 
 
 class ClusterError(AvflowError):
@@ -216,9 +221,12 @@ class Outcome:
     ran: int  #: members computed now
     reused: int  #: members whose file was already there
     failed: int
-    wall: float  #: s, from the first task submitted to the last result
+    wall: float  #: s, running the members (starting a cluster not included)
     startup: float  #: s, starting (or connecting to) the cluster, warming included
     workers: int
+    #: s, from the start to the last result: the clock of the progress line
+    elapsed: float = math.nan
+    where: str = ""  #: "here" (this process, no dask), "local cluster", "scheduler", "client"
 
     @property
     def ok(self) -> bool:
@@ -228,12 +236,18 @@ class Outcome:
 class ProgressLine:
     """``[#####.....] 12/21 members, 1 failed`` on one terminal line; failures on their own."""
 
-    def __init__(self, total: int, stream=None, live: bool | None = None):
+    def __init__(self, total: int, stream=None, live: bool | None = None, quiet: bool = False):
         stream = stream if stream is not None else sys.stderr
-        self.total, self.stream = total, stream
-        self.live = stream.isatty() if live is None else live
+        self.total, self.stream, self.quiet = total, stream, quiet
+        self.live = (stream.isatty() if live is None else live) and not quiet
         self.done = self.failed = 0
         self.started = time.perf_counter()
+        self.elapsed = math.nan  #: s, when closed: the last time the line showed
+
+    def info(self, message: str) -> None:
+        """A line of information (where the members run), left out when quiet."""
+        if not self.quiet:
+            self.note(message)
 
     def update(self, done: int, failed: int) -> None:
         self.done, self.failed = done, failed
@@ -263,6 +277,8 @@ class ProgressLine:
         self.update(self.done, self.failed)
 
     def close(self) -> None:
+        self.update(self.done, self.failed)  # the final time on the line
+        self.elapsed = time.perf_counter() - self.started
         if self.live:
             self.stream.write("\n")
             self.stream.flush()
@@ -297,6 +313,12 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     core). ``workers=0`` runs the members in this process, one after the other (no dask).
     ``client``: an existing ``distributed.Client`` to use. Ctrl-C closes the cluster and
     raises :class:`Interrupted` saying how many members finished (a rerun resumes).
+
+    By default (no ``workers``, ``scheduler`` or ``client``) the size of the members
+    decides, and one line on stderr says what was chosen (:func:`_choose_where`): the first
+    member runs here, timed, and the others follow it here unless a local cluster of one
+    worker per core would finish them sooner, its start (:data:`CLUSTER_START_S`) included.
+    A resumed run keeps in ``summary.csv`` the ``member_time`` of the members it reuses.
     """
     outdir = Path(outdir)
     folder = outdir / "members"
@@ -305,11 +327,12 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     rows: dict[int, dict] = {}
     todo: list[Member] = []
     progress = progress or ProgressLine(len(ensemble.members))
+    times = _previous_member_times(outdir)
     for member in ensemble.members:
         path = member_path(outdir, member)
         row, why = check_member_file(path, member.scenario_hash)
         if row is not None:
-            row.update(reused=True, member_time=math.nan)
+            row.update(reused=True, member_time=times.get(member.scenario_hash, math.nan))
             rows[member.index] = row
         else:
             if why:
@@ -331,27 +354,32 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     t0 = time.perf_counter()
     startup = 0.0
     n_workers = 0
+    where = "here" if workers == 0 else "scheduler" if scheduler else "client" if client \
+        else "local cluster"
     try:
+        started = time.perf_counter()
+        if todo and workers is None and scheduler is None and client is None:
+            todo, workers = _choose_where(ensemble, todo, outdir, record, progress)
+            where = "here" if workers == 0 else where
         if todo and workers == 0 and scheduler is None and client is None:
-            started = time.perf_counter()
             for member in todo:
                 record(member, run_member(member.scenario.source_text,
                                           str(member_path(outdir, member))))
             wall = time.perf_counter() - started
         elif todo:
+            t0 = time.perf_counter()
             with _deferred_sigint() as sigint, _client(
                     scheduler, workers, client, tiny_scenario_yaml(ensemble), connect_timeout,
                     sigint.check) as cl:
                 n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
                     cl, "scheduler_info") else 0
                 startup = time.perf_counter() - t0
-                started = time.perf_counter()
                 _run_on_dask(cl, todo, outdir,
                              batch or auto_batch(len(todo), max(n_workers, 1)), record,
                              sigint.check)
-                wall = time.perf_counter() - started
+                wall = time.perf_counter() - started - startup
         else:
-            wall = 0.0
+            wall = time.perf_counter() - started
     except KeyboardInterrupt:  # the cluster is closed by now (_client.__exit__)
         progress.close()
         _clean_temporaries(folder)
@@ -374,7 +402,71 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
             ds.attrs.update(path_ds.attrs)
         write_ensemble_netcdf(ds, outdir / "ensemble.nc")
     ran = sum(not r.get("reused") for r in rows.values())
-    return Outcome(table, ran, len(rows) - ran, n_failed, wall, startup, n_workers)
+    return Outcome(table, ran, len(rows) - ran, n_failed, wall, startup, n_workers,
+                   progress.elapsed, where)
+
+
+def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
+                  progress: ProgressLine) -> tuple[list[Member], int | None]:
+    """Where the members run when nothing says: ``(members left, workers)``, 0 for here.
+
+    A local cluster costs :data:`CLUSTER_START_S` before its first result: a few short
+    members are done sooner in this process. The first member runs here (after the kernels
+    are loaded, so its time is the member's own), and its time ``t1`` decides: the others
+    stay here unless ``CLUSTER_START_S + t1 (n - 1) / cores < t1 (n - 1)``. Members
+    estimated at more than :data:`PROBE_MAX_CELLS` cells go to the cluster without a probe.
+    One line on stderr says what was chosen.
+    """
+    cores = os.cpu_count() or 1
+    n = len(todo)
+    if cores < 2 or n == 1:
+        why = "one core" if cores < 2 else "one member to run"
+        progress.info(f"avflow: {n} member(s) to run, {why}: running here, in this process "
+                      "(no dask cluster)")
+        return todo, 0
+    from avflow.simulation.resources import estimate
+
+    try:
+        cells = estimate(todo[0].scenario).cells
+    except Exception:  # noqa: BLE001 - the member reports its own problem when it runs
+        cells = 0
+    if cells > PROBE_MAX_CELLS:
+        progress.info(f"avflow: {n} members of ~{cells:,} cells: starting a local dask "
+                      f"cluster of {cores} workers (--workers 0 runs them here)")
+        return todo, None
+    warm(tiny_scenario_yaml(ensemble))  # Numba's kernels loaded: t1 is the member's own
+    started = time.perf_counter()
+    first = todo[0]
+    record(first, run_member(first.scenario.source_text, str(member_path(outdir, first))))
+    t1 = time.perf_counter() - started
+    serial = t1 * (n - 1)
+    cluster = CLUSTER_START_S + serial / cores
+    if cluster < serial:
+        progress.info(f"avflow: {n} members, the first took {t1:.2f} s here: starting a "
+                      f"local dask cluster of {cores} workers for the other {n - 1} (about "
+                      f"{cluster:.0f} s against {serial:.0f} s here; --workers 0 runs them "
+                      "here)")
+        return todo[1:], None
+    progress.info(f"avflow: {n} members, the first took {t1:.2f} s here: running the other "
+                  f"{n - 1} here too (about {serial:.1f} s; a dask cluster takes about "
+                  f"{CLUSTER_START_S:.0f} s to start; --workers N starts one anyway)")
+    return todo[1:], 0
+
+
+def _previous_member_times(outdir: Path) -> dict[str, float]:
+    """``scenario_hash -> member_time`` from the summary.csv of an earlier run, if any."""
+    path = Path(outdir) / "summary.csv"
+    if not path.is_file():
+        return {}
+    try:
+        import pandas as pd
+
+        old = pd.read_csv(path, usecols=["scenario_hash", "member_time"],
+                          dtype={"scenario_hash": str})
+    except Exception:  # noqa: BLE001 - an old or foreign table: the times are unknown
+        return {}
+    return {h: float(t) for h, t in zip(old["scenario_hash"], old["member_time"])
+            if isinstance(h, str) and math.isfinite(float(t))}
 
 
 class _client:

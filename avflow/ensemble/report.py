@@ -97,19 +97,26 @@ def write_report(outdir: str | os.PathLike) -> Path:
         for ax, name in zip(axes, ("runout", "time_to_stop")):
             y = ds[name].values
             sel = ok & np.isfinite(values)
-            # Members that differ only by this parameter are joined by a line.
+            # Members that differ only by this parameter are joined by a line, labelled by
+            # the values of the other parameters (and the law when there are several).
             keys = [tuple([laws[i]] + [_key(ds[p].values[i]) for p in others]) for i in range(n)]
-            for key in dict.fromkeys(k for k, s in zip(keys, sel) if s):
+            for j, key in enumerate(dict.fromkeys(k for k, s in zip(keys, sel) if s)):
                 idx = [i for i in range(n) if sel[i] and keys[i] == key]
                 idx.sort(key=lambda i: values[i])
-                ax.plot(values[idx], y[idx], "-o", color=colors[key[0]], alpha=0.7, ms=4)
+                label = _line_label(ds, key, others, len(colors) > 1)
+                ax.plot(values[idx], y[idx], "-", marker=_MARKERS[j % len(_MARKERS)],
+                        color=colors[key[0]], alpha=0.7, ms=4,
+                        label=label if ax is axes[0] and label else None)
             ax.set_xlabel(f"{ds[param].attrs.get('long_name', param)}"
                           f" ({ds[param].attrs.get('units', '')})")
             ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
             ax.grid(alpha=0.3)
-        for law, c in colors.items():
-            axes[0].plot([], [], "-o", color=c, label=law)
-        axes[0].legend(title="law")
+        if others:  # one entry per line: what the other parameters are on it
+            axes[0].legend(fontsize=7)
+        else:
+            for law, c in colors.items():
+                axes[0].plot([], [], "-o", color=c, label=law)
+            axes[0].legend(title="law")
         fname = f"vs_{param}.png"
         fig.suptitle(f"runout and time to stop against {param}")
         fig.savefig(figdir / fname, dpi=110)
@@ -196,10 +203,12 @@ def write_report(outdir: str | os.PathLike) -> Path:
 
     md += ["## Failed members", ""]
     failed = np.flatnonzero(~ok)
+    varied = _varied_coordinates(ds)  # numbers and text (release.path...) alike
     if failed.size:
-        md += [_md_table(["realization", "hash", "law", *params, "status", "error"],
+        md += [_md_table(["realization", "hash", "law", *[_dotted(ds, c) for c in varied],
+                          "status", "error"],
                          [[int(i), str(ds["scenario_hash"].values[i]), laws[i],
-                           *[float(ds[p].values[i]) for p in params], status[i],
+                           *[_value(ds[c].values[i]) for c in varied], status[i],
                            str(ds["error"].values[i])] for i in failed]), ""]
     else:
         md += ["None: every member succeeded.", ""]
@@ -217,6 +226,49 @@ def write_report(outdir: str | os.PathLike) -> Path:
     tmp.write_text("\n".join(md))
     os.replace(tmp, report)
     return report
+
+
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+
+
+def _dotted(ds, name: str) -> str:
+    """The scenario field of a parameter coordinate (``release_volume_factor`` ->
+    ``release.volume_factor``), from its long_name."""
+    long_name = str(ds[name].attrs.get("long_name", ""))
+    prefix = "scenario field "
+    return long_name[len(prefix):] if long_name.startswith(prefix) else name
+
+
+def _line_label(ds, key: tuple, others: list[str], with_law: bool) -> str:
+    """``release.volume_factor = 2`` for a line of members that differ by one parameter."""
+    parts = [f"{_dotted(ds, p)} = {'NaN' if v is None else format(v, 'g')}"
+             for p, v in zip(others, key[1:])]
+    if with_law:
+        parts.insert(0, str(key[0]))
+    return ", ".join(parts)
+
+
+def _varied_coordinates(ds) -> list[str]:
+    """Parameter coordinates whose values differ between members (law aside)."""
+    names = []
+    for name, c in ds.coords.items():
+        if (c.dims != ("realization",) or name in ("realization", "scenario_hash", "law")
+                or c.dtype.kind not in "fiuOUS"):
+            continue
+        shown = {repr(_value(v)) for v in c.values}
+        if len(shown) > 1:
+            names.append(name)
+    return names
+
+
+def _value(v):
+    """A table cell: numbers as float, text as is."""
+    if isinstance(v, (str, bytes)):
+        return v.decode() if isinstance(v, bytes) else v
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return str(v)
 
 
 def _key(value):

@@ -33,13 +33,14 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
-from avflow.errors import ScenarioError
+from avflow.errors import AvflowError, ScenarioError
 from avflow.scenario.schema import Scenario, load_scenario
 from avflow.scenario.yamlio import did_you_mean, position, read_yaml
 
 __all__ = ["EnsembleError", "Ensemble", "Member", "load_ensemble", "parse_ensemble",
+           "ensemble_from", "from_scenarios", "apply_overrides", "parse_overrides",
            "DEFAULT_THRESHOLDS"]
 
 #: Peak-thickness thresholds (m) of the exceedance-probability maps, unless the file says.
@@ -142,19 +143,69 @@ def _leaves(value: Any, prefix: str) -> list[str]:
 # =========================================================================================
 
 
-def load_ensemble(path: str | os.PathLike) -> Ensemble:
-    """Read, validate and expand an ensemble file; any problem is one :class:`EnsembleError`."""
+def parse_overrides(items) -> dict[str, tuple[Any, str]]:
+    """``["grid.dx=5", ...]`` (``--set KEY=VALUE``, VALUE in YAML) -> ``{key: (value, text)}``.
+
+    A malformed item is one :class:`~avflow.errors.AvflowError` naming it (exit code 2).
+    """
+    overrides: dict[str, tuple[Any, str]] = {}
+    for item in items or ():
+        key, sep, text = str(item).partition("=")
+        key = key.strip()
+        if not sep or not key or any(not part for part in key.split(".")):
+            raise AvflowError(f"--set {item}: expected KEY=VALUE with KEY a dotted field, "
+                              "e.g. --set grid.dx=5 or --set rheology.delta_deg=18")
+        try:
+            value = read_yaml(f"value: {text}\n", None)[0]["value"]
+        except (ScenarioError, TypeError, KeyError):
+            raise AvflowError(f"--set {key}: the value {text!r} is not a YAML value") from None
+        overrides[key] = (value, text)
+    return overrides
+
+
+def apply_overrides(scenario: Scenario, overrides: Mapping[str, Any]) -> Scenario:
+    """``scenario.with_updates`` for ``--set`` (values, or ``(value, text)`` pairs from
+    :func:`parse_overrides`): relative data paths still start at the scenario file's folder;
+    a problem is one line naming the scenario file and the ``--set`` it comes from."""
+    if not overrides:
+        return scenario
+    values = {k: (v[0] if isinstance(v, tuple) else v) for k, v in overrides.items()}
+    texts = {k: (v[1] if isinstance(v, tuple) else str(v)) for k, v in overrides.items()}
+    try:
+        return scenario.with_updates(values)
+    except ScenarioError as err:
+        first = err.problems[0]
+        field = first.field or ""
+        key = next((k for k in values if field == k or field.startswith(k + ".")
+                    or k.startswith(field + ".")), None)
+        given = (f"--set {key}={texts[key]}" if key is not None
+                 else " ".join(f"--set {k}={texts[k]}" for k in values))
+        detail = f"{field}: " if field and field != key else ""
+        raise ScenarioError(f"{given}: {detail}{first.message}",
+                            scenario.source_path or scenario.name) from None
+
+
+def load_ensemble(path: str | os.PathLike, overrides: Mapping[str, Any] | None = None
+                  ) -> Ensemble:
+    """Read, validate and expand an ensemble file; any problem is one :class:`EnsembleError`.
+
+    ``overrides`` (``--set``: dotted field -> value) change the base scenario before the
+    variations apply (:func:`apply_overrides`); a field the ensemble varies cannot be set.
+    """
     try:
         text = Path(path).read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise EnsembleError("ensemble file not found", path) from None
     except (OSError, UnicodeDecodeError) as err:
         raise EnsembleError(f"cannot read the ensemble file: {err}", path) from None
-    return parse_ensemble(text, source_path=path)
+    return parse_ensemble(text, source_path=path, overrides=overrides)
 
 
-def parse_ensemble(text: str, source_path: str | os.PathLike | None = None) -> Ensemble:
-    """Validate ensemble YAML given as text; ``base`` is relative to ``source_path``'s folder."""
+def parse_ensemble(text: str, source_path: str | os.PathLike | None = None,
+                   overrides: Mapping[str, Any] | None = None,
+                   base: Scenario | None = None) -> Ensemble:
+    """Validate ensemble YAML given as text; ``base`` is relative to ``source_path``'s folder
+    (the working folder without one), or given as a loaded :class:`Scenario`."""
     path = os.path.abspath(source_path) if source_path is not None else None
     try:
         data, positions = read_yaml(text, path)
@@ -172,17 +223,19 @@ def parse_ensemble(text: str, source_path: str | os.PathLike | None = None) -> E
 
     # --- base scenario --------------------------------------------------------------------
     base_ref = data.get("base")
-    if base_ref is None:
-        raise fail(("base",), "required, but missing: the base scenario file (relative to "
-                              "this file)")
-    if not isinstance(base_ref, str) or not base_ref.strip():
-        raise fail(("base",), f"must be the path of a scenario file, got {base_ref!r}")
-    folder = os.path.dirname(path) if path else os.getcwd()
-    base_path = Path(os.path.normpath(Path(folder) / Path(base_ref).expanduser()))
-    if not base_path.is_file():
-        raise fail(("base",), f"scenario file not found: {base_path} (relative paths start "
-                              "at the ensemble file's folder)")
-    base = load_scenario(base_path)  # its own errors name its own file
+    if base is None:
+        if base_ref is None:
+            raise fail(("base",), "required, but missing: the base scenario file (relative "
+                                  "to this file)")
+        if not isinstance(base_ref, str) or not base_ref.strip():
+            raise fail(("base",), f"must be the path of a scenario file, got {base_ref!r}")
+        folder = os.path.dirname(path) if path else os.getcwd()
+        base_path = Path(os.path.normpath(Path(folder) / Path(base_ref).expanduser()))
+        if not base_path.is_file():
+            raise fail(("base",), f"scenario file not found: {base_path} (relative paths "
+                                  "start at the ensemble file's folder)")
+        base = load_scenario(base_path)  # its own errors name its own file
+    base = apply_overrides(base, overrides or {})
 
     name = data.get("name", base.name)
     if not isinstance(name, str) or not name.strip():
@@ -250,6 +303,13 @@ def parse_ensemble(text: str, source_path: str | os.PathLike | None = None) -> E
             members.append(Member(index, scenario, updates, digest))
 
     varied = list(vary) + [k for k in sample_info.get("ranges", {}) if k not in vary]
+    for key in overrides or {}:
+        for v in varied:
+            if key == v or key.startswith(v + ".") or v.startswith(key + "."):
+                where = ("vary", v) if v in vary else ("sample", "ranges", v)
+                raise fail(where, f"--set {key}: this ensemble varies {v}, which would "
+                                  "override it in every member; set it in the vary list "
+                                  "instead")
     return Ensemble(name=name.strip(), path=path, text=text, base=base, members=members,
                     varied=varied, thresholds=thresholds, description=description,
                     sample=sample_info)
@@ -337,3 +397,95 @@ def _member_error(err: ScenarioError, index: int, updates: dict, vary: dict, sam
     label = Member(index, None, updates, "").label  # type: ignore[arg-type]
     detail = "; ".join(f"{p.field + ': ' if p.field else ''}{p.message}" for p in err.problems)
     return fail(where, f"member {index} ({label}) is not a valid scenario: {detail}")
+
+
+# =========================================================================================
+# Ensembles from Python: a file, a mapping, or a list of scenarios
+# =========================================================================================
+
+
+def ensemble_from(spec: Any, *, name: str | None = None,
+                  overrides: Mapping[str, Any] | None = None) -> Ensemble:
+    """An :class:`Ensemble` from a file path, a mapping or a list of scenarios.
+
+    - a path: an ensemble YAML file (:func:`load_ensemble`);
+    - a mapping with the keys of an ensemble file (``base``: a scenario file, relative to
+      the working folder, or a :class:`Scenario`; ``vary``, ``sample``, ``thresholds``...);
+    - a list of :class:`Scenario` objects (or scenario files): one member each, the
+      varied fields found by comparing them (:func:`from_scenarios`);
+    - an :class:`Ensemble`, returned as is.
+
+    ``overrides`` (dotted field -> value) change the base scenario (files and mappings) or
+    every scenario (lists), as ``--set`` does.
+    """
+    if isinstance(spec, Ensemble):
+        return spec
+    if isinstance(spec, (str, os.PathLike)):
+        ensemble = load_ensemble(spec, overrides=overrides)
+    elif isinstance(spec, Mapping):
+        import yaml
+
+        data = dict(spec)
+        base = data.get("base")
+        if isinstance(base, Scenario):
+            data.pop("base")
+        else:
+            base = None
+        if isinstance(data.get("base"), os.PathLike):
+            data["base"] = os.fspath(data["base"])
+        try:
+            text = yaml.safe_dump(data, sort_keys=False)
+        except yaml.YAMLError as err:
+            raise EnsembleError(f"cannot write the ensemble mapping as YAML: {err}") from None
+        ensemble = parse_ensemble(text, overrides=overrides, base=base)
+    elif isinstance(spec, (list, tuple)):
+        scenarios = [s if isinstance(s, Scenario) else load_scenario(s) for s in spec]
+        ensemble = from_scenarios([apply_overrides(s, overrides or {}) for s in scenarios],
+                                  name=name)
+    else:
+        raise EnsembleError(f"an ensemble is a file, a mapping or a list of scenarios, got "
+                            f"{type(spec).__name__}")
+    if name is not None:
+        ensemble.name = name
+    return ensemble
+
+
+def from_scenarios(scenarios: list[Scenario], name: str | None = None,
+                   thresholds: tuple[float, ...] = DEFAULT_THRESHOLDS) -> Ensemble:
+    """An ensemble whose members are these scenarios, in order.
+
+    The varied fields are the leaves whose resolved values differ between them (e.g.
+    ``rheology.delta_deg``, ``release.path``); the first scenario is the base.
+    """
+    import yaml
+
+    scenarios = list(scenarios)
+    if not scenarios:
+        raise EnsembleError("an ensemble needs at least one scenario")
+    for i, s in enumerate(scenarios):
+        if not isinstance(s, Scenario):
+            raise EnsembleError(f"member {i}: not a Scenario (got {type(s).__name__}); load "
+                                "it with avflow.load_scenario")
+    dumps = [s.model_dump(mode="json") for s in scenarios]
+    leaves: list[str] = []
+    for d in dumps:
+        for leaf in _leaves(d, "")[:]:
+            leaf = leaf.lstrip(".")
+            if leaf not in leaves:
+                leaves.append(leaf)
+    varied = [leaf for leaf in leaves if leaf != "name"
+              and len({repr(_get(d, leaf)) for d in dumps}) > 1]
+    members: list[Member] = []
+    seen: dict[str, int] = {}
+    for i, (s, d) in enumerate(zip(scenarios, dumps)):
+        digest = s.scenario_hash()
+        if digest in seen:
+            raise EnsembleError(f"scenarios {seen[digest]} and {i} are the same scenario: "
+                                "remove one")
+        seen[digest] = i
+        members.append(Member(i, s, {k: _get(d, k) for k in varied}, digest))
+    name = name or f"{scenarios[0].name}-ensemble"
+    text = yaml.safe_dump({"name": name, "members": [s.name for s in scenarios],
+                           "varied": varied}, sort_keys=False)
+    return Ensemble(name=name, path=None, text=text, base=scenarios[0], members=members,
+                    varied=varied, thresholds=tuple(thresholds))

@@ -8,6 +8,8 @@ so those carry a ``long_name`` and a ``comment`` (thickness is measured normal t
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
+
 import numpy as np
 
 from avflow import __version__
@@ -20,9 +22,18 @@ SEED_REFERENCE = (
     "equations using a kinetic scheme. J. Geophys. Res. 108(B11), 2527, doi:10.1029/2002JB002024"
 )
 
+#: CF units of ``time`` when the scenario gives no ``output.release_time``: the release is
+#: then placed at the epoch.
 TIME_UNITS = "seconds since 1970-01-01 00:00:00"
+EPOCH = datetime(1970, 1, 1)
 
 H_COMMENT = "measured normal to the bed (topography-linked frame of the seed, Fig. 1)"
+
+#: Run maxima reduce over time and keep no time coordinate: CF 7.3.4 names the axis by its
+#: standard name. (A scalar coordinate holding the period would become, in xarray, a
+#: coordinate of every variable and show in every plot title.)
+RUN_MAXIMUM = "time: maximum"
+OVER_THE_RUN = "over the whole run, every time step from the release to the last time"
 
 #: name -> attributes. "kind": field (time, space), reduced (space), summary (0-d), coord.
 FIELDS = {
@@ -35,15 +46,17 @@ FIELDS = {
                        flag_values=np.array([FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED], np.int8),
                        flag_meanings="dry flowing under_coulomb_threshold"),
     "peak_thickness": dict(kind="reduced", long_name="maximum flow thickness over the run",
-                           units="m", cell_methods="time_span: maximum", comment=H_COMMENT),
+                           units="m", cell_methods=RUN_MAXIMUM,
+                           comment=f"{H_COMMENT}; {OVER_THE_RUN}"),
     "peak_speed": dict(kind="reduced", long_name="maximum speed over the run", units="m s-1",
-                       cell_methods="time_span: maximum"),
+                       cell_methods=RUN_MAXIMUM, comment=OVER_THE_RUN),
     "deposit_thickness": dict(kind="reduced", long_name="thickness at the end of the run",
-                              units="m", cell_methods="time_span: point", comment=H_COMMENT),
+                              units="m", cell_methods="time: point",
+                              comment=f"{H_COMMENT}; at the last time of the run"),
     "bed_elevation": dict(kind="static", standard_name="ground_level_altitude", units="m"),
     "slope_angle": dict(kind="static", standard_name="ground_slope_angle", units="degree"),
     "peak_pressure": dict(kind="reduced", long_name="maximum dynamic pressure rho |u|^2",
-                          units="Pa", cell_methods="time_span: maximum"),
+                          units="Pa", cell_methods=RUN_MAXIMUM, comment=OVER_THE_RUN),
     "arrival_time": dict(kind="reduced", long_name="time of first arrival (h > dry threshold)",
                          units="s", comment="seconds since release; NaN where never reached"),
     "rest_time": dict(kind="reduced", long_name="time the cell came to rest for good",
@@ -75,7 +88,9 @@ SUMMARIES = {
     "moving_volume_end": ("m3", "volume still moving (u != 0, h > dry_threshold) at the end"),
     "kinetic_energy_end": ("J", "kinetic energy sum rho h A |u|^2 / 2 at the end"),
     "kinetic_energy_peak": ("J", "largest kinetic energy of the run (after a step)"),
-    "wall_time": ("s", "wall-clock time of the time loop"),
+    "wall_time": ("s", "wall-clock time of the time loop (Numba's compilation not included)"),
+    "compile_time": ("s", "wall-clock time to compile the Numba kernels, or load them from "
+                          "their cache, before the time loop"),
     "travel_length": ("m", "horizontal distance from the highest released cell to the farthest "
                            "deposit cell"),
     "drop_height": ("m", "elevation drop over travel_length"),
@@ -88,20 +103,55 @@ def per_width(units: str, profile: bool) -> str:
     return {"m3": "m2", "J": "J m-1"}.get(units, units) if profile else units
 
 
-def time_coords(times: np.ndarray) -> dict:
-    """``time`` and the scalar ``time_span`` that the cell_methods of run maxima refer to.
+def release_instant(release_time: str | None) -> datetime:
+    """The release as a naive UTC datetime (the epoch when the scenario gives none)."""
+    if release_time is None:
+        return EPOCH
+    t = datetime.fromisoformat(release_time)
+    if t.tzinfo is not None:
+        t = t.astimezone(timezone.utc).replace(tzinfo=None)
+    return t
 
-    CF 4.4 wants "unit since reference" for time: the release happens at the epoch, so
-    seconds since release are the stored values (decode_times=False reads them as such).
+
+def time_units(release_time: str | None = None) -> str:
+    """``seconds since <release>`` (UTC), the CF units of ``time``."""
+    t = release_instant(release_time)
+    stamp = t.strftime("%Y-%m-%d %H:%M:%S")
+    if t.microsecond:
+        stamp += f".{t.microsecond:06d}".rstrip("0")
+    return f"seconds since {stamp}"
+
+
+def time_coords(times: np.ndarray, release_time: str | None = None) -> dict:
+    """``time``: seconds since the release, whose instant is the reference of its units.
+
+    CF 4.4 wants "unit since reference" for time; the reference is ``output.release_time``
+    (the epoch by default), so the stored values are seconds since release: read them as
+    numbers with ``avflow.open_run`` or ``xr.open_dataset(f, decode_times=False)``, or as
+    dates (those of the event, with a real release time) with xarray's default decoding.
     """
-    time_attrs = {"standard_name": "time", "units": TIME_UNITS, "calendar": "proleptic_gregorian",
-                  "units_metadata": "leap_seconds: none"}
-    return {
-        "time": ("time", times, {**time_attrs, "axis": "T", "long_name": "time since release",
-                                 "comment": "the reference instant is the release"}),
-        "time_span": ((), times[-1], {**time_attrs, "long_name": "end of the period reduced over",
-                                      "bounds": "time_span_bounds"}),
-    }
+    return {"time": ("time", times, {
+        "standard_name": "time", "units": time_units(release_time),
+        "calendar": "proleptic_gregorian", "units_metadata": "leap_seconds: none", "axis": "T",
+        "long_name": "time since release",
+        "comment": "the reference instant of the units is the release"})}
+
+
+def link_coordinates(ds) -> None:
+    """Name in each variable's ``coordinates`` only the auxiliary coordinates that describe it.
+
+    Those on its dimensions (``x_horizontal``, the UGRID node coordinates), and the 0-d
+    grid-mapping coordinate ``crs`` only on the maps whose ``grid_mapping`` names it. xarray
+    would list every 0-d coordinate on every variable. ``crs`` is a coordinate so that
+    xarray, opening the file with its defaults, keeps it as one, where rioxarray looks for
+    the CRS (``ds.rio.crs``), as GDAL and CF do through ``grid_mapping``.
+    """
+    aux = [name for name in ds.coords if name not in ds.dims]
+    for name, var in ds.data_vars.items():
+        linked = [c for c in aux
+                  if (var.attrs.get("grid_mapping") == c if ds[c].ndim == 0
+                      else set(ds[c].dims) <= set(var.dims))]
+        var.encoding["coordinates"] = " ".join(linked) if linked else None
 
 
 def global_attributes(result) -> dict:
@@ -117,6 +167,7 @@ def global_attributes(result) -> dict:
         "scenario_hash": sc.scenario_hash(),
         "scenario": sc.source_text,
         "avflow_version": __version__,
+        "release_time": release_instant(sc.output.release_time).isoformat() + "Z",
         "status": s["status"],
         "runout_threshold_m": th["runout"],
         "dry_threshold_m": th["dry"],

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from avflow.output.cf import FIELDS, SUMMARIES, global_attributes, per_width, time_coords
+from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, link_coordinates,
+                              per_width, time_coords)
 from avflow.output.ugrid import to_ugrid_dataset
 from avflow.simulation.runner import RunResult
 from avflow.terrain.raster import cf_grid_mapping
@@ -41,7 +42,7 @@ def to_dataset(result: RunResult) -> xr.Dataset:
     h = grid(h_cells)
 
     times = np.asarray(snaps.time, dtype=float)
-    coords = time_coords(times)
+    coords = time_coords(times, result.scenario.output.release_time)
     if profile:
         # The profile unrolled along the bed is the X axis of its own frame: CF names a
         # metric X axis that is not a longitude projection_x_coordinate (as on grids).
@@ -87,7 +88,8 @@ def to_dataset(result: RunResult) -> xr.Dataset:
                               "units": per_width("m3", profile)})
     crs_attrs = None if profile else cf_grid_mapping(terrain.crs_wkt)
     if crs_attrs:  # CF 5.6: every map names the CRS; GDAL reads crs_wkt / spatial_ref
-        data["crs"] = ((), np.int32(0), crs_attrs)
+        coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
+                                            **crs_attrs})  # a coordinate: link_coordinates
         for name, (dims, _, attributes) in list(data.items()):
             if dims[-2:] == ("y", "x"):
                 attributes["grid_mapping"] = "crs"
@@ -96,7 +98,7 @@ def to_dataset(result: RunResult) -> xr.Dataset:
         data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
                                             "units": per_width(units, profile),
                                             "comment": description})
-    data["time_span_bounds"] = (("nv",), np.array([times[0], times[-1]]), {})
     ds = xr.Dataset(data, coords=coords)
+    link_coordinates(ds)
     ds.attrs = global_attributes(result)
     return ds

@@ -113,8 +113,7 @@ def encoding_for(ds: xr.Dataset) -> dict:
     for name, var in ds.variables.items():
         if name in ds.coords:
             enc[name] = {"_FillValue": None}
-        elif var.dtype.kind == "f" and var.ndim >= 1 and var.dims != ("time",) and name not in (
-                "time_span_bounds",):
+        elif var.dtype.kind == "f" and var.ndim >= 1 and var.dims != ("time",):
             chunks = (1, *var.shape[1:]) if var.dims[0] == "time" else var.shape
             fill = np.float32(np.nan) if bool(np.isnan(var.values).any()) else None
             enc[name] = {"dtype": "float32", "zlib": True, "complevel": 2, "shuffle": True,

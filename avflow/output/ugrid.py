@@ -17,7 +17,7 @@ import numpy as np
 import xarray as xr
 
 from avflow.terrain.raster import cf_grid_mapping
-from avflow.output.cf import FIELDS, SUMMARIES, global_attributes, time_coords
+from avflow.output.cf import FIELDS, SUMMARIES, global_attributes, link_coordinates, time_coords
 
 MESH = "mesh"
 NODE, FACE = "node", "face"
@@ -35,7 +35,7 @@ def to_ugrid_dataset(result) -> xr.Dataset:
 
     times = np.asarray(snaps.time, dtype=float)
     coords = {
-        **time_coords(times),
+        **time_coords(times, result.scenario.output.release_time),
         "mesh_node_x": (NODE, terrain.x, {"standard_name": "projection_x_coordinate",
                                           "long_name": "x coordinate of mesh node (cell centre)",
                                           "units": "m"}),
@@ -98,10 +98,11 @@ def to_ugrid_dataset(result) -> xr.Dataset:
     for name, (units, description) in SUMMARIES.items():
         data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
                                             "units": units, "comment": description})
-    data["time_span_bounds"] = (("nv",), np.array([times[0], times[-1]]), {})
-    if crs_attrs:
-        data["crs"] = ((), np.int32(0), crs_attrs)
+    if crs_attrs:  # a coordinate, named by the fields on the nodes (see link_coordinates)
+        coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
+                                            **crs_attrs})
     ds = xr.Dataset(data, coords=coords)
+    link_coordinates(ds)
     ds.attrs = global_attributes(result)
     ds.attrs["Conventions"] = "CF-1.11 UGRID-1.0"
     ds.attrs["comment"] = ("h is measured normal to the bed; fields live on the nodes of a "

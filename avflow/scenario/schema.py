@@ -529,6 +529,27 @@ class Output(_Model):
     """Time between stored snapshots (s); default time.end / 20."""
     runout_threshold: Positive | None = None
     """Thickness (m) above which a cell counts in the deposit and the runout; null: automatic."""
+    release_time: Text | None = None
+    """ISO 8601 date and time of the release (UTC unless it carries an offset, e.g.
+    2024-02-03T10:15:00Z or 2024-02-03T11:15:00+01:00): the reference of the file's time
+    axis, which stores seconds since the release; null: the epoch 1970-01-01T00:00:00Z."""
+
+    @field_validator("release_time")
+    @classmethod
+    def _iso_release_time(cls, value: str | None) -> str | None:
+        """Normalised to UTC, ``YYYY-MM-DDTHH:MM:SS[.ffffff]Z`` (one spelling, one hash)."""
+        if value is None:
+            return None
+        import datetime as _dt
+
+        try:
+            t = _dt.datetime.fromisoformat(value.strip())
+        except ValueError:
+            raise _problem(f"must be an ISO 8601 date and time such as 2024-02-03T10:15:00Z, "
+                           f"got {show(value)}") from None
+        if t.tzinfo is not None:
+            t = t.astimezone(_dt.timezone.utc).replace(tzinfo=None)
+        return t.isoformat() + "Z"
     stop_rule: Literal["moving_volume", "kinetic_energy"] = "moving_volume"
     """When the run ends before time.end. moving_volume: the volume still moving (u != 0,
     h above the dry threshold, mass crossing a face) falls below stop_fraction of the
@@ -753,6 +774,8 @@ class Scenario(_Model):
         """
         data = self.model_dump(mode="json")
         data["output"].pop("path", None)  # post-processing: the run does not depend on it
+        if data["output"].get("release_time") is None:  # unset: hashes as before the field
+            data["output"].pop("release_time", None)
         for block in ("terrain", "release"):
             if "path" in data[block]:
                 try:
