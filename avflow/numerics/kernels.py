@@ -654,48 +654,26 @@ def _heun_cell(i, h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero, h_new, hu_new, hv_n
 
 
 @njit(error_model="numpy", cache=True)
-def heun_profile(h0, hu0, hv0, h2, hu2, hv2, flag1, flag, flux, dirac, dx, cfl_factor, gamma_z, g,
-                 h_dry, h_zero, t_new, peak_h, peak_speed, arrival, last_moved, h_new, hu_new,
-                 hv_new):
-    """Order 2 on a profile: the average of the two stages and the step's observers.
-
-    Returns ``(dt_limit, moving, film, kinetic, fallbacks)`` as :func:`step_profile` does
-    (moving cells: u != 0 and a face that carried mass in the second stage).
-    """
-    n = h0.size
-    inv_lim = 0.0
-    moving = 0.0
-    film = 0.0
-    kinetic = 0.0
-    fallbacks = 0
+def profile_transport(flag, flux, dirac, transport):
+    """Per cell of a profile, the larger mass flux through its two faces in the step just
+    taken (Dirac faces carry none): what :func:`heun_faces` reads as ``transport``."""
+    n = flag.size
     for k in range(n):
-        hn, qx, _, fell = _heun_cell(k, h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero, h_new,
-                                     hu_new, hv_new)
-        hv_new[k] = 0.0
-        fallbacks += fell
-        speed, inv_k = _observe(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
-        inv_lim = max(inv_lim, inv_k)
-        _record(k, hn, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved)
-        kinetic += hn * dx * speed * speed
         fk = flag[k]
         fl = 0.0 if _dirac_face(dirac, fk, flag[k - 1] if k > 0 else fk) else flux[k, 0]
         fr = 0.0 if _dirac_face(dirac, fk, flag[k + 1] if k < n - 1 else fk) else flux[k + 1, 0]
-        speed_n = _speed(h0[k], hu0[k], 0.0)
-        if _moves(speed, speed_n, max(abs(fl), abs(fr)), hn):
-            if hn > h_dry:
-                moving += hn * dx
-            else:
-                film += hn * dx
-    return _limit(inv_lim), moving, film, kinetic, fallbacks
+        transport[k] = max(abs(fl), abs(fr))
 
 
 @njit(error_model="numpy", cache=True)
 def heun_faces(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cell_area,
                cfl_factor, gamma_z, g, h_dry, h_zero, t_new, peak_h, peak_speed, arrival,
                last_moved, h_new, hu_new, hv_new):
-    """Order 2 on any mesh: :func:`heun_profile` over the ``n_cells`` listed ``cells`` (those
-    either stage changed); ``transport`` holds the face fluxes of the stage that last swept
-    each cell. Returns ``(dt_limit, moving, film, kinetic, fallbacks)``."""
+    """Order 2: Heun's average of the two stages (:func:`_heun_cell`) over the ``n_cells``
+    listed ``cells`` (those either stage changed; all cells on a profile) and the step's
+    observers. ``transport`` holds the face fluxes of the stage that last swept each cell.
+    Returns ``(dt_limit, moving, film, kinetic, fallbacks)`` as the step kernels do (moving
+    cells: u != 0 and a face that carried mass)."""
     inv_lim = 0.0
     moving = 0.0
     film = 0.0
@@ -798,7 +776,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
     ``order`` 2: limited reconstruction (``limiter``, :mod:`avflow.numerics.reconstruction`;
     ``face_offset[f, side]``: from each cell's centre half the way to its neighbour's, in its
     basis) and Heun's two stages, each a full step of the seed's scheme (threshold, Dirac
-    faces, projection), averaged by :func:`heun_profile` / :func:`heun_faces`.
+    faces, projection), averaged by :func:`heun_faces`.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
     """
     t = stats[ST_TIME]
@@ -817,6 +795,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
     touched2 = np.empty(0 if structured else m2, dtype=np.int64)
     union = np.empty(0 if structured else m2, dtype=np.int64)
     active2 = np.empty(0 if structured else f2, dtype=np.int64)
+    all_cells = np.arange(m2 if structured else 0)
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     status = REACHED_TARGET
@@ -899,10 +878,11 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                 if ok:
                     out = 0.5 * (out + out2)
                     clamped += clamped2
-                    lim, moving, film, kinetic, fallbacks = heun_profile(
-                        cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1, flag, flux, dirac,
-                        cell_area[0], cfl_factor, gamma_z, g, h_dry, h_zero, t_new, peak_h,
-                        peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
+                    profile_transport(flag, flux, dirac, transport)
+                    lim, moving, film, kinetic, fallbacks = heun_faces(
+                        all_cells, h.size, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
+                        transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new,
+                        peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
             else:  # order 2 on faces, each stage on its own active lists
                 reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_area,
                                   cur_h, cur_hu, cur_hv, h_zero, active_faces, n_active, touched,
