@@ -92,7 +92,7 @@ def test_quick_run_on_avalanche_dry(tmp_path, capsys):
     # ANUGA's 1%, the discharge not within its 2.5% at 1 s (issue 10: about 5%)
     assert float(o1[0.5]["error_h_L1_t1"]) < 0.01 and float(o1[0.5]["error_h_L1_t3"]) < 0.01
     assert 0.025 < float(o1[0.5]["error_q_L1_t1"]) < 0.06
-    assert all(float(r["wall_s"]) > 0.0 for r in rows)
+    assert all(float(r["wall_s"]) > 0.0 and float(r["cpu_s"]) > 0.0 for r in rows)
     if has_order2:
         # issue 10: order 2 at 0.5 m within ANUGA's own tolerances at 1 s and 3 s (measured:
         # h 0.23% / 0.22%, discharge 2.1% / 0.71%)
