@@ -189,18 +189,22 @@ def build_parser() -> argparse.ArgumentParser:
                         parents=[quiet])
     rp.add_argument("outdir", help="output folder of `avflow ensemble`")
     rp.set_defaults(func=_cmd_report)
-    x = sub.add_parser("export", help="write the maps of a grid run as GeoTIFF or ESRI ASCII "
-                                      "rasters (<stem>_<variable>.<ext>)", parents=[quiet])
-    x.add_argument("run_file", help="NetCDF written by `avflow run`")
+    x = sub.add_parser("export", help="write the maps of a grid run, or the probability maps "
+                                      "of an ensemble.nc, as GeoTIFF or ESRI ASCII rasters "
+                                      "(<stem>_<variable>.<ext>)", parents=[quiet])
+    x.add_argument("run_file", help="NetCDF written by `avflow run`, or OUTDIR/ensemble.nc")
     x.add_argument("--format", choices=("tif", "asc"), default="tif",
                    help="GeoTIFF (default) or ESRI ASCII grid + .prj")
     x.add_argument("-o", "--output", help="output folder (default: next to RUN_FILE)")
     x.add_argument("--variables", help="comma-separated maps (default: peak_thickness, "
-                                       "peak_speed, peak_pressure, deposit_thickness, "
-                                       "arrival_time, rest_time)")
+                                       "peak_speed, peak_pressure, peak_pressure_class, "
+                                       "deposit_thickness, arrival_time, rest_time; of an "
+                                       "ensemble.nc: every *_exceedance_probability, one "
+                                       "raster per threshold)")
     x.set_defaults(func=_cmd_export)
-    pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness over a hillshade; "
-                                     "bed and snapshots on profiles)", parents=[quiet])
+    pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness and peak-pressure "
+                                     "classes over a hillshade; bed and snapshots on "
+                                     "profiles)", parents=[quiet])
     pl.add_argument("run_file", help="NetCDF written by `avflow run`")
     pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
     pl.set_defaults(func=_cmd_plot)

@@ -281,3 +281,132 @@ output: {{every: 10.0}}
     assert r.terrain.n_cells < 0.45 * (81 * 61)
     assert r.summary["mass_balance_error"] < 1e-12
     assert r.state.peak_h.max() > 0 and np.all(r.state.h >= 0)
+
+
+# =========================================================================================
+# Libraries doing their part: ESRI ASCII through GDAL, vector releases through pyogrio
+# =========================================================================================
+
+
+def test_esri_ascii_reads_every_value_in_float64():
+    """avaKot.asc through GDAL's AAIGrid driver: the values as written (float64, not GDAL's
+    default float32 for decimal grids), NODATA as NaN, cell centres from the corner."""
+    path = DATA / "avaKot" / "avaKot.asc"
+    header = dict(line.split() for line in path.read_text().splitlines()[:6])
+    raw = np.loadtxt(path, skiprows=6)[::-1]
+    raw[raw == float(header["NODATA_value"])] = np.nan
+    r = read_raster(path)
+    np.testing.assert_array_equal(r.values, raw)
+    assert r.dx == pytest.approx(float(header["cellsize"]), rel=1e-9)
+    assert r.x[0] == pytest.approx(float(header["xllcorner"]) + 0.5 * r.dx, abs=1e-9)
+    assert r.y[0] == pytest.approx(float(header["yllcorner"]) + 0.5 * r.dx, abs=1e-9)
+    assert r.crs_wkt is None  # no .prj beside it
+
+
+def _write_vector(path, geometries, thickness=None, crs="EPSG:31287", **kw):
+    import pyogrio.raw
+    import shapely
+
+    fields, data = [], []
+    if thickness is not None:
+        fields, data = ["thickness"], [np.asarray(thickness, dtype=float)]
+    fields.append("name")
+    data.append(np.array([f"area {k}" for k in range(len(geometries))], dtype=object))
+    pyogrio.raw.write(str(path), shapely.to_wkb(np.asarray(geometries, dtype=object)), data,
+                      fields, crs=crs, geometry_type=kw.pop("geometry_type", "MultiPolygon"),
+                      **kw)
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".geojson", ".gpkg"])
+def test_geojson_and_geopackage_releases_equal_the_shapefile(tmp_path, suffix):
+    """relKot.shp rewritten as GeoJSON / GeoPackage (thickness attribute, CRS) releases the
+    same cells with the same thickness on avaKot; its CRS is the shapefile's."""
+    import shapely
+
+    shp = DATA / "avaKot" / "relKot.shp"
+    areas, wkt = read_polygons(shp)
+    polygon = shapely.Polygon(areas[0].rings[0], areas[0].rings[1:])
+    path = _write_vector(tmp_path / f"relKot{suffix}", [polygon], thickness=[1.5])
+    areas2, wkt2 = read_polygons(path)
+    assert [a.thickness for a in areas2] == [1.5] and areas2[0].name == "area 0"
+    from avflow.terrain.raster import same_crs
+
+    assert wkt2 and same_crs(wkt, wkt2)
+
+    def release(p):
+        sc = parse_scenario(f"""
+name: kot
+terrain: {{kind: dem, path: {DATA / 'avaKot' / 'avaKot.asc'}}}
+grid: {{dx: 10.0}}
+release: {{kind: polygon, path: {p}}}
+rheology: {{law: coulomb, delta_deg: 20.0}}
+time: {{end: 1.0}}
+""")
+        return prepare(sc)[1]
+
+    h_shp, h_new = release(shp), release(path)
+    assert np.count_nonzero(h_shp) > 50
+    np.testing.assert_array_equal(h_new, 1.5 * h_shp)  # relKot's own thickness is 1 m
+
+
+def test_geopackage_multipolygon_with_a_hole_is_even_odd(tmp_path):
+    """One feature of two parts, one with a hole: the hole is released nowhere, both parts
+    are; a domain from the same GeoPackage meshes only them."""
+    import shapely
+
+    x0, y0 = 1002.5, 2002.5  # between the tilted DEM's cell centres (every 5 m from 1000)
+    part1 = shapely.Polygon([(x0 + 20, y0 + 20), (x0 + 90, y0 + 20), (x0 + 90, y0 + 90),
+                             (x0 + 20, y0 + 90)],
+                            [[(x0 + 40, y0 + 40), (x0 + 70, y0 + 40), (x0 + 70, y0 + 70),
+                              (x0 + 40, y0 + 70)]])
+    part2 = shapely.box(x0 + 120, y0 + 20, x0 + 160, y0 + 60)
+    path = _write_vector(tmp_path / "areas.gpkg", [shapely.MultiPolygon([part1, part2])],
+                         thickness=[2.0])
+    z, x, y = tilted()
+    xx, yy = np.meshgrid(x, y)
+    h = rasterize(read_polygons(path)[0], xx, yy)
+    inside = lambda g: shapely.contains_xy(g, xx, yy)  # noqa: E731  (no centre on an edge)
+    np.testing.assert_array_equal(h, np.where(inside(part1) | inside(part2), 2.0, 0.0))
+    assert h[11, 11] == 0.0 and h[5, 5] == 2.0 and h[5, 28] == 2.0  # hole, part 1, part 2
+    # the same answer for scattered points (triangle-mesh nodes off the lattice)
+    jitter = 1e-3 * np.random.default_rng(0).random(xx.size)
+    np.testing.assert_array_equal(
+        rasterize(read_polygons(path)[0], xx.ravel() + jitter, yy.ravel()), h.ravel())
+
+
+def test_geojson_without_crs_member_takes_the_dems(tmp_path):
+    """GeoJSON's default CRS is WGS 84: coordinates in metres show it is not, so the file's
+    CRS is unknown and it is used on the DEM's (as a shapefile without .prj)."""
+    import shapely
+
+    path = tmp_path / "area.geojson"
+    path.write_text('{"type": "FeatureCollection", "features": [{"type": "Feature", '
+                    '"properties": {"thickness": 3.0}, "geometry": '
+                    + shapely.to_geojson(shapely.box(1012.5, 2012.5, 1082.5, 2082.5)) + "}]}")
+    areas, wkt = read_polygons(path)
+    assert wkt is None and areas[0].thickness == 3.0
+    sc = tilted_dem_scenario(tmp_path, f"{{kind: polygon, path: {path}}}")
+    h0 = prepare(sc)[1]
+    assert h0.max() == 3.0 and np.count_nonzero(h0) == 14 * 14
+
+
+def test_vector_files_that_cannot_be_releases_are_one_line(tmp_path):
+    import shapely
+
+    from avflow.terrain.polygons import PolygonError
+
+    lines = _write_vector(tmp_path / "lines.geojson", [shapely.LineString([(0, 0), (1, 1)])],
+                          geometry_type="LineString")
+    with pytest.raises(PolygonError, match="lines.geojson: holds LineString shapes"):
+        read_polygons(lines)
+    source = DATA / "avaKot"
+    for suffix in (".shp", ".dbf", ".prj"):  # no .shx
+        (tmp_path / f"relKot{suffix}").write_bytes((source / f"relKot{suffix}").read_bytes())
+    with pytest.raises(PolygonError, match=r"relKot\.shx: not found"):
+        read_polygons(tmp_path / "relKot.shp")
+    broken = tmp_path / "broken.gpkg"
+    broken.write_text("not a GeoPackage\n")
+    with pytest.raises(PolygonError, match="broken.gpkg: cannot be read as a vector file"):
+        read_polygons(broken)
+    assert "\n" not in str(pytest.raises(PolygonError, read_polygons, broken).value)

@@ -112,7 +112,14 @@ def test_export_round_trip(grid_run, tmp_path, fmt, capsys):
                 assert _same_crs(src.crs)
             else:  # the .prj is ESRI WKT1: GDAL recognises the CRS, names differ
                 assert src.crs is not None and src.crs.to_epsg() == EPSG
-        expected = ds[name].values.astype(float)
+        if name == "peak_pressure_class":  # derived: classes of 1, 3 and 30 kPa where the
+            p = ds["peak_pressure"].values / 1000.0  # flow was thicker than the threshold
+            reached = ds["peak_thickness"].values >= ds.attrs["runout_threshold_m"]
+            k = sum((p >= t).astype(float) for t in (1, 3, 30)) * reached
+            expected = np.where(np.isnan(p), np.nan, k)
+            assert set(np.unique(k)) == {0, 1, 2, 3}
+        else:
+            expected = ds[name].values.astype(float)
         assert np.array_equal(np.isnan(values), np.isnan(expected)), name
         # GeoTIFF: float32 as stored; ESRI ASCII: the 6 significant digits of dem.write_asc
         rtol = 0.0 if fmt == "tif" else 1e-5
@@ -208,3 +215,98 @@ def test_nice_levels():
     assert _nice_levels(0.01, 0.3) == [0.01, 0.02, 0.05, 0.1, 0.2, 0.5]
     levels = _nice_levels(1e-4, 300.0)
     assert len(levels) <= 10 and levels[0] <= 1e-4 and levels[-1] >= 300.0
+
+
+# =========================================================================================
+# Ensembles on a DEM: the CRS in ensemble.nc, probability maps exported as GeoTIFFs
+# =========================================================================================
+
+
+@pytest.fixture(scope="module")
+def dem_ensemble(grid_run):
+    """Four members on the synthetic valley (a DEM with a CRS), run in this process."""
+    folder = grid_run.parent
+    (folder / "ens.yaml").write_text("""\
+base: scene.yaml
+vary:
+  rheology.delta_deg: [16.0, 24.0]
+  release.volume_factor: [0.5, 1.0]
+thresholds:
+  peak_thickness: [0.5, 2.0]
+  peak_speed: [2.0, 5.0]
+""")
+    out = folder / "ens"
+    assert main(["ensemble", str(folder / "ens.yaml"), "-o", str(out), "--workers", "0"]) == 0
+    return out
+
+
+def test_ensemble_nc_carries_the_crs_and_probabilities(dem_ensemble):
+    ds = xr.open_dataset(dem_ensemble / "ensemble.nc", decode_times=False)
+    assert "crs" in ds.coords and _same_crs(CRS.from_wkt(ds["crs"].attrs["crs_wkt"]))
+    expected = {"peak_thickness": ("threshold", [0.5, 2.0]),
+                "peak_speed": ("speed_threshold", [2.0, 5.0]),
+                "peak_pressure": ("pressure_threshold", [1.0, 3.0, 30.0])}  # classes, kPa
+    for name, (dim, values) in expected.items():
+        prob = ds[f"{name}_exceedance_probability"]
+        assert prob.dims == (dim, "y", "x") and list(ds[dim].values) == values, name
+        assert prob.attrs["grid_mapping"] == "crs", name
+        assert np.nanmax(prob.values) == 1.0 and np.nanmin(prob.values) == 0.0, name
+        assert np.all(np.diff(prob.values, axis=0)[np.isfinite(prob.values[1:])] <= 0), name
+        assert np.isnan(prob.values[:, 0, -1]).all()  # the NODATA corner (south-east)
+    assert ds["pressure_threshold"].attrs["units"] == "kPa"
+    # P(peak thickness > 0.5 m), recomputed from the members' own files
+    peaks = []
+    for h in ds["scenario_hash"].values:
+        with xr.open_dataset(dem_ensemble / "members" / f"{h}.nc", decode_times=False) as m:
+            peaks.append(m["peak_thickness"].values)
+    np.testing.assert_array_equal(ds["peak_thickness_exceedance_probability"].values[0],
+                                  np.where(np.isnan(peaks[0]), np.nan,
+                                           np.mean(np.array(peaks) > 0.5, axis=0)))
+    with rasterio.open(f"netcdf:{dem_ensemble / 'ensemble.nc'}:"
+                       "peak_pressure_exceedance_probability") as src:
+        assert _same_crs(src.crs) and src.count == 3  # GDAL reads the CRS and the bands
+    assert "crs" not in ds["status"].encoding.get("coordinates", "")
+    from test_cli_output import compliance_errors
+
+    assert compliance_errors(dem_ensemble / "ensemble.nc") == []
+
+
+def test_ensemble_probability_maps_exported_to_geotiff(dem_ensemble, tmp_path, capsys):
+    """`avflow export OUTDIR/ensemble.nc --format tif`: one GeoTIFF per map and threshold,
+    read back by rasterio with the DEM's CRS, transform and the file's values."""
+    path = dem_ensemble / "ensemble.nc"
+    assert main(["export", str(path), "--format", "tif", "-o", str(tmp_path)]) == 0
+    assert capsys.readouterr().err == ""
+    ds = xr.open_dataset(path, decode_times=False)
+    expected = {f"ensemble_peak_thickness_exceedance_probability_{t}m.tif" for t in ("0.5", "2")}
+    expected |= {f"ensemble_peak_speed_exceedance_probability_{t}m_s.tif" for t in ("2", "5")}
+    expected |= {f"ensemble_peak_pressure_exceedance_probability_{t}kPa.tif"
+                 for t in ("1", "3", "30")}
+    assert {p.name for p in tmp_path.glob("*.tif")} == expected
+    with rasterio.open(tmp_path / "ensemble_peak_pressure_exceedance_probability_3kPa.tif") as src:
+        assert _same_crs(src.crs)
+        assert src.transform.almost_equals(_expected_transform())
+        assert src.descriptions[0] == "P(peak pressure > 3 kPa)"
+        values = src.read(1, masked=True).filled(np.nan)[::-1]
+    stored = ds["peak_pressure_exceedance_probability"].sel(pressure_threshold=3.0).values
+    np.testing.assert_array_equal(values, stored)
+    assert np.nanmax(values) > 0.0
+    # the CRS survives the ESRI ASCII route too (.prj)
+    assert main(["export", str(path), "--format", "asc", "-o", str(tmp_path),
+                 "--variables", "peak_speed_exceedance_probability"]) == 0
+    back = read_raster(tmp_path / "ensemble_peak_speed_exceedance_probability_5m_s.asc")
+    assert same_crs(back.crs_wkt, CRS.from_epsg(EPSG).to_wkt())
+
+
+def test_ensemble_report_maps_over_the_hillshade(dem_ensemble):
+    from avflow.ensemble.report import write_report
+
+    text = write_report(dem_ensemble).read_text()
+    for fig in ("exceedance.png", "exceedance_speed.png", "exceedance_pressure.png"):
+        assert f"report/{fig}" in text
+        assert (dem_ensemble / "report" / fig).stat().st_size > 20_000
+
+
+def test_plot_and_export_of_an_ensemble_file_say_what_it_is(dem_ensemble, capsys):
+    assert main(["plot", str(dem_ensemble / "ensemble.nc")]) == 2
+    assert "avflow report" in capsys.readouterr().err

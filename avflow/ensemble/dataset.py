@@ -7,9 +7,14 @@ and for the maps the member grid (``x`` on profiles, ``y, x`` on 2D grids) and `
   coordinate; a field that a member's law does not have is NaN);
 - ``status`` and ``error`` (strings) and the summaries (float64, with units) per member;
 - when every member that produced a file has the same grid: ``peak_thickness`` and
-  ``deposit_thickness`` stacked along ``realization`` (NaN for failed members), and
-  ``peak_thickness_exceedance_probability`` over the successful members for every
-  threshold of the ensemble file (default 0.1, 1 and 5 m).
+  ``deposit_thickness`` stacked along ``realization`` (NaN for failed members), and the
+  exceedance probabilities over the successful members for every threshold of the
+  ensemble file: ``peak_thickness_exceedance_probability(threshold, ...)`` (default 0.1,
+  1 and 5 m), ``peak_speed_exceedance_probability(speed_threshold, ...)`` (1, 5, 10 m/s)
+  and ``peak_pressure_exceedance_probability(pressure_threshold, ...)`` (the base
+  scenario's pressure classes, kPa; default 1, 3 and 30);
+- on a DEM with a CRS, the members' grid-mapping variable ``crs``, named by every map's
+  ``grid_mapping`` (as in a run file): GDAL, QGIS and ``avflow export`` read it.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from avflow import __version__
 from avflow.ensemble.spec import Ensemble
 from avflow.output.cf import SEED_REFERENCE, SUMMARIES, per_width
 from avflow.output.netcdf import publish
-from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS
+from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, THRESHOLD_UNITS
 
 #: Units of scenario fields by their last name (varied-parameter coordinates).
 FIELD_UNITS = {
@@ -42,6 +47,11 @@ FIELD_UNITS = {
 }
 
 MAPS = ("peak_thickness", "deposit_thickness")
+#: Maps read from the members for their exceedance probabilities only (not stacked).
+PROBABILITY_ONLY = ("peak_speed", "peak_pressure")
+#: Dimension of each map's thresholds, and the factor from threshold units to map units.
+THRESHOLD_DIMS = {"peak_thickness": ("threshold", 1.0), "peak_speed": ("speed_threshold", 1.0),
+                  "peak_pressure": ("pressure_threshold", 1000.0)}
 
 
 def coordinate_name(dotted: str) -> str:
@@ -105,7 +115,7 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
                    "summary.csv of that run; NaN where it is gone)"})
 
     ok = table["status"].isin(OK_STATUSES).to_numpy()
-    maps, grid_coords, note = _stacked_maps(ensemble, table, outdir, profile)
+    maps, grid_coords, note, crs = _stacked_maps(ensemble, table, outdir, profile)
     if maps is not None:
         coords.update(grid_coords)
         space = ("x",) if profile else ("y", "x")
@@ -115,23 +125,15 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
         data["deposit_thickness"] = (("realization", *space), maps["deposit_thickness"], {
             "long_name": "thickness at the end of the member run", "units": "m",
             "comment": "measured normal to the bed; NaN for failed members"})
-        thresholds = np.asarray(ensemble.thresholds, dtype=float)
-        coords["threshold"] = ("threshold", thresholds, {
-            "long_name": "peak flow thickness threshold", "units": "m"})
-        peak = maps["peak_thickness"][ok]
-        with np.errstate(invalid="ignore"):
-            if peak.shape[0]:
-                prob = np.stack([(peak > t).mean(axis=0) for t in thresholds])
-                outside = np.isnan(peak).all(axis=0)
-                prob[:, outside] = np.nan
-            else:
-                prob = np.full((len(thresholds), *maps["peak_thickness"].shape[1:]), np.nan)
-        data["peak_thickness_exceedance_probability"] = (("threshold", *space), prob, {
-            "long_name": "probability that the peak flow thickness exceeds the threshold",
-            "units": "1",
-            "comment": f"fraction of the {int(ok.sum())} successful members whose "
-                       "peak_thickness is above the threshold; NaN outside the mesh"})
+        _probabilities(ensemble, maps, ok, space, coords, data)
+        if crs is not None:  # a coordinate, as in a run file (rioxarray looks there)
+            coords["crs"] = ((), np.int32(0), crs)
+            for name, (dims, _, attributes) in data.items():
+                if tuple(dims[-2:]) == ("y", "x"):
+                    attributes["grid_mapping"] = "crs"
     ds = xr.Dataset(data, coords=coords)
+    if "crs" in ds.coords:
+        _link_coordinates(ds)
     failed = int((~ok).sum())
     ds.attrs = {
         "Conventions": "CF-1.11",
@@ -157,13 +159,17 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
 
 
 def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool):
-    """Peak and deposit maps of all members when they share one grid; else (None, {}, why)."""
+    """Maps of all members when they share one grid: ``(maps, grid coordinates, note,
+    grid-mapping attributes or None)``; else ``(None, {}, why, None)``. ``maps`` holds the
+    stacked :data:`MAPS` and :data:`PROBABILITY_ONLY` (None when a member file lacks it),
+    and ``reached``: where each member's peak thickness passed its runout threshold."""
     files = [(i, outdir / f) for i, f in zip(table["realization"], table["file"]) if f]
     if not files:
-        return None, {}, "no member produced a file"
-    maps = {name: None for name in MAPS}
+        return None, {}, "no member produced a file", None
+    maps: dict = {}
     grid_coords: dict = {}
     reference = None
+    crs = None
     for i, path in files:
         with xr.open_dataset(path, decode_times=False) as ds:
             names = ["x", "x_horizontal"] if profile else ["y", "x"]
@@ -171,7 +177,7 @@ def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool):
             if reference is None:
                 reference = here
                 shape = (len(table), *ds["peak_thickness"].shape)
-                for name in MAPS:
+                for name in (*MAPS, *PROBABILITY_ONLY, "reached"):
                     maps[name] = np.full(shape, np.nan)
                 for c in names:
                     if c in ds.coords:
@@ -180,13 +186,67 @@ def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool):
                     grid_coords["bed_elevation"] = (ds["bed_elevation"].dims,
                                                     ds["bed_elevation"].values.astype(float),
                                                     dict(ds["bed_elevation"].attrs))
+                gm = ds["peak_thickness"].attrs.get("grid_mapping")
+                if gm and gm in ds.variables:
+                    crs = {"long_name": "coordinate reference system", **ds[gm].attrs}
             elif any(here[c].shape != reference[c].shape or not np.array_equal(here[c],
                                                                                reference[c])
                      for c in reference):
-                return None, {}, "not stacked: the members have different grids"
-            for name in MAPS:
+                return None, {}, "not stacked: the members have different grids", None
+            for name in (*MAPS, *PROBABILITY_ONLY):
+                if maps[name] is None:
+                    continue
+                if name not in ds:  # a member file written before the map existed
+                    maps[name] = None
+                    continue
                 maps[name][i] = ds[name].values
-    return maps, grid_coords, "peak_thickness and deposit_thickness stacked"
+            threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
+            maps["reached"][i] = np.nan_to_num(ds["peak_thickness"].values) >= threshold
+    return maps, grid_coords, "peak_thickness and deposit_thickness stacked", crs
+
+
+def _probabilities(ensemble: Ensemble, maps: dict, ok: np.ndarray, space: tuple, coords: dict,
+                   data: dict) -> None:
+    """Exceedance probability of each peak map at each of its thresholds, over the
+    successful members; speed and pressure count where a member's peak thickness passed
+    its runout threshold (as in its pressure-class map), so thin films do not."""
+    n_ok = int(ok.sum())
+    reached = maps["reached"][ok] > 0
+    for name, thresholds in ensemble.exceedance_thresholds().items():
+        if maps.get(name) is None:
+            continue
+        dim, scale = THRESHOLD_DIMS[name]
+        what = name.replace("_", " ").replace("peak ", "peak flow " if name ==
+                                              "peak_thickness" else "peak ")
+        coords[dim] = (dim, np.asarray(thresholds, dtype=float), {
+            "long_name": f"{what} threshold", "units": THRESHOLD_UNITS[name]})
+        peak = maps[name][ok]
+        with np.errstate(invalid="ignore"):
+            if peak.shape[0]:
+                over = [peak > t * scale for t in thresholds]
+                if name != "peak_thickness":
+                    over = [o & reached for o in over]
+                prob = np.stack([o.mean(axis=0) for o in over])
+                prob[:, np.isnan(peak).all(axis=0)] = np.nan
+            else:
+                prob = np.full((len(thresholds), *maps[name].shape[1:]), np.nan)
+        film = ("" if name == "peak_thickness" else
+                " and whose peak thickness passed its runout threshold")
+        data[f"{name}_exceedance_probability"] = ((dim, *space), prob, {
+            "long_name": f"probability that the {what} exceeds the threshold",
+            "units": "1",
+            "comment": f"fraction of the {n_ok} successful members whose {name} is above "
+                       f"the threshold{film}; NaN outside the mesh"})
+
+
+def _link_coordinates(ds: xr.Dataset) -> None:
+    """The 0-d ``crs`` coordinate in the ``coordinates`` of the maps that name it only
+    (xarray would list it on every variable, as it lists the realization coordinates)."""
+    aux = [name for name in ds.coords if name not in ds.dims]
+    for name, var in ds.data_vars.items():
+        linked = [c for c in aux if (var.attrs.get("grid_mapping") == c if ds[c].ndim == 0
+                                     else set(ds[c].dims) <= set(var.dims))]
+        var.encoding["coordinates"] = " ".join(linked) if linked else None
 
 
 def write_ensemble_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> Path:

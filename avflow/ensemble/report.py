@@ -7,7 +7,8 @@ deposit profiles when the members do not share a grid). Writes ``OUTDIR/report.m
 - runout and time to stop against each varied numeric parameter, coloured by friction law;
 - runout and time to stop per law;
 - profile scenes: the deposit profiles of all members overlaid;
-- grid scenes: the peak-thickness exceedance-probability map of every threshold;
+- grid scenes: the exceedance-probability maps of peak thickness, speed and pressure at
+  every threshold, over the hillshade of the bed with the CRS (as ``avflow plot``);
 - a table of the failed members with their errors.
 """
 
@@ -157,30 +158,8 @@ def write_report(outdir: str | os.PathLike) -> Path:
         fig.savefig(figdir / "deposit_profiles.png", dpi=110)
         plt.close(fig)
         figures.append(("Deposit profiles, all members overlaid", "deposit_profiles.png"))
-    elif "peak_thickness_exceedance_probability" in ds:
-        prob = ds["peak_thickness_exceedance_probability"]
-        k = prob.sizes["threshold"]
-        xs, ys = ds["x"].values, ds["y"].values
-        aspect = (np.ptp(xs) + 1e-9) / (np.ptp(ys) + 1e-9)
-        if aspect > 2.0:  # long domains: one map under the other
-            fig, axes = plt.subplots(k, 1, figsize=(10, 1.2 + k * 10 / aspect),
-                                     constrained_layout=True, squeeze=False)
-            axes = axes[:, 0]
-        else:
-            fig, axes = plt.subplots(1, k, figsize=(4.2 * k, 4), constrained_layout=True,
-                                     squeeze=False)
-            axes = axes[0]
-        for ax, t in zip(axes, prob["threshold"].values):
-            im = ax.pcolormesh(ds["x"].values, ds["y"].values, prob.sel(threshold=t).values,
-                               vmin=0.0, vmax=1.0, cmap="viridis", shading="nearest")
-            ax.set_aspect("equal")
-            ax.set_title(f"P(peak thickness > {t:g} m)")
-            ax.set_xlabel("x (m)")
-            ax.set_ylabel("y (m)")
-        fig.colorbar(im, ax=list(axes), label="probability")
-        fig.savefig(figdir / "exceedance.png", dpi=110)
-        plt.close(fig)
-        figures.append(("Peak-thickness exceedance probability", "exceedance.png"))
+    else:
+        figures += _exceedance_figures(ds, figdir, plt)
 
     for title, fname in figures:
         md += [f"## {title}", "", f"![{title}](report/{fname})", ""]
@@ -226,6 +205,61 @@ def write_report(outdir: str | os.PathLike) -> Path:
     tmp.write_text("\n".join(md))
     os.replace(tmp, report)
     return report
+
+
+#: Probability maps of ensemble.nc: figure file, title and how a threshold is written.
+_EXCEEDANCE = (("peak_thickness", "exceedance.png", "Peak-thickness exceedance probability",
+                "peak thickness > {:g} m"),
+               ("peak_speed", "exceedance_speed.png", "Peak-speed exceedance probability",
+                "peak speed > {:g} m/s"),
+               ("peak_pressure", "exceedance_pressure.png",
+                "Peak-pressure exceedance probability", "peak pressure > {:g} kPa"))
+
+
+def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
+    """One figure per peak map: its probability at each threshold over the hillshade of the
+    bed, axes in the CRS (as `avflow plot`); P = 0 is left transparent."""
+    from avflow.output.maps import crs_name, draw_terrain
+
+    figures = []
+    xs, ys = ds["x"].values, ds["y"].values
+    bed = ds["bed_elevation"].values if "bed_elevation" in ds.variables else None
+    crs = crs_name(ds)
+    for name, fname, title, label in _EXCEEDANCE:
+        var = f"{name}_exceedance_probability"
+        if var not in ds:
+            continue
+        prob = ds[var]
+        dim = prob.dims[0]
+        k = prob.sizes[dim]
+        aspect = (np.ptp(xs) + 1e-9) / (np.ptp(ys) + 1e-9)
+        if aspect > 2.0:  # long domains: one map under the other
+            fig, axes = plt.subplots(k, 1, figsize=(10, 1.2 + k * 10 / aspect),
+                                     constrained_layout=True, squeeze=False, sharex=True)
+            axes = axes[:, 0]
+        else:
+            fig, axes = plt.subplots(1, k, figsize=(3.9 * k + 1.3, 4.4), constrained_layout=True,
+                                     squeeze=False, sharey=True)
+            axes = axes[0]
+        for ax, t in zip(axes, prob[dim].values):
+            if bed is not None:
+                draw_terrain(ax, xs, ys, np.asarray(bed, dtype=float))
+            p = prob.sel({dim: t}).values
+            im = ax.pcolormesh(xs, ys, np.ma.masked_where(~(p > 0), p), vmin=0.0, vmax=1.0,
+                               cmap="viridis", shading="nearest", alpha=0.85)
+            ax.set_aspect("equal")
+            ax.ticklabel_format(useOffset=False, style="plain")
+            ax.tick_params(labelsize=7)
+            ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+            plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+            ax.set_title(f"P({label.format(float(t))})", fontsize=10)
+            ax.set_xlabel("x (m)" + (f"\n{crs}" if crs else ""), fontsize=8)
+            ax.set_ylabel("y (m)", fontsize=8)
+        fig.colorbar(im, ax=list(axes), label="probability (blank: 0)", shrink=0.9)
+        fig.savefig(figdir / fname, dpi=110)
+        plt.close(fig)
+        figures.append((title, fname))
+    return figures
 
 
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")

@@ -15,6 +15,8 @@ An ensemble file names a base scenario (relative to the ensemble file) and how t
       ranges:
         rheology.delta_deg: [12.0, 24.0]
     thresholds: [0.1, 1.0, 5.0]         # m, peak-thickness exceedance maps (grid scenes)
+    # or per peak map:  thresholds: {peak_thickness: [0.1, 1.0], peak_speed: [1.0, 10.0],
+    #                                peak_pressure: [1.0, 3.0, 30.0]}   # m, m/s, kPa
 
 Members are the cartesian product of ``vary`` (first key slowest) crossed with the ``sample``
 points (each vary combination gets every sample point; the sample is applied after the vary
@@ -45,6 +47,11 @@ __all__ = ["EnsembleError", "Ensemble", "Member", "load_ensemble", "parse_ensemb
 
 #: Peak-thickness thresholds (m) of the exceedance-probability maps, unless the file says.
 DEFAULT_THRESHOLDS = (0.1, 1.0, 5.0)
+#: Peak-speed thresholds (m/s) of the exceedance maps, unless the file says; peak-pressure
+#: thresholds default to the base scenario's output.pressure_classes (kPa).
+DEFAULT_SPEED_THRESHOLDS = (1.0, 5.0, 10.0)
+#: The peak maps with exceedance probabilities, and the units of their thresholds.
+THRESHOLD_UNITS = {"peak_thickness": "m", "peak_speed": "m s-1", "peak_pressure": "kPa"}
 
 _TOP_KEYS = ("name", "description", "base", "vary", "sample", "thresholds")
 _SAMPLE_KEYS = ("n", "seed", "ranges")
@@ -98,6 +105,17 @@ class Ensemble:
     thresholds: tuple[float, ...] = DEFAULT_THRESHOLDS
     description: str = ""
     sample: dict = field(default_factory=dict)
+    #: thresholds of peak_speed (m/s) and peak_pressure (kPa) given in the file
+    map_thresholds: dict = field(default_factory=dict)
+
+    def exceedance_thresholds(self) -> dict[str, tuple[float, ...]]:
+        """Thresholds of the exceedance-probability maps per peak map (units in
+        :data:`THRESHOLD_UNITS`): the file's, else the defaults."""
+        return {"peak_thickness": tuple(self.thresholds),
+                "peak_speed": tuple(self.map_thresholds.get("peak_speed",
+                                                            DEFAULT_SPEED_THRESHOLDS)),
+                "peak_pressure": tuple(self.map_thresholds.get(
+                    "peak_pressure", self.base.output.pressure_classes))}
 
     def parameters(self) -> dict[str, list]:
         """Member parameters as columns: every leaf under each varied path, resolved.
@@ -245,16 +263,8 @@ def parse_ensemble(text: str, source_path: str | os.PathLike | None = None,
         raise fail(("description",), f"must be a string, got {description!r}")
 
     # --- thresholds -----------------------------------------------------------------------
-    thresholds = data.get("thresholds", list(DEFAULT_THRESHOLDS))
-    if not isinstance(thresholds, list) or not thresholds:
-        raise fail(("thresholds",), "must be a non-empty list of thicknesses (m), got "
-                                    f"{thresholds!r}")
-    for i, t in enumerate(thresholds):
-        if not _is_number(t) or not t > 0:
-            raise fail(("thresholds", i), f"must be a positive number (m), got {t!r}")
-    if len(set(thresholds)) != len(thresholds):
-        raise fail(("thresholds",), "must not repeat a value")
-    thresholds = tuple(float(t) for t in sorted(thresholds))
+    map_thresholds = _thresholds(data.get("thresholds", list(DEFAULT_THRESHOLDS)), fail)
+    thresholds = map_thresholds.pop("peak_thickness", DEFAULT_THRESHOLDS)
 
     # --- vary -----------------------------------------------------------------------------
     vary = data.get("vary", {})
@@ -312,7 +322,35 @@ def parse_ensemble(text: str, source_path: str | os.PathLike | None = None,
                                   "instead")
     return Ensemble(name=name.strip(), path=path, text=text, base=base, members=members,
                     varied=varied, thresholds=thresholds, description=description,
-                    sample=sample_info)
+                    sample=sample_info, map_thresholds=map_thresholds)
+
+
+def _thresholds(value: Any, fail) -> dict[str, tuple[float, ...]]:
+    """``thresholds:`` as a list (peak thickness, m) or a mapping per peak map."""
+    if isinstance(value, dict):
+        if not value:
+            raise fail(("thresholds",), "must name at least one of "
+                                        f"{', '.join(THRESHOLD_UNITS)}")
+        items = [(("thresholds", k), k, v) for k, v in value.items()]
+    else:
+        items = [(("thresholds",), "peak_thickness", value)]
+    out = {}
+    for keys, name, values in items:
+        if name not in THRESHOLD_UNITS:
+            hint = (did_you_mean(name, tuple(THRESHOLD_UNITS))
+                    or f"; expected one of: {', '.join(THRESHOLD_UNITS)}")
+            raise fail(keys, "unknown peak map" + hint)
+        unit = THRESHOLD_UNITS[name]
+        if not isinstance(values, list) or not values:
+            raise fail(keys, f"must be a non-empty list of {name} thresholds ({unit}), got "
+                             f"{values!r}")
+        for i, t in enumerate(values):
+            if not _is_number(t) or not t > 0:
+                raise fail((*keys, i), f"must be a positive number ({unit}), got {t!r}")
+        if len(set(values)) != len(values):
+            raise fail(keys, "must not repeat a value")
+        out[name] = tuple(float(t) for t in sorted(values))
+    return out
 
 
 def _is_number(value: Any) -> bool:

@@ -175,6 +175,7 @@ def global_attributes(result) -> dict:
         "stop_fraction": th["stop_fraction"],
         "ended_by": s["ended_by"],
         "min_flow_thickness_m": th["min_flow"],
+        "pressure_classes_kPa": np.asarray(sc.output.pressure_classes, dtype=float),
         "steps": int(s["steps"]),
         "dt_min_s": s["dt_min"],
         "dt_max_s": s["dt_max"],

@@ -1,16 +1,21 @@
 """Maps out of a run file: ``avflow export`` (GeoTIFF / ESRI ASCII rasters) and ``avflow plot``.
 
-Both read one ``avflow run`` NetCDF (:func:`avflow.output.dataset.to_dataset`).
+Both read one ``avflow run`` NetCDF (:func:`avflow.output.dataset.to_dataset`); ``export``
+also reads an ensemble's ``ensemble.nc`` (:mod:`avflow.ensemble.dataset`).
 
 - :func:`export_maps` writes the (y, x) maps of a grid scene (terrain ``plane`` or ``dem``)
   as north-up rasters named ``<stem>_<variable>.tif|.asc``, georeferenced with the CRS of
   the file's ``crs`` grid-mapping variable (``crs_wkt``). ESRI ASCII grids get a ``.prj`` in
   ESRI WKT1, the only form GDAL's AAIGrid driver reads. NaN (outside the DEM, never reached)
-  is the rasters' NODATA.
+  is the rasters' NODATA. ``peak_pressure_class`` is the class of the peak pressure among
+  the scenario's ``output.pressure_classes`` (kPa; 0 below the first threshold), a paletted
+  byte GeoTIFF. Of an ``ensemble.nc`` it writes every exceedance-probability map, one
+  raster per threshold: ``ensemble_<variable>_<threshold><unit>.tif``.
 - :func:`plot_run` draws one PNG (matplotlib Agg): on grids the peak thickness over a
-  hillshade of the bed with the release and deposit outlines; on profiles the bed with the
-  thickness at a few snapshots and the deposit; on triangle meshes (UGRID) the peak
-  thickness on the mesh nodes.
+  hillshade of the bed (``matplotlib.colors.LightSource``) with the release and deposit
+  outlines, and beside it the peak-pressure classes; on profiles the bed with the thickness
+  at a few snapshots and the deposit; on triangle meshes (UGRID) the same two maps on the
+  mesh.
 
 Problems with the input file are :class:`MapsError` (one line naming the file).
 """
@@ -25,11 +30,19 @@ import numpy as np
 
 from avflow.errors import AvflowError
 
-__all__ = ["DEFAULT_EXPORT", "MapsError", "export_maps", "plot_run", "scene_kind"]
+__all__ = ["DEFAULT_EXPORT", "MapsError", "export_maps", "plot_run", "scene_kind",
+           "pressure_classes", "pressure_class_map", "pressure_class_labels"]
 
 #: Maps exported when no ``--variables`` are given.
-DEFAULT_EXPORT = ("peak_thickness", "peak_speed", "peak_pressure", "deposit_thickness",
-                  "arrival_time", "rest_time")
+DEFAULT_EXPORT = ("peak_thickness", "peak_speed", "peak_pressure", "peak_pressure_class",
+                  "deposit_thickness", "arrival_time", "rest_time")
+
+#: The class map derived from ``peak_pressure`` (not a variable of the file).
+PRESSURE_CLASS = "peak_pressure_class"
+#: Byte value of cells outside the mesh in the class GeoTIFF.
+CLASS_NODATA = 255
+#: Colours of three pressure classes: the yellow, blue and red of hazard zoning.
+_ZONE_COLORS = ("#f2d21b", "#2b6fce", "#d7191c")
 
 FORMATS = ("tif", "asc")
 
@@ -53,9 +66,29 @@ def open_run(path) -> "xarray.Dataset":  # noqa: F821
     except Exception as err:  # not NetCDF, truncated...
         raise MapsError(f"{path}: cannot be read as NetCDF ({type(err).__name__})") from None
     if "scenario_name" not in ds.attrs or "peak_thickness" not in ds.variables:
+        ensemble = "ensemble_name" in ds.attrs
         ds.close()
+        if ensemble:
+            raise MapsError(f"{path}: an ensemble file; `avflow export` writes its "
+                            "probability maps, `avflow report OUTDIR` draws them")
         raise MapsError(f"{path}: not an avflow run file (written by `avflow run`)")
     return ds
+
+
+def _open_any(path):
+    """A run file or an ensemble's ensemble.nc (by its ``ensemble_name`` attribute)."""
+    import xarray as xr
+
+    path = Path(path)
+    if path.is_file():
+        try:
+            with xr.open_dataset(path, decode_times=False) as ds:
+                ensemble = "ensemble_name" in ds.attrs
+        except Exception:
+            ensemble = False
+        if ensemble:
+            return xr.open_dataset(path, decode_times=False), True
+    return open_run(path), False
 
 
 def scene_kind(ds) -> str:
@@ -72,8 +105,11 @@ def scene_kind(ds) -> str:
 
 def crs_wkt(ds) -> str | None:
     """WKT of the CRS the maps name in ``grid_mapping`` (None without one)."""
-    gm = ds["peak_thickness"].attrs.get("grid_mapping") or ds["peak_thickness"].encoding.get(
-        "grid_mapping")
+    gm = None
+    for var in ds.variables.values():
+        gm = var.attrs.get("grid_mapping") or var.encoding.get("grid_mapping")
+        if gm:
+            break
     gm = gm or ("crs" if "crs" in ds.variables else None)
     if not gm or gm not in ds.variables:
         return None
@@ -82,7 +118,63 @@ def crs_wkt(ds) -> str | None:
 
 
 def _map_names(ds) -> list[str]:
-    return [n for n, v in ds.data_vars.items() if v.dims == ("y", "x")]
+    names = [n for n, v in ds.data_vars.items() if v.dims == ("y", "x")]
+    if "peak_pressure" in names:
+        names.insert(names.index("peak_pressure") + 1, PRESSURE_CLASS)
+    return names
+
+
+# --- pressure classes -----------------------------------------------------------------------
+
+
+def pressure_classes(ds) -> tuple[float, ...]:
+    """The run's peak-pressure class thresholds (kPa): its ``output.pressure_classes``
+    (attribute ``pressure_classes_kPa``); files written before it: 1, 3 and 30 kPa."""
+    value = ds.attrs.get("pressure_classes_kPa")
+    if value is None:
+        from avflow.scenario.schema import Output
+
+        return tuple(Output.model_fields["pressure_classes"].default)
+    return tuple(float(v) for v in np.atleast_1d(value))
+
+
+def pressure_class_map(peak_pressure_pa: np.ndarray, classes_kpa,
+                       reached: np.ndarray | None = None) -> np.ndarray:
+    """Class of each peak pressure (Pa): 0 below the first threshold, k from the k-th
+    threshold (included) up to the next; NaN stays NaN. Where ``reached`` is False (the
+    peak thickness never passed the runout threshold: a film) the class is 0."""
+    p = np.asarray(peak_pressure_pa, dtype=float) / 1000.0
+    k = np.digitize(np.nan_to_num(p, nan=-1.0), np.asarray(classes_kpa, dtype=float))
+    if reached is not None:
+        k = np.where(reached, k, 0)
+    return np.where(np.isfinite(p), k, np.nan)
+
+
+def run_pressure_classes(ds, peak_pressure=None, peak_thickness=None) -> np.ndarray:
+    """The class map of a run file: its peak pressure in its classes, where its peak
+    thickness passed the runout threshold (the outline of the thickness map)."""
+    p = ds["peak_pressure"].values if peak_pressure is None else peak_pressure
+    h = ds["peak_thickness"].values if peak_thickness is None else peak_thickness
+    threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
+    with np.errstate(invalid="ignore"):
+        reached = np.nan_to_num(np.asarray(h, dtype=float)) >= threshold
+    return pressure_class_map(p, pressure_classes(ds), reached)
+
+
+def pressure_class_labels(classes_kpa) -> list[str]:
+    """Legend names of classes 1..n: ``1-3 kPa``, ..., ``>= 30 kPa``."""
+    c = [f"{v:g}" for v in classes_kpa]
+    return [f"{a}\u2013{b} kPa" for a, b in zip(c, c[1:])] + [f"\u2265 {c[-1]} kPa"]
+
+
+def pressure_class_colors(n: int) -> list[str]:
+    """Colours of classes 1..n: the zoning colours for three classes, else YlOrRd."""
+    if n == len(_ZONE_COLORS):
+        return list(_ZONE_COLORS)
+    from matplotlib import colormaps
+    import matplotlib.colors as mcolors
+
+    return [mcolors.to_hex(c) for c in colormaps["YlOrRd"](np.linspace(0.3, 1.0, n))]
 
 
 # --- export ---------------------------------------------------------------------------------
@@ -102,44 +194,33 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
     """Write maps of the grid run file ``path`` as rasters; returns the paths written.
 
     ``fmt`` is ``"tif"`` or ``"asc"``; ``outdir`` defaults to the folder of ``path``;
-    ``variables`` defaults to :data:`DEFAULT_EXPORT`. ``warn(message)`` is told when the
-    file has no CRS (the rasters are then written without one).
+    ``variables`` defaults to :data:`DEFAULT_EXPORT` (of an ``ensemble.nc``: every
+    exceedance-probability map). ``warn(message)`` is told when the file has no CRS (the
+    rasters are then written without one).
     """
     from avflow.terrain.raster import RasterError, write_asc, write_tif
 
     path = Path(path)
     if fmt not in FORMATS:
         raise MapsError(f"unknown format {fmt!r} (use one of {', '.join(FORMATS)})")
-    with open_run(path) as ds:
-        kind = scene_kind(ds)
-        if kind != "grid":
-            what = {"profile": "a profile run (maps on x only)",
-                    "triangles": "a triangle-mesh run (UGRID, maps on mesh nodes)"}.get(
-                kind, f"peak_thickness on {ds['peak_thickness'].dims}")
-            raise MapsError(f"{path}: export needs a grid scene (terrain plane or dem, "
-                            f"square cells); this is {what}")
-        available = _map_names(ds)
-        names = list(DEFAULT_EXPORT if not variables else variables)
-        unknown = [n for n in names if n not in available]
-        if unknown:
-            raise MapsError(f"{path}: no map named {', '.join(map(repr, unknown))}; "
-                            f"available: {', '.join(available)}")
+    ds, ensemble = _open_any(path)
+    with ds:
+        rasters = (_ensemble_rasters if ensemble else _run_rasters)(ds, path, variables)
         wkt = crs_wkt(ds)
         if wkt is None and warn is not None:
             warn(f"{path}: no CRS in the file; rasters written without one")
         x = np.asarray(ds["x"].values, dtype=float)
         y = np.asarray(ds["y"].values, dtype=float)
-        maps = {n: np.asarray(ds[n].values, dtype=float) for n in names}
     if x.size < 2 or y.size < 2:
         raise MapsError(f"{path}: the grid needs at least 2 x 2 cells to be exported")
     outdir = path.parent if outdir is None else Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     written = []
-    for name, values in maps.items():
+    for name, values, options in rasters:
         target = outdir / f"{path.stem}_{name}.{fmt}"
         try:
             if fmt == "tif":
-                write_tif(target, values, x, y, wkt)
+                write_tif(target, values, x, y, wkt, **options)
             else:
                 write_asc(target, values, x, y, _esri_wkt(wkt) if wkt else None)
         except RasterError as err:
@@ -149,6 +230,97 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
             raise MapsError(f"{target}: cannot write ({err.strerror or err})") from None
         written.append(target)
     return written
+
+
+def _need_grid(ds, path: Path, what: str) -> None:
+    kind = scene_kind(ds) if what == "run" else ("grid" if ("y" in ds.dims and "x" in ds.dims)
+                                                   else "profile")
+    if kind != "grid":
+        this = {"profile": f"a profile {what} (maps on x only)",
+                "triangles": "a triangle-mesh run (UGRID, maps on mesh nodes)"}.get(
+            kind, f"peak_thickness on {ds['peak_thickness'].dims}")
+        raise MapsError(f"{path}: export needs a grid scene (terrain plane or dem, "
+                        f"square cells); this is {this}")
+
+
+def _unknown(path: Path, unknown, available) -> MapsError:
+    return MapsError(f"{path}: no map named {', '.join(map(repr, unknown))}; "
+                     f"available: {', '.join(available)}")
+
+
+def _run_rasters(ds, path: Path, variables):
+    """``(name, values, write_tif options)`` of the maps of a run file to export."""
+    _need_grid(ds, path, "run")
+    available = _map_names(ds)
+    names = [n for n in (variables or DEFAULT_EXPORT)
+             if variables or n in available]  # files before a map existed: skip it
+    unknown = [n for n in names if n not in available]
+    if unknown:
+        raise _unknown(path, unknown, available)
+    rasters = []
+    for name in names:
+        if name != PRESSURE_CLASS:
+            rasters.append((name, np.asarray(ds[name].values, dtype=float), {}))
+            continue
+        classes = pressure_classes(ds)
+        labels = pressure_class_labels(classes)
+        colors = pressure_class_colors(len(classes))
+        values = run_pressure_classes(ds)
+        rasters.append((name, values, {
+            "dtype": "uint8", "nodata": CLASS_NODATA,
+            "colormap": {0: (255, 255, 255, 255),  # a TIFF palette has no alpha
+                         **{k + 1: _rgba(c) for k, c in enumerate(colors)}},
+            "description": "peak pressure class",
+            "tags": {"pressure_classes_kPa": ", ".join(f"{v:g}" for v in classes),
+                     "class_0": f"< {classes[0]:g} kPa, or the peak thickness stayed "
+                                f"under the runout threshold",
+                     **{f"class_{k + 1}": label.replace("\u2013", "-").replace("\u2265", ">=")
+                        for k, label in enumerate(labels)}}}))
+    return rasters
+
+
+def _rgba(color: str) -> tuple:
+    import matplotlib.colors as mcolors
+
+    return tuple(int(round(255 * v)) for v in mcolors.to_rgba(color))
+
+
+#: Short unit spellings for file names.
+_UNIT_SUFFIX = {"m": "m", "m s-1": "m_s", "kPa": "kPa", "Pa": "Pa"}
+
+
+def _ensemble_rasters(ds, path: Path, variables):
+    """Every (selected) exceedance-probability map of an ensemble.nc, one per threshold."""
+    _need_grid(ds, path, "ensemble")
+    probabilities = [n for n, v in ds.data_vars.items()
+                     if n.endswith("_exceedance_probability") and v.dims[-2:] == ("y", "x")]
+    available = probabilities + [n for n, v in ds.data_vars.items() if v.dims == ("y", "x")]
+    if not probabilities and not variables:
+        raise MapsError(f"{path}: holds no exceedance-probability map (the members did not "
+                        "share one grid)")
+    names = list(variables or probabilities)
+    unknown = [n for n in names if n not in available]
+    if unknown:
+        raise _unknown(path, unknown, available)
+    members = ds.attrs.get("members", "?")
+    rasters = []
+    for name in names:
+        var = ds[name]
+        if var.dims == ("y", "x"):
+            rasters.append((name, np.asarray(var.values, dtype=float), {}))
+            continue
+        coord = ds[var.dims[0]]
+        units = coord.attrs.get("units", "")
+        what = name.removesuffix("_exceedance_probability").replace("_", " ")
+        for t in coord.values:
+            label = f"{float(t):g}{_UNIT_SUFFIX.get(units, units.replace(' ', '_'))}"
+            rasters.append((f"{name}_{label}", np.asarray(var.sel({coord.name: t}).values,
+                                                          dtype=float), {
+                "description": f"P({what} > {float(t):g} {units})",
+                "tags": {"variable": name, "threshold": f"{float(t):g}", "units": units,
+                         "members": str(members),
+                         "comment": var.attrs.get("comment", "")}}))
+    return rasters
 
 
 # --- plot -----------------------------------------------------------------------------------
@@ -165,16 +337,27 @@ def _plt():
 
 def hillshade(z: np.ndarray, dx: float, dy: float, azimuth_deg: float = 315.0,
               altitude_deg: float = 45.0) -> np.ndarray:
-    """Lambertian shade in [0, 1] of a surface on ascending (y, x); NaN stays NaN.
+    """Shade in [0, 1] of a surface on ascending (y, x) by ``matplotlib.colors.LightSource``
+    (Lambertian, contrast stretched over the map); NaN stays NaN.
 
     The light comes from ``azimuth_deg`` (clockwise from north, +y) at ``altitude_deg``.
+    NODATA cells take their nearest value for the slopes of their neighbours.
     """
-    dzdy, dzdx = np.gradient(np.asarray(z, dtype=float), dy, dx)
-    az, alt = math.radians(azimuth_deg), math.radians(altitude_deg)
-    light = (math.sin(az) * math.cos(alt), math.cos(az) * math.cos(alt), math.sin(alt))
-    norm = np.sqrt(dzdx**2 + dzdy**2 + 1.0)
-    shade = (-dzdx * light[0] - dzdy * light[1] + light[2]) / norm
-    return np.clip(shade, 0.0, 1.0)
+    from matplotlib.colors import LightSource
+
+    z = np.asarray(z, dtype=float)
+    bad = ~np.isfinite(z)
+    if bad.all():
+        return np.full(z.shape, np.nan)
+    if bad.any():
+        from scipy.ndimage import distance_transform_edt
+
+        nearest = distance_transform_edt(bad, return_distances=False, return_indices=True)
+        z = z[tuple(nearest)]
+    # LightSource takes row 0 as the north (image order); these rows go south to north.
+    shade = LightSource(azdeg=azimuth_deg, altdeg=altitude_deg).hillshade(
+        z[::-1], dx=dx, dy=dy)[::-1]
+    return np.where(bad, np.nan, shade)
 
 
 def _nice_levels(lo: float, hi: float, most: int = 9) -> list[float]:
@@ -285,7 +468,7 @@ def plot_run(path, output=None) -> Path:
         plt.close(fig)
 
 
-def _crs_name(ds) -> str | None:
+def crs_name(ds) -> str | None:
     wkt = crs_wkt(ds)
     if not wkt:
         return None
@@ -299,20 +482,31 @@ def _crs_name(ds) -> str | None:
         return None
 
 
-def _layout(extent) -> tuple[tuple[float, float], str]:
-    """Inches for a map of ``extent`` at equal aspect, and where its colourbar goes."""
+def _layout(extent, panels: int = 1) -> tuple[tuple[float, float], str]:
+    """Inches for ``panels`` maps of ``extent`` at equal aspect, and where the colourbar of
+    each goes: wide maps one under the other, colourbars underneath; others side by side."""
     width, height = extent[1] - extent[0], extent[3] - extent[2]
     aspect = height / width if width > 0 and height > 0 else 1.0
     if aspect < 0.6:  # wide: colourbar underneath
         aspect = max(aspect, 0.12)
-        return (9.0, 8.4 * aspect + 2.0), "bottom"
+        return (9.0, 8.4 * aspect + 2.0 + (panels - 1) * (8.4 * aspect + 1.0)), "bottom"
     aspect = min(aspect, 2.0)
     map_w = 7.0 if aspect <= 1.2 else 8.4 / aspect
-    return (map_w + 1.9, map_w * aspect + 1.6), "right"
+    if panels > 1:
+        map_w *= 0.8
+    return (panels * (map_w + 1.9), map_w * aspect + 1.6), "right"
 
 
 def _plain_ticks(ax) -> None:
     ax.ticklabel_format(useOffset=False, style="plain")
+
+
+def _map_axes(plt, extent, panels: int):
+    figsize, where = _layout(extent, panels)
+    shape = (panels, 1) if where == "bottom" else (1, panels)
+    fig, axes = plt.subplots(*shape, figsize=figsize, layout="constrained", squeeze=False,
+                             sharex=True, sharey=True)
+    return fig, list(axes.ravel()), where
 
 
 def _plot_grid(ds, plt):
@@ -326,10 +520,44 @@ def _plot_grid(ds, plt):
     deposit = np.asarray(ds["deposit_thickness"].values, dtype=float)
     release = np.asarray(ds["h"].isel(time=0).values, dtype=float)
     threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
+    pressure = "peak_pressure" in ds.variables
 
-    figsize, where = _layout(extent)
-    fig, ax = plt.subplots(figsize=figsize, layout="constrained")
+    fig, axes, where = _map_axes(plt, extent, 2 if pressure else 1)
+    for ax in axes:
+        draw_terrain(ax, x, y, bed)
 
+    def raster(ax, values, **kw):
+        return ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="lower",
+                         interpolation="nearest", **kw)
+
+    levels, cmap, norm = _thickness_style(peak, ds)
+    shown = np.where(np.isfinite(peak) & (peak >= levels[0]), peak, np.nan)
+    im = raster(axes[0], shown, cmap=cmap, norm=norm, alpha=0.85)
+    outlines = (np.nan_to_num(release) > 0, np.nan_to_num(deposit) > threshold, threshold)
+    for ax in axes:
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        _finish_map(ds, fig, ax, lambda v, ax=ax, **kw: ax.contour(x, y, v, **kw),
+                    *outlines, where)
+    _thickness_colorbar(fig, axes[0], im, levels, where,
+                        "peak flow thickness (m, normal to the bed)")
+    if pressure:
+        classes = pressure_classes(ds)
+        k = run_pressure_classes(ds)
+        cmap, norm = _class_style(len(classes))
+        raster(axes[1], np.where(k > 0, k, np.nan), cmap=cmap, norm=norm, alpha=0.9)
+        _class_legend(fig, classes, where)
+    _titles(fig, axes, ds)
+    for ax in axes:
+        plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+    return fig
+
+
+def draw_terrain(ax, x, y, bed) -> None:
+    """Hillshade of the bed (grid on ascending x, y) with labelled contour lines."""
+    dx = float(x[1] - x[0]) if x.size > 1 else 1.0
+    dy = float(y[1] - y[0]) if y.size > 1 else dx
+    extent = (x[0] - dx / 2, x[-1] + dx / 2, y[0] - dy / 2, y[-1] + dy / 2)
     shade = hillshade(bed, dx, dy)
     ax.imshow(np.ma.masked_invalid(shade), extent=extent, origin="lower", cmap="gray",
               vmin=-0.5, vmax=1.15, interpolation="nearest")
@@ -342,24 +570,54 @@ def _plot_grid(ds, plt):
                             negative_linestyles="solid")
             ax.clabel(cs, fontsize=6, fmt="%g", inline_spacing=1)
 
-    levels, cmap, norm = _thickness_style(peak, ds)
-    shown = np.where(np.isfinite(peak) & (peak >= levels[0]), peak, np.nan)
-    im = ax.imshow(np.ma.masked_invalid(shown), extent=extent, origin="lower", cmap=cmap,
-                   norm=norm, alpha=0.85, interpolation="nearest")
-    ax.set_xlim(extent[0], extent[1])
-    ax.set_ylim(extent[2], extent[3])
-    _finish_map(ds, fig, ax, im, lambda v, **kw: ax.contour(x, y, v, **kw),
-                np.nan_to_num(release) > 0, np.nan_to_num(deposit) > threshold, threshold,
-                levels, where, "peak flow thickness (m, normal to the bed)")
-    plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
-    return fig
+
+def _class_style(n: int):
+    """Colormap and norm of pressure classes 1..n."""
+    import matplotlib.colors as mcolors
+
+    cmap = mcolors.ListedColormap(pressure_class_colors(n))
+    return cmap, mcolors.BoundaryNorm(np.arange(0.5, n + 1.0), cmap.N)
 
 
-def _finish_map(ds, fig, ax, im, contour, released, deposited, threshold, levels, where,
-                label):
-    """Release and deposit outlines with their legend, the thickness colourbar, equal-aspect
-    axes in m (with the CRS name) and the title; ``contour(values, **kw)`` draws on the
-    scene's own geometry (grid or triangles)."""
+def _class_legend(fig, classes, where) -> None:
+    """The classes named in a legend beside the maps (under them when wide)."""
+    from matplotlib.patches import Patch
+
+    handles = [Patch(facecolor=c, edgecolor="0.3", alpha=0.9, label=label) for c, label in
+               reversed(list(zip(pressure_class_colors(len(classes)),
+                                 pressure_class_labels(classes))))]
+    title = f"peak pressure\n(blank: < {classes[0]:g} kPa)"
+    if where == "bottom":
+        fig.legend(handles=handles[::-1], title=title.replace("\n", " "), fontsize=8,
+                   title_fontsize=8, loc="outside lower center", ncol=len(handles),
+                   frameon=False)
+    else:
+        fig.legend(handles=handles, title=title, fontsize=8, title_fontsize=8,
+                   loc="outside right upper", frameon=False)
+
+
+def _thickness_colorbar(fig, ax, im, levels, where, label) -> None:
+    cb = fig.colorbar(im, ax=ax, shrink=0.8, spacing="uniform", location=where,
+                      aspect=20 if where == "right" else 40)
+    cb.set_label(label)
+    cb.set_ticks(levels)
+    cb.set_ticklabels([f"{v:g}" for v in levels])
+
+
+def _titles(fig, axes, ds) -> None:
+    """The run's title over the figure; each map named when there are two."""
+    if len(axes) == 1:
+        axes[0].set_title(_title(ds), fontsize=10)
+        return
+    fig.suptitle(_title(ds), fontsize=10)
+    axes[0].set_title("peak flow thickness", fontsize=9)
+    axes[1].set_title("peak pressure classes", fontsize=9)
+
+
+def _finish_map(ds, fig, ax, contour, released, deposited, threshold, where):
+    """Release and deposit outlines with their legend, equal-aspect axes in m (with the CRS
+    name); ``contour(values, **kw)`` draws on the scene's own geometry (grid or
+    triangles)."""
     from matplotlib.lines import Line2D
 
     handles = []
@@ -377,18 +635,12 @@ def _finish_map(ds, fig, ax, im, contour, released, deposited, threshold, levels
                               label=f"{what} (> {threshold:.3g} m)"))
     if handles:
         ax.legend(handles=handles, loc="best", fontsize=8, framealpha=0.8)
-    cb = fig.colorbar(im, ax=ax, shrink=0.8, spacing="uniform", location=where,
-                      aspect=20 if where == "right" else 40)
-    cb.set_label(label)
-    cb.set_ticks(levels)
-    cb.set_ticklabels([f"{v:g}" for v in levels])
     ax.set_aspect("equal")
     _plain_ticks(ax)
-    crs = _crs_name(ds)
+    crs = crs_name(ds)
     ax.set_xlabel("x (m)" + (f", {crs}" if crs else ""))
     ax.set_ylabel("y (m)")
     ax.tick_params(labelsize=8)
-    ax.set_title(_title(ds), fontsize=10)
 
 
 def _plot_profile(ds, plt):
@@ -414,6 +666,15 @@ def _plot_profile(ds, plt):
         hi = np.nan_to_num(np.asarray(h.isel(time=int(i)).values, dtype=float))
         top = np.where(hi > 0, bed + hi * vertical, np.nan)
         ax.plot(xh, top, color=c, lw=1.1, label=f"t = {times[i]:.1f} s")
+    if "peak_pressure" in ds.variables:  # a strip along the foot of the axes
+        classes = pressure_classes(ds)
+        k = np.nan_to_num(run_pressure_classes(ds))
+        strip = ax.get_xaxis_transform()
+        for cls, (color, label) in enumerate(zip(pressure_class_colors(len(classes)),
+                                                 pressure_class_labels(classes)), start=1):
+            if (k == cls).any():
+                ax.fill_between(xh, 0.0, 0.035, where=k == cls, transform=strip, color=color,
+                                lw=0, step="mid", label=f"peak pressure {label}")
     ax.set_xlabel("horizontal distance from the top of the profile (m)")
     ax.set_ylabel("elevation (m)")
     ax.set_xlim(xh[0], xh[-1])
@@ -448,23 +709,37 @@ def _plot_triangles(ds, plt):
     deposit = np.nan_to_num(np.asarray(ds["deposit_thickness"].values, dtype=float))
     release = np.nan_to_num(np.asarray(ds["h"].isel(time=0).values, dtype=float))
     threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
+    pressure = "peak_pressure" in ds.variables
 
-    figsize, where = _layout((nx.min(), nx.max(), ny.min(), ny.max()))
-    fig, ax = plt.subplots(figsize=figsize, layout="constrained")
-    if np.ptp(bed) > 0:
-        cs = ax.tricontour(tri, bed, levels=12, colors="0.45", linewidths=0.4,
-                           negative_linestyles="solid")
-        ax.clabel(cs, fontsize=6, fmt="%g")
+    fig, axes, where = _map_axes(plt, (nx.min(), nx.max(), ny.min(), ny.max()),
+                                 2 if pressure else 1)
+    for ax in axes:
+        if np.ptp(bed) > 0:
+            cs = ax.tricontour(tri, bed, levels=12, colors="0.45", linewidths=0.4,
+                               negative_linestyles="solid")
+            ax.clabel(cs, fontsize=6, fmt="%g")
     levels, cmap, norm = _thickness_style(peak, ds)
     # Flat shading, each triangle the mean of its nodes (Gouraud blends in the transparent
     # "under" colour and draws dark fringes); triangles below the lowest level are masked.
     face_peak = np.nan_to_num(peak)[faces].mean(axis=1)
     tri_wet = mtri.Triangulation(nx, ny, faces)
     tri_wet.set_mask(face_peak < levels[0])
-    im = ax.tripcolor(tri_wet, facecolors=face_peak, cmap=cmap, norm=norm, alpha=0.9,
-                      edgecolors="face", linewidth=0.2)
-    _finish_map(ds, fig, ax, im, lambda v, **kw: ax.tricontour(tri, v, **kw), release > 0,
-                deposit > threshold, threshold, levels, where,
-                "peak flow thickness on mesh nodes (m, normal to the bed)")
+    im = axes[0].tripcolor(tri_wet, facecolors=face_peak, cmap=cmap, norm=norm, alpha=0.9,
+                           edgecolors="face", linewidth=0.2)
+    for ax in axes:
+        _finish_map(ds, fig, ax, lambda v, ax=ax, **kw: ax.tricontour(tri, v, **kw),
+                    release > 0, deposit > threshold, threshold, where)
+    _thickness_colorbar(fig, axes[0], im, levels, where,
+                        "peak flow thickness on mesh nodes (m, normal to the bed)")
+    if pressure:
+        classes = pressure_classes(ds)
+        face_p = np.nan_to_num(np.asarray(ds["peak_pressure"].values, float))[faces].mean(1)
+        k = run_pressure_classes(ds, face_p, face_peak)
+        cmap, norm = _class_style(len(classes))
+        tri_p = mtri.Triangulation(nx, ny, faces)
+        tri_p.set_mask(k < 1)
+        axes[1].tripcolor(tri_p, facecolors=np.maximum(k, 1), cmap=cmap, norm=norm,
+                          alpha=0.9, edgecolors="face", linewidth=0.2)
+        _class_legend(fig, classes, where)
+    _titles(fig, axes, ds)
     return fig
-

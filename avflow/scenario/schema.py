@@ -43,7 +43,8 @@ __all__ = ["Scenario", "load_scenario", "parse_scenario", "write_json_schema"]
 #: (a shapefile's attributes, such as the release thickness, live in its .dbf).
 DEM_SUFFIXES = {".asc": (".prj",), ".tif": (".tfw", ".prj"), ".tiff": (".tfw", ".prj"),
                 ".nc": ()}
-POLYGON_SUFFIXES = {".shp": (".shx", ".dbf", ".prj", ".cpg")}
+POLYGON_SUFFIXES = {".shp": (".shx", ".dbf", ".prj", ".cpg"), ".gpkg": (), ".geojson": (),
+                    ".json": (), ".fgb": ()}
 
 # =========================================================================================
 # Value types: each carries its own range and says the whole range when a value is outside.
@@ -223,8 +224,8 @@ class PlaneTerrain(_Model):
     elevation_at_center: Number = 0.0
     """Bed elevation at the centre of the extent (m)."""
     domain: Text | None = None
-    """Optional polygon shapefile: only cells whose centre is inside are meshed (walls
-    around); relative to the scenario file; stored absolute."""
+    """Optional polygon file (.shp, .gpkg, .geojson, .fgb): only cells whose centre is
+    inside are meshed (walls around); relative to the scenario file; stored absolute."""
 
     @field_validator("domain")
     @classmethod
@@ -241,8 +242,9 @@ class DemTerrain(_Model):
     nodata: Side = "wall"
     """How the flow treats NODATA cells: as walls or as outflow."""
     domain: Text | None = None
-    """Optional polygon shapefile: only cells whose centre is inside are meshed (the rest
-    is treated as NODATA); relative to the scenario file; stored absolute."""
+    """Optional polygon file (.shp, .gpkg, .geojson, .fgb): only cells whose centre is
+    inside are meshed (the rest is treated as NODATA); relative to the scenario file;
+    stored absolute."""
     curvature: Flag = True
     """Include the bed-curvature term of eqs. 61-62 in 2D: the normal acceleration
     g cos(theta) + u.K.u, with K the curvature tensor of the DEM (README)."""
@@ -318,11 +320,12 @@ class CylinderRelease(_Release):
 
 
 class PolygonRelease(_Release):
-    """Release areas from a polygon shapefile (2D terrains)."""
+    """Release areas from a polygon file: shapefile, GeoPackage, GeoJSON (2D terrains)."""
 
     kind: Literal["polygon"]
     path: Text
-    """Shapefile (.shp), relative to the scenario file; stored absolute."""
+    """Polygon file (.shp with its .dbf, .gpkg, .geojson, .fgb), relative to the scenario
+    file; stored absolute."""
     thickness: Positive | None = None
     """m, normal to the bed; null: each polygon's 'thickness' attribute."""
 
@@ -574,6 +577,17 @@ class Output(_Model):
     path: PathAnalysis | None = None
     """Runout along the avalanche path (line, field, threshold, width); null: not done by
     `avflow run` (ensembles use the centre-of-mass track)."""
+    pressure_classes: Annotated[tuple[Positive, ...], Field(min_length=1)] = (1.0, 3.0, 30.0)
+    """Peak-pressure thresholds (kPa, increasing) of the pressure classes drawn by avflow
+    plot and written by avflow export (peak_pressure_class): the common zoning values 1, 3
+    and 30 kPa by default."""
+
+    @field_validator("pressure_classes")
+    @classmethod
+    def _increasing_classes(cls, value: tuple) -> tuple:
+        if any(b <= a for a, b in zip(value, value[1:])):
+            raise _problem(f"must be strictly increasing (kPa), got {show(list(value))}")
+        return value
 
 
 class Boundaries(_Model):
@@ -774,6 +788,8 @@ class Scenario(_Model):
         """
         data = self.model_dump(mode="json")
         data["output"].pop("path", None)  # post-processing: the run does not depend on it
+        if data["output"].get("pressure_classes") == [1.0, 3.0, 30.0]:  # the default: hashes
+            data["output"].pop("pressure_classes")  # as before the field
         if data["output"].get("release_time") is None:  # unset: hashes as before the field
             data["output"].pop("release_time", None)
         for block in ("terrain", "release"):

@@ -97,54 +97,57 @@ def _cached(path: str, mtime_ns: int, size: int, kind: str) -> Raster:
     return raster
 
 
+#: Header keys of an ESRI ASCII grid (GDAL's AAIGrid driver reads the same ones).
+_ASC_KEYS = {"ncols", "nrows", "xllcorner", "yllcorner", "xllcenter", "yllcenter", "cellsize",
+             "dx", "dy", "nodata_value", "nodata"}
+
+
 def _read_asc(path: Path) -> Raster:
-    """ESRI ASCII grid: a header of key/value lines, then rows from north to south."""
-    header = {}
-    with open(path, "r", encoding="ascii", errors="replace") as fh:
-        offset = 0
-        while True:
-            pos = fh.tell()
-            line = fh.readline()
-            if not line:
-                break
-            parts = line.split()
-            if len(parts) == 2 and parts[0][0].isalpha():
-                header[parts[0].lower()] = parts[1]
-                offset += 1
-                continue
-            fh.seek(pos)
-            break
-        body = fh.read()
+    """ESRI ASCII grid through GDAL's AAIGrid driver (rasterio), in float64.
+
+    GDAL parses the header (corner or centre origin, ``cellsize`` or ``dx``/``dy``), the
+    values and ``NODATA_value``. Two things are added here, because GDAL does not do them:
+    the number of values is checked against the header (GDAL fills a short last row with
+    zeros, a pit in a DEM, and ignores extra values), and a header that GDAL does not
+    recognise names its missing key. The CRS is the text of the ``.prj`` (GDAL's only
+    source for it too), kept as written. Without ``DATATYPE=Float64`` GDAL would read a
+    decimal grid as float32.
+    """
+    import rasterio
+
+    with open(path, "rb") as fh:
+        tokens = fh.read().split()
+    k, header = 0, {}
+    while k + 1 < len(tokens) and tokens[k].decode("ascii", "replace").lower() in _ASC_KEYS:
+        header[tokens[k].decode().lower()] = tokens[k + 1]
+        k += 2
+    for need in ("ncols", "nrows"):
+        if need not in header:
+            raise RasterError(f"{path}: ESRI ASCII header lacks {need!r}")
+    if "cellsize" not in header and not ("dx" in header and "dy" in header):
+        raise RasterError(f"{path}: ESRI ASCII header lacks 'cellsize' (or 'dx' and 'dy')")
+    for a, b in (("xllcorner", "xllcenter"), ("yllcorner", "yllcenter")):
+        if a not in header and b not in header:
+            raise RasterError(f"{path}: ESRI ASCII header lacks {a!r} (or {b!r})")
     try:
         nx, ny = int(header["ncols"]), int(header["nrows"])
-        if "cellsize" in header:
-            dx = dy = float(header["cellsize"])
-        elif "dx" in header and "dy" in header:
-            dx, dy = float(header["dx"]), float(header["dy"])
-        else:
-            raise RasterError(f"{path}: ESRI ASCII header lacks 'cellsize' (or 'dx' and 'dy')")
-        if "xllcenter" in header:
-            x0 = float(header["xllcenter"])
-        else:
-            x0 = float(header["xllcorner"]) + 0.5 * dx
-        if "yllcenter" in header:
-            y0 = float(header["yllcenter"])
-        else:
-            y0 = float(header["yllcorner"]) + 0.5 * dy
-        nodata = float(header.get("nodata_value", "nan"))
-    except KeyError as err:
-        raise RasterError(f"{path}: ESRI ASCII header lacks {err.args[0]!r}") from None
     except ValueError as err:
         raise RasterError(f"{path}: ESRI ASCII header value is not a number ({err})") from None
-    values = np.array(body.split(), dtype=float)
-    if values.size != nx * ny:
+    if len(tokens) - k != nx * ny:
         raise RasterError(f"{path}: header says {ny} x {nx} = {nx * ny} values, "
-                          f"the file holds {values.size}")
-    values = values.reshape(ny, nx)[::-1].copy()  # south to north: ascending y
-    values[values == nodata] = np.nan
+                          f"the file holds {len(tokens) - k}")
+    del tokens
+    with rasterio.open(path, driver="AAIGrid", DATATYPE="Float64") as src:
+        t = src.transform
+        values = src.read(1, masked=True).astype(float).filled(np.nan)[::-1]  # south first
+    # The .prj as written: GDAL's WKT1 export of an ESRI .prj no longer matches its EPSG
+    # code in pyproj (cf_grid_mapping), and a CRS that GDAL cannot parse still travels.
     prj = path.with_suffix(".prj")
-    wkt = prj.read_text().strip() if prj.is_file() else None
-    return Raster(values, x0 + dx * np.arange(nx), y0 + dy * np.arange(ny), wkt, str(path))
+    wkt = (prj.read_text().strip() or None) if prj.is_file() else None
+    dx, dy = t.a, -t.e
+    x0, y0 = t.c + 0.5 * dx, t.f - ny * dy + 0.5 * dy  # centres of the south-west cell
+    return Raster(np.ascontiguousarray(values), x0 + dx * np.arange(nx),
+                  y0 + dy * np.arange(ny), wkt, str(path))
 
 
 def _read_tif(path: Path) -> Raster:
@@ -287,21 +290,34 @@ def write_asc(path, values: np.ndarray, x: np.ndarray, y: np.ndarray, wkt: str |
 
 
 def write_tif(path, values: np.ndarray, x: np.ndarray, y: np.ndarray,
-              wkt: str | None = None) -> Path:
-    """Single-band float32 GeoTIFF (north up, NaN as nodata), written atomically."""
+              wkt: str | None = None, *, dtype: str = "float32", nodata=np.nan,
+              colormap: dict | None = None, description: str | None = None,
+              tags: dict | None = None) -> Path:
+    """Single-band GeoTIFF (north up), written atomically: float32 with NaN as nodata, or
+    ``dtype`` with ``nodata`` for NaN; ``colormap`` (value -> RGBA) makes a byte raster
+    paletted; ``description`` and ``tags`` name the band in GIS programs."""
     import rasterio
     from rasterio.transform import from_origin
 
     path = Path(path)
     dx, dy = float(x[1] - x[0]), float(y[1] - y[0])
     transform = from_origin(x[0] - 0.5 * dx, y[-1] + 0.5 * dy, dx, dy)
+    values = np.asarray(values, dtype=float)[::-1]
+    if np.dtype(dtype).kind != "f":
+        values = np.where(np.isfinite(values), values, nodata)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with rasterio.open(tmp, "w", driver="GTiff", width=values.shape[1],
-                           height=values.shape[0], count=1, dtype="float32",
-                           crs=wkt, transform=transform, nodata=np.nan,
+                           height=values.shape[0], count=1, dtype=dtype,
+                           crs=wkt, transform=transform, nodata=nodata,
                            compress="deflate") as dst:
-            dst.write(np.asarray(values, dtype=np.float32)[::-1], 1)
+            dst.write(values.astype(dtype), 1)
+            if colormap:
+                dst.write_colormap(1, colormap)
+            if description:
+                dst.set_band_description(1, description)
+            if tags:
+                dst.update_tags(1, **tags)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
