@@ -119,11 +119,11 @@ def _cmd_run(args) -> int:
         print(summary_line(ds))
         print(f"wrote {out}")
     if scenario.output.path is not None:
-        _run_path(ds, scenario.output.path, out)
+        _run_path(ds, scenario.output.path, out, args.quiet)
     return 0 if result.status in ("stopped", "completed") else 1
 
 
-def _run_path(ds, block, out: Path) -> None:
+def _run_path(ds, block, out: Path, quiet: bool = False) -> None:
     """output.path of a run: OUT_path.csv/.md/.png and one line; a warning if impossible."""
     from avflow.output.path import PathSettings, summary_line as path_line, write_run_path
 
@@ -132,6 +132,8 @@ def _run_path(ds, block, out: Path) -> None:
                                          out.with_name(out.stem + "_path"))
     except AvflowError as err:
         print(f"avflow: warning: path analysis: {err}", file=sys.stderr)
+        return
+    if quiet:
         return
     truncated = bool(int(ds.attrs.get("runout_truncated", 0)))
     print(path_line(result, float(ds["runout"]), truncated))
@@ -144,8 +146,9 @@ def _cmd_path(args) -> int:
     text, written = analyse_target(args.target, line=args.line, field=args.field,
                                    threshold=args.threshold, width=args.width,
                                    output=args.output)
-    print(text)
-    print("wrote " + ", ".join(str(w) for w in written))
+    if not args.quiet:
+        print(text)
+        print("wrote " + ", ".join(str(w) for w in written))
     return 0
 
 
@@ -209,7 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
     pl.set_defaults(func=_cmd_plot)
     pa = sub.add_parser("path", help="runout along the avalanche path (AvaFrame's AIMEC): "
-                                     "table and PNG of a run file or an ensemble folder")
+                                     "table and PNG of a run file or an ensemble folder",
+                        parents=[quiet])
     pa.add_argument("target", help="NetCDF written by `avflow run`, or an `avflow ensemble` "
                                    "folder")
     pa.add_argument("--line", help="path line (.shp, .geojson, .json, .csv of x, y; 'com': "

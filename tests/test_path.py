@@ -221,6 +221,9 @@ def test_avflow_path_writes_the_table_and_the_figure(plane_run, tmp_path, capsys
     assert main(["path", str(plane_run), "--field", "thickness", "--threshold", "0.5",
                  "-o", str(tmp_path / "t")]) == 0
     assert pd.read_csv(tmp_path / "t.csv").iloc[0]["path_threshold_units"] == "m"
+    capsys.readouterr()
+    assert main(["path", str(plane_run), "-q", "-o", str(tmp_path / "q")]) == 0
+    assert capsys.readouterr().out == "" and (tmp_path / "q.csv").exists()  # --quiet
 
 
 @pytest.mark.parametrize("args, message", [
