@@ -82,18 +82,6 @@ _FRONT = 17  #: 1 when a neighbour is at or below h_zero (no velocity slope)
 N_WORK = 18
 
 
-@njit(error_model="numpy", cache=True, inline="always")
-def _neighbour_velocity(f, side, hu, hv, h, c, face_frame):
-    """Velocity of cell c (on ``side`` of face f), turned into the other side's basis."""
-    o = 1 - side
-    u1 = hu[c] / h[c]
-    u2 = hv[c] / h[c]
-    un = u1 * face_frame[f, side, 0, 0] + u2 * face_frame[f, side, 0, 1]
-    ut = u1 * face_frame[f, side, 1, 0] + u2 * face_frame[f, side, 1, 1]
-    return (un * face_frame[f, o, 0, 0] + ut * face_frame[f, o, 1, 0],
-            un * face_frame[f, o, 0, 1] + ut * face_frame[f, o, 1, 1])
-
-
 @njit(error_model="numpy", cache=True)
 def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_area, h, hu, hv,
                       h_zero, active_faces, n_active, touched, n_touched, work, face_state):
@@ -141,8 +129,14 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
             uc2 = work[c, _U2]
             if other >= 0:
                 ho = h[other]
-                if ho > h_zero:
-                    uo1, uo2 = _neighbour_velocity(f, 1 - side, hu, hv, h, other, face_frame)
+                if ho > h_zero:  # its velocity, turned through the face into c's basis
+                    o = 1 - side
+                    v1 = hu[other] / ho
+                    v2 = hv[other] / ho
+                    un = v1 * face_frame[f, o, 0, 0] + v2 * face_frame[f, o, 0, 1]
+                    ut = v1 * face_frame[f, o, 1, 0] + v2 * face_frame[f, o, 1, 1]
+                    uo1 = un * face_frame[f, side, 0, 0] + ut * face_frame[f, side, 1, 0]
+                    uo2 = un * face_frame[f, side, 0, 1] + ut * face_frame[f, side, 1, 1]
                 else:
                     uo1 = uc1
                     uo2 = uc2
@@ -151,9 +145,31 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
                 ho = hc
                 uo1 = uc1
                 uo2 = uc2
-            _accumulate(work, c, 0, hc, ho, w * nx, w * ny)
-            _accumulate(work, c, 1, uc1, uo1, w * nx, w * ny)
-            _accumulate(work, c, 2, uc2, uo2, w * nx, w * ny)
+            # Green-Gauss sums (face value: the mean of the two sides) and the neighbours'
+            # range, written out: Numba helpers taking arrays cost these sweeps 2-3x
+            wx = w * nx
+            wy = w * ny
+            mid = 0.5 * (hc + ho)
+            work[c, _GRAD + 0] += wx * mid
+            work[c, _GRAD + 1] += wy * mid
+            if ho < work[c, _LO + 0]:
+                work[c, _LO + 0] = ho
+            if ho > work[c, _HI + 0]:
+                work[c, _HI + 0] = ho
+            mid = 0.5 * (uc1 + uo1)
+            work[c, _GRAD + 2] += wx * mid
+            work[c, _GRAD + 3] += wy * mid
+            if uo1 < work[c, _LO + 1]:
+                work[c, _LO + 1] = uo1
+            if uo1 > work[c, _HI + 1]:
+                work[c, _HI + 1] = uo1
+            mid = 0.5 * (uc2 + uo2)
+            work[c, _GRAD + 4] += wx * mid
+            work[c, _GRAD + 5] += wy * mid
+            if uo2 < work[c, _LO + 2]:
+                work[c, _LO + 2] = uo2
+            if uo2 > work[c, _HI + 2]:
+                work[c, _HI + 2] = uo2
     # pass 2: Barth-Jespersen factors over each cell's faces
     for a in range(n_active):
         f = active_faces[a]
@@ -195,29 +211,13 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
                 continue
             rx = face_offset[f, side, 0]
             ry = face_offset[f, side, 1]
-            front = work[c, _FRONT] > 0.0
-            hf = max(_at_face(work, c, 0, hc, rx, ry, False), 0.0)
+            hf = hc + work[c, _ALPHA] * (work[c, _GRAD] * rx + work[c, _GRAD + 1] * ry)
+            hf = max(hf, 0.0)
+            u1 = work[c, _U1]
+            u2 = work[c, _U2]
+            if work[c, _FRONT] == 0.0:  # no velocity slope towards a dry neighbour
+                u1 += work[c, _ALPHA + 1] * (work[c, _GRAD + 2] * rx + work[c, _GRAD + 3] * ry)
+                u2 += work[c, _ALPHA + 2] * (work[c, _GRAD + 4] * rx + work[c, _GRAD + 5] * ry)
             face_state[f, side, 0] = hf
-            face_state[f, side, 1] = hf * _at_face(work, c, 1, work[c, _U1], rx, ry, front)
-            face_state[f, side, 2] = hf * _at_face(work, c, 2, work[c, _U2], rx, ry, front)
-
-
-@njit(error_model="numpy", cache=True, inline="always")
-def _accumulate(work, c, v, own, other, wx, wy):
-    """Green-Gauss sum (face value: the mean of the two sides) and the neighbours' range."""
-    mid = 0.5 * (own + other)
-    work[c, _GRAD + 2 * v] += wx * mid
-    work[c, _GRAD + 2 * v + 1] += wy * mid
-    if other < work[c, _LO + v]:
-        work[c, _LO + v] = other
-    if other > work[c, _HI + v]:
-        work[c, _HI + v] = other
-
-
-@njit(error_model="numpy", cache=True, inline="always")
-def _at_face(work, c, v, centre, rx, ry, flat):
-    """Limited value of variable v of cell c at the offset (rx, ry); the average if flat."""
-    if flat:
-        return centre
-    d = work[c, _GRAD + 2 * v] * rx + work[c, _GRAD + 2 * v + 1] * ry
-    return centre + work[c, _ALPHA + v] * d
+            face_state[f, side, 1] = hf * u1
+            face_state[f, side, 2] = hf * u2
