@@ -747,11 +747,20 @@ def _in_index_order(items, count, stamps, stamp):
 
     Faces and cells are swept in index order: memory order, and the same sums, bit for bit,
     as a sweep of the whole mesh. A short list is sorted; a long one is rebuilt by a scan of
-    the stamps (sorting k entries costs more than scanning n once k log2 k > n).
+    the stamps over the index range it spans (sorting k entries costs more than scanning
+    that range once k log2 k exceeds it).
     """
-    if count * math.log2(count + 2.0) > stamps.size:
+    if count == 0:
+        return 0
+    lo = items[0]
+    hi = items[0]
+    for c in range(1, count):
+        lo = min(lo, items[c])
+        hi = max(hi, items[c])
+    # scan only the index range the items span: the cost follows the flow, not the map
+    if count * math.log2(count + 2.0) > hi - lo + 1:
         count = 0
-        for i in range(stamps.size):
+        for i in range(lo, hi + 1):
             if stamps[i] == stamp:
                 items[count] = i
                 count += 1
