@@ -93,7 +93,10 @@ REPEAT_BELOW_S = 0.5  # runs faster than this are repeated (3 in all) and the fa
 def ritter_accelerated(x, t, x0, h0, g_normal, accel):
     """Dam break on a plane with constant acceleration ``accel`` along +x (Mangeney et al.
     2000): Ritter's rarefaction with gravity ``g_normal`` in the frame moving at ``accel``.
-    Reservoir of depth ``h0`` at x < x0 at t = 0. Returns ``(h, u)``."""
+    Reservoir of depth ``h0`` at x < x0 at t = 0. Returns ``(h, u)``. The formula of
+    :func:`avflow.numerics.analytic.dam_break`, with ANUGA's gravity and acceleration: it is
+    written again because the ANUGA worker runs in ANUGA's venv, where avflow is absent
+    (tests/test_speed_vs_error.py checks the two against ANUGA's own solution)."""
     x = np.asarray(x, dtype=float)
     c0 = math.sqrt(g_normal * h0)
     xi = (x - x0 - 0.5 * accel * t * t) / t
