@@ -79,7 +79,10 @@ def _load_with_sets(args):
     from avflow.ensemble.spec import apply_overrides, parse_overrides
     from avflow.scenario.schema import load_scenario
 
-    overrides = parse_overrides(args.set)  # a malformed --set: exit 2 before reading
+    sets = list(args.set)
+    if getattr(args, "threads", None) is not None:
+        sets.append(f"numerics.threads={args.threads}")
+    overrides = parse_overrides(sets)  # a malformed --set: exit 2 before reading
     return apply_overrides(load_scenario(args.scenario), overrides)
 
 
@@ -171,6 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-memory", metavar="SIZE", help="refuse a run estimated to need more "
                    "(bytes, or 8G, 512M; 'none': no check; default: $AVFLOW_MAX_MEMORY, "
                    "else half of this machine's memory)")
+    r.add_argument("--threads", type=int, metavar="N", help="CPU threads of the time loop "
+                   "(numerics.threads; default: every core); the answer does not depend on it")
     r.set_defaults(func=_cmd_run)
     e = sub.add_parser("ensemble", help="run an ensemble file (here or on dask); exit 1 if "
                                         "a member failed", parents=[quiet, sets])

@@ -21,6 +21,7 @@ from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
 from avflow.terrain.bed import Terrain
+from avflow.terrain.squaregrid import SquareGrid, square_grid
 
 STATUS_NAMES = {
     K.REACHED_TARGET: "running",
@@ -102,6 +103,13 @@ class Solver:
     #: stages (:mod:`avflow.numerics.reconstruction`)
     order: int = 1
     limiter: str = "minmod"
+    #: CPU threads of the square-grid kernel (None: Numba's default, every core); the
+    #: answer does not depend on it. 1 runs the serial passes, outside Numba's thread pool.
+    threads: int | None = None
+    #: "auto": the square-grid kernel (:mod:`avflow.numerics.square_grid`) on square grids
+    #: at order 1, the face kernel elsewhere; "faces": the face kernel everywhere (the
+    #: reference); "grid": the square-grid kernel, an error where it does not apply.
+    kernel: str = "auto"
 
     def __post_init__(self):
         if self.order not in (1, 2):
@@ -117,8 +125,21 @@ class Solver:
             raise ValueError(f"params holds at most {N_PARAMS} values, got {given.size}")
         self.params = np.zeros(N_PARAMS)
         self.params[:given.size] = given
+        if self.kernel not in ("auto", "grid", "faces"):
+            raise ValueError(f"kernel must be auto, grid or faces, got {self.kernel!r}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be at least 1, got {self.threads}")
         m = self.terrain.mesh
         n = m.n_cells
+        self._grid = None
+        if self.kernel != "faces":
+            layout = square_grid(self.terrain) if self.order == 1 else None
+            if layout is None and self.kernel == "grid":
+                raise ValueError("the square-grid kernel runs square grids (planes, DEMs) at "
+                                 "order 1 only")
+            if layout is not None:
+                self._setup_grid(layout)
+                return
         # Work buffers, allocated once per solver and reused by every step.
         self._h_work = np.zeros(n)
         self._hu_work = np.zeros(n)
@@ -141,6 +162,80 @@ class Solver:
         self._transport = np.zeros(n)
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
                              else np.zeros((0, 2, 2)))
+
+    def _setup_grid(self, layout: SquareGrid) -> None:
+        """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
+        by place, work buffers. The face kernel's face buffers are not allocated."""
+        self._grid = layout
+        t, m = self.terrain, self.terrain.mesh
+        g = self.gravity
+        full = layout.full
+        self._g_cells = {
+            "cell_area": full(m.cell_area, 1.0),
+            "cfl_factor": full(m.cell_perimeter / (2.0 * m.cell_area)),
+            "density": full(density_factor(g * t.gamma_z)),
+            "gamma_x": full(t.gamma_x), "gamma_y": full(t.gamma_y), "gamma_z": full(t.gamma_z),
+            "curvature": full(t.curvature),
+        }
+        n = layout.n_places
+        self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
+        self._h_work, self._hu_work, self._hv_work = np.zeros(n), np.zeros(n), np.zeros(n)
+        self._x_flux = np.zeros((layout.ny, layout.nx + 1, 5))
+        self._y_flux = np.zeros((layout.ny + 1, layout.nx, 5))
+        self._g_flag = np.zeros(n, dtype=np.uint8)
+        if not layout.compact:  # state and observers on the full grid, copied in and out
+            self._g_state = {name: np.zeros(n) for name in
+                             ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")}
+
+    @property
+    def kernel_used(self) -> str:
+        """``"grid"`` or ``"faces"``: the kernel this solver runs."""
+        return "grid" if self._grid is not None else "faces"
+
+    def threads_used(self) -> int:
+        """CPU threads the time loop runs on (1 for the face kernel, which is serial)."""
+        if self._grid is None:
+            return 1
+        import numba
+
+        return min(self.threads or numba.config.NUMBA_NUM_THREADS,
+                   numba.config.NUMBA_NUM_THREADS)
+
+    def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps):
+        """The time loop on the square-grid kernel (see :meth:`advance`)."""
+        import numba
+
+        from avflow.numerics.square_grid import advance_grid
+
+        layout, c = self._grid, self._g_cells
+        threads = self.threads_used()
+        parallel = threads > 1
+        if parallel:
+            numba.set_num_threads(threads)
+        names = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
+        if layout.compact:
+            arrays = [getattr(state, name) for name in names]
+        else:
+            arrays = [self._g_state[name] for name in names]
+            for name, full in zip(names, arrays):
+                full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
+                full[layout.place] = getattr(state, name)
+        h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays
+        status = advance_grid(
+            parallel, layout.nx, layout.ny, layout.valid, layout.face_order, layout.x_code,
+            layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
+            c["cell_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
+            c["gamma_z"], c["curvature"], h, hu, hv, self._h_work, self._hu_work,
+            self._hv_work, self._x_flux, self._y_flux, self._g_flag, int(self.law),
+            self.params, float(self.gravity), bool(self.dirac), float(self.h_dry),
+            float(self.h_zero), float(self.cfl), float(t_target), int(max_steps),
+            float(stop_volume), float(stop_kinetic), peak_h, peak_speed, arrival, last_moved,
+            state.stats)
+        if not layout.compact:
+            for name, full in zip(names, arrays):
+                getattr(state, name)[:] = full[layout.place]
+        state.flag[:] = self._g_flag[layout.place]
+        return STATUS_NAMES[status]
 
     def new_state(self, h0: np.ndarray) -> State:
         """A state at rest (eq. 60) with thickness ``h0`` (m) per cell."""
@@ -183,6 +278,8 @@ class Solver:
         ``stop_kinetic`` times its peak (negative: never). Returns ``"running"`` (target reached),
         ``"stopped"``, ``"max_steps"`` or ``"failed"``.
         """
+        if self._grid is not None:
+            return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps)
         m, t = self.terrain.mesh, self.terrain
         status = K.advance(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,

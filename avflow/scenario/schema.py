@@ -624,6 +624,14 @@ class Numerics(_Model):
     limiter: Literal["minmod", "mc"] = "minmod"
     """Limited slopes of order 2: minmod (robust at wet/dry fronts; Barth-Jespersen on grids
     and triangles) or mc (monotonized central on profiles, sharper at smooth extrema)."""
+    threads: Annotated[int, Field(strict=True, ge=1, le=4096)] | None = None
+    """CPU threads of the time loop (square grids; null: every core of the machine). The
+    answer is the same, bit for bit, whatever the number. Ensemble members run on one
+    thread each unless this is set: members are the better parallelism there."""
+    kernel: Literal["auto", "grid", "faces"] = "auto"
+    """auto: the structured square-grid kernel on square grids at order 1, the face kernel
+    elsewhere; faces: the general face kernel everywhere (the reference it is tested
+    against); grid: the square-grid kernel, an error where it does not apply."""
 
 
 class Physics(_Model):
@@ -792,6 +800,10 @@ class Scenario(_Model):
             data["output"].pop("pressure_classes")  # as before the field
         if data["output"].get("release_time") is None:  # unset: hashes as before the field
             data["output"].pop("release_time", None)
+        # threads never change the answer (bit for bit); the automatic kernel hashes as before
+        data["numerics"].pop("threads", None)
+        if data["numerics"].get("kernel") == "auto":
+            data["numerics"].pop("kernel")
         for block in ("terrain", "release"):
             if "path" in data[block]:
                 try:

@@ -159,12 +159,20 @@ def prepare(scenario, max_memory=None):
     min_flow = scenario.physics.min_flow_thickness
     thresholds["min_flow"] = (min(DEFAULT_MIN_FLOW, thresholds["dry"]) if min_flow is None
                               else min_flow)
-    solver = Solver(terrain, law, params, gravity=scenario.physics.gravity,
+    try:
+        solver = _solver(scenario, terrain, law, params, thresholds, h_max)
+    except ValueError as err:  # numerics.kernel: grid where it does not apply
+        raise ScenarioError.at(scenario, "numerics.kernel", str(err)) from None
+    return terrain, h0, solver, thresholds
+
+
+def _solver(scenario, terrain, law, params, thresholds, h_max) -> Solver:
+    return Solver(terrain, law, params, gravity=scenario.physics.gravity,
                     cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
                     order=scenario.numerics.order, limiter=scenario.numerics.limiter,
+                    threads=scenario.numerics.threads, kernel=scenario.numerics.kernel,
                     h_dry=thresholds["dry"],
                     h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]))
-    return terrain, h0, solver, thresholds
 
 
 def _check_release_size(scenario, terrain: Terrain, h0: np.ndarray) -> None:

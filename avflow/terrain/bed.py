@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from avflow.terrain.mesh import BOUNDARY_CODES, Mesh, _perimeters, grid_mesh, profile_mesh
+from avflow.terrain.mesh import (BOUNDARY_CODES, EAST, NORTH, SOUTH, WEST, Mesh, _perimeters,
+                                 grid_mesh, profile_mesh)
 
 
 @dataclass(frozen=True)
@@ -344,7 +345,7 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
     index[valid] = np.arange(valid.sum())
     flat = np.flatnonzero(valid.ravel())
     basis = np.stack([e1, e2], axis=-2).reshape(-1, 2, 3)[flat]
-    cells, frames, lengths = [], [], []
+    cells, frames, lengths, steps = [], [], [], []
     side_code = {k: BOUNDARY_CODES[getattr(boundary, k)] for k in ("x_min", "x_max", "y_min",
                                                                      "y_max")}
     hole = BOUNDARY_CODES[nodata]
@@ -377,6 +378,8 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
         bj = np.where(j_valid[:, None, None], basis[np.maximum(index[rjc, cjc], 0)],
                       basis[i_idx])
         cells.append(np.stack([i_idx, j_idx], axis=1))
+        steps.append(np.where(direction[:, 0] > 0, EAST if along_x else NORTH,
+                              WEST if along_x else SOUTH).astype(np.int8))
         # Each side sees the face as the edge lifted onto its *own* tangent plane, with the
         # in-plane normal to it (towards j): always a proper direction of that cell. The
         # normal of the averaged bed plane, projected, can point nowhere near the neighbour
@@ -420,6 +423,7 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
         face_length=face_length,
         shape=(n,),
         face_frame=face_frame,
+        face_direction=np.concatenate(steps),
     )
     return Terrain(
         kind="grid",

@@ -26,6 +26,9 @@ import numpy as np
 WALL = -1
 OUTFLOW = -2
 
+# Grid steps of Mesh.face_direction, in index space (rows are the grid's y index)
+EAST, WEST, NORTH, SOUTH = 0, 1, 2, 3
+
 BOUNDARY_CODES = {"wall": WALL, "outflow": OUTFLOW}
 
 
@@ -44,6 +47,10 @@ class Mesh:
     #: 1: tangent), component in that cell's tangent basis]. Derived from face_normal when
     #: all cells share one basis.
     face_frame: np.ndarray | None = None
+    #: square grids only: (n_faces,) int8, the grid step from the first cell to the second
+    #: (or to the outside): :data:`EAST` (column + 1), :data:`WEST`, :data:`NORTH` (row + 1),
+    #: :data:`SOUTH`. What the structured square-grid kernel needs to lay the faces out.
+    face_direction: np.ndarray | None = None
 
     @property
     def n_cells(self) -> int:
@@ -67,6 +74,8 @@ class Mesh:
             object.__setattr__(self, "face_frame", shared_basis_frames(self.face_normal))
         if self.face_frame.shape != (nf, 2, 2, 2):
             raise ValueError("face_frame must have shape (n_faces, 2, 2, 2)")
+        if self.face_direction is not None and self.face_direction.shape != (nf,):
+            raise ValueError("face_direction must have shape (n_faces,)")
 
 
 def shared_basis_frames(face_normal: np.ndarray) -> np.ndarray:
@@ -143,19 +152,20 @@ def grid_mesh(
     len_x = float(np.hypot(*ey))
     len_y = float(np.hypot(*ex))
 
-    cells, normals, lengths = [], [], []
+    cells, normals, lengths, steps = [], [], [], []
 
-    def add(first, second, normal, length):
+    def add(first, second, normal, length, step):
         cells.append(np.stack([first.ravel(), second.ravel()], axis=1))
         normals.append(np.broadcast_to(normal, (first.size, 2)))
         lengths.append(np.full(first.size, length))
+        steps.append(np.full(first.size, step, dtype=np.int8))
 
-    add(idx[:, :-1], idx[:, 1:], n_x, len_x)
-    add(idx[:-1, :], idx[1:, :], n_y, len_y)
-    add(idx[:, 0], np.full(ny, boundary["x_min"]), -n_x, len_x)
-    add(idx[:, -1], np.full(ny, boundary["x_max"]), n_x, len_x)
-    add(idx[0, :], np.full(nx, boundary["y_min"]), -n_y, len_y)
-    add(idx[-1, :], np.full(nx, boundary["y_max"]), n_y, len_y)
+    add(idx[:, :-1], idx[:, 1:], n_x, len_x, EAST)
+    add(idx[:-1, :], idx[1:, :], n_y, len_y, NORTH)
+    add(idx[:, 0], np.full(ny, boundary["x_min"]), -n_x, len_x, WEST)
+    add(idx[:, -1], np.full(ny, boundary["x_max"]), n_x, len_x, EAST)
+    add(idx[0, :], np.full(nx, boundary["y_min"]), -n_y, len_y, SOUTH)
+    add(idx[-1, :], np.full(nx, boundary["y_max"]), n_y, len_y, NORTH)
     face_cells = np.ascontiguousarray(np.concatenate(cells), dtype=np.int64)
     face_normal = np.ascontiguousarray(np.concatenate(normals))
     face_length = np.concatenate(lengths)
@@ -167,4 +177,5 @@ def grid_mesh(
         face_normal=face_normal,
         face_length=face_length,
         shape=(ny, nx),
+        face_direction=np.concatenate(steps),
     )

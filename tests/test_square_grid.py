@@ -1,0 +1,205 @@
+"""The square-grid kernel against the face kernel, and 1 thread against N.
+
+The structured kernel (avflow.numerics.square_grid) adds each cell's faces in the order of
+their indices in the mesh, as the face kernel does, so the two agree bit for bit on the
+state and the observers; only the grid-wide diagnostic sums (moving volume, film, kinetic
+energy, outflow) are added per row, then over the rows, and differ by round-off.
+"""
+
+import math
+from types import SimpleNamespace as NS
+
+import numba
+import numpy as np
+import pytest
+
+from avflow.errors import ScenarioError
+from avflow.numerics.rheology import Law
+from avflow.numerics.solver import Solver
+from avflow.scenario.schema import load_scenario
+from avflow.simulation.runner import simulate
+from avflow.terrain.bed import plane_terrain, surface_terrain
+from avflow.terrain.squaregrid import CANONICAL_ORDER, square_grid
+
+from conftest import SCENARIOS, cylinder, walls
+
+STATE = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
+ROUND_OFF = ("moving", "film", "kinetic", "outflow")
+
+
+def valley(nx=60, ny=40, dx=5.0, holes=True):
+    """A curved valley DEM (x downslope, parabolic across, a bump), with NODATA holes."""
+    x = np.arange(nx) * dx + 2.5
+    y = np.arange(ny) * dx + 2.5
+    xx, yy = np.meshgrid(x, y)
+    z = (600.0 - 0.7 * xx + 0.004 * (yy - y.mean()) ** 2
+         + 8.0 * np.exp(-((xx - 200.0) ** 2 + (yy - 90.0) ** 2) / 400.0))
+    if holes:
+        z[18:22, 30:34] = np.nan  # a hole in the path
+        z[0:3, 0:5] = np.nan  # a notch on the edge
+        z[ny - 1, 40:nx] = np.nan
+    return z, x, y
+
+
+def pair(terrain, law=Law.COULOMB, params=(math.tan(math.radians(20.0)),), **kw):
+    """The same solver on both kernels."""
+    faces = Solver(terrain, law, np.array(params, dtype=float), kernel="faces", **kw)
+    grid = Solver(terrain, law, np.array(params, dtype=float), kernel="grid", threads=1, **kw)
+    assert (faces.kernel_used, grid.kernel_used) == ("faces", "grid")
+    return faces, grid
+
+
+def run_both(terrain, h0, t_end, **kw):
+    faces, grid = pair(terrain, **kw)
+    states = []
+    for solver in (faces, grid):
+        state = solver.new_state(h0)
+        statuses = [solver.advance(state, t) for t in np.linspace(t_end / 4, t_end, 4)]
+        states.append((state, statuses))
+    return states
+
+
+def assert_same_state(a, b):
+    for name in STATE:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.steps == b.steps
+    assert a.t == b.t
+
+
+def assert_round_off(a, b):
+    from avflow.numerics import kernels as K
+
+    for slot in (K.ST_MOVING, K.ST_FILM, K.ST_KINETIC, K.ST_OUTFLOW):
+        assert a.stats[slot] == pytest.approx(b.stats[slot], rel=1e-12, abs=1e-9)
+
+
+def test_layout_holds_every_face_once():
+    z, x, y = valley()
+    ter = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="wall")
+    grid = square_grid(ter)
+    inner = ter.mesh.face_cells[:, 1] >= 0
+    boundary = ~inner
+    n_codes = np.count_nonzero(grid.x_code) + np.count_nonzero(grid.y_code)
+    assert n_codes == ter.mesh.n_faces
+    assert np.count_nonzero(grid.x_code == 1) + np.count_nonzero(grid.y_code == 1) == inner.sum()
+    assert boundary.sum() > 0
+    # most cells add their faces W, E, S, N; the cells at holes and edges do not
+    orders = grid.face_order[grid.valid == 1]
+    assert (orders == CANONICAL_ORDER).mean() > 0.8
+    assert (orders != CANONICAL_ORDER).any()
+
+
+@pytest.mark.parametrize("bounds", [walls(), walls(x_max="outflow", y_min="outflow")])
+def test_plane_agrees_bit_for_bit(bounds):
+    plane = NS(slope_deg=30.0, azimuth_deg=100.0, extent=NS(x=[0.0, 600.0], y=[0.0, 300.0]),
+               elevation_at_center=0.0)
+    ter = plane_terrain(plane, 10.0, 7.5, bounds)
+    h0 = cylinder(ter, (420.0, 150.0), radius=60.0, thickness=8.0)
+    (a, sa), (b, sb) = run_both(ter, h0, 30.0, h_zero=1e-3, h_dry=1e-3)
+    assert sa == sb
+    assert_same_state(a, b)
+    assert_round_off(a, b)
+    if bounds.x_max == "outflow":
+        from avflow.numerics import kernels as K
+
+        assert a.stats[K.ST_OUTFLOW] > 0.0  # material left: the open sides are exercised
+
+
+@pytest.mark.parametrize("nodata", ["wall", "outflow"])
+@pytest.mark.parametrize("law,params", [(Law.COULOMB, (math.tan(math.radians(18.0)),)),
+                                        (Law.VOELLMY, (0.15, 500.0))])
+def test_dem_with_holes_agrees_bit_for_bit(nodata, law, params):
+    """A curved DEM (bed-linked frames, curvature term) with NODATA holes in the path and on
+    the edge, open lower side: state and observers are the face kernel's, bit for bit."""
+    z, x, y = valley()
+    ter = surface_terrain(z, x, y, walls(x_max="outflow"), nodata=nodata)
+    xx, yy = ter.cell_xy()
+    h0 = np.where((xx - 60.0) ** 2 + (yy - 100.0) ** 2 < 30.0**2, 5.0, 0.0)
+    (a, sa), (b, sb) = run_both(ter, h0, 40.0, law=law, params=params, h_zero=1e-3,
+                                h_dry=1e-3)
+    assert sa == sb
+    assert_same_state(a, b)
+    assert_round_off(a, b)
+    assert a.t == 40.0 and a.h.shape == (ter.n_cells,)
+
+
+def test_film_rule_off_agrees_bit_for_bit():
+    """h_zero = 0: every film flows (the seed's dam-break setting)."""
+    z, x, y = valley(holes=False)
+    ter = surface_terrain(z, x, y, walls())
+    xx, yy = ter.cell_xy()
+    h0 = np.where((xx - 60.0) ** 2 + (yy - 100.0) ** 2 < 30.0**2, 5.0, 0.0)
+    (a, _), (b, _) = run_both(ter, h0, 20.0)
+    assert_same_state(a, b)
+
+
+def test_bowl_at_rest_stays_at_rest_bit_for_bit():
+    """A pile in a bowl under its friction threshold: neither kernel moves a grain."""
+    x = np.arange(40) * 5.0 + 2.5
+    xx, yy = np.meshgrid(x, x)
+    z = 0.002 * ((xx - 100.0) ** 2 + (yy - 100.0) ** 2)
+    ter = surface_terrain(z, x, x, walls())
+    cx, cy = ter.cell_xy()
+    h0 = np.where((cx - 100.0) ** 2 + (cy - 100.0) ** 2 < 40.0**2, 2.0, 0.0)
+    for solver in pair(ter, params=(math.tan(math.radians(30.0)),), h_zero=1e-3):
+        state = solver.new_state(h0)
+        assert solver.advance(state, 50.0, stop_volume=-1.0) == "running"
+        assert np.array_equal(state.h, h0)
+        assert not state.hu.any() and not state.hv.any()
+
+
+def test_contract_plane_cylinder_agrees(contract_dir):
+    """The shared contract's plane_cylinder on both kernels: the same run, bit for bit."""
+    base = load_scenario(contract_dir / "plane_cylinder.yaml")
+    a = simulate(base.with_updates({"numerics.kernel": "faces"}))
+    b = simulate(base.with_updates({"numerics.kernel": "grid", "numerics.threads": 1}))
+    assert b.solver.kernel_used == "grid"
+    assert_same_state(a.state, b.state)
+    assert a.summary["runout"] == b.summary["runout"]
+    assert a.summary["mass_balance_error"] < 1e-12 and b.summary["mass_balance_error"] < 1e-12
+
+
+def test_grid_is_the_default_on_square_grids_at_order_1():
+    plane = load_scenario(SCENARIOS / "plane_box_2d.yaml")
+    ter_solver = simulate(plane.with_updates({"time.end": 1.0})).solver
+    assert ter_solver.kernel_used == "grid"
+    assert simulate(plane.with_updates({"time.end": 1.0, "numerics.order": 2})
+                    ).solver.kernel_used == "faces"
+    tri = load_scenario(SCENARIOS / "plane_cylinder_triangles.yaml")
+    with pytest.raises(ScenarioError, match="numerics.kernel.*square grids"):
+        simulate(tri.with_updates({"time.end": 1.0, "numerics.kernel": "grid"}))
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2,
+                    reason="Numba has one thread on this machine (NUMBA_NUM_THREADS=1)")
+@pytest.mark.parametrize("holes", [False, True])
+def test_threads_give_the_same_answer_bit_for_bit(holes):
+    """The serial passes (1 thread) and the parallel ones on 2 threads: the same bits,
+    diagnostics included (rows are summed in order whatever the threads)."""
+    z, x, y = valley(holes=holes)
+    ter = surface_terrain(z, x, y, walls(x_max="outflow"))
+    xx, yy = ter.cell_xy()
+    h0 = np.where((xx - 60.0) ** 2 + (yy - 100.0) ** 2 < 30.0**2, 5.0, 0.0)
+    params = np.array([math.tan(math.radians(18.0))])
+    results = []
+    for threads in (1, 2):
+        solver = Solver(ter, Law.COULOMB, params, kernel="grid", threads=threads, h_zero=1e-3)
+        state = solver.new_state(h0)
+        solver.advance(state, 30.0)
+        results.append(state)
+    a, b = results
+    assert_same_state(a, b)
+    assert np.array_equal(a.stats, b.stats)
+
+
+def test_threads_field_and_cli(tmp_path):
+    from avflow.cli import main
+
+    sc = load_scenario(SCENARIOS / "plane_box_2d.yaml").with_updates(
+        {"time.end": 2.0, "numerics.threads": 1})
+    assert sc.numerics.threads == 1
+    # threads never change the answer: they are not part of the scenario's identity
+    assert sc.scenario_hash() == sc.with_updates({"numerics.threads": 2}).scenario_hash()
+    out = tmp_path / "p.nc"
+    assert main(["run", str(SCENARIOS / "plane_box_2d.yaml"), "--set", "time.end=2",
+                 "--threads", "1", "-q", "-o", str(out)]) == 0
