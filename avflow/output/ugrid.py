@@ -23,19 +23,21 @@ MESH = "mesh"
 NODE, FACE = "node", "face"
 
 
-def to_ugrid_dataset(result) -> xr.Dataset:
-    """The UGRID/CF Dataset of a run on a ``"triangles"`` terrain (fields on (time, node))."""
-    terrain, snaps, state = result.terrain, result.snapshots, result.state
-    tris = np.asarray(terrain.extras["triangles"], dtype=np.int32)
-    h = np.stack(snaps.h)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ua = np.where(h > 0, np.stack(snaps.hu) / h, 0.0)
-        va = np.where(h > 0, np.stack(snaps.hv) / h, 0.0)
-    e1, e2 = terrain.tangent_basis[:, 0, :], terrain.tangent_basis[:, 1, :]
+def to_ugrid_dataset(result, part: str = "all") -> xr.Dataset:
+    """The UGRID/CF Dataset of a run on a ``"triangles"`` terrain (fields on (time, node)).
 
-    times = np.asarray(snaps.time, dtype=float)
+    ``part`` as in :func:`avflow.output.dataset.to_dataset`: ``"fields"`` holds the mesh
+    variables and the fields on (time, node), ``"rest"`` every other variable.
+    """
+    from avflow.output.dataset import snapshot_fields
+
+    terrain, snaps = result.terrain, result.snapshots
+    tris = np.asarray(terrain.extras["triangles"], dtype=np.int32)
+
+    coords = {} if part == "fields" else time_coords(
+        np.asarray(snaps.time, dtype=float), result.scenario.output.release_time)
     coords = {
-        **time_coords(times, result.scenario.output.release_time),
+        **coords,
         "mesh_node_x": (NODE, terrain.x, {"standard_name": "projection_x_coordinate",
                                           "long_name": "x coordinate of mesh node (cell centre)",
                                           "units": "m"}),
@@ -52,7 +54,7 @@ def to_ugrid_dataset(result) -> xr.Dataset:
         return {**base, **on_node, **grid_mapping, **extra}
 
     space = (NODE,)
-    data = {
+    data = {} if part == "rest" else {
         MESH: ((), np.int32(0), {
             "cf_role": "mesh_topology",
             "long_name": "triangular mesh; finite-volume cells are the median dual cells of "
@@ -68,18 +70,40 @@ def to_ugrid_dataset(result) -> xr.Dataset:
             "long_name": "nodes of each triangle, counter-clockwise seen from above",
             "start_index": np.int32(0),
         }),
-        "h": (("time", *space), h, attrs("h")),
-        "u": (("time", *space), ua * e1[:, 0] + va * e2[:, 0], attrs("u")),
-        "v": (("time", *space), ua * e1[:, 1] + va * e2[:, 1], attrs("v")),
-        "flow_state": (("time", *space), np.stack(snaps.flag).astype(np.int8),
-                       attrs("flow_state", _FillValue=np.int8(-1))),
-        "peak_thickness": (space, state.peak_h, attrs("peak_thickness")),
-        "peak_speed": (space, state.peak_speed, attrs("peak_speed")),
-        "deposit_thickness": (space, state.h, attrs("deposit_thickness")),
-        "peak_pressure": (space, result.scenario.physics.density * state.peak_speed**2,
-                          attrs("peak_pressure")),
-        "arrival_time": (space, state.arrival, attrs("arrival_time")),
     }
+    if part != "rest":
+        fields = snapshot_fields(terrain, np.stack(snaps.h), np.stack(snaps.hu),
+                                 np.stack(snaps.hv), np.stack(snaps.flag))
+        data["h"] = (("time", *space), fields["h"], attrs("h"))
+        data["u"] = (("time", *space), fields["u"], attrs("u"))
+        data["v"] = (("time", *space), fields["v"], attrs("v"))
+        data["flow_state"] = (("time", *space), fields["flow_state"],
+                              attrs("flow_state", _FillValue=np.int8(-1)))
+    if part != "fields":
+        _add_rest(data, result, space, attrs, on_node, grid_mapping)
+    if crs_attrs:  # a coordinate, named by the fields on the nodes (see link_coordinates)
+        coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
+                                            **crs_attrs})
+    ds = xr.Dataset(data, coords=coords)
+    link_coordinates(ds)
+    if part != "fields":
+        ds.attrs = global_attributes(result)
+        ds.attrs["Conventions"] = "CF-1.11 UGRID-1.0"
+        ds.attrs["comment"] = ("h is measured normal to the bed; fields live on the nodes of "
+                               "a triangular mesh (UGRID), each node the centre of its median "
+                               "dual cell")
+    return ds
+
+
+def _add_rest(data, result, space, attrs, on_node, grid_mapping) -> None:
+    """The maps of the final state, the series, the static maps and the summaries."""
+    terrain, snaps, state = result.terrain, result.snapshots, result.state
+    data["peak_thickness"] = (space, state.peak_h, attrs("peak_thickness"))
+    data["peak_speed"] = (space, state.peak_speed, attrs("peak_speed"))
+    data["deposit_thickness"] = (space, state.h, attrs("deposit_thickness"))
+    data["peak_pressure"] = (space, result.scenario.physics.density * state.peak_speed**2,
+                             attrs("peak_pressure"))
+    data["arrival_time"] = (space, state.arrival, attrs("arrival_time"))
     at_rest = (state.h > 0.0) & (state.hu == 0.0) & (state.hv == 0.0)
     data["rest_time"] = (space, np.where(at_rest, state.last_moved, np.nan), attrs("rest_time"))
     data["bed_elevation"] = (space, terrain.bed_elevation, attrs("bed_elevation"))
@@ -98,14 +122,3 @@ def to_ugrid_dataset(result) -> xr.Dataset:
     for name, (units, description) in SUMMARIES.items():
         data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
                                             "units": units, "comment": description})
-    if crs_attrs:  # a coordinate, named by the fields on the nodes (see link_coordinates)
-        coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
-                                            **crs_attrs})
-    ds = xr.Dataset(data, coords=coords)
-    link_coordinates(ds)
-    ds.attrs = global_attributes(result)
-    ds.attrs["Conventions"] = "CF-1.11 UGRID-1.0"
-    ds.attrs["comment"] = ("h is measured normal to the bed; fields live on the nodes of a "
-                           "triangular mesh (UGRID), each node the centre of its median dual "
-                           "cell")
-    return ds
