@@ -88,8 +88,8 @@ def _load_with_sets(args):
 
 def _cmd_run(args) -> int:
     from avflow.output.netcdf import (OutputWriteError, check_output_path,
-                                      remove_stale_temporaries, write_netcdf)
-    from avflow.output.dataset import to_dataset
+                                      remove_stale_temporaries)
+    from avflow.output.stream import SnapshotStream
     from avflow.simulation.runner import simulate
 
     scenario = _load_with_sets(args)
@@ -106,15 +106,30 @@ def _cmd_run(args) -> int:
     remove_stale_temporaries(out)  # left by a write that was killed
     progress = Progress(quiet=args.quiet)
     try:
-        result = simulate(scenario, progress=progress, max_memory=args.max_memory)
-    finally:
-        progress.close()
-    ds = to_dataset(result)
-    try:
-        write_netcdf(ds, out)
-    except OutputWriteError as err:  # full disk after the run: exit 1, nothing left behind
+        # Each snapshot goes to .OUT.XXXXXXXX.tmp as it is taken; renamed to OUT at the end.
+        # A failed or interrupted run, or a failed write, leaves no file (an old OUT intact).
+        with SnapshotStream(out) as stream:
+            try:
+                result = simulate(scenario, progress=progress, max_memory=args.max_memory,
+                                  snapshots=stream)
+            finally:
+                progress.close()
+            rest = stream.finish(result)
+    except OutputWriteError as err:  # full disk: exit 1, nothing left behind
         print(f"avflow: error: {err}", file=sys.stderr)
         return 1
+    import xarray as xr
+
+    with xr.open_dataset(out, decode_times=False) as on_disk:
+        # the run as avflow.run returns it: the fields on (time, space) read from the file
+        # when asked for (the path analysis reads h at t = 0), the rest from memory
+        ds = rest.assign({name: on_disk[name].variable for name in on_disk.data_vars
+                          if name not in rest.variables})
+        return _after_run(args, scenario, out, ds, result.status)
+
+
+def _after_run(args, scenario, out: Path, ds, status: str) -> int:
+    """The warnings, the summary line and the path analysis of a written run."""
     if int(ds.attrs.get("runout_truncated", 0)):
         print(f"avflow: warning: {args.scenario}: material reached the edge of the map; the "
               "runout is a lower bound (enlarge the map or the DEM)", file=sys.stderr)
@@ -123,7 +138,7 @@ def _cmd_run(args) -> int:
         print(f"wrote {out}")
     if scenario.output.path is not None:
         _run_path(ds, scenario.output.path, out, args.quiet)
-    return 0 if result.status in ("stopped", "completed") else 1
+    return 0 if status in ("stopped", "completed") else 1
 
 
 def _run_path(ds, block, out: Path, quiet: bool = False) -> None:
@@ -277,8 +292,9 @@ def _cmd_ensemble(args) -> int:
 
 
 def _check_members_fit(ensemble, max_memory) -> None:
-    """Every member's cells and snapshots against the memory limit, before any runs; the
-    limit then travels to the local workers through the environment."""
+    """Every member's cells against the memory limit, before any runs (a member streams
+    its snapshots to its file: one in memory); the limit then travels to the local workers
+    through the environment."""
     import os
 
     from avflow.simulation.resources import ENV_MAX_MEMORY, check_resources, parse_bytes
@@ -290,7 +306,7 @@ def _check_members_fit(ensemble, max_memory) -> None:
             raise AvflowError(f"--max-memory: {err}") from None
         os.environ[ENV_MAX_MEMORY] = max_memory
     for member in ensemble.members:
-        check_resources(member.scenario)
+        check_resources(member.scenario, streamed=True)
 
 
 def _cmd_report(args) -> int:

@@ -239,16 +239,31 @@ def test_output_whose_folder_cannot_be_created_is_refused(tmp_path, capsys, no_r
 
 @pytest.mark.parametrize("error", [OSError(28, "No space left on device"),
                                    RuntimeError("NetCDF: HDF error")])
+@pytest.mark.parametrize("when", ["during the run", "at the end"])
 def test_full_disk_is_one_line_exit_1_no_temporary_and_the_old_file_intact(
-        error, tmp_path, capsys, monkeypatch):
+        error, when, tmp_path, capsys, monkeypatch):
+    """The snapshots are written as the run goes (avflow.output.stream): the disk may fill
+    up at a snapshot, or with the maps and summaries written at the end."""
+    from avflow.output.stream import SnapshotStream
+
     out = tmp_path / "out.nc"
     out.write_bytes(b"old result")
+    append, dump = SnapshotStream._append, xr.Dataset.dump_to_store
 
-    def full(self, path, *args, **kwargs):
-        Path(path).write_bytes(b"partial")  # the disk fills up mid-write
-        raise error
+    def full_at_snapshot_10(self, *args):
+        if self.records == 10:
+            raise error
+        append(self, *args)
 
-    monkeypatch.setattr(xr.Dataset, "to_netcdf", full)
+    def full_at_the_end(self, store, **kwargs):
+        dump(self, store, **kwargs)
+        if "peak_thickness" in self:  # the rest of the run, after the last snapshot
+            raise error
+
+    if when == "during the run":
+        monkeypatch.setattr(SnapshotStream, "_append", full_at_snapshot_10)
+    else:
+        monkeypatch.setattr(xr.Dataset, "dump_to_store", full_at_the_end)
     assert main(["run", str(FAST), "-o", str(out)]) == 1
     captured = capsys.readouterr()
     err = captured.err.strip()

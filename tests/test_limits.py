@@ -223,16 +223,25 @@ def test_default_limit_is_half_the_machine_or_the_environment(tmp_path, monkeypa
     assert check_resources(load_scenario(path)).cells == 218899 * 257881
 
 
-def test_too_many_snapshots_for_the_memory_exit_2(tmp_path, capsys):
+def test_too_many_snapshots_for_the_memory_is_refused(tmp_path, capsys):
+    """avflow.run holds every snapshot (it returns them as a Dataset); avflow run streams
+    them to its file (tests/test_streamed_output.py): one in memory at a time."""
     path = write(tmp_path, DAMBREAK.replace("every: 1.0", "every: 0.01"))  # 13 701 snapshots
-    code, _, err = run_cli(["run", path, "-o", tmp_path / "o.nc", "--max-memory", "10M"],
-                           capsys)
-    assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "output.every:" in err and "13701 snapshots" in err and "10.0 MiB" in err
-    assert not (tmp_path / "o.nc").exists()
+    with pytest.raises(ScenarioError) as err:
+        runner.simulate(load_scenario(path), max_memory="10M")
+    message = str(err.value)
+    assert len(message.splitlines()) == 1 and err.value.field == "output.every"
+    assert "13701 snapshots" in message and "10.0 MiB" in message
+    assert check_resources(load_scenario(path), "10M", streamed=True).snapshots == 13701
     code, _, err = run_cli(["run", path, "-o", tmp_path / "o.nc", "--max-memory", "lots"],
                            capsys)
     assert code == 2 and err.startswith("avflow: error: --max-memory:")
+    # with a streamed run too, the mesh alone can be too large: grid.dx, exit 2
+    code, _, err = run_cli(["run", path, "-o", tmp_path / "o.nc", "--max-memory", "50K"],
+                           capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "grid.dx:" in err and "one snapshot, the others streamed to the file" in err
+    assert not (tmp_path / "o.nc").exists()
 
 
 def test_estimates_follow_the_mesh(tmp_path):

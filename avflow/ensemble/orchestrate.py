@@ -35,8 +35,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import dask
-
 from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, Ensemble, Member
 from avflow.errors import AvflowError
 
@@ -140,18 +138,19 @@ def run_member(scenario_yaml: str, out_path: str) -> dict:
     if row is not None:
         row.update(reused=True, member_time=time.perf_counter() - started)
         return row
-    from avflow.output.dataset import to_dataset
-    from avflow.output.netcdf import write_netcdf
+    from avflow.output.stream import SnapshotStream
     from avflow.simulation.runner import simulate
     from avflow.scenario.schema import parse_scenario
 
     try:
-        result = simulate(parse_scenario(scenario_yaml))
-        checksum_path(out_path).unlink(missing_ok=True)  # stale: the file is replaced
-        # Inside a dask worker xarray would guard the write with a distributed.Lock (a round
-        # trip to the scheduler, ~0.25 s): each member writes its own file, no lock needed.
-        with dask.config.set(scheduler="synchronous"):
-            write_netcdf(to_dataset(result), out_path)
+        # The snapshots go to the member's temporary file as they are taken (one in memory);
+        # the file is renamed into place at the end, and a failed member leaves none. The
+        # stream writes through its own netCDF4 handle: no distributed.Lock round trip to
+        # the scheduler (~0.25 s) as xarray's to_netcdf would take inside a dask worker.
+        with SnapshotStream(out_path) as stream:
+            result = simulate(parse_scenario(scenario_yaml), snapshots=stream)
+            checksum_path(out_path).unlink(missing_ok=True)  # stale: the file is replaced
+            stream.finish(result)
         write_checksum(out_path)
         row = {name: float(result.summary[name]) for name in SUMMARY_FIELDS}
         row.update(status=result.status, steps=int(result.summary["steps"]),
@@ -193,16 +192,14 @@ def warm(scenario_yaml: str | None) -> bool:
     """
     if scenario_yaml is None:
         return False
-    from avflow.output.dataset import to_dataset
-    from avflow.output.netcdf import write_netcdf
+    from avflow.output.stream import SnapshotStream
     from avflow.simulation.runner import simulate
     from avflow.scenario.schema import parse_scenario
 
     try:
-        ds = to_dataset(simulate(parse_scenario(scenario_yaml)))
         with tempfile.TemporaryDirectory(prefix="avflow-warm-") as folder:
-            with dask.config.set(scheduler="synchronous"):
-                write_netcdf(ds, Path(folder) / "warm.nc")
+            with SnapshotStream(Path(folder) / "warm.nc") as stream:  # as run_member writes
+                stream.finish(simulate(parse_scenario(scenario_yaml), snapshots=stream))
     except Exception:  # noqa: BLE001
         return False
     return True

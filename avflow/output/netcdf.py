@@ -4,6 +4,8 @@ Fields are stored as float32 with zlib + shuffle, one chunk per snapshot; summar
 coordinates stay float64. The temporary file is ``.{name}.XXXXXXXX.tmp`` (``mkstemp``) next
 to the output: a write killed by SIGKILL leaves one, and :func:`remove_stale_temporaries`
 (called by ``avflow run`` before it runs) removes those of that output name only.
+:func:`write_netcdf` writes a whole Dataset; :mod:`avflow.output.stream` writes the same
+file snapshot by snapshot while the run goes on, with the same temporary and rename.
 """
 
 from __future__ import annotations
@@ -136,9 +138,16 @@ def publish(tmp, path) -> None:
     os.replace(tmp, path)
 
 
-def write_netcdf(ds: xr.Dataset, path) -> Path:
-    """Write ``ds`` to ``path`` atomically: a temporary file in the same folder, then rename."""
+def make_temporary(path) -> tuple[Path, list[Path]]:
+    """An empty temporary file ``.{name}.XXXXXXXX.tmp`` next to ``path``, its folder made if
+    missing; returns it and the folders made (deepest last). :class:`OutputWriteError` if
+    the file cannot be made."""
     path = Path(path)
+    created = []
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        created.insert(0, folder)
+        folder = folder.parent
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path), suffix=".tmp",
@@ -146,15 +155,34 @@ def write_netcdf(ds: xr.Dataset, path) -> Path:
     except OSError as err:
         raise OutputWriteError(f"cannot write {path}: {err.strerror or err}") from err
     os.close(fd)
+    return Path(tmp), created
+
+
+def write_error(path, err: BaseException) -> OutputWriteError | None:
+    """The one-line :class:`OutputWriteError` for an exception raised while writing ``path``,
+    or None when it is no write error (an interrupt, a bug, an OutputWriteError already:
+    raised as it is)."""
+    if isinstance(err, OutputError):
+        return None
+    if isinstance(err, OSError):  # ENOSPC, EDQUOT, EIO...
+        return OutputWriteError(f"cannot write {path}: {err.strerror or err}")
+    if isinstance(err, RuntimeError) and str(err).startswith("NetCDF:"):
+        # netCDF-C reports a full disk during an HDF5 write as "NetCDF: HDF error"
+        return OutputWriteError(f"cannot write {path}: {err} (is the disk full?)")
+    return None
+
+
+def write_netcdf(ds: xr.Dataset, path) -> Path:
+    """Write ``ds`` to ``path`` atomically: a temporary file in the same folder, then rename."""
+    path = Path(path)
+    tmp, _ = make_temporary(path)
     try:
         ds.to_netcdf(tmp, encoding=encoding_for(ds), engine="netcdf4")
         publish(tmp, path)
     except BaseException as err:
         Path(tmp).unlink(missing_ok=True)
-        if isinstance(err, OSError):  # ENOSPC, EDQUOT, EIO...
-            raise OutputWriteError(f"cannot write {path}: {err.strerror or err}") from err
-        if isinstance(err, RuntimeError) and str(err).startswith("NetCDF:"):
-            # netCDF-C reports a full disk during an HDF5 write as "NetCDF: HDF error"
-            raise OutputWriteError(f"cannot write {path}: {err} (is the disk full?)") from err
+        error = write_error(path, err)
+        if error is not None:
+            raise error from err
         raise
     return path

@@ -14,6 +14,12 @@ The bytes per cell were measured (peak resident memory, ``workflows``-sized runs
 profiles and triangle meshes, through the NetCDF write) and rounded up: about 560-750 B per
 grid cell, 1800 per profile cell, 2100 per triangle-mesh vertex while the mesh is built, and
 60-70 B per cell and snapshot (``h``, ``hu``, ``hv``, flags, then the Dataset's copies).
+
+A run that writes a file (``avflow run``, ensemble members) streams its snapshots to it as
+they are taken (:mod:`avflow.output.stream`): one snapshot is in memory at a time, whatever
+their number (``streamed=True``); :func:`avflow.run`, which returns them all as a Dataset,
+holds every one. The file's size on disk grows with the snapshots: :attr:`Estimate.file_bytes`
+bounds it (uncompressed; zlib shrinks the dry cells to almost nothing).
 """
 
 from __future__ import annotations
@@ -31,6 +37,8 @@ ENV_MAX_MEMORY = "AVFLOW_MAX_MEMORY"
 BYTES_PER_CELL = {"profile": 2000, "grid": 1000, "triangles": 2500}
 #: Bytes per cell and stored snapshot (the snapshot lists, then the output Dataset).
 BYTES_PER_CELL_SNAPSHOT = 80
+#: Bytes per cell and snapshot in the file before compression: h, u, v as float32, flow_state.
+FILE_BYTES_PER_CELL_SNAPSHOT = 13
 
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40, "P": 2**50}
 
@@ -101,12 +109,18 @@ class Estimate:
     cells: int
     snapshots: int
     mesh_bytes: float
-    snapshot_bytes: float
+    snapshot_bytes: float  #: those held in memory: all of them, or one when streamed
     what: str  #: the mesh in words, for messages
+    streamed: bool = False  #: snapshots written to the file as they are taken
 
     @property
     def bytes(self) -> float:
         return self.mesh_bytes + self.snapshot_bytes
+
+    @property
+    def file_bytes(self) -> float:
+        """Upper bound of the output file's size: every snapshot's fields, uncompressed."""
+        return float(self.cells) * self.snapshots * FILE_BYTES_PER_CELL_SNAPSHOT
 
 
 def snapshot_count(scenario) -> int:
@@ -115,11 +129,12 @@ def snapshot_count(scenario) -> int:
     return int(math.ceil(end / every - 1e-9)) + 1
 
 
-def estimate(scenario) -> Estimate:
+def estimate(scenario, streamed: bool = False) -> Estimate:
     """Cells and bytes of a validated scenario's run, from its extent and grid.dx only.
 
     A DEM is read at its own spacing (cached; nothing is resampled) for its extent. Triangle
     meshes count the grid's nodes before refinement (refinement adds where the bed bends).
+    ``streamed``: the snapshots go to a file as they are taken, one is in memory at a time.
     """
     t, g = scenario.terrain, scenario.grid
     dx = g.dx
@@ -154,15 +169,18 @@ def estimate(scenario) -> Estimate:
         else:
             kind, shape, n = "grid", (nx, ny), nx * ny
     snaps = snapshot_count(scenario)
+    held = 1 if streamed else snaps
     return Estimate(kind, shape, n, snaps, float(n) * BYTES_PER_CELL[kind],
-                    float(n) * snaps * BYTES_PER_CELL_SNAPSHOT, what)
+                    float(n) * held * BYTES_PER_CELL_SNAPSHOT, what, streamed)
 
 
-def check_resources(scenario, max_memory: int | str | None = None) -> Estimate:
+def check_resources(scenario, max_memory: int | str | None = None, *,
+                    streamed: bool = False) -> Estimate:
     """The estimate of a scenario's run; a :class:`ScenarioError` when it exceeds the limit.
 
     ``max_memory``: bytes, or a size such as ``"8G"``; None: the default
-    (:func:`default_max_memory`).
+    (:func:`default_max_memory`). ``streamed``: the run writes its snapshots to a file as
+    they are taken (``avflow run``, ensemble members), one in memory at a time.
     """
     if max_memory is None:
         limit, source = default_max_memory()
@@ -171,19 +189,20 @@ def check_resources(scenario, max_memory: int | str | None = None) -> Estimate:
             limit, source = parse_bytes(max_memory), "--max-memory"
         except AvflowError as err:
             raise AvflowError(f"--max-memory: {err}") from None
-    est = estimate(scenario)
+    est = estimate(scenario, streamed)
     if limit is None or est.bytes <= limit:
         return est
     unit = "nodes" if est.kind == "triangles" else "cells"
     count = f"{est.cells:.3g} {unit}"
     if len(est.shape) > 1:
         count = " x ".join(str(n) for n in est.shape) + " = " + count
+    held = "one snapshot, the others streamed to the file" if est.streamed else "snapshots"
     need = (f"{est.what} makes {count}; with {est.snapshots} "
             f"snapshots a run needs about {human(est.bytes)} ({human(est.mesh_bytes)} mesh "
-            f"and state, {human(est.snapshot_bytes)} snapshots), more than the memory limit "
+            f"and state, {human(est.snapshot_bytes)} {held}), more than the memory limit "
             f"of {human(limit)} ({source})")
-    if est.mesh_bytes > limit:  # the mesh alone does not fit: the cells are too small
-        field, fix = "grid.dx", "use a larger grid.dx"
+    if est.mesh_bytes > limit or est.streamed:  # the cells are too small (fewer snapshots
+        field, fix = "grid.dx", "use a larger grid.dx"  # would not help a streamed run)
     else:  # the mesh fits, its snapshots do not
         field = "output.every"
         fix = "store fewer snapshots (a larger output.every) or use a larger grid.dx"

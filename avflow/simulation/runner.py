@@ -46,7 +46,16 @@ FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED = 0, 1, 2
 
 @dataclass
 class Snapshots:
-    """Fields stored at output times (lists of per-cell arrays, float64 / uint8)."""
+    """Fields stored at output times (lists of per-cell arrays, float64 / uint8).
+
+    :func:`simulate` calls :meth:`record` at every output time. This class keeps every
+    snapshot in memory (what :func:`avflow.run` returns as a Dataset); a subclass with
+    ``in_memory = False`` (:class:`avflow.output.stream.SnapshotStream`) writes the fields
+    to a file as they come and keeps only the times and the series.
+    """
+
+    #: False: the fields are not kept (one snapshot in memory at a time), see check_resources
+    in_memory = True
 
     time: list = field(default_factory=list)
     h: list = field(default_factory=list)
@@ -57,11 +66,15 @@ class Snapshots:
     center_of_mass: list = field(default_factory=list)  #: (x, y, z) per snapshot, m
 
     def record(self, state: State, moving: float, terrain: Terrain) -> None:
-        self.time.append(state.t)
+        self.record_series(state, moving, terrain)
         self.h.append(state.h.copy())
         self.hu.append(state.hu.copy())
         self.hv.append(state.hv.copy())
         self.flag.append(cell_flags(state))
+
+    def record_series(self, state: State, moving: float, terrain: Terrain) -> None:
+        """The time and the scalars of one output time (every kind of snapshots keeps them)."""
+        self.time.append(state.t)
         self.moving_volume.append(moving)
         self.center_of_mass.append(center_of_mass(terrain, state.h))
 
@@ -120,15 +133,16 @@ def warm_up(solver: Solver, state: State, max_steps: int, **stop) -> float:
     return _time.perf_counter() - started
 
 
-def prepare(scenario, max_memory=None):
+def prepare(scenario, max_memory=None, *, streamed: bool = False):
     """Terrain, initial thickness and solver of a validated scenario (no time stepping).
 
     First the cells and snapshots are counted against the memory limit
     (:func:`~avflow.simulation.resources.check_resources`; ``max_memory`` bytes or "8G",
-    None: ``AVFLOW_MAX_MEMORY`` or half the machine's memory), before anything is allocated.
+    None: ``AVFLOW_MAX_MEMORY`` or half the machine's memory), before anything is allocated;
+    ``streamed``: the snapshots go to a file as they are taken (one in memory at a time).
     """
     try:
-        check_resources(scenario, max_memory)
+        check_resources(scenario, max_memory, streamed=streamed)
         terrain = build_terrain(scenario)
     except RasterError as err:
         raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
@@ -207,14 +221,19 @@ def _failure(scenario, t: float, reason: str) -> str:
 
 
 def simulate(scenario, progress: Callable[[float, float], None] | None = None, *,
-             max_memory=None) -> RunResult:
+             max_memory=None, snapshots: Snapshots | None = None) -> RunResult:
     """Run a validated scenario to its end time or until the mass stops.
 
     ``progress(t, t_end)`` is called after every output time. A non-finite state (h, hu,
     hv, checked at every output time, or the mass balance) or a step that cannot keep
     h >= 0 raises :class:`~avflow.errors.RunFailed`: a blow-up is never a result.
+    ``snapshots`` records the output times (default: a new :class:`Snapshots`, every field
+    in memory; :class:`avflow.output.stream.SnapshotStream` appends them to a file instead);
+    it becomes ``result.snapshots``.
     """
-    terrain, h0, solver, thresholds = prepare(scenario, max_memory)
+    snaps = Snapshots() if snapshots is None else snapshots
+    terrain, h0, solver, thresholds = prepare(scenario, max_memory,
+                                              streamed=not snaps.in_memory)
     started = _time.perf_counter()
     state = solver.new_state(h0)  # Numba's first use in a process loads its registries
     first_use = _time.perf_counter() - started
@@ -223,16 +242,18 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
     stop = {"stop_volume": thresholds["stop_fraction"] * v0 if by_volume else -1.0,
             "stop_kinetic": -1.0 if by_volume else thresholds["stop_fraction"]}
     t_end, every = scenario.time.end, scenario.output.every
-    snaps = Snapshots()
     snaps.record(state, 0.0, terrain)
     compile_time = first_use + warm_up(solver, state, scenario.time.max_steps, **stop)
     started = _time.perf_counter()
+    recording = 0.0  # s storing snapshots (copies, or writes to the file): not the loop's
     k = 1
     time_to_stop = np.nan
     while True:
         target = min(k * every, t_end)
         status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
+        before = _time.perf_counter()
         snaps.record(state, float(state.stats[K.ST_MOVING]), terrain)
+        recording += _time.perf_counter() - before
         failure = _non_finite(state, terrain)
         if status == "failed" and failure is None:
             failure = (f"no time step kept h >= 0 after {K.MAX_RETRIES} halvings "
@@ -250,7 +271,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             status = "completed" if status == "running" else status
             break
         k += 1
-    wall = _time.perf_counter() - started
+    wall = _time.perf_counter() - started - recording
     result = RunResult(scenario, terrain, solver, state, h0, snaps, status, time_to_stop,
                        wall, thresholds, {}, compile_time)
     if failure is None:
