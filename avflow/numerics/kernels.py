@@ -493,9 +493,11 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             hi, qi1, qi2 = h[i], hu[i], hv[i]
         uni = 0.0
         uti = 0.0
-        if hi > 0.0:
-            uni = (qi1 * ni_x + qi2 * ni_y) / hi
-            uti = (qi1 * ti_x + qi2 * ti_y) / hi
+        if hi > 0.0:  # the cell's velocity, then its face components (as the grid kernel)
+            ui1 = qi1 / hi
+            ui2 = qi2 / hi
+            uni = ui1 * ni_x + ui2 * ni_y
+            uti = ui1 * ti_x + ui2 * ti_y
         ci = sound_speed(hi, g * gamma_z[i])
         fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci, ci * density[i])
         if j >= 0:
@@ -510,8 +512,10 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             unj = 0.0
             utj = 0.0
             if hj > 0.0:
-                unj = (qj1 * nj_x + qj2 * nj_y) / hj
-                utj = (qj1 * tj_x + qj2 * tj_y) / hj
+                uj1 = qj1 / hj
+                uj2 = qj2 / hj
+                unj = uj1 * nj_x + uj2 * nj_y
+                utj = uj1 * tj_x + uj2 * tj_y
             cj = sound_speed(hj, g * gamma_z[j])
             _, _, gm_h, gm_q = half_fluxes(hj, unj, cj, cj * density[j])
         elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure

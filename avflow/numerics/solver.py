@@ -172,6 +172,7 @@ class Solver:
         full = layout.full
         self._g_cells = {
             "cell_area": full(m.cell_area, 1.0),
+            "inv_area": full(1.0 / m.cell_area, 1.0),
             "cfl_factor": full(m.cell_perimeter / (2.0 * m.cell_area)),
             "density": full(density_factor(g * t.gamma_z)),
             "gamma_x": full(t.gamma_x), "gamma_y": full(t.gamma_y), "gamma_z": full(t.gamma_z),
@@ -180,8 +181,6 @@ class Solver:
         n = layout.n_places
         self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
         self._h_work, self._hu_work, self._hv_work = np.zeros(n), np.zeros(n), np.zeros(n)
-        self._x_flux = np.zeros((layout.ny, layout.nx + 1, 5))
-        self._y_flux = np.zeros((layout.ny + 1, layout.nx, 5))
         self._g_flag = np.zeros(n, dtype=np.uint8)
         if not layout.compact:  # state and observers on the full grid, copied in and out
             self._g_state = {name: np.zeros(n) for name in
@@ -209,8 +208,7 @@ class Solver:
 
         layout, c = self._grid, self._g_cells
         threads = self.threads_used()
-        parallel = threads > 1
-        if parallel:
+        if threads > 1:
             numba.set_num_threads(threads)
         names = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
         if layout.compact:
@@ -222,11 +220,11 @@ class Solver:
                 full[layout.place] = getattr(state, name)
         h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays
         status = advance_grid(
-            parallel, layout.nx, layout.ny, layout.valid, layout.face_order, layout.x_code,
+            threads, layout.nx, layout.ny, layout.valid, layout.face_order, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
-            c["cell_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
+            c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
             c["gamma_z"], c["curvature"], h, hu, hv, self._h_work, self._hu_work,
-            self._hv_work, self._x_flux, self._y_flux, self._g_flag, int(self.law),
+            self._hv_work, self._g_flag, int(self.law),
             self.params, float(self.gravity), bool(self.dirac), float(self.h_dry),
             float(self.h_zero), float(self.cfl), float(t_target), int(max_steps),
             float(stop_volume), float(stop_kinetic), peak_h, peak_speed, arrival, last_moved,

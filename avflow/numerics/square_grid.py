@@ -7,26 +7,26 @@ rules, walls, NODATA holes, open sides), on the layout of
 in the grid, with no face lists and no per-face index arrays, and each cell's thickness,
 discharge and sound speed are read once per face sweep of its row.
 
-One step is three parallel passes over the rows of the *swept region* (the rows and columns
-the flow covers, one cell around, see :func:`advance_grid`), each a gather: a face is
-computed by one row and written once; a cell sums its own four faces. No two threads write
-the same place and every sum runs in the same order whatever the number of threads, so the
-answer is bit for bit the same on 1 or N threads. Diagnostics summed over the whole grid
-(moving volume, film, kinetic energy, outflow) are summed per row, then over the rows in
-order: the same for any number of threads, but not in the face kernel's order (which adds
-cell after cell), so those four differ from the face kernel's by round-off. Everything else
-(thickness, discharge, observers, time steps) is the face kernel's, bit for bit: each cell
-adds its faces in the order of their indices in the mesh (``face_order``), as the face
-kernel does.
+One step is a wavefront over the rows of the *swept region* (the rows and columns the flow
+covers, one cell around, see :func:`advance_grid`): at stage k, the faces of row k (its x
+faces and the y faces below it, from what each cell emits, computed once per cell), the
+trial momentum and Coulomb flag of row k - 1 (eqs. 47, 49), the final update of row k - 2
+(Dirac faces, projection of eq. 50, observers). A row's fluxes and flags live in a ring of
+four rows, still in cache when they are used: there is no flux array of the whole grid.
 
-1. faces: the kinetic flux of every x face of a row and every y face below it;
-2. cells: the trial momentum of eq. 47 and the threshold flag of eq. 49;
-3. cells: mass through the faces that are not Dirac, momentum by projection (eq. 50),
-   observers, the row's sums and the extent of the wet cells for the next step.
+The band of rows is cut into blocks, one task each (Numba's threads): a block also computes
+the faces and flags of the row on each side of it, never written out, so it needs nothing
+from its neighbours and no two threads write the same place. Every value is computed with
+the same arithmetic whoever computes it, and the sums over the grid are made per row, then
+over the rows in order: the answer is bit for bit the same on 1 or N threads. Those grid-wide
+diagnostics (moving volume, film, kinetic energy, outflow) differ from the face kernel's
+(which adds cell after cell) by round-off; everything else (thickness, discharge, observers,
+time steps) is the face kernel's, bit for bit: each cell adds its faces in the order of their
+indices in the mesh (``face_order``), as the face kernel does.
 
-``prange`` runs serially when the functions are compiled without ``parallel``: the module
-compiles each pass twice (``*_serial`` and ``*_parallel``), and one thread takes the serial
-one, which never touches Numba's thread pool (safe inside dask workers and any thread).
+``prange`` runs serially when a function is compiled without ``parallel``: the sweep is
+compiled twice (``sweep_serial``, ``sweep_parallel``), and one thread takes the serial one,
+which never touches Numba's thread pool (safe inside dask workers and any thread).
 """
 
 from __future__ import annotations
@@ -37,16 +37,16 @@ import types
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, MAX_STEPS,
+from avflow.numerics.kernels import (DRY, FAILED, MAX_RETRIES, MAX_STEPS,
                                      REACHED_TARGET, STOPPED, ST_CLAMPED, ST_DT_LIMIT,
                                      ST_DT_MAX, ST_DT_MIN, ST_FILM, ST_KINETIC, ST_KINETIC_PEAK,
-                                     ST_MOVING, ST_OUTFLOW, ST_RETRIES, ST_STEPS, ST_TIME,
-                                     UNDER_THRESHOLD, _centripetal, _dirac_face, _final_momentum,
-                                     _limit, _moves, _observe, _open_mass, _speed,
+                                     ST_MOVING, ST_OUTFLOW, ST_RETRIES, ST_STEPS, ST_TIME, TRANSPORT_EPS,
+                                     _dirac_face, _final_momentum,
+                                     _limit, _observe, _open_mass, _speed,
                                      _trial_momentum)
-from avflow.numerics.kinetic import half_fluxes, sound_speed
-from avflow.terrain.squaregrid import (CANONICAL_ORDER, HIGH_OPEN, HIGH_WALL, INNER, LOW_OPEN,
-                                       LOW_WALL, NO_FACE)
+from avflow.numerics.kinetic import SQRT3, sound_speed
+from avflow.terrain.squaregrid import (CANONICAL_ORDER, HIGH_OPEN, HIGH_WALL, INNER, KIND,
+                                       LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
 # Columns of the per-row results of pass 3
 R_OK = 0  #: 1 when every cell of the row kept h >= 0
@@ -59,40 +59,102 @@ R_CLAMPED = 6
 N_ROW = 7
 
 
-@njit(error_model="numpy", cache=True, inline="always")
-def _emitting_state(h, hu, hv, h_zero, g_normal, dens):
-    """What a cell emits through its faces: ``(h, q1, q2, c, k)``, zero at or below h_zero."""
-    if h <= h_zero:
-        return 0.0, 0.0, 0.0, 0.0, 0.0
-    c = sound_speed(h, g_normal)
-    return h, hu, hv, c, c * dens
+#: Per-cell values of an emitted row (:func:`_emit_row`)
+E_H, E_U1, E_U2, E_C, E_S, E_KH, E_K3, E_SPEED = range(8)
+N_EMIT = 8
+
+
+@njit(error_model="numpy", cache=True)
+def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
+    """Per cell ``c0..c1`` of a row, once per step, what its faces and its own update read:
+    thickness and velocity it emits (zero at or below h_zero), sound speed c, ``sqrt(3) c``,
+    ``k / 2`` and ``k / 3`` with ``k = c / (sqrt(3) g cos)`` (the factors of the half fluxes,
+    :func:`avflow.numerics.kinetic.half_fluxes`, computed there per face side), and the speed
+    ``|q| / h`` at time n. The same operations as the face kernel's, so the same bits."""
+    for c in range(c0, c1 + 1):
+        i = base + c
+        hc = h[i]
+        out[c, E_SPEED] = _speed(hc, hu[i], hv[i])
+        if hc <= h_zero:
+            out[c, E_H] = 0.0
+            out[c, E_U1] = 0.0
+            out[c, E_U2] = 0.0
+            out[c, E_C] = 0.0
+            out[c, E_S] = 0.0
+            out[c, E_KH] = 0.0
+            out[c, E_K3] = 0.0
+        else:
+            sc = sound_speed(hc, g * gamma_z[i])
+            k = sc * density[i]
+            out[c, E_H] = hc
+            out[c, E_U1] = hu[i] / hc
+            out[c, E_U2] = hv[i] / hc
+            out[c, E_C] = sc
+            out[c, E_S] = SQRT3 * sc
+            out[c, E_KH] = 0.5 * k
+            out[c, E_K3] = k / 3.0
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _face_flux(code, hi, qi1, qi2, ci, ki, hj, qj1, qj2, cj, kj, n0x, n0y, t0x, t0y, n1x, n1y,
-               t1x, t1y, length):
+def _half_out(h, un, c, s, kh, k3):
+    """``(fp_h, fp_q)`` of :func:`avflow.numerics.kinetic.half_fluxes` from a cell's
+    precomputed factors (``s = sqrt(3) c``, ``kh = k / 2``, ``k3 = k / 3``): the same bits."""
+    if h <= 0.0:
+        return 0.0, 0.0
+    if c <= 0.0:
+        if un > 0.0:
+            return h * un, h * un * un
+        return 0.0, 0.0
+    a = un - s
+    b = un + s
+    ap = a if a > 0.0 else 0.0
+    bp = b if b > 0.0 else 0.0
+    return kh * (bp * bp - ap * ap), k3 * (bp * bp * bp - ap * ap * ap)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _half_in(h, un, c, s, kh, k3):
+    """``(fm_h, fm_q)`` of :func:`avflow.numerics.kinetic.half_fluxes`, as :func:`_half_out`."""
+    if h <= 0.0:
+        return 0.0, 0.0
+    if c <= 0.0:
+        if un > 0.0:
+            return 0.0, 0.0
+        return h * un, h * un * un
+    a = un - s
+    b = un + s
+    am = a if a < 0.0 else 0.0
+    bm = b if b < 0.0 else 0.0
+    return kh * (bm * bm - am * am), k3 * (bm * bm * bm - am * am * am)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _face_flux(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, n0x, n0y,
+               n1x, n1y, length):
     """One face, the arithmetic of :func:`~avflow.numerics.kernels.step_faces` sweep 1a:
     ``(fh, qix, qiy, qjx, qjy)`` with i the face's first cell (frame side 0) and j the second
-    (frame side 1) or the wall / open side beyond a boundary face."""
-    uni = 0.0
-    uti = 0.0
-    if hi > 0.0:
-        uni = (qi1 * n0x + qi2 * n0y) / hi
-        uti = (qi1 * t0x + qi2 * t0y) / hi
-    fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci, ki)
-    if code == INNER:
-        unj = 0.0
-        utj = 0.0
-        if hj > 0.0:
-            unj = (qj1 * n1x + qj2 * n1y) / hj
-            utj = (qj1 * t1x + qj2 * t1y) / hj
-        _, _, gm_h, gm_q = half_fluxes(hj, unj, cj, kj)
-    elif code == LOW_WALL or code == HIGH_WALL:  # mirror ghost: no mass, twice the pressure
+    (frame side 1) or the wall / open side beyond a boundary face. Each side's frame is a
+    rotation, the tangent ``t = s (-n_y, n_x)`` with its sign s in the code's bits."""
+    s0 = -1.0 if code & SIGN0 else 1.0
+    s1 = -1.0 if code & SIGN1 else 1.0
+    t0x = s0 * -n0y
+    t0y = s0 * n0x
+    t1x = s1 * -n1y
+    t1y = s1 * n1x
+    kind = code & KIND
+    uni = ui1 * n0x + ui2 * n0y
+    uti = ui1 * t0x + ui2 * t0y
+    fp_h, fp_q = _half_out(hi, uni, ci, si, khi, k3i)
+    if kind == INNER:
+        unj = uj1 * n1x + uj2 * n1y
+        utj = uj1 * t1x + uj2 * t1y
+        gm_h, gm_q = _half_in(hj, unj, cj, sj, khj, k3j)
+    elif kind == LOW_WALL or kind == HIGH_WALL:  # mirror ghost: no mass, twice the pressure
         gm_h = -fp_h
         gm_q = fp_q
         utj = uti
     else:  # open: transmissive for what leaves, closed to what would enter
-        _, _, gm_h, gm_q = half_fluxes(hi, max(uni, 0.0), ci, ki)
+        gm_h, gm_q = _half_in(hi, max(uni, 0.0), ci, si, khi, k3i)
         gm_h = _open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length
@@ -122,253 +184,342 @@ def _ordered(order, start, a_w, a_e, a_s, a_n):
     return s
 
 
-def _faces(nx, ny, x_code, x_frame, x_length, y_code, y_frame, y_length, density, gamma_z,
-           h, hu, hv, x_flux, y_flux, g, h_zero, r0, r1, lo, hi):
-    """Pass 1: the faces of the swept rows ``r0..r1`` (x faces of row r, y faces below it)."""
-    for r in prange(r0, r1 + 2):
-        if r <= r1 and lo[r] <= hi[r]:  # x faces lo .. hi + 1 of row r
-            base = r * nx
-            p = base + lo[r] - 1
-            if lo[r] > 0:
-                hl, ql1, ql2, cl, kl = _emitting_state(h[p], hu[p], hv[p], h_zero,
-                                                       g * gamma_z[p], density[p])
-            else:
-                hl = ql1 = ql2 = cl = kl = 0.0
-            for k in range(lo[r], hi[r] + 2):
-                p = base + k
-                if k < nx:
-                    hr, qr1, qr2, cr, kr = _emitting_state(h[p], hu[p], hv[p], h_zero,
-                                                           g * gamma_z[p], density[p])
-                else:
-                    hr = qr1 = qr2 = cr = kr = 0.0
-                code = x_code[r, k]
-                if code != NO_FACE:
-                    if code >= HIGH_WALL:  # the east cell owns it: i is the right cell
-                        f0, f1, f2, f3, f4 = _face_flux(
-                            code, hr, qr1, qr2, cr, kr, 0.0, 0.0, 0.0, 0.0, 0.0,
-                            x_frame[r, k, 0], x_frame[r, k, 1], x_frame[r, k, 2],
-                            x_frame[r, k, 3], x_frame[r, k, 4], x_frame[r, k, 5],
-                            x_frame[r, k, 6], x_frame[r, k, 7], x_length[r, k])
-                    else:
-                        f0, f1, f2, f3, f4 = _face_flux(
-                            code, hl, ql1, ql2, cl, kl, hr, qr1, qr2, cr, kr,
-                            x_frame[r, k, 0], x_frame[r, k, 1], x_frame[r, k, 2],
-                            x_frame[r, k, 3], x_frame[r, k, 4], x_frame[r, k, 5],
-                            x_frame[r, k, 6], x_frame[r, k, 7], x_length[r, k])
-                    x_flux[r, k, 0] = f0
-                    x_flux[r, k, 1] = f1
-                    x_flux[r, k, 2] = f2
-                    x_flux[r, k, 3] = f3
-                    x_flux[r, k, 4] = f4
-                hl, ql1, ql2, cl, kl = hr, qr1, qr2, cr, kr
-        # y faces (r, c) between rows r - 1 and r, over both rows' columns
-        c0 = nx
-        c1 = -1
-        if r <= r1 and lo[r] <= hi[r]:
-            c0 = min(c0, lo[r])
-            c1 = max(c1, hi[r])
-        if r - 1 >= r0 and lo[r - 1] <= hi[r - 1]:
-            c0 = min(c0, lo[r - 1])
-            c1 = max(c1, hi[r - 1])
-        for c in range(c0, c1 + 1):
-            code = y_code[r, c]
-            if code == NO_FACE:
-                continue
-            if r > 0:
-                p = (r - 1) * nx + c
-                hl, ql1, ql2, cl, kl = _emitting_state(h[p], hu[p], hv[p], h_zero,
-                                                       g * gamma_z[p], density[p])
-            else:
-                hl = ql1 = ql2 = cl = kl = 0.0
-            if r < ny:
-                p = r * nx + c
-                hr, qr1, qr2, cr, kr = _emitting_state(h[p], hu[p], hv[p], h_zero,
-                                                       g * gamma_z[p], density[p])
-            else:
-                hr = qr1 = qr2 = cr = kr = 0.0
-            if code >= HIGH_WALL:
-                f0, f1, f2, f3, f4 = _face_flux(
-                    code, hr, qr1, qr2, cr, kr, 0.0, 0.0, 0.0, 0.0, 0.0,
-                    y_frame[r, c, 0], y_frame[r, c, 1], y_frame[r, c, 2], y_frame[r, c, 3],
-                    y_frame[r, c, 4], y_frame[r, c, 5], y_frame[r, c, 6], y_frame[r, c, 7],
-                    y_length[r, c])
-            else:
-                f0, f1, f2, f3, f4 = _face_flux(
-                    code, hl, ql1, ql2, cl, kl, hr, qr1, qr2, cr, kr,
-                    y_frame[r, c, 0], y_frame[r, c, 1], y_frame[r, c, 2], y_frame[r, c, 3],
-                    y_frame[r, c, 4], y_frame[r, c, 5], y_frame[r, c, 6], y_frame[r, c, 7],
-                    y_length[r, c])
-            y_flux[r, c, 0] = f0
-            y_flux[r, c, 1] = f1
-            y_flux[r, c, 2] = f2
-            y_flux[r, c, 3] = f3
-            y_flux[r, c, 4] = f4
+@njit(error_model="numpy", cache=True)
+def _x_faces(k0, k1, codes, frames, lengths, emit, out):
+    """x faces ``k0..k1`` of a row (face k between cells k - 1 and k) into ``out[k]``."""
+    nx = emit.shape[0]
+    for k in range(k0, k1 + 1):
+        code = codes[k]
+        kind = code & KIND
+        if kind == NO_FACE:
+            continue
+        if kind >= HIGH_WALL:  # the east cell owns it: i is the right cell
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, emit[k, E_H], emit[k, E_U1], emit[k, E_U2], emit[k, E_C], emit[k, E_S], emit[k, E_KH], emit[k, E_K3],
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                frames[k, 0], frames[k, 1], frames[k, 2], frames[k, 3], lengths[k])
+        elif k < nx:
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, emit[k - 1, E_H], emit[k - 1, E_U1], emit[k - 1, E_U2], emit[k - 1, E_C], emit[k - 1, E_S], emit[k - 1, E_KH], emit[k - 1, E_K3],
+                emit[k, E_H], emit[k, E_U1], emit[k, E_U2], emit[k, E_C], emit[k, E_S], emit[k, E_KH], emit[k, E_K3],
+                frames[k, 0], frames[k, 1], frames[k, 2], frames[k, 3], lengths[k])
+        else:  # the map's east side, owned by the last cell
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, emit[k - 1, E_H], emit[k - 1, E_U1], emit[k - 1, E_U2], emit[k - 1, E_C], emit[k - 1, E_S], emit[k - 1, E_KH], emit[k - 1, E_K3],
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                frames[k, 0], frames[k, 1], frames[k, 2], frames[k, 3], lengths[k])
+        out[k, 0] = f0
+        out[k, 1] = f1
+        out[k, 2] = f2
+        out[k, 3] = f3
+        out[k, 4] = f4
 
 
-def _trial(nx, valid, face_order, x_code, y_code, x_flux, y_flux, cell_area, gamma_x, gamma_y,
-           gamma_z, curvature, h, hu, hv, hu_new, hv_new, flag, law, params, g, h_zero, dt,
-           dt_decide, r0, r1, lo, hi):
-    """Pass 2: per cell, the flux divergence, then the trial momentum and the flag (eq. 49);
-    a dry cell keeps its momentum sum for pass 3 (as the face kernel's sweep 1b)."""
+@njit(error_model="numpy", cache=True)
+def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
+    """y faces ``c0..c1`` between two rows (``below``: the emitted states of the lower row,
+    ``above``: of the upper one) into ``out[c]``."""
+    for c in range(c0, c1 + 1):
+        code = codes[c]
+        kind = code & KIND
+        if kind == NO_FACE:
+            continue
+        if kind >= HIGH_WALL:
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, above[c, E_H], above[c, E_U1], above[c, E_U2], above[c, E_C], above[c, E_S], above[c, E_KH], above[c, E_K3],
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                frames[c, 0], frames[c, 1], frames[c, 2], frames[c, 3], lengths[c])
+        else:
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, below[c, E_H], below[c, E_U1], below[c, E_U2], below[c, E_C], below[c, E_S], below[c, E_KH], below[c, E_K3],
+                above[c, E_H], above[c, E_U1], above[c, E_U2], above[c, E_C], above[c, E_S], above[c, E_KH], above[c, E_K3],
+                frames[c, 0], frames[c, 1], frames[c, 2], frames[c, 3], lengths[c])
+        out[c, 0] = f0
+        out[c, 1] = f1
+        out[c, 2] = f2
+        out[c, 3] = f3
+        out[c, 4] = f4
+
+
+@njit(error_model="numpy", cache=True)
+def _trial_row(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, ys, yn, em,
+               inv_area, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, law, params, g,
+               h_zero, dt, dt_decide, flags, qx_out, qy_out):
+    """Per cell of a row: the flux divergence, the trial momentum of eq. 47 and the flag of
+    eq. 49 (``flags``, ``qx_out``, ``qy_out`` by column); a dry cell keeps its momentum
+    sum for :func:`_final_row` (as the face kernel's sweep 1b)."""
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
-    for r in prange(r0, r1 + 1):
-        for c in range(lo[r], hi[r] + 1):
-            i = r * nx + c
-            if valid[i] == 0:
-                flag[i] = DRY
-                continue
-            cw, ce, cs, cn = x_code[r, c], x_code[r, c + 1], y_code[r, c], y_code[r + 1, c]
-            # each side's terms (mass, x, y): a face brings +F_j to its second cell and
-            # -F_i to its first (scalar loads: views of the flux arrays cost the sweep 2x)
-            if cw == INNER:
-                wm, wx, wy = x_flux[r, c, 0], x_flux[r, c, 3], x_flux[r, c, 4]
-            else:
-                wm, wx, wy = -x_flux[r, c, 0], -x_flux[r, c, 1], -x_flux[r, c, 2]
-            em, ex, ey = -x_flux[r, c + 1, 0], -x_flux[r, c + 1, 1], -x_flux[r, c + 1, 2]
-            if cs == INNER:
-                sm, sx, sy = y_flux[r, c, 0], y_flux[r, c, 3], y_flux[r, c, 4]
-            else:
-                sm, sx, sy = -y_flux[r, c, 0], -y_flux[r, c, 1], -y_flux[r, c, 2]
-            nm, nx_, ny_ = -y_flux[r + 1, c, 0], -y_flux[r + 1, c, 1], -y_flux[r + 1, c, 2]
-            order = face_order[i]
-            mx = _ordered(order, 0.0, wx, ex, sx, nx_)
-            my = _ordered(order, 0.0, wy, ey, sy, ny_)
-            if h[i] <= h_zero:
-                flag[i] = DRY
-                hu_new[i] = mx
-                hv_new[i] = my
-                continue
-            mh = _ordered(order, 0.0, wm, em, sm, nm)
-            inv_area = 1.0 / cell_area[i]
-            qx, qy, fi = _trial_momentum(h[i], h_zero, _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
-                                         mh * inv_area, mx * inv_area, my * inv_area, dt,
-                                         dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
-                                         _centripetal(curvature, i, h[i], hu[i], hv[i]),
-                                         law, p0, p1, p2, p3, p4, p5, p6, p7, g, False)
-            hu_new[i] = qx
-            hv_new[i] = qy
-            flag[i] = fi
+    for c in range(c0, c1 + 1):
+        i = base + c
+        if valid[i] == 0:
+            flags[c] = DRY
+            continue
+        # each side's terms (mass, x, y): a face brings +F_j to its second cell and -F_i to
+        # its first
+        if x_code[c] & KIND == INNER:
+            wm, wx, wy = xf[c, 0], xf[c, 3], xf[c, 4]
+        else:
+            wm, wx, wy = -xf[c, 0], -xf[c, 1], -xf[c, 2]
+        e_m, ex, ey = -xf[c + 1, 0], -xf[c + 1, 1], -xf[c + 1, 2]
+        if y_south[c] & KIND == INNER:
+            sm, sx, sy = ys[c, 0], ys[c, 3], ys[c, 4]
+        else:
+            sm, sx, sy = -ys[c, 0], -ys[c, 1], -ys[c, 2]
+        nm, nx_, ny_ = -yn[c, 0], -yn[c, 1], -yn[c, 2]
+        order = face_order[i]
+        mx = _ordered(order, 0.0, wx, ex, sx, nx_)
+        my = _ordered(order, 0.0, wy, ey, sy, ny_)
+        if h[i] <= h_zero:
+            flags[c] = DRY
+            qx_out[c] = mx
+            qy_out[c] = my
+            continue
+        mh = _ordered(order, 0.0, wm, e_m, sm, nm)
+        ia = inv_area[i]
+        u1 = em[c, E_U1]
+        u2 = em[c, E_U2]
+        centripetal = (curvature[i, 0] * u1 * u1 + 2.0 * curvature[i, 1] * u1 * u2
+                       + curvature[i, 2] * u2 * u2)  # u.K.u, as kernels._centripetal
+        qx, qy, fi = _trial_momentum(h[i], h_zero, em[c, E_SPEED], hu[i], hv[i],
+                                     mh * ia, mx * ia, my * ia, dt,
+                                     dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
+                                     centripetal, law, p0, p1, p2, p3, p4, p5, p6, p7, g, False)
+        qx_out[c] = qx
+        qy_out[c] = qy
+        flags[c] = fi
 
 
-def _final(nx, ny, valid, face_order, x_code, y_code, x_flux, y_flux, x_length, y_length,
-           cell_area, cfl_factor, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new,
-           hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed,
-           arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi):
-    """Pass 3: mass through the faces that keep the rectangular density, the projection,
-    the observers; per row its sums (``rows``) and the columns of its wet cells."""
+@njit(error_model="numpy", cache=True)
+def _final_row(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x_len, ys_len,
+               yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area, cfl_factor,
+               gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag,
+               law, params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
+               last_moved, rows, wet_lo, wet_hi):
+    """Per cell of row r: mass through the faces that keep the rectangular density, the
+    projection, the observers; the row's sums (``rows[r]``) and the columns of its wet
+    cells. ``fl_s, fl, fl_n``: the flags of the rows below, of this one and above."""
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
-    for r in prange(r0, r1 + 1):
-        ok = 1.0
-        outflow = 0.0
-        inv_lim = 0.0
-        moving = 0.0
-        film = 0.0
-        kinetic = 0.0
-        clamped = 0
-        w_lo = nx
-        w_hi = -1
-        for c in range(lo[r], hi[r] + 1):
-            i = r * nx + c
-            if valid[i] == 0:
-                continue
-            fi = flag[i]
-            cw, ce, cs, cn = x_code[r, c], x_code[r, c + 1], y_code[r, c], y_code[r + 1, c]
-            # each side's terms (mass, x, y): a face brings +F_j to its second cell and
-            # -F_i to its first (scalar loads: views of the flux arrays cost the sweep 2x)
-            if cw == INNER:
-                wm, wx, wy = x_flux[r, c, 0], x_flux[r, c, 3], x_flux[r, c, 4]
+    ok = 1.0
+    outflow = 0.0
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    clamped = 0
+    w_lo = fl.size
+    w_hi = -1
+    for c in range(c0, c1 + 1):
+        i = base + c
+        if valid[i] == 0:
+            continue
+        fi = fl[c]
+        flag[i] = fi
+        cw, ce = x_code[c] & KIND, x_code[c + 1] & KIND
+        cs, cn = y_south[c] & KIND, y_north[c] & KIND
+        if cw == INNER:
+            wm, wx, wy = xf[c, 0], xf[c, 3], xf[c, 4]
+        else:
+            wm, wx, wy = -xf[c, 0], -xf[c, 1], -xf[c, 2]
+        e_m, ex, ey = -xf[c + 1, 0], -xf[c + 1, 1], -xf[c + 1, 2]
+        if cs == INNER:
+            sm, sx, sy = ys[c, 0], ys[c, 3], ys[c, 4]
+        else:
+            sm, sx, sy = -ys[c, 0], -ys[c, 1], -ys[c, 2]
+        nm, nx_, ny_ = -yn[c, 0], -yn[c, 1], -yn[c, 2]
+        # Dirac faces (eqs. 51-53): both sides at zero temperature; a boundary ghost shares
+        # its cell's flag
+        d_w = _dirac_face(dirac, fi, fl[c - 1] if cw == INNER else fi)
+        d_e = _dirac_face(dirac, fi, fl[c + 1] if ce == INNER else fi)
+        d_s = _dirac_face(dirac, fi, fl_s[c] if cs == INNER else fi)
+        d_n = _dirac_face(dirac, fi, fl_n[c] if cn == INNER else fi)
+        order = face_order[i]
+        acc = _ordered(order, 0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
+                       0.0 if d_s else sm, 0.0 if d_n else nm)
+        area = cell_area[i]
+        hn = h[i] + dt / area * acc
+        if hn < 0.0:
+            ok = 0.0
+            continue
+        # what left through open sides (a face's flux is outward from its owner i: -term
+        # for the cell's own faces)
+        if cw == HIGH_OPEN and not d_w:
+            outflow += max(-wm, 0.0) * dt
+        if ce == LOW_OPEN and not d_e:
+            outflow += max(-e_m, 0.0) * dt
+        if cs == HIGH_OPEN and not d_s:
+            outflow += max(-sm, 0.0) * dt
+        if cn == LOW_OPEN and not d_n:
+            outflow += max(-nm, 0.0) * dt
+        qx = qx_in[c]
+        qy = qy_in[c]
+        if fi == DRY:
+            # a dry side takes no momentum through a Dirac face: the face kernel takes back,
+            # in face order, what those faces brought to the sum of the trial
+            if d_w or d_e or d_s or d_n:
+                qx = _ordered(order, qx, -wx if d_w else 0.0, -ex if d_e else 0.0,
+                              -sx if d_s else 0.0, -nx_ if d_n else 0.0)
+                qy = _ordered(order, qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
+                              -sy if d_s else 0.0, -ny_ if d_n else 0.0)
+            qx = dt * (qx / area + g * hn * gamma_x[i])
+            qy = dt * (qy / area + g * hn * gamma_y[i])
+        speed_n = em[c, E_SPEED]
+        u1 = em[c, E_U1]
+        u2 = em[c, E_U2]
+        centripetal = (curvature[i, 0] * u1 * u1 + 2.0 * curvature[i, 1] * u1 * u2
+                       + curvature[i, 2] * u2 * u2)
+        qx, qy, cl = _final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
+                                     centripetal, law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[i],
+                                     False)
+        h_new[i] = hn
+        hu_new[i] = qx
+        hv_new[i] = qy
+        clamped += cl
+        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        inv_lim = max(inv_lim, inv_i)
+        if hn > peak_h[i]:
+            peak_h[i] = hn
+        if speed > peak_speed[i]:
+            peak_speed[i] = speed
+        if hn > h_dry and math.isnan(arrival[i]):
+            arrival[i] = t_new
+        if speed > 0.0:
+            last_moved[i] = t_new
+        kinetic += hn * area * speed * speed
+        # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
+        # per metre (kernels._moves; compared as |fh| > eps h |u^n| L: no division)
+        moves = speed > 0.0 and speed_n == 0.0
+        if speed > 0.0 and not moves:
+            limit = TRANSPORT_EPS * hn * speed_n
+            moves = ((not d_w and abs(wm) > limit * x_len[c])
+                     or (not d_e and abs(e_m) > limit * x_len[c + 1])
+                     or (not d_s and abs(sm) > limit * ys_len[c])
+                     or (not d_n and abs(nm) > limit * yn_len[c]))
+        if moves:
+            if hn > h_dry:
+                moving += hn * area
             else:
-                wm, wx, wy = -x_flux[r, c, 0], -x_flux[r, c, 1], -x_flux[r, c, 2]
-            em, ex, ey = -x_flux[r, c + 1, 0], -x_flux[r, c + 1, 1], -x_flux[r, c + 1, 2]
-            if cs == INNER:
-                sm, sx, sy = y_flux[r, c, 0], y_flux[r, c, 3], y_flux[r, c, 4]
+                film += hn * area
+        if hn > h_zero:
+            w_lo = min(w_lo, c)
+            w_hi = max(w_hi, c)
+    rows[r, R_OK] = ok
+    rows[r, R_OUT] = outflow
+    rows[r, R_INV] = inv_lim
+    rows[r, R_MOVING] = moving
+    rows[r, R_FILM] = film
+    rows[r, R_KINETIC] = kinetic
+    rows[r, R_CLAMPED] = clamped
+    wet_lo[r] = w_lo
+    wet_hi[r] = w_hi
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _span(r, r0, r1, lo, hi, nx):
+    """Columns swept in row r; empty, as ``(nx, -1)``, outside the band of rows r0..r1 (so
+    that min / max of spans ignore it)."""
+    if r < r0 or r > r1:
+        return nx, -1
+    return lo[r], hi[r]
+
+
+@njit(error_model="numpy", cache=True)
+def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+                 y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y,
+                 gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac,
+                 h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
+                 r0, r1, lo, hi, rows, wet_lo, wet_hi):
+    """One step on the rows ``a..b`` of the swept band ``r0..r1``, as a wavefront: at stage
+    k the faces of row k (its x faces, the y faces below it), the trial of row k - 1, the
+    final update of row k - 2, so that a row's fluxes and flags are still in cache when they
+    are used, and no face or flag array of the whole grid is needed. The rows a - 1 and
+    b + 1 are computed here too (their faces and flags, never written out): the block needs
+    nothing from its neighbours, and what it writes (rows a..b) no other block writes."""
+    ring = 4
+    emit = np.zeros((ring, nx, N_EMIT))
+    xf = np.zeros((ring, nx + 1, 5))
+    yf = np.zeros((ring, nx, 5))  # yf[k % ring]: the y faces below row k
+    fl = np.full((ring, nx), DRY, dtype=np.uint8)
+    qx = np.zeros((ring, nx))
+    qy = np.zeros((ring, nx))
+    for k in range(a - 1, b + 3):
+        # --- faces of row k: what rows k - 1 and k emit, computed once per cell
+        s0, s1 = _span(k, r0, r1, lo, hi, nx)
+        p0_, p1_ = _span(k - 1, r0, r1, lo, hi, nx)
+        if k - 1 >= 0 and k - 1 < ny and k == a - 1:  # the block's first row below
+            q0, q1 = _span(k - 2, r0, r1, lo, hi, nx)
+            n0 = min(min(p0_, s0), q0) - 1
+            n1 = max(max(p1_, s1), q1) + 1
+            _emit_row((k - 1) * nx, max(n0, 0), min(n1, nx - 1), h, hu, hv, gamma_z,
+                      density, h_zero, g, emit[(k - 1) % ring])
+        if 0 <= k < ny:
+            n_0, n_1 = _span(k + 1, r0, r1, lo, hi, nx)
+            e0 = min(min(p0_, s0), n_0) - 1
+            e1 = max(max(p1_, s1), n_1) + 1
+            _emit_row(k * nx, max(e0, 0), min(e1, nx - 1), h, hu, hv, gamma_z, density,
+                      h_zero, g, emit[k % ring])
+            if s0 <= s1 and k <= b + 1:
+                _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k], emit[k % ring],
+                         xf[k % ring])
+        if 0 <= k <= ny:
+            c0 = min(s0, p0_)
+            c1 = max(s1, p1_)
+            if c0 <= c1:
+                _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k], emit[(k - 1) % ring],
+                         emit[k % ring], yf[k % ring])
+        # --- trial of row k - 1
+        t = k - 1
+        if a - 1 <= t <= b + 1 and 0 <= t < ny:
+            t0, t1 = _span(t, r0, r1, lo, hi, nx)
+            if t0 <= t1:
+                _trial_row(t * nx, t0, t1, valid, face_order, x_code[t], y_code[t],
+                           y_code[t + 1], xf[t % ring], yf[t % ring], yf[(t + 1) % ring],
+                           emit[t % ring], inv_area, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, law,
+                           params, g, h_zero, dt, dt_decide, fl[t % ring], qx[t % ring],
+                           qy[t % ring])
+        # --- final update of row k - 2
+        f = k - 2
+        if a <= f <= b:
+            f0, f1 = _span(f, r0, r1, lo, hi, nx)
+            if f0 <= f1:
+                _final_row(f, f * nx, f0, f1, valid, face_order, x_code[f], y_code[f],
+                           y_code[f + 1], x_length[f], y_length[f], y_length[f + 1],
+                           xf[f % ring], yf[f % ring], yf[(f + 1) % ring], emit[f % ring],
+                           fl[(f - 1) % ring],
+                           fl[f % ring], fl[(f + 1) % ring], qx[f % ring], qy[f % ring],
+                           cell_area, cfl_factor, gamma_x, gamma_y, gamma_z, curvature, h, hu,
+                           hv, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_dry,
+                           h_zero, dt, t_new, peak_h, peak_speed, arrival, last_moved, rows,
+                           wet_lo, wet_hi)
             else:
-                sm, sx, sy = -y_flux[r, c, 0], -y_flux[r, c, 1], -y_flux[r, c, 2]
-            nm, nx_, ny_ = -y_flux[r + 1, c, 0], -y_flux[r + 1, c, 1], -y_flux[r + 1, c, 2]
-            # Dirac faces (eqs. 51-53): both sides at zero temperature; a boundary ghost
-            # shares its cell's flag
-            d_w = _dirac_face(dirac, fi, flag[i - 1] if cw == INNER else fi)
-            d_e = _dirac_face(dirac, fi, flag[i + 1] if ce == INNER else fi)
-            d_s = _dirac_face(dirac, fi, flag[i - nx] if cs == INNER else fi)
-            d_n = _dirac_face(dirac, fi, flag[i + nx] if cn == INNER else fi)
-            order = face_order[i]
-            acc = _ordered(order, 0.0, 0.0 if d_w else wm, 0.0 if d_e else em,
-                           0.0 if d_s else sm, 0.0 if d_n else nm)
-            area = cell_area[i]
-            hn = h[i] + dt / area * acc
-            if hn < 0.0:
-                ok = 0.0
-                continue
-            transport = 0.0
-            # |fh| / L of the faces that carried mass; what left through open sides (a
-            # face's flux is outward from its owner i: -term for the cell's own faces)
-            if not d_w:
-                transport = max(transport, abs(wm) / x_length[r, c])
-                if cw == HIGH_OPEN:
-                    outflow += max(-wm, 0.0) * dt
-            if not d_e:
-                transport = max(transport, abs(em) / x_length[r, c + 1])
-                if ce == LOW_OPEN:
-                    outflow += max(-em, 0.0) * dt
-            if not d_s:
-                transport = max(transport, abs(sm) / y_length[r, c])
-                if cs == HIGH_OPEN:
-                    outflow += max(-sm, 0.0) * dt
-            if not d_n:
-                transport = max(transport, abs(nm) / y_length[r + 1, c])
-                if cn == LOW_OPEN:
-                    outflow += max(-nm, 0.0) * dt
-            qx = hu_new[i]
-            qy = hv_new[i]
-            if fi == DRY:
-                # a dry side takes no momentum through a Dirac face: the face kernel takes
-                # back, in face order, what those faces brought to the sum of pass 2
-                if d_w or d_e or d_s or d_n:
-                    qx = _ordered(order, qx, -wx if d_w else 0.0, -ex if d_e else 0.0,
-                                  -sx if d_s else 0.0, -nx_ if d_n else 0.0)
-                    qy = _ordered(order, qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
-                                  -sy if d_s else 0.0, -ny_ if d_n else 0.0)
-                qx = dt * (qx / area + g * hn * gamma_x[i])
-                qy = dt * (qy / area + g * hn * gamma_y[i])
-            speed_n = _speed(h[i], hu[i], hv[i])
-            qx, qy, cl = _final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
-                                         _centripetal(curvature, i, h[i], hu[i], hv[i]),
-                                         law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[i], False)
-            h_new[i] = hn
-            hu_new[i] = qx
-            hv_new[i] = qy
-            clamped += cl
-            speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
-                                    g)
-            inv_lim = max(inv_lim, inv_i)
-            if hn > peak_h[i]:
-                peak_h[i] = hn
-            if speed > peak_speed[i]:
-                peak_speed[i] = speed
-            if hn > h_dry and math.isnan(arrival[i]):
-                arrival[i] = t_new
-            if speed > 0.0:
-                last_moved[i] = t_new
-            kinetic += hn * area * speed * speed
-            if _moves(speed, speed_n, transport, hn):
-                if hn > h_dry:
-                    moving += hn * area
-                else:
-                    film += hn * area
-            if hn > h_zero:
-                w_lo = min(w_lo, c)
-                w_hi = max(w_hi, c)
-        rows[r, R_OK] = ok
-        rows[r, R_OUT] = outflow
-        rows[r, R_INV] = inv_lim
-        rows[r, R_MOVING] = moving
-        rows[r, R_FILM] = film
-        rows[r, R_KINETIC] = kinetic
-        rows[r, R_CLAMPED] = clamped
-        wet_lo[r] = w_lo
-        wet_hi[r] = w_hi
+                rows[f, R_OK] = 1.0
+                rows[f, R_OUT] = 0.0
+                rows[f, R_INV] = 0.0
+                rows[f, R_MOVING] = 0.0
+                rows[f, R_FILM] = 0.0
+                rows[f, R_KINETIC] = 0.0
+                rows[f, R_CLAMPED] = 0.0
+                wet_lo[f] = nx
+                wet_hi[f] = -1
+
+
+def _sweep(n_blocks, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+           y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
+           curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt,
+           dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, r0, r1, lo, hi, rows,
+           wet_lo, wet_hi):
+    """One step on the band ``r0..r1``, cut in ``n_blocks`` blocks of rows, one per task."""
+    n_rows = r1 - r0 + 1
+    for blk in prange(n_blocks):
+        a = r0 + (n_rows * blk) // n_blocks
+        b = r0 + (n_rows * (blk + 1)) // n_blocks - 1
+        if a <= b:
+            _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code,
+                         y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
+                         gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
+                         params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+                         peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
 
 
 def _compiled(fn, parallel: bool):
@@ -385,9 +536,7 @@ def _compiled(fn, parallel: bool):
     return njit(error_model="numpy", cache=True, parallel=parallel)(copy)
 
 
-faces_serial, faces_parallel = _compiled(_faces, False), _compiled(_faces, True)
-trial_serial, trial_parallel = _compiled(_trial, False), _compiled(_trial, True)
-final_serial, final_parallel = _compiled(_final, False), _compiled(_final, True)
+sweep_serial, sweep_parallel = _compiled(_sweep, False), _compiled(_sweep, True)
 
 
 @njit(error_model="numpy", cache=True)
@@ -419,9 +568,9 @@ def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, l
 
 
 @njit(error_model="numpy", cache=True)
-def advance_grid(parallel, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
-                 y_length, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
-                 h, hu, hv, h_work, hu_work, hv_work, x_flux, y_flux, flag,
+def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+                 y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
+                 curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
                  stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats):
     """:func:`avflow.numerics.kernels.advance` for a square grid at order 1 (same arguments
@@ -433,6 +582,7 @@ def advance_grid(parallel, nx, ny, valid, face_order, x_code, x_frame, x_length,
     the flow covers; its rows are found from the extents of the wet cells kept per row.
     """
     t = stats[ST_TIME]
+    parallel = threads > 1
     status = REACHED_TARGET
     steps = 0
     h_work[:] = h
@@ -474,34 +624,23 @@ def advance_grid(parallel, nx, ny, valid, face_order, x_code, x_frame, x_length,
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             if r1 >= r0:
-                if parallel:
-                    faces_parallel(nx, ny, x_code, x_frame, x_length, y_code, y_frame, y_length,
-                                   density, gamma_z, cur_h, cur_hu, cur_hv, x_flux, y_flux, g,
-                                   h_zero, r0, r1, lo, hi)
-                    trial_parallel(nx, valid, face_order, x_code, y_code, x_flux, y_flux,
-                                   cell_area, gamma_x, gamma_y, gamma_z, curvature, cur_h,
-                                   cur_hu, cur_hv, nxt_hu, nxt_hv, flag, law, params, g, h_zero,
-                                   dt, dt_decide, r0, r1, lo, hi)
-                    final_parallel(nx, ny, valid, face_order, x_code, y_code, x_flux, y_flux,
-                                   x_length, y_length, cell_area, cfl_factor, gamma_x, gamma_y,
-                                   gamma_z, curvature, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu,
-                                   nxt_hv, flag, law, params, g, dirac, h_dry, h_zero, dt, t_new,
-                                   peak_h, peak_speed, arrival, last_moved, r0, r1, lo, hi, rows,
-                                   wet_lo, wet_hi)
+                n_rows = r1 - r0 + 1
+                if parallel:  # blocks of at least 16 rows, a few per thread
+                    n_blocks = max(1, min(4 * threads, n_rows // 16))
+                    sweep_parallel(n_blocks, nx, ny, valid, face_order, x_code, x_frame,
+                                   x_length, y_code, y_frame, y_length, cell_area, inv_area,
+                                   cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu,
+                                   cur_hv, nxt_h, nxt_hu, nxt_hv, flag, law, params, g, dirac,
+                                   h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
+                                   arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
                 else:
-                    faces_serial(nx, ny, x_code, x_frame, x_length, y_code, y_frame, y_length,
-                                 density, gamma_z, cur_h, cur_hu, cur_hv, x_flux, y_flux, g,
-                                 h_zero, r0, r1, lo, hi)
-                    trial_serial(nx, valid, face_order, x_code, y_code, x_flux, y_flux,
-                                 cell_area, gamma_x, gamma_y, gamma_z, curvature, cur_h,
-                                 cur_hu, cur_hv, nxt_hu, nxt_hv, flag, law, params, g, h_zero,
-                                 dt, dt_decide, r0, r1, lo, hi)
-                    final_serial(nx, ny, valid, face_order, x_code, y_code, x_flux, y_flux,
-                                 x_length, y_length, cell_area, cfl_factor, gamma_x, gamma_y,
-                                 gamma_z, curvature, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu,
-                                 nxt_hv, flag, law, params, g, dirac, h_dry, h_zero, dt, t_new,
-                                 peak_h, peak_speed, arrival, last_moved, r0, r1, lo, hi, rows,
-                                 wet_lo, wet_hi)
+                    sweep_serial(1, nx, ny, valid, face_order, x_code, x_frame, x_length,
+                                 y_code, y_frame, y_length, cell_area, inv_area, cfl_factor,
+                                 density,
+                                 gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv,
+                                 nxt_h, nxt_hu, nxt_hv, flag, law, params, g, dirac, h_dry,
+                                 h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival,
+                                 last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
             ok = True
             outflow = 0.0
             inv_lim = 0.0

@@ -32,6 +32,11 @@ LOW_WALL = 2  #: i is the west (south) cell; beyond it a wall
 LOW_OPEN = 3  #: i is the west (south) cell; beyond it an open side
 HIGH_WALL = 4  #: i is the east (north) cell, the face its west (south) side; a wall
 HIGH_OPEN = 5  #: as HIGH_WALL, open
+KIND = 7  #: the bits of a face code that hold the kinds above
+#: A face code's sign bits: each side's frame is a rotation, rows ``n`` and ``t = s (-n_y,
+#: n_x)``; the bit is set where s = -1 (side 0: the face's first cell, side 1: the second)
+SIGN0 = 8
+SIGN1 = 16
 
 #: Per-cell order code of the four faces when they come West, East, South, North: two bits
 #: per term, first term in the lowest bits (see :func:`order_code`).
@@ -56,10 +61,12 @@ class SquareGrid:
     #: (ny * nx,) uint8: the order code of each cell's faces (:data:`CANONICAL_ORDER` mostly)
     face_order: np.ndarray
     x_code: np.ndarray  #: (ny, nx + 1) int8 face codes
-    x_frame: np.ndarray  #: (ny, nx + 1, 8) the face kernel's frame (side, row, component)
+    #: (ny, nx + 1, 4): the face normal seen from each side ``(n0x, n0y, n1x, n1y)`` (the
+    #: face kernel's frame rows 0; rows 1, the tangents, follow from n and the sign bits)
+    x_frame: np.ndarray
     x_length: np.ndarray  #: (ny, nx + 1) m
     y_code: np.ndarray  #: (ny + 1, nx) int8
-    y_frame: np.ndarray  #: (ny + 1, nx, 8)
+    y_frame: np.ndarray  #: (ny + 1, nx, 4)
     y_length: np.ndarray  #: (ny + 1, nx) m
 
     @property
@@ -97,13 +104,21 @@ def square_grid(terrain) -> SquareGrid | None:
     ri, ci = row[i], col[i]
     x_code = np.zeros((ny, nx + 1), dtype=np.int8)
     y_code = np.zeros((ny + 1, nx), dtype=np.int8)
-    x_frame = np.zeros((ny, nx + 1, 8))
-    y_frame = np.zeros((ny + 1, nx, 8))
+    x_frame = np.zeros((ny, nx + 1, 4))
+    y_frame = np.zeros((ny + 1, nx, 4))
     x_length = np.zeros((ny, nx + 1))
     y_length = np.zeros((ny + 1, nx))
     # face index of each cell's W, E, S, N side (every cell has four faces)
     sides = np.full((n, 4), -1, dtype=np.int64)
-    frame8 = mesh.face_frame.reshape(-1, 8)
+    # each side's frame as its normal and the sign of its tangent, t = s (-n_y, n_x), exactly
+    frame = mesh.face_frame
+    normals = np.ascontiguousarray(frame[:, :, 0, :].reshape(-1, 4))
+    sign = np.where(frame[:, :, 1, 1] * frame[:, :, 0, 0] - frame[:, :, 1, 0] * frame[:, :, 0, 1]
+                    >= 0.0, 1.0, -1.0)  # (n_faces, 2)
+    rebuilt = sign[:, :, None] * np.stack([-frame[:, :, 0, 1], frame[:, :, 0, 0]], axis=-1)
+    if not np.array_equal(rebuilt, frame[:, :, 1, :]):
+        return None  # frames that are not rotations: the face kernel runs this mesh
+    sign_bits = (np.where(sign[:, 0] < 0, SIGN0, 0) | np.where(sign[:, 1] < 0, SIGN1, 0))
     inner = j >= 0
     open_side = j == OUTFLOW
     if np.any(inner & ((step == WEST) | (step == SOUTH))):
@@ -121,8 +136,8 @@ def square_grid(terrain) -> SquareGrid | None:
                                  LOW_WALL if low else HIGH_WALL))
         if np.any(codes[r, c] != NO_FACE):
             raise ValueError("two faces share one place of the grid")
-        codes[r, c] = code
-        frames[r, c] = frame8[f]
+        codes[r, c] = code | sign_bits[f]
+        frames[r, c] = normals[f]
         lengths[r, c] = mesh.face_length[f]
         sides[i[f], own] = f
         if other is not None:
