@@ -1,19 +1,24 @@
-"""Cost follows the area the flow covers, not the map (issue 4 item 7).
+"""Cost follows the area the flow covers, not the map (issue 4 item 7, issue 11 item 4).
 
     python workflows/benchmark_area.py
 
 The same cylinder release (r = 60 m, 8 m, Coulomb 24 degrees on a 28 degree plane, 40 s)
 on a map just large enough for the flow and on one four times larger (twice the size in
-x and in y, the release at the same place relative to the upslope corner). The face kernel
-sweeps only wet cells and their neighbours, so the time loop should cost about the same.
-Prints both wall times, their ratio (target < 1.3), and the largest difference of the final
+x and in y, the release at the same place relative to the upslope corner). Both kernels
+sweep only where the flow is (the face kernel wet cells and their neighbours, the
+square-grid kernel the rows and columns they span), so the time loop should cost about the
+same. Then the whole run as ``avflow run`` does it, with 41 snapshots streamed to a NetCDF
+file: what a snapshot costs (recording, compressing, writing) grows with the map.
+Prints the wall times, their ratios (target < 1.3), and the largest difference of the final
 thickness on the common part (the flow never reaches the small map's walls: checked).
 """
 
 from __future__ import annotations
 
 import math
+import tempfile
 import time
+from pathlib import Path
 from types import SimpleNamespace as NS
 
 import numpy as np
@@ -25,14 +30,14 @@ from avflow.terrain.bed import plane_terrain
 WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 
 
-def run(size_x, size_y, dx=5.0, t_end=40.0):
+def run(size_x, size_y, dx=5.0, t_end=40.0, kernel="auto"):
     plane = NS(slope_deg=28.0, azimuth_deg=90.0, extent=NS(x=[0.0, size_x], y=[0.0, size_y]),
                elevation_at_center=0.0)
     ter = plane_terrain(plane, dx, None, WALLS)
     xx, yy = ter.cell_xy()
     h0 = np.where((xx - 150.0) ** 2 + (yy - 300.0) ** 2 <= 60.0**2, 8.0, 0.0)
     solver = Solver(ter, Law.COULOMB, np.array([math.tan(math.radians(24.0)), 0, 0, 0]),
-                    h_zero=1e-12 * 8.0)
+                    h_zero=1e-12 * 8.0, kernel=kernel, threads=1)
     warm = solver.new_state(h0)
     solver.advance(warm, 0.5)  # compile
     state = solver.new_state(h0)
@@ -42,20 +47,70 @@ def run(size_x, size_y, dx=5.0, t_end=40.0):
     return ter, state, wall
 
 
+SCENARIO = """
+name: area-{size_x:.0f}
+terrain: {{kind: plane, slope_deg: 28.0, azimuth_deg: 90.0, elevation_at_center: 0.0,
+          extent: {{x: [0.0, {size_x}], y: [0.0, {size_y}]}}}}
+grid: {{dx: 5.0}}
+release: {{kind: cylinder, center: [150.0, 300.0], radius: 60.0, thickness: 8.0}}
+rheology: {{law: coulomb, delta_deg: 24.0}}
+physics: {{min_flow_thickness: 0.0}}
+numerics: {{kernel: {kernel}, threads: 1}}
+time: {{end: 40.0}}
+output: {{every: 1.0, stop_rule: kinetic_energy, stop_fraction: 0.0}}
+"""
+
+
+def run_written(size_x, size_y, kernel):
+    """The run as `avflow run` makes it: 41 snapshots streamed to a file. Wall seconds from
+    the call to the renamed file (the second of two runs: the first compiles)."""
+    from avflow.output.stream import SnapshotStream
+    from avflow.scenario.schema import parse_scenario
+    from avflow.simulation.runner import simulate
+
+    scenario = parse_scenario(SCENARIO.format(size_x=size_x, size_y=size_y, kernel=kernel))
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(2):
+            out = Path(tmp) / "run.nc"
+            t0 = time.perf_counter()
+            with SnapshotStream(out) as stream:
+                result = simulate(scenario, snapshots=stream)
+                stream.finish(result)
+            wall = time.perf_counter() - t0
+        size = out.stat().st_size
+    return wall, result.summary["wall_time"], len(result.snapshots.time), size
+
+
 def main():
-    small, s_state, s_wall = run(1600.0, 700.0)
-    large, l_state, l_wall = run(3200.0, 1400.0)
-    hs = small.to_grid(s_state.h)
-    hl = large.to_grid(l_state.h)[: hs.shape[0], : hs.shape[1]]
-    edge = max(hs[0].max(), hs[-1].max(), hs[:, 0].max(), hs[:, -1].max())
-    wet = int(np.count_nonzero(s_state.h > 1e-12 * 8.0))
-    print(f"{'map':28s} {'cells':>8s} {'steps':>6s} {'wall (s)':>9s}")
-    print(f"{'flow-sized, 1600 x 700 m':28s} {small.n_cells:8d} {s_state.steps:6d} {s_wall:9.3f}")
-    print(f"{'4x larger, 3200 x 1400 m':28s} {large.n_cells:8d} {l_state.steps:6d} {l_wall:9.3f}")
-    print(f"ratio large / small: {l_wall / s_wall:.2f} (target < 1.3); cells wet at the end: "
-          f"{wet} of {small.n_cells}")
-    print(f"max |h_large - h_small| on the common part: {np.abs(hl - hs).max():.3g} m; "
-          f"thickness on the small map's edge: {edge:.3g} m")
+    print(f"{'kernel':7s} {'map':26s} {'cells':>8s} {'steps':>6s} {'loop (s)':>9s}")
+    for kernel in ("grid", "faces"):
+        small, s_state, s_wall = run(1600.0, 700.0, kernel=kernel)
+        large, l_state, l_wall = run(3200.0, 1400.0, kernel=kernel)
+        hs = small.to_grid(s_state.h)
+        hl = large.to_grid(l_state.h)[: hs.shape[0], : hs.shape[1]]
+        edge = max(hs[0].max(), hs[-1].max(), hs[:, 0].max(), hs[:, -1].max())
+        wet = int(np.count_nonzero(s_state.h > 1e-12 * 8.0))
+        print(f"{kernel:7s} {'flow-sized, 1600 x 700 m':26s} {small.n_cells:8d} "
+              f"{s_state.steps:6d} {s_wall:9.3f}")
+        print(f"{kernel:7s} {'4x larger, 3200 x 1400 m':26s} {large.n_cells:8d} "
+              f"{l_state.steps:6d} {l_wall:9.3f}")
+        print(f"        time loop, ratio large / small: {l_wall / s_wall:.2f} (target < 1.3); "
+              f"cells wet at the end: {wet} of {small.n_cells}; max |h_large - h_small| on "
+              f"the common part: {np.abs(hl - hs).max():.3g} m; thickness on the small map's "
+              f"edge: {edge:.3g} m")
+    print()
+    print(f"{'kernel':7s} {'map':26s} {'snapshots':>9s} {'file (MB)':>9s} {'loop (s)':>9s} "
+          f"{'run (s)':>8s}")
+    for kernel in ("grid", "faces"):
+        walls = []
+        for label, (sx, sy) in (("flow-sized, 1600 x 700 m", (1600.0, 700.0)),
+                                ("4x larger, 3200 x 1400 m", (3200.0, 1400.0))):
+            wall, loop, snaps, size = run_written(sx, sy, kernel)
+            walls.append(wall)
+            print(f"{kernel:7s} {label:26s} {snaps:9d} {size / 1e6:9.1f} {loop:9.3f} "
+                  f"{wall:8.3f}")
+        print(f"        whole run with snapshots, ratio large / small: {walls[1] / walls[0]:.2f} "
+              "(target < 1.3)")
 
 
 if __name__ == "__main__":

@@ -167,6 +167,10 @@ class Solver:
         """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
         by place, work buffers. The face kernel's face buffers are not allocated."""
         self._grid = layout
+        from avflow.numerics.square_grid import MIN_BLOCK_ROWS, MIN_PARALLEL_CELLS
+
+        #: (cells, rows per block) from which a step runs on threads (tests lower them)
+        self._parallel_from = (MIN_PARALLEL_CELLS, MIN_BLOCK_ROWS)
         t, m = self.terrain, self.terrain.mesh
         g = self.gravity
         full = layout.full
@@ -228,7 +232,7 @@ class Solver:
             self.params, float(self.gravity), bool(self.dirac), float(self.h_dry),
             float(self.h_zero), float(self.cfl), float(t_target), int(max_steps),
             float(stop_volume), float(stop_kinetic), peak_h, peak_speed, arrival, last_moved,
-            state.stats)
+            state.stats, *self._parallel_from)
         if not layout.compact:
             for name, full in zip(names, arrays):
                 getattr(state, name)[:] = full[layout.place]

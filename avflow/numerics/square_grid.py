@@ -540,14 +540,18 @@ sweep_serial, sweep_parallel = _compiled(_sweep, False), _compiled(_sweep, True)
 
 
 @njit(error_model="numpy", cache=True)
-def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, lo, hi):
+def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, lo, hi, band0,
+                   band1):
     """Columns to sweep per row: the wet cells of each row and of the rows above and below,
     one column more on each side (every face of a wet cell and the cells beyond), joined with
     what the last step needed (a cell it changed is written once more, so both buffers agree
-    again wherever the sweep no longer goes). Returns the band of rows ``(r0, r1)``."""
+    again wherever the sweep no longer goes). Only the rows ``band0 - 1 .. band1 + 1`` around
+    the last step's band are looked at (no wet cell lies beyond them). Returns the band of
+    rows ``(r0, r1)`` and the number of cells swept."""
     r0 = ny
     r1 = -1
-    for r in range(ny):
+    cells = 0
+    for r in range(max(band0 - 1, 0), min(band1 + 2, ny)):
         a = nx
         b = -1
         for q in range(max(r - 1, 0), min(r + 2, ny)):
@@ -564,7 +568,14 @@ def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, l
         if lo[r] <= hi[r]:
             r0 = min(r0, r)
             r1 = max(r1, r)
-    return r0, r1
+            cells += hi[r] - lo[r] + 1
+    return r0, r1, cells
+
+
+#: Fewer cells than this in a step, or fewer than 2 blocks of MIN_BLOCK_ROWS rows: the step
+#: runs on the serial sweep (waking the thread pool costs more than it saves)
+MIN_PARALLEL_CELLS = 32768
+MIN_BLOCK_ROWS = 16
 
 
 @njit(error_model="numpy", cache=True)
@@ -572,17 +583,18 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                  curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
-                 stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats):
+                 stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats,
+                 min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
     """:func:`avflow.numerics.kernels.advance` for a square grid at order 1 (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
-    (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``parallel`` picks the passes compiled
-    for Numba's threads (their number is set by the caller) or the serial ones.
+    (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
+    least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
+    Numba's thread pool (its size set by the caller), the others on the serial sweep.
 
     Only the swept region is computed (:func:`_swept_columns`), so a step costs the area
     the flow covers; its rows are found from the extents of the wet cells kept per row.
     """
     t = stats[ST_TIME]
-    parallel = threads > 1
     status = REACHED_TARGET
     steps = 0
     h_work[:] = h
@@ -604,6 +616,7 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
                 wet_hi[r] = max(wet_hi[r], c)
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
+    band0, band1 = 0, ny - 1  # the first step looks at every row
     while t < t_target:
         dt_max = stats[ST_DT_LIMIT]
         dt = cfl * dt_max if dt_max < np.inf else t_target - t
@@ -612,8 +625,11 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
         if t + dt >= t_target:
             dt = t_target - t
             last = True
-        r0, r1 = _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi,
-                                lo, hi)
+        r0, r1, n_cells = _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo,
+                                         prev_hi, lo, hi, band0, band1)
+        n_blocks = min(4 * threads, (r1 - r0 + 1) // min_block_rows)
+        if n_cells < min_parallel_cells:
+            n_blocks = 1
         ok = False
         outflow = 0.0
         inv_lim = 0.0
@@ -624,9 +640,7 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             if r1 >= r0:
-                n_rows = r1 - r0 + 1
-                if parallel:  # blocks of at least 16 rows, a few per thread
-                    n_blocks = max(1, min(4 * threads, n_rows // 16))
+                if n_blocks > 1:  # blocks of at least 16 rows, a few per thread
                     sweep_parallel(n_blocks, nx, ny, valid, face_order, x_code, x_frame,
                                    x_length, y_code, y_frame, y_length, cell_area, inv_area,
                                    cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu,
@@ -667,9 +681,10 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
             break
         t = t_target if last else t + dt
         steps += 1
-        for r in range(ny):
+        for r in range(max(band0 - 1, 0), min(band1 + 2, ny)):
             prev_lo[r] = need_lo[r]
             prev_hi[r] = need_hi[r]
+        band0, band1 = r0, r1
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv
