@@ -29,6 +29,7 @@ cells outside a DEM, the same in every snapshot (a non-finite state fails the ru
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -38,6 +39,12 @@ import xarray as xr
 from avflow.output.dataset import TIME_FIELDS, snapshot_fields, to_dataset
 from avflow.output.netcdf import encoding_for, make_temporary, publish, write_error
 from avflow.simulation.runner import RunResult, Snapshots, cell_flags
+
+try:  # the lock xarray takes around netCDF-C calls: HDF5 is not thread-safe, and two
+    # members may run in the threads of one dask worker (xarray's own calls take it too)
+    from xarray.backends.netCDF4_ import NETCDF4_PYTHON_LOCK as _NETCDF_LOCK
+except ImportError:  # pragma: no cover - another xarray layout
+    _NETCDF_LOCK = threading.Lock()
 
 
 class SnapshotStream(Snapshots):
@@ -101,12 +108,13 @@ class SnapshotStream(Snapshots):
             if name in ds:
                 encoding.setdefault(name, {}).setdefault("chunksizes",
                                                          (1, *ds[name].shape[1:]))
-        self._nc = netCDF4.Dataset(self._tmp, "w", format="NETCDF4")
-        for var in ds.variables.values():  # in the order write_netcdf makes them
-            for dim, size in var.sizes.items():
-                if dim not in self._nc.dimensions:
-                    self._nc.createDimension(dim, None if dim == "time" else size)
-        self._store = NetCDF4DataStore(self._nc)
+        with _NETCDF_LOCK:
+            self._nc = netCDF4.Dataset(self._tmp, "w", format="NETCDF4")
+            for var in ds.variables.values():  # in the order write_netcdf makes them
+                for dim, size in var.sizes.items():
+                    if dim not in self._nc.dimensions:
+                        self._nc.createDimension(dim, None if dim == "time" else size)
+        self._store = NetCDF4DataStore(self._nc)  # takes the lock itself
         ds.isel(time=slice(0, 0)).dump_to_store(self._store, encoding=encoding,
                                                 unlimited_dims=["time"])
         self._write({name: ds[name].values[0] for name in TIME_FIELDS if name in ds})
@@ -117,9 +125,11 @@ class SnapshotStream(Snapshots):
     def _write(self, fields: dict) -> None:
         """One record of every field on (time, space)."""
         for name, values in fields.items():
-            var = self._nc.variables[name]
-            var.set_auto_maskandscale(False)  # the values as given, NaN included
-            var[self.records] = np.asarray(values).astype(var.dtype)  # as xarray casts
+            values = np.asarray(values)
+            with _NETCDF_LOCK:
+                var = self._nc.variables[name]
+                var.set_auto_maskandscale(False)  # the values as given, NaN included
+                var[self.records] = values.astype(var.dtype)  # as xarray casts
         self.records += 1
 
     def finish(self, result: RunResult) -> xr.Dataset:
@@ -136,8 +146,9 @@ class SnapshotStream(Snapshots):
                 raise RuntimeError(f"{self.path}: {self.records} snapshots written, "
                                    f"{rest.sizes.get('time')} times")
             rest.dump_to_store(self._store, encoding=encoding_for(rest))
-            self._nc.close()
-            self._nc = None
+            with _NETCDF_LOCK:
+                self._nc.close()
+            self._nc = self._store = None
             publish(self._tmp, self.path)
         except BaseException as err:
             self._fail(err)
@@ -148,7 +159,8 @@ class SnapshotStream(Snapshots):
         """Close and remove the temporary file and the folders made for it (if empty)."""
         if self._nc is not None:
             try:
-                self._nc.close()
+                with _NETCDF_LOCK:
+                    self._nc.close()
             except Exception:  # noqa: BLE001 - removed anyway
                 pass
             self._nc = self._store = None
