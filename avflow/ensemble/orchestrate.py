@@ -31,7 +31,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -224,10 +224,26 @@ class Outcome:
     #: s, from the start to the last result: the clock of the progress line
     elapsed: float = math.nan
     where: str = ""  #: "here" (this process, no dask), "local cluster", "scheduler", "client"
+    #: s, where the time went (:data:`TIMINGS`); a stage that did not happen is absent
+    timings: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         return self.failed == 0
+
+
+#: The stages of :attr:`Outcome.timings` (seconds, wall clock, in this process).
+TIMINGS = {
+    "check": "checking the member files already there (resume)",
+    "probe": "the first member run here to choose where the others run (warming included)",
+    "warm_here": "imports and Numba kernels loaded in this process before a cluster starts",
+    "cluster": "starting the local cluster (or connecting) until its first worker is there",
+    "warm_workers": "every worker warmed (imports, Numba kernels) before the first task",
+    "first_result": "from the first task submitted to the first result back",
+    "runs": "from the first task submitted (or the first member here) to the last result",
+    "tables": "the member table, the path analysis and summary.csv",
+    "ensemble_nc": "reading the member maps, building and writing ensemble.nc",
+}
 
 
 class ProgressLine:
@@ -325,6 +341,8 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     todo: list[Member] = []
     progress = progress or ProgressLine(len(ensemble.members))
     times = _previous_member_times(outdir)
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
     for member in ensemble.members:
         path = member_path(outdir, member)
         row, why = check_member_file(path, member.scenario_hash)
@@ -338,6 +356,7 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
                               "again")
             todo.append(member)
     n_failed = sum(r["status"] not in OK_STATUSES for r in rows.values())
+    timings["check"] = time.perf_counter() - clock
     progress.update(len(rows), n_failed)
 
     def record(member: Member, row: dict) -> None:
@@ -357,23 +376,26 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
         started = time.perf_counter()
         if todo and workers is None and scheduler is None and client is None:
             todo, workers = _choose_where(ensemble, todo, outdir, record, progress)
+            timings["probe"] = time.perf_counter() - started
             where = "here" if workers == 0 else where
         if todo and workers == 0 and scheduler is None and client is None:
+            clock = time.perf_counter()
             for member in todo:
                 record(member, run_member(member.scenario.source_text,
                                           str(member_path(outdir, member))))
+            timings["runs"] = time.perf_counter() - clock
             wall = time.perf_counter() - started
         elif todo:
             t0 = time.perf_counter()
             with _deferred_sigint() as sigint, _client(
                     scheduler, workers, client, tiny_scenario_yaml(ensemble), connect_timeout,
-                    sigint.check) as cl:
+                    sigint.check, timings) as cl:
                 n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
                     cl, "scheduler_info") else 0
                 startup = time.perf_counter() - t0
                 _run_on_dask(cl, todo, outdir,
                              batch or auto_batch(len(todo), max(n_workers, 1)), record,
-                             sigint.check)
+                             sigint.check, timings)
                 wall = time.perf_counter() - started - startup
         else:
             wall = time.perf_counter() - started
@@ -387,10 +409,13 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     progress.close()
     _clean_temporaries(folder)
 
+    clock = time.perf_counter()
     table = member_table(ensemble, rows, outdir)
     path_ds = _path_analysis(ensemble, table, outdir)  # adds the path_* columns
     if write_outputs:
         write_tables(table, outdir)
+        timings["tables"] = time.perf_counter() - clock
+        clock = time.perf_counter()
         from avflow.ensemble.dataset import ensemble_dataset, write_ensemble_netcdf
 
         ds = ensemble_dataset(ensemble, table, outdir)
@@ -398,9 +423,12 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
             ds = ds.merge(path_ds)
             ds.attrs.update(path_ds.attrs)
         write_ensemble_netcdf(ds, outdir / "ensemble.nc")
+        timings["ensemble_nc"] = time.perf_counter() - clock
+    else:
+        timings["tables"] = time.perf_counter() - clock
     ran = sum(not r.get("reused") for r in rows.values())
     return Outcome(table, ran, len(rows) - ran, n_failed, wall, startup, n_workers,
-                   progress.elapsed, where)
+                   progress.elapsed, where, timings)
 
 
 def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
@@ -470,9 +498,10 @@ class _client:
     """Context manager: a Client on the given scheduler, or on a fresh LocalCluster."""
 
     def __init__(self, scheduler, workers, client, tiny, connect_timeout=CONNECT_TIMEOUT,
-                 check: Callable[[], None] = lambda: None):
+                 check: Callable[[], None] = lambda: None, timings: dict | None = None):
         self.scheduler, self.workers, self.given, self.tiny = scheduler, workers, client, tiny
         self.connect_timeout, self.check = connect_timeout, check
+        self.timings = {} if timings is None else timings
         self.cluster = self.client = None
 
     def __enter__(self):
@@ -486,14 +515,21 @@ class _client:
     def _start(self) -> None:
         from distributed import Client, LocalCluster
 
+        clock = time.perf_counter()
         if self.given is not None:
             warm(self.tiny)
+            self.timings["warm_here"] = time.perf_counter() - clock
             self.client = self.given
         elif self.scheduler:
             self.client = _connect(self.scheduler, self.connect_timeout)
+            self.timings["cluster"] = time.perf_counter() - clock
+            clock = time.perf_counter()
             warm(self.tiny)
+            self.timings["warm_here"] = time.perf_counter() - clock
         else:
             warm(self.tiny)  # before any worker starts (see warm)
+            self.timings["warm_here"] = time.perf_counter() - clock
+            clock = time.perf_counter()
             self.check()
             n = self.workers or os.cpu_count() or 1
             # The workers inherit SIGINT ignored: a terminal's Ctrl-C, sent to the whole
@@ -512,7 +548,11 @@ class _client:
             where = f"the scheduler {self.scheduler}" if self.scheduler else "the cluster"
             raise ClusterError(f"no dask worker joined {where} within {WORKER_TIMEOUT:g} s; "
                                "start one with `dask worker ADDRESS`") from None
+        if self.given is None and not self.scheduler:
+            self.timings["cluster"] = time.perf_counter() - clock
+        clock = time.perf_counter()
         self.client.run(warm, self.tiny)
+        self.timings["warm_workers"] = time.perf_counter() - clock
         self.check()
 
     def __exit__(self, *exc):
@@ -602,7 +642,7 @@ class _sigint_ignored:
 
 def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
                  record: Callable[[Member, dict], None],
-                 check: Callable[[], None] = lambda: None) -> None:
+                 check: Callable[[], None] = lambda: None, timings: dict | None = None) -> None:
     """Submit the members in batches; results are recorded as they complete.
 
     A lost worker is the scheduler's business: its tasks are run again elsewhere (the member
@@ -612,6 +652,8 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
     """
     from distributed import as_completed
 
+    timings = {} if timings is None else timings
+    clock = time.perf_counter()
     by_index = {m.index: m for m in todo}
     futures = {}
     for start in range(0, len(todo), batch):
@@ -627,8 +669,11 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
         done = pending.next_batch(block=False)
         if not done:
             time.sleep(0.05)
+        elif "first_result" not in timings:
+            timings["first_result"] = time.perf_counter() - clock
         for future in done:
             _record_task(future, futures.pop(future), by_index, record)
+    timings["runs"] = time.perf_counter() - clock
 
 
 def _record_task(future, chunk: list[Member], by_index: dict, record) -> None:
