@@ -1,96 +1,223 @@
-"""Cell-updates per second of the kernels, single core, and the section 6 wall time.
+"""Cell-updates per second of the kernels, threads, memory bandwidth and peak memory.
 
-    python workflows/benchmark.py
+    python workflows/benchmark.py            # the table (a few minutes)
+    python workflows/benchmark.py --quick    # smaller cases, for a look
+
+Every case runs in a fresh process (its peak resident memory is its own), after a warm-up
+call (compilation excluded), and reports cell-updates per second (cells x steps / time loop):
 
 - 1D: the structured profile sweep and the generic face sweep on the same profile (a
-  frictionless dam break on 200 000 cells, half dry, and the same with every cell wet), so
-  their ratio is measured in one run;
-- 2D: the face sweep on a 400 x 400 grid over a plane (cylinder release, Coulomb), and on
-  the triangle mesh of the same plane (401 x 401 vertices, median dual cells, avflow.terrain.trimesh);
-- the seed's section 6 run (880 cells) from its scenario, wall time of the time loop;
-- order 2 (numerics.order: 2, reconstruction + Heun) on the all-wet 1D, grid and triangle
-  cases, beside order 1 in the same run: what a step of order 2 costs.
-Compilation is excluded (a warm-up call first).
+  frictionless dam break on 200 000 cells, half dry, and the same with every cell wet);
+- square grid, 400 x 400 and 1000 x 1000 cells on a plane (cylinder release on a 1 m layer,
+  every cell wet; Coulomb): the square-grid kernel on 1, 2 and all threads, and the face kernel;
+- triangles: the face kernel on the median dual mesh of the same plane (401 x 401 nodes);
+- order 2 on the all-wet 1D, grid and triangle cases (the face kernel runs order 2 on grids);
+- the cylinder alone (most of the map dry): map cells per second, what the active region buys;
+- the seed's section 6 (880 cells), wall time of its time loop.
+
+The machine's memory bandwidth is measured in the same run (a 512 MB numpy copy, read +
+write), and each kernel's rate is put against it: ``bandwidth / bytes per cell-update`` is
+the rate a kernel would reach if it only moved its arrays. The bytes per cell-update are a
+model, counted from the arrays a step reads and writes per cell (``BYTES_PER_CELL``).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import argparse
+import json
 import math
+import os
+import platform
+import resource
+import subprocess
+import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace as NS
 
 import numpy as np
 
-from avflow.numerics.rheology import Law
-from avflow.simulation.runner import simulate
-from avflow.scenario.schema import load_scenario
-from avflow.numerics.solver import Solver
-from avflow.terrain.bed import plane_terrain, profile_terrain
-from avflow.terrain.trimesh import plane_triangle_terrain
-
-WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
+
+#: Bytes a cell-update reads and writes (a write counted twice: the line is read first).
+#: Square-grid kernel: h, hu, hv (24), per-cell factors inv_area, area, cfl, density,
+#: gamma x/y/z, curvature (80), codes and order (4), two faces' normals and lengths (80),
+#: observers read (32); written h, hu, hv (24), flag (1), observers (about 16), each twice.
+#: Profile sweep: h, hu, gamma_x, gamma_z, density, cfl, curvature row (64), observers (32);
+#: written h, hu, hv, two flux values, flag, observers (about 58), twice. Face kernel: per
+#: face (2 per grid cell, 3 per triangle node) its cells (16), frame (64), length (8), flux
+#: written and read back (5 values, 80 with the write counted twice, 120 in all); per cell
+#: the work sums written and read (48 + 24), h, hu, hv (24), factors (80), observers (48).
+BYTES_PER_CELL = {"profile": 212, "grid": 300, "faces-grid": 2 * 208 + 224,
+                  "faces-tri": 3 * 208 + 224}
 
 
-def rate(solver, h0, t_warm, t_end):
+def _rate(solver, h0, t_warm, t_end):
     state = solver.new_state(h0)
-    solver.advance(state, t_warm)
+    solver.advance(state, t_warm)  # compiles, and the flow is under way
     n0, t0 = state.steps, time.perf_counter()
     solver.advance(state, t_end)
     wall = time.perf_counter() - t0
     return (state.steps - n0) * h0.size / wall, wall, state.steps - n0
 
 
-def main():
-    rows = []
-    n = 200_000
-    ter = profile_terrain(NS(length=float(n), slope=NS(kind="constant", theta_deg=0.0),
-                             curvature=False), 1.0, WALLS)
-    params = np.zeros(4)
-    generic_ter = dataclasses.replace(ter, mesh=dataclasses.replace(ter.mesh, structured_1d=False))
-    for label, h0 in (("dam break, half dry", np.where(ter.x < n / 2, 1.0, 0.0)),
-                      ("all wet", np.where(ter.x < n / 2, 1.0, 0.5))):
-        fast = rate(Solver(ter, Law.COULOMB, params), h0, 0.5, 30.0)
-        slow = rate(Solver(generic_ter, Law.COULOMB, params), h0, 0.5, 30.0)
-        rows.append((f"1D profile sweep, 200k, {label}", *fast))
-        rows.append((f"1D generic face sweep, {label}", *slow))
-    second_1d = rate(Solver(ter, Law.COULOMB, params, order=2), h0, 0.5, 30.0)
-    rows.append(("1D profile sweep, all wet, order 2", *second_1d))
-    plane = NS(slope_deg=30.0, azimuth_deg=90.0, extent=NS(x=[0.0, 4000.0], y=[0.0, 4000.0]),
-               elevation_at_center=0.0)
-    ter2 = plane_terrain(plane, 10.0, None, WALLS)
-    xx, yy = np.meshgrid(ter2.x, ter2.y)
-    h2 = np.where((xx - 1000) ** 2 + (yy - 2000) ** 2 < 300**2, 20.0, 0.0).ravel()
+def _plane(n):
+    from avflow.terrain.bed import plane_terrain
+
+    size = 10.0 * n
+    return NS(slope_deg=30.0, azimuth_deg=90.0, extent=NS(x=[0.0, size], y=[0.0, size]),
+              elevation_at_center=0.0), plane_terrain
+
+
+def case(name, threads):
+    """One case in this process: ``(cell-updates/s, wall, steps, kernel used)``."""
+    from avflow.numerics.rheology import Law
+    from avflow.numerics.solver import Solver
+
     coulomb20 = np.array([math.tan(math.radians(20)), 0, 0, 0])
-    first_2d = rate(Solver(ter2, Law.COULOMB, coulomb20), h2 + 1.0, 0.5, 3.0)
-    rows.append(("2D grid, 400x400, all wet (1 m + cylinder)", *first_2d))
-    second_2d = rate(Solver(ter2, Law.COULOMB, coulomb20, order=2), h2 + 1.0, 0.5, 3.0)
-    rows.append(("2D grid, 400x400, all wet, order 2", *second_2d))
-    rows.append(("2D grid, 400x400, cylinder (map cells/s)",
-                 *rate(Solver(ter2, Law.COULOMB, coulomb20), h2, 0.5, 10.0)))
-    ter3 = plane_triangle_terrain(plane, 10.0, None, WALLS)
-    x3, y3 = ter3.cell_xy()
-    h3 = np.where((x3 - 1000) ** 2 + (y3 - 2000) ** 2 < 300**2, 20.0, 0.0)
-    first_tri = rate(Solver(ter3, Law.COULOMB, coulomb20), h3 + 1.0, 0.5, 3.0)
-    rows.append(("2D triangles, 401x401 nodes, all wet", *first_tri))
-    second_tri = rate(Solver(ter3, Law.COULOMB, coulomb20, order=2), h3 + 1.0, 0.5, 3.0)
-    rows.append(("2D triangles, all wet, order 2", *second_tri))
-    rows.append(("2D triangles, cylinder (map cells/s)",
-                 *rate(Solver(ter3, Law.COULOMB, coulomb20), h3, 0.5, 10.0)))
-    print(f"{'kernel':44s} {'cell-upd/s':>11s} {'wall (s)':>9s} {'steps':>6s}")
-    for name, r, wall, steps in rows:
-        print(f"{name:44s} {r:11.3g} {wall:9.3f} {steps:6d}")
-    print(f"structured / generic 1D speed ratio (all wet): {fast[0] / slow[0]:.2f}")
-    print("order 1 / order 2 cell-updates per second (all wet): "
-          f"1D {fast[0] / second_1d[0]:.2f}, grid {first_2d[0] / second_2d[0]:.2f}, "
-          f"triangles {first_tri[0] / second_tri[0]:.2f}")
-    sc = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
-    simulate(sc)
-    s = simulate(sc).summary
-    print(f"section 6 (Coulomb 15, 880 cells, {s['steps']} steps): time loop {s['wall_time']:.3f} s"
-          f", {s['cell_updates_per_second']:.3g} cell-upd/s (with output every 5 s)")
+    if name.startswith("1d"):
+        import dataclasses
+
+        from avflow.terrain.bed import profile_terrain
+
+        n = 200_000
+        ter = profile_terrain(NS(length=float(n), slope=NS(kind="constant", theta_deg=0.0),
+                                 curvature=False), 1.0, WALLS)
+        wet = name.endswith("wet") or "order2" in name
+        h0 = np.where(ter.x < n / 2, 1.0, 0.5 if wet else 0.0)
+        if "generic" in name:
+            ter = dataclasses.replace(ter, mesh=dataclasses.replace(ter.mesh,
+                                                                    structured_1d=False))
+        solver = Solver(ter, Law.COULOMB, np.zeros(4), order=2 if "order2" in name else 1)
+        return (*_rate(solver, h0, 0.5, 30.0), "profile" if "generic" not in name else "faces")
+    if name.startswith("grid") or name.startswith("tri"):
+        n = 1000 if "1000" in name else 400
+        plane, build = _plane(n)
+        if name.startswith("tri"):
+            from avflow.terrain.trimesh import plane_triangle_terrain
+
+            ter = plane_triangle_terrain(plane, 10.0, None, WALLS)
+        else:
+            ter = build(plane, 10.0, None, WALLS)
+        xx, yy = ter.cell_xy()
+        centre = (0.25 * 10.0 * n, 0.5 * 10.0 * n)
+        cyl = np.where((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 < 300**2, 20.0, 0.0)
+        kernel = "faces" if "faces" in name or name.startswith("tri") else "auto"
+        order = 2 if "order2" in name else 1
+        solver = Solver(ter, Law.COULOMB, coulomb20, kernel=kernel, order=order,
+                        threads=threads)
+        if "cylinder" in name:
+            return (*_rate(solver, cyl, 0.5, 10.0), solver.kernel_used)
+        t_end = 1.5 if n == 1000 else 3.0
+        return (*_rate(solver, cyl + 1.0, 0.5, t_end), solver.kernel_used)
+    if name == "section6":
+        from avflow.scenario.schema import load_scenario
+        from avflow.simulation.runner import simulate
+
+        sc = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
+        simulate(sc)
+        s = simulate(sc).summary
+        return s["cell_updates_per_second"], s["wall_time"], s["steps"], "profile"
+    raise ValueError(name)
+
+
+CASES = [
+    # (label, case name, threads, traffic model)
+    ("1D profile sweep, 200k, half dry", "1d-dry", 1, "profile"),
+    ("1D profile sweep, 200k, all wet", "1d-wet", 1, "profile"),
+    ("1D face kernel (generic), all wet", "1d-generic-wet", 1, None),
+    ("1D profile sweep, all wet, order 2", "1d-order2", 1, None),
+    ("grid 400x400, square-grid kernel, 1 thread", "grid", 1, "grid"),
+    ("grid 400x400, square-grid kernel, 2 threads", "grid", 2, "grid"),
+    ("grid 400x400, square-grid kernel, all threads", "grid", None, "grid"),
+    ("grid 400x400, face kernel", "grid-faces", 1, "faces-grid"),
+    ("grid 400x400, order 2 (face kernel)", "grid-order2", 1, None),
+    ("grid 400x400, cylinder only (map cells/s)", "grid-cylinder", 1, None),
+    ("grid 1000x1000, square-grid kernel, 1 thread", "grid-1000", 1, "grid"),
+    ("grid 1000x1000, square-grid kernel, 2 threads", "grid-1000", 2, "grid"),
+    ("grid 1000x1000, square-grid kernel, all threads", "grid-1000", None, "grid"),
+    ("triangles 401x401 nodes, face kernel", "tri", 1, "faces-tri"),
+    ("triangles, order 2", "tri-order2", 1, None),
+    ("triangles, cylinder only (map cells/s)", "tri-cylinder", 1, None),
+    ("section 6, Coulomb 15, 880 cells (loop)", "section6", 1, None),
+]
+QUICK = {"1d-wet", "grid", "grid-faces", "tri", "section6"}
+
+
+def bandwidth(n_bytes=512 * 2**20, repeats=5) -> float:
+    """Bytes per second of a large numpy copy, read + write (best of ``repeats``)."""
+    a = np.ones(n_bytes // 8)
+    b = np.empty_like(a)
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        np.copyto(b, a)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * a.nbytes / best
+
+
+def _child(name, threads):
+    rate, wall, steps, kernel = case(name, threads)
+    import numba
+
+    used = 1 if kernel != "grid" else min(threads or numba.config.NUMBA_NUM_THREADS,
+                                           numba.config.NUMBA_NUM_THREADS)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(json.dumps({"rate": rate, "wall": wall, "steps": steps, "kernel": kernel,
+                      "threads": used, "peak": peak}))
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--case", help=argparse.SUPPRESS)
+    p.add_argument("--threads", type=int, default=0, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.case:
+        return _child(args.case, args.threads or None)
+    import numba
+
+    bw = bandwidth()
+    cores = numba.config.NUMBA_NUM_THREADS
+    print(f"machine: {_cpu_name()}, {os.cpu_count()} cores (Numba: {cores} threads), memory "
+          f"bandwidth {bw / 1e9:.1f} GB/s (numpy copy, read + write)")
+    print(f"{'case':50s} {'kernel':>8s} {'thr':>3s} {'cell-upd/s':>11s} {'of bw':>6s} "
+          f"{'wall (s)':>9s} {'steps':>6s} {'peak MB':>8s}")
+    rates = {}
+    for label, name, threads, traffic in CASES:
+        if args.quick and name not in QUICK:
+            continue
+        if threads is None and cores <= 2 and any(c[1] == name and c[2] == cores
+                                                  for c in CASES):
+            continue  # "all" is 2 here: measured once
+        cmd = [sys.executable, __file__, "--case", name, "--threads", str(threads or 0)]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+        r = json.loads(out.strip().splitlines()[-1])
+        rates[(name, r["threads"])] = r["rate"]
+        frac = f"{r['rate'] * BYTES_PER_CELL[traffic] / bw:6.2f}" if traffic else "     -"
+        print(f"{label:50s} {r['kernel']:>8s} {r['threads']:3d} {r['rate']:11.3g} {frac} "
+              f"{r['wall']:9.3f} {r['steps']:6d} {r['peak'] / 2**20:8.0f}", flush=True)
+    for n in ("grid", "grid-1000"):
+        one = rates.get((n, 1))
+        many = max((k[1] for k in rates if k[0] == n), default=1)
+        if one and many > 1:
+            speedup = rates[(n, many)] / one
+            print(f"{n}: {many} threads {speedup:.2f}x one thread, parallel efficiency "
+                  f"{speedup / many:.2f}")
+    if ("grid", 1) in rates and ("grid-faces", 1) in rates:
+        print(f"square-grid kernel / face kernel on the grid, one thread: "
+              f"{rates[('grid', 1)] / rates[('grid-faces', 1)]:.2f}")
 
 
 if __name__ == "__main__":

@@ -35,7 +35,8 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.numerics.kinetic import (SQRT3, half_flux_in, half_flux_out, half_fluxes,
+                                     sound_speed)
 from avflow.numerics.reconstruction import N_WORK, reconstruct_faces, reconstruct_profile
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.rheology import friction
@@ -251,6 +252,19 @@ def _dirac_face(dirac, flag_i, flag_j):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
+def _emitted(h, q1, q2, h_zero, g_normal, dens):
+    """What a cell emits through its faces, computed once per step (scalars only):
+    ``(h, u1, u2, c, sqrt(3) c, k / 2, k / 3)`` with ``k = c * dens`` the particle density of
+    :func:`~avflow.numerics.kinetic.half_fluxes`; all zero at or below ``h_zero``. The
+    half fluxes then need no division (:func:`~avflow.numerics.kinetic.half_flux_out`)."""
+    if h <= h_zero or h <= 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    c = sound_speed(h, g_normal)
+    k = c * dens
+    return h, q1 / h, q2 / h, c, SQRT3 * c, 0.5 * k, k / 3.0
+
+
+@njit(error_model="numpy", cache=True, inline="always")
 def _side_fluxes(hf, uf, wet, dens, g_normal):
     """Half fluxes of a cell's reconstructed state (hf, uf) at one of its faces; nothing from
     a cell at or below the minimum flowing thickness (``wet`` False). Scalars only: Numba's
@@ -448,7 +462,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
                h, hu, hv, h_new, hu_new, hv_new, flux, transport, flag,
                law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                arrival, last_moved, active_faces, n_active, touched, n_touched, order2,
-               face_state, observe):
+               face_state, observe, emit):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
     Only the ``n_active`` faces of ``active_faces`` (those of the wet cells) and the
@@ -476,6 +490,13 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         hu_new[i] = 0.0
         hv_new[i] = 0.0
 
+    # --- sweep 0 (order 1): what each cell emits through its faces, once per cell
+    if not order2:
+        for c in range(n_touched):
+            i = touched[c]
+            (emit[i, 0], emit[i, 1], emit[i, 2], emit[i, 3], emit[i, 4], emit[i, 5],
+             emit[i, 6]) = _emitted(h[i], hu[i], hv[i], h_zero, g * gamma_z[i], density[i])
+
     # --- sweep 1a: rectangular fluxes, each side read and written in its own cell's basis
     for a in range(n_active):
         f = active_faces[a]
@@ -485,45 +506,39 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
         length = face_length[f]
         # both sides written out: through a helper taking the arrays the sweep ran 30% slower
-        if h[i] <= h_zero:
+        if order2:  # the reconstructed state at the face
             hi = qi1 = qi2 = 0.0
-        elif order2:
-            hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
+            if h[i] > h_zero:
+                hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
+            hi, ui1, ui2, ci, si, khi, k3i = _emitted(hi, qi1, qi2, 0.0, g * gamma_z[i],
+                                                      density[i])
         else:
-            hi, qi1, qi2 = h[i], hu[i], hv[i]
-        uni = 0.0
-        uti = 0.0
-        if hi > 0.0:  # the cell's velocity, then its face components (as the grid kernel)
-            ui1 = qi1 / hi
-            ui2 = qi2 / hi
-            uni = ui1 * ni_x + ui2 * ni_y
-            uti = ui1 * ti_x + ui2 * ti_y
-        ci = sound_speed(hi, g * gamma_z[i])
-        fp_h, fp_q, _, _ = half_fluxes(hi, uni, ci, ci * density[i])
+            hi, ui1, ui2, ci = emit[i, 0], emit[i, 1], emit[i, 2], emit[i, 3]
+            si, khi, k3i = emit[i, 4], emit[i, 5], emit[i, 6]
+        uni = ui1 * ni_x + ui2 * ni_y
+        uti = ui1 * ti_x + ui2 * ti_y
+        fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
         if j >= 0:
             nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
             tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
-            if h[j] <= h_zero:
+            if order2:
                 hj = qj1 = qj2 = 0.0
-            elif order2:
-                hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
+                if h[j] > h_zero:
+                    hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
+                hj, uj1, uj2, cj, sj, khj, k3j = _emitted(hj, qj1, qj2, 0.0, g * gamma_z[j],
+                                                          density[j])
             else:
-                hj, qj1, qj2 = h[j], hu[j], hv[j]
-            unj = 0.0
-            utj = 0.0
-            if hj > 0.0:
-                uj1 = qj1 / hj
-                uj2 = qj2 / hj
-                unj = uj1 * nj_x + uj2 * nj_y
-                utj = uj1 * tj_x + uj2 * tj_y
-            cj = sound_speed(hj, g * gamma_z[j])
-            _, _, gm_h, gm_q = half_fluxes(hj, unj, cj, cj * density[j])
+                hj, uj1, uj2, cj = emit[j, 0], emit[j, 1], emit[j, 2], emit[j, 3]
+                sj, khj, k3j = emit[j, 4], emit[j, 5], emit[j, 6]
+            unj = uj1 * nj_x + uj2 * nj_y
+            utj = uj1 * tj_x + uj2 * tj_y
+            gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
         elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
             gm_h = -fp_h
             gm_q = fp_q
             utj = uti
         else:  # open boundary: transmissive for what leaves, closed to what would enter
-            _, _, gm_h, gm_q = half_fluxes(hi, max(uni, 0.0), ci, ci * density[i])
+            gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
             gm_h = _open_mass(fp_h + gm_h) - fp_h
             utj = uti
         f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
@@ -779,7 +794,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
-            stats, order, limiter, face_offset):
+            stats, order, limiter, face_offset, emit):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -792,7 +807,8 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
     ``order`` 2: limited reconstruction (``limiter``, :mod:`avflow.numerics.reconstruction`;
     ``face_offset[f, side]``: from each cell's centre half the way to its neighbour's, in its
     basis) and Heun's two stages, each a full step of the seed's scheme (threshold, Dirac
-    faces, projection), averaged by :func:`heun_faces`.
+    faces, projection), averaged by :func:`heun_faces`. ``emit`` (n_cells, 7): the face
+    kernel's per-cell work array at order 1 (:func:`_emitted`), empty otherwise.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
     """
     t = stats[ST_TIME]
@@ -873,7 +889,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
                     law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved, active_faces, n_active, touched, n_touched, False,
-                    face_state, True)
+                    face_state, True, emit)
             elif structured:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
                 reconstruct_profile(cur_h, cur_hu, h_zero, limiter, recon)
                 ok, out, lim, moving, film, clamped, kinetic = step_profile(
@@ -909,7 +925,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
                     law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved, active_faces, n_active, touched, n_touched, True,
-                    face_state, False)
+                    face_state, False, emit)
                 if ok:
                     n_wet2 = 0
                     for c in range(n_touched):
@@ -935,7 +951,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
                         nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag,
                         law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                         peak_speed, arrival, last_moved, active2, n_active2, touched2,
-                        n_touched2, True, face_state, False)
+                        n_touched2, True, face_state, False, emit)
                 if ok:
                     out = 0.5 * (out + out2)
                     clamped += clamped2

@@ -80,3 +80,37 @@ def half_fluxes(h, un, c, k):
     fm_h = 0.5 * k * (bm * bm - am * am)
     fm_q = (k / 3.0) * (bm * bm * bm - am * am * am)
     return fp_h, fp_q, fm_h, fm_q
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def half_flux_out(h, un, c, s, kh, k3):
+    """``(fp_h, fp_q)`` of :func:`half_fluxes` from a cell's factors computed once per step
+    (``s = sqrt(3) c``, ``kh = k / 2``, ``k3 = k / 3``): the same operations, the same bits,
+    none of its divisions."""
+    if h <= 0.0:
+        return 0.0, 0.0
+    if c <= 0.0:
+        if un > 0.0:
+            return h * un, h * un * un
+        return 0.0, 0.0
+    a = un - s
+    b = un + s
+    ap = a if a > 0.0 else 0.0
+    bp = b if b > 0.0 else 0.0
+    return kh * (bp * bp - ap * ap), k3 * (bp * bp * bp - ap * ap * ap)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def half_flux_in(h, un, c, s, kh, k3):
+    """``(fm_h, fm_q)`` of :func:`half_fluxes`, as :func:`half_flux_out`."""
+    if h <= 0.0:
+        return 0.0, 0.0
+    if c <= 0.0:
+        if un > 0.0:
+            return 0.0, 0.0
+        return h * un, h * un * un
+    a = un - s
+    b = un + s
+    am = a if a < 0.0 else 0.0
+    bm = b if b < 0.0 else 0.0
+    return kh * (bm * bm - am * am), k3 * (bm * bm * bm - am * am * am)

@@ -160,6 +160,8 @@ class Solver:
         self._cell_face_ptr = np.concatenate(
             [[0], np.cumsum(np.bincount(owners, minlength=n))]).astype(np.int64)
         self._transport = np.zeros(n)
+        # what each cell emits through its faces, once per step (face kernel, order 1)
+        self._emit = np.zeros((n if self.order == 1 and not m.structured_1d else 0, 7))
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
                              else np.zeros((0, 2, 2)))
 
@@ -291,5 +293,5 @@ class Solver:
             bool(self.dirac), float(self.h_dry), float(self.h_zero), float(self.cfl), float(t_target),
             int(max_steps), float(stop_volume), float(stop_kinetic), state.peak_h, state.peak_speed, state.arrival,
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
-            int(self.order), LIMITERS[self.limiter], self._face_offset)
+            int(self.order), LIMITERS[self.limiter], self._face_offset, self._emit)
         return STATUS_NAMES[status]

@@ -44,7 +44,7 @@ from avflow.numerics.kernels import (DRY, FAILED, MAX_RETRIES, MAX_STEPS,
                                      _dirac_face, _final_momentum,
                                      _limit, _observe, _open_mass, _speed,
                                      _trial_momentum)
-from avflow.numerics.kinetic import SQRT3, sound_speed
+from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out, sound_speed
 from avflow.terrain.squaregrid import (CANONICAL_ORDER, HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -96,39 +96,6 @@ def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _half_out(h, un, c, s, kh, k3):
-    """``(fp_h, fp_q)`` of :func:`avflow.numerics.kinetic.half_fluxes` from a cell's
-    precomputed factors (``s = sqrt(3) c``, ``kh = k / 2``, ``k3 = k / 3``): the same bits."""
-    if h <= 0.0:
-        return 0.0, 0.0
-    if c <= 0.0:
-        if un > 0.0:
-            return h * un, h * un * un
-        return 0.0, 0.0
-    a = un - s
-    b = un + s
-    ap = a if a > 0.0 else 0.0
-    bp = b if b > 0.0 else 0.0
-    return kh * (bp * bp - ap * ap), k3 * (bp * bp * bp - ap * ap * ap)
-
-
-@njit(error_model="numpy", cache=True, inline="always")
-def _half_in(h, un, c, s, kh, k3):
-    """``(fm_h, fm_q)`` of :func:`avflow.numerics.kinetic.half_fluxes`, as :func:`_half_out`."""
-    if h <= 0.0:
-        return 0.0, 0.0
-    if c <= 0.0:
-        if un > 0.0:
-            return 0.0, 0.0
-        return h * un, h * un * un
-    a = un - s
-    b = un + s
-    am = a if a < 0.0 else 0.0
-    bm = b if b < 0.0 else 0.0
-    return kh * (bm * bm - am * am), k3 * (bm * bm * bm - am * am * am)
-
-
-@njit(error_model="numpy", cache=True, inline="always")
 def _face_flux(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, n0x, n0y,
                n1x, n1y, length):
     """One face, the arithmetic of :func:`~avflow.numerics.kernels.step_faces` sweep 1a:
@@ -144,17 +111,17 @@ def _face_flux(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, 
     kind = code & KIND
     uni = ui1 * n0x + ui2 * n0y
     uti = ui1 * t0x + ui2 * t0y
-    fp_h, fp_q = _half_out(hi, uni, ci, si, khi, k3i)
+    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
     if kind == INNER:
         unj = uj1 * n1x + uj2 * n1y
         utj = uj1 * t1x + uj2 * t1y
-        gm_h, gm_q = _half_in(hj, unj, cj, sj, khj, k3j)
+        gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
     elif kind == LOW_WALL or kind == HIGH_WALL:  # mirror ghost: no mass, twice the pressure
         gm_h = -fp_h
         gm_q = fp_q
         utj = uti
     else:  # open: transmissive for what leaves, closed to what would enter
-        gm_h, gm_q = _half_in(hi, max(uni, 0.0), ci, si, khi, k3i)
+        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
         gm_h = _open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length

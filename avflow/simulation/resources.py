@@ -207,3 +207,27 @@ def check_resources(scenario, max_memory: int | str | None = None, *,
         field = "output.every"
         fix = "store fewer snapshots (a larger output.every) or use a larger grid.dx"
     raise ScenarioError.at(scenario, field, f"{need}: {fix}, or raise --max-memory")
+
+
+def release_freed_memory() -> None:
+    """Give the memory Python and numpy freed back to the system (glibc's ``malloc_trim``).
+
+    Building a DEM's mesh frees about as much as it keeps: glibc raises its threshold for
+    returning large blocks after the first ones are freed, so the freed temporaries stayed
+    in the resident set (a 1 m avaKot mesh: 1.70 GiB resident, 1.17 GiB after the trim).
+    Nothing happens where there is no glibc.
+    """
+    global _LIBC
+    if _LIBC is None:
+        try:
+            import ctypes
+
+            _LIBC = ctypes.CDLL("libc.so.6")
+            _LIBC.malloc_trim.argtypes = [ctypes.c_size_t]
+        except (OSError, AttributeError):
+            _LIBC = False
+    if _LIBC:
+        _LIBC.malloc_trim(0)
+
+
+_LIBC = None

@@ -20,7 +20,7 @@ from avflow.errors import Problem, RunFailed, ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
 from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
-from avflow.simulation.resources import check_resources
+from avflow.simulation.resources import check_resources, release_freed_memory
 from avflow.simulation.summary import deposit_extent, runout_truncated, travel_angle
 from avflow.terrain.bed import Terrain
 from avflow.terrain.build import build_terrain
@@ -144,6 +144,7 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
     try:
         check_resources(scenario, max_memory, streamed=streamed)
         terrain = build_terrain(scenario)
+        release_freed_memory()  # the mesh's temporaries, before the solver's arrays
     except RasterError as err:
         raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
     except ValueError as err:
