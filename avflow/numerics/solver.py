@@ -132,6 +132,7 @@ class Solver:
         m = self.terrain.mesh
         n = m.n_cells
         self._grid = None
+        self._released = False
         if self.kernel != "faces":
             layout = square_grid(self.terrain) if self.order == 1 else None
             if layout is None and self.kernel == "grid":
@@ -195,11 +196,20 @@ class Solver:
     @property
     def kernel_used(self) -> str:
         """``"grid"`` or ``"faces"``: the kernel this solver runs."""
-        return "grid" if self._grid is not None else "faces"
+        return "grid" if self._grid is not None or self._released else "faces"
+
+    def release_buffers(self) -> None:
+        """Free the square-grid kernel's layout and work arrays (a 1 m DEM: about 1.3 GiB)
+        once a run is over, before its file is finished; the next :meth:`advance` builds
+        them again. Nothing happens for the other kernels."""
+        if self._grid is not None:
+            self._grid = self._g_cells = self._g_state = self._g_flag = None
+            self._h_work = self._hu_work = self._hv_work = None
+            self._released = True
 
     def threads_used(self) -> int:
         """CPU threads the time loop runs on (1 for the face kernel, which is serial)."""
-        if self._grid is None:
+        if self.kernel_used != "grid":
             return 1
         import numba
 
@@ -282,6 +292,9 @@ class Solver:
         ``stop_kinetic`` times its peak (negative: never). Returns ``"running"`` (target reached),
         ``"stopped"``, ``"max_steps"`` or ``"failed"``.
         """
+        if self._released:
+            self._setup_grid(square_grid(self.terrain))
+            self._released = False
         if self._grid is not None:
             return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps)
         m, t = self.terrain.mesh, self.terrain

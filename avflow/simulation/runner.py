@@ -273,6 +273,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             break
         k += 1
     wall = _time.perf_counter() - started - recording
+    solver.release_buffers()  # the kernel's work arrays, before the file is finished
     result = RunResult(scenario, terrain, solver, state, h0, snaps, status, time_to_stop,
                        wall, thresholds, {}, compile_time)
     if failure is None:
