@@ -13,10 +13,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import xarray as xr
+import yaml
 
 from avflow.cli import main
 from avflow.ensemble.spec import DEFAULT_THRESHOLDS, EnsembleError, load_ensemble, parse_ensemble
-from avflow.ensemble.orchestrate import run_ensemble
+from avflow.ensemble.orchestrate import cluster_scenario, run_ensemble
 from avflow.output.dataset import to_dataset
 from avflow.ensemble.report import write_report
 from avflow.simulation.runner import simulate
@@ -346,6 +347,46 @@ thresholds: [0.5, 2.0]
     assert compliance_errors(tmp_path / "grid_ensemble.nc") == []
     text = write_report(out).read_text()
     assert "report/exceedance.png" in text and (out / "report" / "exceedance.png").is_file()
+
+
+def test_members_on_a_cluster_run_on_one_thread_and_equal_a_run_here(tmp_path):
+    """Members on dask run their cluster_scenario: numerics.threads 1 unless their scenario
+    sets a number (the hash does not change); here they keep the default (every core). The
+    ensemble.nc and summary.csv of a cluster run are those of the run here, but for the
+    timings."""
+    text = (SCENARIOS / "plane_box_2d.yaml").read_text().replace("dx: 10.0", "dx: 25.0")
+    (tmp_path / "plane.yaml").write_text(text)
+    ens = load_ensemble(write(tmp_path, """
+base: plane.yaml
+vary:
+  rheology.delta_deg: [18.0, 22.0]
+  release.volume_factor: [0.5, 1.0]
+"""))
+    member = ens.members[0].scenario
+    assert member.numerics.threads is None
+    one = cluster_scenario(member)
+    assert one.numerics.threads == 1 and one.scenario_hash() == member.scenario_hash()
+    assert cluster_scenario(member.with_updates({"numerics.threads": 3})).numerics.threads == 3
+    here = run_ensemble(ens, tmp_path / "here", workers=0)
+    there = run_ensemble(ens, tmp_path / "there", workers=1)
+    assert here.ok and there.ok and (here.where, there.where) == ("here", "local cluster")
+    for out, threads in (("here", None), ("there", 1)):
+        for m in ens.members:
+            with xr.open_dataset(tmp_path / out / "members" / f"{m.scenario_hash}.nc") as ds:
+                written = yaml.safe_load(ds.attrs["scenario"])
+                assert written["numerics"].get("threads") == threads, out
+    timings = {"wall_time", "member_time"}
+    with xr.open_dataset(tmp_path / "here" / "ensemble.nc", decode_times=False) as a, \
+            xr.open_dataset(tmp_path / "there" / "ensemble.nc", decode_times=False) as b:
+        assert set(a.variables) == set(b.variables) and "path_runout_s" in a
+        assert "peak_pressure_exceedance_probability" in a
+        for name in set(a.variables) - timings:
+            np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=name)
+        assert {k: str(v) for k, v in a.attrs.items()} == {k: str(v) for k, v in b.attrs.items()}
+    a = pd.read_csv(tmp_path / "here" / "summary.csv")
+    b = pd.read_csv(tmp_path / "there" / "summary.csv")
+    assert list(a.columns) == list(b.columns)
+    pd.testing.assert_frame_equal(a.drop(columns=list(timings)), b.drop(columns=list(timings)))
 
 
 # =========================================================================================

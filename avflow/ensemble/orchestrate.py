@@ -127,11 +127,22 @@ def read_member_row(path: str | os.PathLike, scenario_hash: str | None = None) -
     return check_member_file(path, scenario_hash)[0]
 
 
-def run_member(scenario_yaml: str, out_path: str) -> dict:
+def cluster_scenario(scenario):
+    """A member's scenario as it runs on a dask worker: ``numerics.threads: 1`` unless it
+    sets a number itself (the ensemble file's base scenario, or a varied field). The
+    members are the better parallelism there: one worker per core, one thread each. The
+    answer and the scenario hash do not depend on the number of threads."""
+    if getattr(scenario.numerics, "threads", 1) is not None:
+        return scenario
+    return scenario.with_updates({"numerics.threads": 1})
+
+
+def run_member(scenario_yaml: str, out_path: str, one_thread: bool = False) -> dict:
     """Run one member and write its NetCDF atomically; never raises for a model error.
 
     Idempotent: if ``out_path`` is already complete (a previous run, or the same task run
     twice after a lost worker) its stored summary is returned and nothing is recomputed.
+    ``one_thread``: a member on a dask worker runs its :func:`cluster_scenario`.
     """
     started = time.perf_counter()
     row = read_member_row(out_path)
@@ -148,7 +159,10 @@ def run_member(scenario_yaml: str, out_path: str) -> dict:
         # stream writes through its own netCDF4 handle: no distributed.Lock round trip to
         # the scheduler (~0.25 s) as xarray's to_netcdf would take inside a dask worker.
         with SnapshotStream(out_path) as stream:
-            result = simulate(parse_scenario(scenario_yaml), snapshots=stream)
+            scenario = parse_scenario(scenario_yaml)
+            if one_thread:
+                scenario = cluster_scenario(scenario)
+            result = simulate(scenario, snapshots=stream)
             checksum_path(out_path).unlink(missing_ok=True)  # stale: the file is replaced
             stream.finish(result)
         write_checksum(out_path)
@@ -168,15 +182,20 @@ def run_member(scenario_yaml: str, out_path: str) -> dict:
     return row
 
 
-def run_batch(items: list[tuple[int, str, str]]) -> list[tuple[int, dict]]:
+def run_batch(items: list[tuple[int, str, str]], one_thread: bool = False
+              ) -> list[tuple[int, dict]]:
     """Several members in one task (``(index, yaml, out_path)`` each): fewer, longer tasks."""
-    return [(index, run_member(text, out)) for index, text, out in items]
+    return [(index, run_member(text, out, one_thread)) for index, text, out in items]
 
 
-def tiny_scenario_yaml(ensemble: Ensemble) -> str | None:
-    """The first member cut to a couple of steps: enough to compile every kernel."""
+def tiny_scenario_yaml(ensemble: Ensemble, one_thread: bool = False) -> str | None:
+    """The first member cut to a couple of steps: enough to compile every kernel (those of
+    its :func:`cluster_scenario` with ``one_thread``: a single thread runs other kernels)."""
     try:
-        return ensemble.members[0].scenario.with_updates(
+        scenario = ensemble.members[0].scenario
+        if one_thread:
+            scenario = cluster_scenario(scenario)
+        return scenario.with_updates(
             {"time.end": 1e-3, "time.max_steps": 2, "output.every": 1e-3}).source_text
     except Exception:  # noqa: BLE001
         return None
@@ -387,9 +406,13 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
             wall = time.perf_counter() - started
         elif todo:
             t0 = time.perf_counter()
+            # Members on one thread on dask: so is Numba in the local cluster's workers (no
+            # idle thread pools); the nanny sets OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default).
+            one_thread = {getattr(m.scenario.numerics, "threads", 1) or 1 for m in todo}
+            env = {"NUMBA_NUM_THREADS": "1"} if one_thread == {1} else {}
             with _deferred_sigint() as sigint, _client(
-                    scheduler, workers, client, tiny_scenario_yaml(ensemble), connect_timeout,
-                    sigint.check, timings) as cl:
+                    scheduler, workers, client, tiny_scenario_yaml(ensemble, one_thread=True),
+                    connect_timeout, sigint.check, timings, env) as cl:
                 n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
                     cl, "scheduler_info") else 0
                 startup = time.perf_counter() - t0
@@ -498,10 +521,12 @@ class _client:
     """Context manager: a Client on the given scheduler, or on a fresh LocalCluster."""
 
     def __init__(self, scheduler, workers, client, tiny, connect_timeout=CONNECT_TIMEOUT,
-                 check: Callable[[], None] = lambda: None, timings: dict | None = None):
+                 check: Callable[[], None] = lambda: None, timings: dict | None = None,
+                 env: dict | None = None):
         self.scheduler, self.workers, self.given, self.tiny = scheduler, workers, client, tiny
         self.connect_timeout, self.check = connect_timeout, check
         self.timings = {} if timings is None else timings
+        self.env = env or {}  #: environment of the local cluster's workers
         self.cluster = self.client = None
 
     def __enter__(self):
@@ -538,7 +563,7 @@ class _client:
             with _sigint_ignored():
                 self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                             dashboard_address=None,
-                                            silence_logs=logging.ERROR)
+                                            silence_logs=logging.ERROR, env=self.env)
             self.client = Client(self.cluster)
             self.client.register_plugin(_ignore_sigint_plugin())  # restarted workers too
         self.check()
@@ -648,7 +673,8 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
     A lost worker is the scheduler's business: its tasks are run again elsewhere (the member
     function is idempotent and writes atomically). A task that still errors (KilledWorker
     after repeated losses) marks its members failed. ``check`` is called every 50 ms while
-    waiting (it raises on a Ctrl-C noted meanwhile, see :class:`_deferred_sigint`).
+    waiting (it raises on a Ctrl-C noted meanwhile, see :class:`_deferred_sigint`). Every
+    member runs its :func:`cluster_scenario` (one thread unless it says otherwise).
     """
     from distributed import as_completed
 
@@ -660,7 +686,7 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
         chunk = todo[start:start + batch]
         items = [(m.index, m.scenario.source_text, str(member_path(outdir, m))) for m in chunk]
         key = "avflow-member-" + "-".join(m.scenario_hash for m in chunk[:1]) + f"-{len(chunk)}"
-        future = client.submit(run_batch, items, key=key, pure=False, retries=1)
+        future = client.submit(run_batch, items, True, key=key, pure=False, retries=1)
         futures[future] = chunk
         check()
     pending = as_completed(list(futures), raise_errors=False)
