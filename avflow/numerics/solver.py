@@ -211,10 +211,16 @@ class Solver:
         """CPU threads the time loop runs on (1 for the face kernel, which is serial)."""
         if self.kernel_used != "grid":
             return 1
+        import os
+
         import numba
 
-        return min(self.threads or numba.config.NUMBA_NUM_THREADS,
-                   numba.config.NUMBA_NUM_THREADS)
+        # every core this process may run on (a batch job's or a container's share)
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            cores = os.cpu_count() or 1
+        return max(1, min(self.threads or cores, numba.config.NUMBA_NUM_THREADS))
 
     def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps):
         """The time loop on the square-grid kernel (see :meth:`advance`)."""

@@ -595,7 +595,7 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
         r0, r1, n_cells = _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo,
                                          prev_hi, lo, hi, band0, band1)
         n_blocks = min(4 * threads, (r1 - r0 + 1) // min_block_rows)
-        if n_cells < min_parallel_cells:
+        if threads == 1 or n_cells < min_parallel_cells:
             n_blocks = 1
         ok = False
         outflow = 0.0
