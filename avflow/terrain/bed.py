@@ -18,6 +18,7 @@ per-cell coefficients and the coordinates that outputs need. Everything is compu
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -76,13 +77,22 @@ class Terrain:
         return out.reshape(values.shape[:-1] + self.grid_shape)
 
     def cell_xy(self):
-        """Horizontal coordinates (x, y) of the cell centres, per cell (grids, triangles)."""
+        """Horizontal coordinates (x, y) of the cell centres, per cell (grids, triangles).
+
+        Computed once per terrain (every snapshot's centre of mass reads them); read-only.
+        """
+        return self._cell_xy
+
+    @functools.cached_property
+    def _cell_xy(self):
         if self.kind == "triangles":  # cells are the vertices: x, y are per cell already
             return self.x, self.y
         xx, yy = np.meshgrid(self.x, self.y)
         xx, yy = xx.ravel(), yy.ravel()
         if self.cell_index is not None:
             xx, yy = xx[self.cell_index], yy[self.cell_index]
+        xx.flags.writeable = False
+        yy.flags.writeable = False
         return xx, yy
 
 
