@@ -157,9 +157,12 @@ def _trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate
     qy = hv_old + dt * (rate_y + g * h_star * gy)
     if h_old <= h_zero:
         return qx, qy, DRY
-    hd = h_old + dt_decide * rate_h
-    qdx = hu_old + dt_decide * (rate_x + g * hd * gx)
-    qdy = hv_old + dt_decide * (rate_y + g * hd * gy)
+    if dt_decide == dt and not explicit:  # the same numbers: not computed twice
+        hd, qdx, qdy = h_star, qx, qy
+    else:
+        hd = h_old + dt_decide * rate_h
+        qdx = hu_old + dt_decide * (rate_x + g * hd * gx)
+        qdy = hv_old + dt_decide * (rate_y + g * hd * gy)
     accel, _ = _normal_accel(g * gz, centripetal)
     tau, _ = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, hd, speed_n, accel, g)
     limit = tau * dt_decide
