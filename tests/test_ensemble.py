@@ -389,6 +389,29 @@ vary:
     pd.testing.assert_frame_equal(a.drop(columns=list(timings)), b.drop(columns=list(timings)))
 
 
+@pytest.mark.parametrize("start_s, where", [(1000.0, "here"), (0.0, "local cluster")])
+def test_cluster_started_while_the_first_member_runs(start_s, where, tmp_path, monkeypatch):
+    """On SPECULATE_MIN_CORES cores or more the local cluster starts while the first member
+    runs here to choose where the others go: used if they go there, closed if they stay."""
+    import multiprocessing
+
+    from avflow.ensemble import orchestrate
+
+    monkeypatch.setattr(orchestrate, "SPECULATE_MIN_CORES", 1)
+    monkeypatch.setattr(orchestrate, "CLUSTER_START_S", start_s)
+    ens = load_ensemble(write(tmp_path, f"""
+base: {coarse_base(tmp_path, dx=50.0).name}
+vary:
+  rheology.delta_deg: [14.0, 16.0, 18.0, 20.0]
+"""))
+    outcome = run_ensemble(ens, tmp_path / "out")
+    assert outcome.ok and outcome.ran == 4 and outcome.where == where
+    assert ("cluster" in outcome.timings) == (where != "here")
+    assert not multiprocessing.active_children()  # the cluster is closed either way
+    table = pd.read_csv(tmp_path / "out" / "summary.csv")
+    assert list(table["status"]) == ["stopped"] * 4
+
+
 # =========================================================================================
 # Voellmy: steady uniform flow on an inclined plane
 # =========================================================================================

@@ -59,8 +59,13 @@ def coordinate_name(dotted: str) -> str:
     return "law" if dotted == "rheology.law" else dotted.replace(".", "_")
 
 
-def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr.Dataset:
-    """The ensemble Dataset from the member table (:func:`avflow.ensemble.orchestrate.member_table`)."""
+def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike,
+                     maps: MemberMaps | None = None) -> xr.Dataset:
+    """The ensemble Dataset from the member table (:func:`avflow.ensemble.orchestrate.member_table`).
+
+    ``maps``: the member maps read so far (:class:`MemberMaps`, filled as members finish);
+    the member files it has not read yet are read here.
+    """
     outdir = Path(outdir)
     n = len(ensemble.members)
     profile = ensemble.base.terrain.kind == "profile"
@@ -115,7 +120,7 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
                    "summary.csv of that run; NaN where it is gone)"})
 
     ok = table["status"].isin(OK_STATUSES).to_numpy()
-    maps, grid_coords, note, crs = _stacked_maps(ensemble, table, outdir, profile)
+    maps, grid_coords, note, crs = _stacked_maps(ensemble, table, outdir, profile, maps)
     if maps is not None:
         coords.update(grid_coords)
         space = ("x",) if profile else ("y", "x")
@@ -158,51 +163,93 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike) -> xr
     return ds
 
 
-def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool):
+def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool,
+                  read: MemberMaps | None = None):
     """Maps of all members when they share one grid: ``(maps, grid coordinates, note,
     grid-mapping attributes or None)``; else ``(None, {}, why, None)``. ``maps`` holds the
     stacked :data:`MAPS` and :data:`PROBABILITY_ONLY` (None when a member file lacks it),
     and ``reached``: where each member's peak thickness passed its runout threshold."""
-    files = [(i, outdir / f) for i, f in zip(table["realization"], table["file"]) if f]
+    files = [(int(i), outdir / f) for i, f in zip(table["realization"], table["file"]) if f]
     if not files:
         return None, {}, "no member produced a file", None
-    maps: dict = {}
-    grid_coords: dict = {}
-    reference = None
-    crs = None
+    if read is None or read.n != len(table) or read.profile != profile:
+        read = MemberMaps(len(table), profile)
     for i, path in files:
+        read.add(i, path)
+    return read.result({i for i, _ in files})
+
+
+class MemberMaps:
+    """The maps of an ensemble's members, read one member file at a time: the orchestrator
+    reads each file as its member finishes (while the others run), so that ensemble.nc is
+    assembled from memory at the end. The first grid read is the reference; a member on
+    another grid stops the stacking (:func:`_stacked_maps` says so). The coordinates, the
+    bed and the grid mapping are those of the lowest-numbered member, as when the files
+    were read in member order."""
+
+    def __init__(self, n: int, profile: bool):
+        self.n, self.profile = n, profile
+        self.maps: dict = {}
+        self.grid_coords: dict = {}
+        self.crs = None
+        self.reference = None  #: grid coordinates (arrays) of the first member read
+        self.first = None  #: lowest member index read: its coordinates are the dataset's
+        self.done: set[int] = set()
+        self.different = False  #: a member on another grid: nothing stacked
+
+    def add(self, index: int, path: str | os.PathLike) -> None:
+        """Read one member's maps (once; nothing more after a member on another grid)."""
+        if self.different or index in self.done:
+            return
         with xr.open_dataset(path, decode_times=False) as ds:
-            names = ["x", "x_horizontal"] if profile else ["y", "x"]
+            names = ["x", "x_horizontal"] if self.profile else ["y", "x"]
             here = {c: ds[c].values for c in names if c in ds.coords}
-            if reference is None:
-                reference = here
-                shape = (len(table), *ds["peak_thickness"].shape)
+            if self.reference is None:
+                self.reference = here
+                shape = (self.n, *ds["peak_thickness"].shape)
                 for name in (*MAPS, *PROBABILITY_ONLY, "reached"):
-                    maps[name] = np.full(shape, np.nan)
-                for c in names:
-                    if c in ds.coords:
-                        grid_coords[c] = (ds[c].dims, ds[c].values, dict(ds[c].attrs))
+                    self.maps[name] = np.full(shape, np.nan)
+            elif any(here[c].shape != self.reference[c].shape
+                     or not np.array_equal(here[c], self.reference[c])
+                     for c in self.reference):
+                self.different = True
+                self.maps = {}
+                return
+            if self.first is None or index < self.first:
+                self.first = index
+                self.grid_coords = {c: (ds[c].dims, ds[c].values, dict(ds[c].attrs))
+                                    for c in names if c in ds.coords}
                 if "bed_elevation" in ds:
-                    grid_coords["bed_elevation"] = (ds["bed_elevation"].dims,
-                                                    ds["bed_elevation"].values.astype(float),
-                                                    dict(ds["bed_elevation"].attrs))
+                    self.grid_coords["bed_elevation"] = (
+                        ds["bed_elevation"].dims, ds["bed_elevation"].values.astype(float),
+                        dict(ds["bed_elevation"].attrs))
                 gm = ds["peak_thickness"].attrs.get("grid_mapping")
-                if gm and gm in ds.variables:
-                    crs = {"long_name": "coordinate reference system", **ds[gm].attrs}
-            elif any(here[c].shape != reference[c].shape or not np.array_equal(here[c],
-                                                                               reference[c])
-                     for c in reference):
-                return None, {}, "not stacked: the members have different grids", None
+                self.crs = ({"long_name": "coordinate reference system", **ds[gm].attrs}
+                            if gm and gm in ds.variables else None)
             for name in (*MAPS, *PROBABILITY_ONLY):
-                if maps[name] is None:
+                if self.maps[name] is None:
                     continue
                 if name not in ds:  # a member file written before the map existed
-                    maps[name] = None
+                    self.maps[name] = None
                     continue
-                maps[name][i] = ds[name].values
+                self.maps[name][index] = ds[name].values
             threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
-            maps["reached"][i] = np.nan_to_num(ds["peak_thickness"].values) >= threshold
-    return maps, grid_coords, "peak_thickness and deposit_thickness stacked", crs
+            self.maps["reached"][index] = np.nan_to_num(ds["peak_thickness"].values) >= threshold
+        self.done.add(index)
+
+    def result(self, members: set[int]):
+        """What :func:`_stacked_maps` returns, over ``members`` (those with a file): a
+        member read earlier but not among them (failed since) is left out (NaN)."""
+        if self.different:
+            return None, {}, "not stacked: the members have different grids", None
+        if self.reference is None:
+            return None, {}, "no member produced a file", None
+        for index in self.done - members:
+            for values in self.maps.values():
+                if values is not None:
+                    values[index] = np.nan
+        return self.maps, self.grid_coords, "peak_thickness and deposit_thickness stacked", \
+            self.crs
 
 
 def _probabilities(ensemble: Ensemble, maps: dict, ok: np.ndarray, space: tuple, coords: dict,

@@ -40,11 +40,15 @@ from avflow.errors import AvflowError
 
 CONNECT_TIMEOUT = 10.0  #: s, to reach a given ``--scheduler``
 WORKER_TIMEOUT = 120.0  #: s, for its first worker
-#: s, what starting a local cluster costs before its first result: worker processes spawned,
-#: importing avflow and loading the Numba kernels each (10-20 s on a 2-core machine).
+#: s, what starting a local cluster costs before its first result: worker processes spawned
+#: and importing avflow while this process loads the Numba kernels, then each worker's first
+#: member loading them (5-10 s on a busy 2-core machine, about 5 s on 16 cores).
 CLUSTER_START_S = 10.0
 #: Members with more cells (estimated before anything runs) go to the cluster unprobed.
 PROBE_MAX_CELLS = 100_000
+#: With this many cores or more, the local cluster starts while the first member runs
+#: here to choose where the others run (closed again if they stay here).
+SPECULATE_MIN_CORES = 4
 
 
 class ClusterError(AvflowError):
@@ -201,13 +205,29 @@ def tiny_scenario_yaml(ensemble: Ensemble, one_thread: bool = False) -> str | No
         return None
 
 
+def dask_setup(worker) -> None:
+    """Preload of the local cluster's workers (dask's ``preload``, as the worker starts,
+    before it takes a task): SIGINT ignored (see :func:`_ignore_sigint_plugin`) and the
+    modules a member needs imported, while this process warms its own (in parallel, not in
+    each worker's first member). Numba's kernels are loaded by the first member itself,
+    after this process has filled the cache (numba issue 4807)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        import avflow.output.stream  # noqa: F401
+        import avflow.scenario.schema  # noqa: F401
+        import avflow.simulation.runner  # noqa: F401
+    except Exception:  # noqa: BLE001 - best effort: the member imports (and reports) itself
+        pass
+
+
 def warm(scenario_yaml: str | None) -> bool:
     """Run a tiny scenario and write its file: imports, Numba kernels, NetCDF libraries.
 
-    In the parent before any worker starts, it compiles (or loads) the cache=True kernels
-    once: workers compiling the same cache at once can crash (numba issue 4807). In each
-    worker (``client.run``) it loads them before the first member, so that no member pays.
-    Best effort: a failure here is reported by the member itself.
+    In the parent before any worker takes a member, it compiles (or loads) the cache=True
+    kernels once: workers compiling the same cache at once can crash (numba issue 4807).
+    The workers load them in their first member. Best effort: a failure here is reported by
+    the member itself.
     """
     if scenario_yaml is None:
         return False
@@ -309,6 +329,8 @@ class ProgressLine:
         self.update(self.done, self.failed)
 
     def close(self) -> None:
+        if math.isfinite(self.elapsed):
+            return  # closed already
         self.update(self.done, self.failed)  # the final time on the line
         self.elapsed = time.perf_counter() - self.started
         if self.live:
@@ -378,25 +400,89 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     timings["check"] = time.perf_counter() - clock
     progress.update(len(rows), n_failed)
 
+    # The member maps of ensemble.nc are read here as members finish, while the others
+    # run (the parent has nothing else to do then): the end is assembled from memory.
+    maps = None
+    if write_outputs:
+        from avflow.ensemble.dataset import MemberMaps
+
+        maps = MemberMaps(len(ensemble.members), ensemble.base.terrain.kind == "profile")
+    unread = [m for m in ensemble.members if m.index in rows
+              and rows[m.index]["status"] != "failed"]  # reused members, read when idle
+
+    def read_one() -> bool:
+        """Read one finished member's maps; False when none is left to read."""
+        if maps is None or not unread:
+            return False
+        member = unread.pop(0)
+        try:
+            maps.add(member.index, member_path(outdir, member))
+        except Exception:  # noqa: BLE001 - read again, and reported, when ensemble.nc is made
+            pass
+        return True
+
     def record(member: Member, row: dict) -> None:
         nonlocal n_failed
         rows[member.index] = row
         if row["status"] not in OK_STATUSES:
             n_failed += 1
             progress.failure(member, row["error"])
+        if row["status"] != "failed":
+            unread.append(member)
         progress.update(len(rows), n_failed)
+
+    def finish(path_ds=None, path_ran: bool = False) -> object:
+        """The member table, summary.csv and ensemble.nc (``path_ds``: the path analysis,
+        when already made elsewhere)."""
+        clock = time.perf_counter()
+        table = member_table(ensemble, rows, outdir)
+        if not path_ran:
+            path_ds = _path_analysis(ensemble, table, outdir)  # adds the path_* columns
+        else:
+            path_ds = _merge_path_columns(table, path_ds)
+        if write_outputs:
+            write_tables(table, outdir)
+            timings["tables"] = time.perf_counter() - clock
+            clock = time.perf_counter()
+            from avflow.ensemble.dataset import ensemble_dataset, write_ensemble_netcdf
+
+            ds = ensemble_dataset(ensemble, table, outdir, maps)
+            if path_ds is not None:
+                ds = ds.merge(path_ds)
+                ds.attrs.update(path_ds.attrs)
+            write_ensemble_netcdf(ds, outdir / "ensemble.nc")
+            timings["ensemble_nc"] = time.perf_counter() - clock
+        else:
+            timings["tables"] = time.perf_counter() - clock
+        return table
 
     t0 = time.perf_counter()
     startup = 0.0
     n_workers = 0
+    table = None
     where = "here" if workers == 0 else "scheduler" if scheduler else "client" if client \
         else "local cluster"
+    # Members on one thread on dask: so is Numba in the local cluster's workers (no idle
+    # thread pools); the nanny already sets OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default).
+    one_thread = {getattr(m.scenario.numerics, "threads", 1) or 1 for m in todo}
+    env = {"NUMBA_NUM_THREADS": "1"} if one_thread == {1} else {}
+    speculative: list[_ClusterStart] = []  # a local cluster started while probing
+
+    def speculate() -> None:
+        speculative.append(_ClusterStart(os.cpu_count() or 1, env))
+        with _sigint_ignored():  # see _client._start
+            speculative[0].start()
+            speculative[0].wait_spawned()
+
     try:
         started = time.perf_counter()
         if todo and workers is None and scheduler is None and client is None:
-            todo, workers = _choose_where(ensemble, todo, outdir, record, progress)
+            todo, workers = _choose_where(ensemble, todo, outdir, record, progress,
+                                          speculate)
             timings["probe"] = time.perf_counter() - started
             where = "here" if workers == 0 else where
+            if workers == 0 and speculative:  # not needed: it closes while they run here
+                speculative.append(_discard(speculative.pop()))
         if todo and workers == 0 and scheduler is None and client is None:
             clock = time.perf_counter()
             for member in todo:
@@ -406,64 +492,66 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
             wall = time.perf_counter() - started
         elif todo:
             t0 = time.perf_counter()
-            # Members on one thread on dask: so is Numba in the local cluster's workers (no
-            # idle thread pools); the nanny sets OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default).
-            one_thread = {getattr(m.scenario.numerics, "threads", 1) or 1 for m in todo}
-            env = {"NUMBA_NUM_THREADS": "1"} if one_thread == {1} else {}
             with _deferred_sigint() as sigint, _client(
                     scheduler, workers, client, tiny_scenario_yaml(ensemble, one_thread=True),
-                    connect_timeout, sigint.check, timings, env) as cl:
-                n_workers = len(cl.scheduler_info(n_workers=-1)["workers"]) if hasattr(
-                    cl, "scheduler_info") else 0
+                    connect_timeout, sigint.check, timings, env,
+                    speculative.pop() if speculative else None) as cl:
+                n_workers = len(cl.client.scheduler_info(n_workers=-1)["workers"]) if hasattr(
+                    cl.client, "scheduler_info") else 0
                 startup = time.perf_counter() - t0
-                _run_on_dask(cl, todo, outdir,
+                _run_on_dask(cl.client, todo, outdir,
                              batch or auto_batch(len(todo), max(n_workers, 1)), record,
-                             sigint.check, timings)
+                             sigint.check, timings, idle=read_one)
                 wall = time.perf_counter() - started - startup
+                progress.close()
+                _clean_temporaries(folder)
+                # The path analysis reads every member file again: on a worker, while this
+                # process reads the maps left and builds ensemble.nc; then the cluster closes
+                # while the tables are written.
+                path = _submit_path_analysis(cl.client, ensemble, member_table(
+                    ensemble, rows, outdir), outdir)
+                while read_one():
+                    sigint.check()
+                path_ds, path_ran = _path_result(path, sigint.check)
+                cl.close_soon()
+                table = finish(path_ds, path_ran)
+                sigint.check()  # a Ctrl-C while writing them: said once they are written
         else:
             wall = time.perf_counter() - started
     except KeyboardInterrupt:  # the cluster is closed by now (_client.__exit__)
+        _close_speculative(speculative)
         progress.close()
         _clean_temporaries(folder)
         kept = sum(checksum_path(member_path(outdir, m)).is_file() for m in ensemble.members)
         raise Interrupted(f"interrupted: {kept} of {len(ensemble.members)} members finished "
                           f"and kept in {folder}; run the same command again to resume "
                           "(the others run then)") from None
-    progress.close()
-    _clean_temporaries(folder)
-
-    clock = time.perf_counter()
-    table = member_table(ensemble, rows, outdir)
-    path_ds = _path_analysis(ensemble, table, outdir)  # adds the path_* columns
-    if write_outputs:
-        write_tables(table, outdir)
-        timings["tables"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        from avflow.ensemble.dataset import ensemble_dataset, write_ensemble_netcdf
-
-        ds = ensemble_dataset(ensemble, table, outdir)
-        if path_ds is not None:
-            ds = ds.merge(path_ds)
-            ds.attrs.update(path_ds.attrs)
-        write_ensemble_netcdf(ds, outdir / "ensemble.nc")
-        timings["ensemble_nc"] = time.perf_counter() - clock
-    else:
-        timings["tables"] = time.perf_counter() - clock
+    except BaseException:
+        _close_speculative(speculative)
+        raise
+    if table is None:
+        progress.close()
+        _clean_temporaries(folder)
+        table = finish()
+    _close_speculative(speculative)
     ran = sum(not r.get("reused") for r in rows.values())
     return Outcome(table, ran, len(rows) - ran, n_failed, wall, startup, n_workers,
                    progress.elapsed, where, timings)
 
 
 def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
-                  progress: ProgressLine) -> tuple[list[Member], int | None]:
+                  progress: ProgressLine, speculate: Callable[[], None] = lambda: None
+                  ) -> tuple[list[Member], int | None]:
     """Where the members run when nothing says: ``(members left, workers)``, 0 for here.
 
     A local cluster costs :data:`CLUSTER_START_S` before its first result: a few short
     members are done sooner in this process. The first member runs here (after the kernels
     are loaded, so its time is the member's own), and its time ``t1`` decides: the others
-    stay here unless ``CLUSTER_START_S + t1 (n - 1) / cores < t1 (n - 1)``. Members
-    estimated at more than :data:`PROBE_MAX_CELLS` cells go to the cluster without a probe.
-    One line on stderr says what was chosen.
+    stay here unless ``start + t1 (n - 1) / cores < t1 (n - 1)``, ``start`` being what is
+    left of :data:`CLUSTER_START_S`: on :data:`SPECULATE_MIN_CORES` cores or more the
+    cluster starts (``speculate``) while the first member runs, its other cores being idle
+    then. Members estimated at more than :data:`PROBE_MAX_CELLS` cells go to the cluster
+    without a probe. One line on stderr says what was chosen.
     """
     cores = os.cpu_count() or 1
     n = len(todo)
@@ -482,13 +570,19 @@ def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
         progress.info(f"avflow: {n} members of ~{cells:,} cells: starting a local dask "
                       f"cluster of {cores} workers (--workers 0 runs them here)")
         return todo, None
+    speculated = time.perf_counter()
+    if cores >= SPECULATE_MIN_CORES:
+        speculate()
     warm(tiny_scenario_yaml(ensemble))  # Numba's kernels loaded: t1 is the member's own
     started = time.perf_counter()
     first = todo[0]
     record(first, run_member(first.scenario.source_text, str(member_path(outdir, first))))
     t1 = time.perf_counter() - started
     serial = t1 * (n - 1)
-    cluster = CLUSTER_START_S + serial / cores
+    start = CLUSTER_START_S
+    if cores >= SPECULATE_MIN_CORES:  # started meanwhile
+        start = max(0.0, start - (time.perf_counter() - speculated))
+    cluster = start + serial / cores
     if cluster < serial:
         progress.info(f"avflow: {n} members, the first took {t1:.2f} s here: starting a "
                       f"local dask cluster of {cores} workers for the other {n - 1} (about "
@@ -518,16 +612,23 @@ def _previous_member_times(outdir: Path) -> dict[str, float]:
 
 
 class _client:
-    """Context manager: a Client on the given scheduler, or on a fresh LocalCluster."""
+    """Context manager: a Client on the given scheduler, or on a fresh LocalCluster.
+
+    A local cluster starts in a thread while this process warms (imports, Numba's kernels
+    into the cache): its workers import what a member needs meanwhile (:func:`dask_setup`)
+    and load the kernels in their first member. ``env``: environment of its workers.
+    :meth:`close_soon` starts closing it in the background (:meth:`__exit__` waits).
+    """
 
     def __init__(self, scheduler, workers, client, tiny, connect_timeout=CONNECT_TIMEOUT,
                  check: Callable[[], None] = lambda: None, timings: dict | None = None,
-                 env: dict | None = None):
+                 env: dict | None = None, starting: _ClusterStart | None = None):
         self.scheduler, self.workers, self.given, self.tiny = scheduler, workers, client, tiny
         self.connect_timeout, self.check = connect_timeout, check
         self.timings = {} if timings is None else timings
-        self.env = env or {}  #: environment of the local cluster's workers
-        self.cluster = self.client = None
+        self.env = env or {}
+        self.starting = starting  #: a local cluster already starting (see _choose_where)
+        self.cluster = self.client = self.closing = None
 
     def __enter__(self):
         try:
@@ -535,10 +636,10 @@ class _client:
         except BaseException:  # Ctrl-C or an error while starting: nothing left running
             self.__exit__()
             raise
-        return self.client
+        return self
 
     def _start(self) -> None:
-        from distributed import Client, LocalCluster
+        from distributed import Client
 
         clock = time.perf_counter()
         if self.given is not None:
@@ -552,18 +653,22 @@ class _client:
             warm(self.tiny)
             self.timings["warm_here"] = time.perf_counter() - clock
         else:
-            warm(self.tiny)  # before any worker starts (see warm)
-            self.timings["warm_here"] = time.perf_counter() - clock
-            clock = time.perf_counter()
             self.check()
-            n = self.workers or os.cpu_count() or 1
-            # The workers inherit SIGINT ignored: a terminal's Ctrl-C, sent to the whole
-            # process group, acts only in this process, which closes the cluster (else each
-            # worker prints its own KeyboardInterrupt tracebacks).
-            with _sigint_ignored():
-                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                            dashboard_address=None,
-                                            silence_logs=logging.ERROR, env=self.env)
+            if self.starting is None:
+                n = self.workers or os.cpu_count() or 1
+                self.starting = _ClusterStart(n, self.env)
+                # The worker processes inherit SIGINT ignored: a terminal's Ctrl-C, sent to
+                # the whole process group, acts only in this process, which closes the
+                # cluster (else each worker prints its own KeyboardInterrupt tracebacks).
+                # Ignored here only until they are spawned: a Ctrl-C in that while is lost.
+                with _sigint_ignored():
+                    self.starting.start()
+                    self.starting.wait_spawned()
+            warm(self.tiny)  # meanwhile, before any worker loads the kernels (see warm)
+            self.timings["warm_here"] = time.perf_counter() - clock
+            self.check()
+            self.cluster = self.starting.result(self.check)
+            self.timings["cluster"] = self.starting.elapsed
             self.client = Client(self.cluster)
             self.client.register_plugin(_ignore_sigint_plugin())  # restarted workers too
         self.check()
@@ -573,19 +678,107 @@ class _client:
             where = f"the scheduler {self.scheduler}" if self.scheduler else "the cluster"
             raise ClusterError(f"no dask worker joined {where} within {WORKER_TIMEOUT:g} s; "
                                "start one with `dask worker ADDRESS`") from None
-        if self.given is None and not self.scheduler:
-            self.timings["cluster"] = time.perf_counter() - clock
-        clock = time.perf_counter()
-        self.client.run(warm, self.tiny)
-        self.timings["warm_workers"] = time.perf_counter() - clock
         self.check()
 
+    def close_soon(self) -> None:
+        """Start closing the local cluster in a thread (its workers exit meanwhile)."""
+        if self.given is None and self.closing is None:
+            self.closing = threading.Thread(target=self._close, name="avflow-close-cluster",
+                                            daemon=True)
+            self.closing.start()
+
+    def _close(self) -> None:
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
     def __exit__(self, *exc):
-        if self.given is None:
-            if self.client is not None:
-                self.client.close()
-            if self.cluster is not None:
-                self.cluster.close()
+        if self.given is not None:
+            return
+        if self.closing is not None:
+            self.closing.join()
+            return
+        if self.starting is not None and self.cluster is None:
+            self.cluster = self.starting.result()  # started meanwhile: closed below
+        self._close()
+
+
+class _ClusterStart(threading.Thread):
+    """``LocalCluster(...)`` in a thread: one single-threaded worker process per core."""
+
+    def __init__(self, n: int, env: dict):
+        super().__init__(name="avflow-start-cluster", daemon=True)
+        self.n, self.env = n, env
+        self.cluster = self.error = None
+        self.elapsed = math.nan
+        import multiprocessing
+
+        self._before = {p.pid for p in _children(multiprocessing)}
+
+    def run(self) -> None:
+        from distributed import LocalCluster
+
+        started = time.perf_counter()
+        try:
+            self.cluster = LocalCluster(
+                n_workers=self.n, threads_per_worker=1, processes=True,
+                dashboard_address=None, silence_logs=logging.ERROR, env=self.env,
+                preload=["avflow.ensemble.orchestrate"])  # dask_setup, in each worker
+        except BaseException as err:  # noqa: BLE001 - raised in the caller's thread
+            self.error = err
+        self.elapsed = time.perf_counter() - started
+
+    def wait_spawned(self, timeout: float = 30.0) -> None:
+        """Until the worker processes exist (or the start ended, or ``timeout`` s)."""
+        import multiprocessing
+
+        deadline = time.monotonic() + timeout
+        while self.is_alive() and time.monotonic() < deadline:
+            new = [p for p in _children(multiprocessing) if p.pid not in self._before]
+            if len(new) >= self.n:
+                return
+            time.sleep(0.01)
+
+    def result(self, check: Callable[[], None] = lambda: None):
+        """The cluster, once started (``check`` every 50 ms meanwhile), or its error."""
+        while self.is_alive():
+            check()
+            self.join(0.05)
+        if self.error is not None:
+            raise self.error
+        return self.cluster
+
+
+def _discard(starting: _ClusterStart) -> threading.Thread:
+    """Close a local cluster that was started for nothing, in a thread (started)."""
+    def close() -> None:
+        try:
+            cluster = starting.result()
+        except BaseException:  # noqa: BLE001 - it did not start: nothing to close
+            return
+        cluster.close()
+
+    closing = threading.Thread(target=close, name="avflow-discard-cluster", daemon=True)
+    closing.start()
+    return closing
+
+
+def _close_speculative(speculative: list) -> None:
+    """Close (or wait for the closing of) the cluster started while probing, if any."""
+    while speculative:
+        item = speculative.pop()
+        (_discard(item) if isinstance(item, _ClusterStart) else item).join()
+
+
+def _children(multiprocessing) -> list:
+    """This process's multiprocessing children (started from any thread)."""
+    for _ in range(100):
+        try:
+            return multiprocessing.active_children()
+        except RuntimeError:  # the set changed size while another thread started one
+            time.sleep(0.001)
+    return []
 
 
 def _connect(scheduler: str, timeout: float):
@@ -667,14 +860,16 @@ class _sigint_ignored:
 
 def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
                  record: Callable[[Member, dict], None],
-                 check: Callable[[], None] = lambda: None, timings: dict | None = None) -> None:
+                 check: Callable[[], None] = lambda: None, timings: dict | None = None,
+                 idle: Callable[[], bool] = lambda: False) -> None:
     """Submit the members in batches; results are recorded as they complete.
 
     A lost worker is the scheduler's business: its tasks are run again elsewhere (the member
     function is idempotent and writes atomically). A task that still errors (KilledWorker
     after repeated losses) marks its members failed. ``check`` is called every 50 ms while
-    waiting (it raises on a Ctrl-C noted meanwhile, see :class:`_deferred_sigint`). Every
-    member runs its :func:`cluster_scenario` (one thread unless it says otherwise).
+    waiting (it raises on a Ctrl-C noted meanwhile, see :class:`_deferred_sigint`); ``idle``
+    does a bit of work meanwhile (False: nothing left to do). Every member runs its
+    :func:`cluster_scenario` (one thread unless it says otherwise).
     """
     from distributed import as_completed
 
@@ -694,8 +889,10 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
         check()
         done = pending.next_batch(block=False)
         if not done:
-            time.sleep(0.05)
-        elif "first_result" not in timings:
+            if not idle():
+                time.sleep(0.05)
+            continue
+        if "first_result" not in timings:
             timings["first_result"] = time.perf_counter() - clock
         for future in done:
             _record_task(future, futures.pop(future), by_index, record)
@@ -736,6 +933,58 @@ def _path_analysis(ensemble: Ensemble, table, outdir: Path):
         print(f"avflow: warning: path analysis skipped: {' '.join(str(err).split())}",
               file=sys.stderr)
         return None
+
+
+def _path_task(settings, table, outdir: Path):
+    """:func:`_path_analysis` on a worker: ``(path_* columns, variables, warning)``."""
+    from avflow.output.path import PathSettings, ensemble_path
+
+    try:
+        ds = ensemble_path(table, outdir, PathSettings.from_scenario(settings))
+    except Exception as err:  # noqa: BLE001 - said by this process, which tries again
+        return None, None, " ".join(str(err).split())
+    return table[[c for c in table.columns if c.startswith("path_")]], ds, ""
+
+
+def _submit_path_analysis(client, ensemble: Ensemble, table, outdir: Path):
+    """The path analysis as a task (a future), or None where it cannot be submitted."""
+    try:
+        return client.submit(_path_task, ensemble.base.output.path, table, Path(outdir),
+                             pure=False, priority=10)
+    except Exception:  # noqa: BLE001 - made here then
+        return None
+
+
+def _path_result(future, check: Callable[[], None]) -> tuple[object, bool]:
+    """``((columns, variables), True)`` from the worker, or ``(None, False)``: then this
+    process makes it (and says why it cannot, as before)."""
+    if future is None:
+        return None, False
+    try:
+        while not future.done():
+            check()
+            time.sleep(0.02)
+        columns, ds, warning = future.result()
+    except KeyboardInterrupt:
+        raise
+    except Exception:  # noqa: BLE001 - a lost worker: made here
+        return None, False
+    finally:
+        future.release()
+    if warning:
+        return None, False
+    return (columns, ds), True
+
+
+def _merge_path_columns(table, made):
+    """The path_* columns made on a worker into ``table``; its ensemble.nc variables."""
+    if made is None:
+        return None
+    columns, ds = made
+    if columns is not None:
+        for name in columns.columns:
+            table[name] = columns[name].to_numpy()
+    return ds
 
 
 def member_table(ensemble: Ensemble, rows: dict[int, dict], outdir: Path):
