@@ -24,8 +24,9 @@ For each run, one row:
   cluster until its first worker is up, ``workers`` warming every worker, ``first`` from the
   first task submitted to the first result, ``runs`` from the first task to the last result,
   ``idle`` = runs - (sum of member times) / workers (dispatch, results, the tail),
-  ``write`` summary.csv, path analysis and ensemble.nc. Stages that overlap (the cluster
-  starting while this process warms or runs members) are each timed on their own clock.
+  ``write`` everything after the last result: the path analysis, summary.csv, ensemble.nc
+  and waiting for the cluster to close. Stages that overlap (the cluster starting while
+  this process warms or runs members) are each timed on their own clock.
 
 Timings mean something only on an otherwise idle machine: the load average is printed.
 """
@@ -81,7 +82,7 @@ def measure_here(dx: float, members: int, workers: int, batch: int | None, out: 
             "here": t.get("warm_here", t.get("probe", 0.0)), "cluster": t.get("cluster", 0.0),
             "warm": t.get("warm_workers", 0.0), "first": t.get("first_result", 0.0),
             "runs": runs, "idle": runs - member / k,
-            "write": t.get("tables", 0.0) + t.get("ensemble_nc", 0.0)}
+            "write": sum(t.get(k, 0.0) for k in ("path", "tables", "ensemble_nc", "close"))}
 
 
 def measure(args, workers: int, out: Path) -> dict:

@@ -280,7 +280,10 @@ TIMINGS = {
     "warm_workers": "every worker warmed (imports, Numba kernels) before the first task",
     "first_result": "from the first task submitted to the first result back",
     "runs": "from the first task submitted (or the first member here) to the last result",
-    "tables": "the member table, the path analysis and summary.csv",
+    "connect": "a client on the local cluster, once it is up (a worker plugin registered)",
+    "path": "the path analysis on a worker after the last result (the maps left read here)",
+    "close": "waiting at the end for the local cluster to close (it closes meanwhile)",
+    "tables": "the member table, the path analysis (here) and summary.csv",
     "ensemble_nc": "reading the member maps, building and writing ensemble.nc",
 }
 
@@ -402,18 +405,19 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
 
     # The member maps of ensemble.nc are read here as members finish, while the others
     # run (the parent has nothing else to do then): the end is assembled from memory.
-    maps = None
-    if write_outputs:
-        from avflow.ensemble.dataset import MemberMaps
-
-        maps = MemberMaps(len(ensemble.members), ensemble.base.terrain.kind == "profile")
+    maps = None  # MemberMaps, made when the first is read (xarray imported then, not before)
     unread = [m for m in ensemble.members if m.index in rows
               and rows[m.index]["status"] != "failed"]  # reused members, read when idle
 
     def read_one() -> bool:
         """Read one finished member's maps; False when none is left to read."""
-        if maps is None or not unread:
+        nonlocal maps
+        if not write_outputs or not unread:
             return False
+        if maps is None:
+            from avflow.ensemble.dataset import MemberMaps
+
+            maps = MemberMaps(len(ensemble.members), ensemble.base.terrain.kind == "profile")
         member = unread.pop(0)
         try:
             maps.add(member.index, member_path(outdir, member))
@@ -505,14 +509,17 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
                 wall = time.perf_counter() - started - startup
                 progress.close()
                 _clean_temporaries(folder)
-                # The path analysis reads every member file again: on a worker, while this
-                # process reads the maps left and builds ensemble.nc; then the cluster closes
-                # while the tables are written.
+                # The path analysis reads every member file again: on a worker (the other
+                # workers of a local cluster close meanwhile), while this process reads the
+                # maps left; then the cluster closes while the tables are written.
+                clock = time.perf_counter()
+                keep = cl.shrink_soon()  # the others close while it runs
                 path = _submit_path_analysis(cl.client, ensemble, member_table(
-                    ensemble, rows, outdir), outdir)
+                    ensemble, rows, outdir), outdir, keep)
                 while read_one():
                     sigint.check()
-                path_ds, path_ran = _path_result(path, sigint.check)
+                path_ds, path_ran = _path_result(cl.client, path, sigint.check)
+                timings["path"] = time.perf_counter() - clock
                 cl.close_soon()
                 table = finish(path_ds, path_ran)
                 sigint.check()  # a Ctrl-C while writing them: said once they are written
@@ -669,8 +676,10 @@ class _client:
             self.check()
             self.cluster = self.starting.result(self.check)
             self.timings["cluster"] = self.starting.elapsed
+            clock = time.perf_counter()
             self.client = Client(self.cluster)
             self.client.register_plugin(_ignore_sigint_plugin())  # restarted workers too
+            self.timings["connect"] = time.perf_counter() - clock
         self.check()
         try:
             self.client.wait_for_workers(1, timeout=WORKER_TIMEOUT)
@@ -679,6 +688,19 @@ class _client:
             raise ClusterError(f"no dask worker joined {where} within {WORKER_TIMEOUT:g} s; "
                                "start one with `dask worker ADDRESS`") from None
         self.check()
+
+    def shrink_soon(self) -> str | None:
+        """A local cluster down to its first worker, the others closing in the background:
+        that worker's address (None elsewhere: a given client or scheduler keeps all)."""
+        if self.cluster is None:
+            return None
+        try:
+            workers = self.client.scheduler_info(n_workers=-1)["workers"]
+            first = min(workers, key=lambda a: str(workers[a].get("name")))
+            self.cluster.scale(1)  # SpecCluster keeps the first named worker: "0"
+        except Exception:  # noqa: BLE001 - all of it closes at the end anyway
+            return None
+        return first
 
     def close_soon(self) -> None:
         """Start closing the local cluster in a thread (its workers exit meanwhile)."""
@@ -697,7 +719,9 @@ class _client:
         if self.given is not None:
             return
         if self.closing is not None:
+            clock = time.perf_counter()
             self.closing.join()
+            self.timings["close"] = time.perf_counter() - clock
             return
         if self.starting is not None and self.cluster is None:
             self.cluster = self.starting.result()  # started meanwhile: closed below
@@ -946,24 +970,32 @@ def _path_task(settings, table, outdir: Path):
     return table[[c for c in table.columns if c.startswith("path_")]], ds, ""
 
 
-def _submit_path_analysis(client, ensemble: Ensemble, table, outdir: Path):
-    """The path analysis as a task (a future), or None where it cannot be submitted."""
+def _submit_path_analysis(client, ensemble: Ensemble, table, outdir: Path,
+                          worker: str | None = None):
+    """The path analysis as a task (a future; on ``worker`` if it is still there), or None
+    where it cannot be submitted."""
     try:
         return client.submit(_path_task, ensemble.base.output.path, table, Path(outdir),
-                             pure=False, priority=10)
+                             pure=False, priority=10, workers=[worker] if worker else None,
+                             allow_other_workers=True)
     except Exception:  # noqa: BLE001 - made here then
         return None
 
 
-def _path_result(future, check: Callable[[], None]) -> tuple[object, bool]:
+def _path_result(client, future, check: Callable[[], None]) -> tuple[object, bool]:
     """``((columns, variables), True)`` from the worker, or ``(None, False)``: then this
-    process makes it (and says why it cannot, as before)."""
+    process makes it (and says why it cannot, as before), also when no worker is left."""
     if future is None:
         return None, False
     try:
+        asked = time.monotonic()
         while not future.done():
             check()
             time.sleep(0.02)
+            if time.monotonic() - asked > 1.0:
+                asked = time.monotonic()
+                if future.status == "pending" and not client.nthreads():
+                    return None, False
         columns, ds, warning = future.result()
     except KeyboardInterrupt:
         raise
