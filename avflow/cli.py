@@ -265,9 +265,19 @@ def _cmd_ensemble(args) -> int:
     from avflow.ensemble.spec import parse_overrides
 
     overrides = parse_overrides(args.set)
-    # every check before any member starts
-    ensemble = load_ensemble(args.ensemble, overrides=overrides)
-    _check_members_fit(ensemble, args.max_memory)
+    # --workers N: the local cluster starts now, while the ensemble file is checked (closed
+    # again if the file is refused); run_ensemble uses it, or closes it if it does not fit
+    from avflow.ensemble.orchestrate import close_started, start_local_cluster
+
+    starting = start_local_cluster(args.workers) if args.workers and not args.scheduler \
+        else None
+    try:
+        # every check before any member starts
+        ensemble = load_ensemble(args.ensemble, overrides=overrides)
+        _check_members_fit(ensemble, args.max_memory)
+    except BaseException:
+        close_started(starting)
+        raise
     out = Path(args.output)
     say = (lambda *a, **k: None) if args.quiet else print
     say(f"{ensemble.name}: {len(ensemble.members)} members -> {out}")
@@ -275,10 +285,13 @@ def _cmd_ensemble(args) -> int:
     try:
         outcome = run_ensemble(ensemble, out, scheduler=args.scheduler, workers=args.workers,
                                batch=args.batch, connect_timeout=args.connect_timeout,
-                               progress=progress)
+                               progress=progress, starting=starting)
     except Interrupted as err:  # the cluster is closed; say what finished
         print(f"avflow: {err}", file=sys.stderr)
         return 130
+    finally:
+        if starting is not None:
+            close_started(starting)  # closed by now, unless run_ensemble failed early
     # The time of the progress line: from the start to the last member (tables not included)
     say(f"{outcome.ran} run, {outcome.reused} reused, {outcome.failed} failed "
         f"({outcome.elapsed:.1f} s, {outcome.where}); wrote {out / 'ensemble.nc'} and "

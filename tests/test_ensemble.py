@@ -303,6 +303,22 @@ def test_bad_ensemble_file_one_clear_error_before_any_member(case, tmp_path, cap
         load_ensemble(path)
 
 
+def test_bad_ensemble_file_with_workers_closes_the_cluster_started_meanwhile(tmp_path,
+                                                                            capsys):
+    """--workers N starts the local cluster while the file is checked: a refused file is
+    still one line, exit 2, and the cluster is gone."""
+    import multiprocessing
+
+    body, field, message = next(iter(BAD.values()))
+    base = coarse_base(tmp_path)
+    path = write(tmp_path, f"name: bad\nbase: {base.name}\n{body}", "bad_ensemble.yaml")
+    out = tmp_path / "out"
+    assert main(["ensemble", str(path), "-o", str(out), "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists() and not multiprocessing.active_children()
+
+
 def test_missing_base_is_an_error_on_the_ensemble_file(tmp_path, capsys):
     path = write(tmp_path, "base: nope.yaml\nvary:\n  rheology.delta_deg: [15.0]\n")
     assert main(["ensemble", str(path), "-o", str(tmp_path / "out")]) == 2

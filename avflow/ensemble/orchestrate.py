@@ -361,7 +361,8 @@ def auto_batch(n_members: int, n_workers: int) -> int:
 def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: str | None = None,
                  workers: int | None = None, batch: int | None = None,
                  progress: ProgressLine | None = None, write_outputs: bool = True,
-                 client=None, connect_timeout: float = CONNECT_TIMEOUT) -> Outcome:
+                 client=None, connect_timeout: float = CONNECT_TIMEOUT,
+                 starting: _ClusterStart | None = None) -> Outcome:
     """Run every member not already done, then write summary.csv and ensemble.nc.
 
     ``scheduler``: address (``tcp://host:port``) or scheduler file of a running cluster,
@@ -376,6 +377,8 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     member runs here, timed, and the others follow it here unless a local cluster of one
     worker per core would finish them sooner, its start (:data:`CLUSTER_START_S`) included.
     A resumed run keeps in ``summary.csv`` the ``member_time`` of the members it reuses.
+    ``starting``: a local cluster started earlier (:func:`start_local_cluster`, by the
+    command line while it checks the ensemble file), used if it fits, closed in any case.
     """
     outdir = Path(outdir)
     folder = outdir / "members"
@@ -470,13 +473,18 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     # thread pools); the nanny already sets OMP/MKL/OPENBLAS_NUM_THREADS=1 (dask's default).
     one_thread = {getattr(m.scenario.numerics, "threads", 1) or 1 for m in todo}
     env = {"NUMBA_NUM_THREADS": "1"} if one_thread == {1} else {}
-    speculative: list[_ClusterStart] = []  # a local cluster started while probing
+    # a local cluster started earlier or while probing: used if it fits, else closed
+    speculative: list[_ClusterStart] = [starting] if starting is not None else []
 
     def speculate() -> None:
-        speculative.append(_ClusterStart(os.cpu_count() or 1, env))
-        with _sigint_ignored():  # see _client._start
-            speculative[0].start()
-            speculative[0].wait_spawned()
+        if not speculative:
+            speculative.append(start_local_cluster(None, env))
+
+    def started_fits(n: int | None) -> _ClusterStart | None:
+        if speculative and isinstance(speculative[-1], _ClusterStart) and \
+                speculative[-1].n == (n or os.cpu_count() or 1) and speculative[-1].env == env:
+            return speculative.pop()
+        return None
 
     try:
         started = time.perf_counter()
@@ -499,7 +507,8 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
             with _deferred_sigint() as sigint, _client(
                     scheduler, workers, client, tiny_scenario_yaml(ensemble, one_thread=True),
                     connect_timeout, sigint.check, timings, env,
-                    speculative.pop() if speculative else None) as cl:
+                    started_fits(workers) if scheduler is None and client is None
+                    else None) as cl:
                 n_workers = len(cl.client.scheduler_info(n_workers=-1)["workers"]) if hasattr(
                     cl.client, "scheduler_info") else 0
                 startup = time.perf_counter() - t0
@@ -662,15 +671,11 @@ class _client:
         else:
             self.check()
             if self.starting is None:
-                n = self.workers or os.cpu_count() or 1
-                self.starting = _ClusterStart(n, self.env)
                 # The worker processes inherit SIGINT ignored: a terminal's Ctrl-C, sent to
                 # the whole process group, acts only in this process, which closes the
                 # cluster (else each worker prints its own KeyboardInterrupt tracebacks).
                 # Ignored here only until they are spawned: a Ctrl-C in that while is lost.
-                with _sigint_ignored():
-                    self.starting.start()
-                    self.starting.wait_spawned()
+                self.starting = start_local_cluster(self.workers, self.env)
             warm(self.tiny)  # meanwhile, before any worker loads the kernels (see warm)
             self.timings["warm_here"] = time.perf_counter() - clock
             self.check()
@@ -772,6 +777,26 @@ class _ClusterStart(threading.Thread):
         if self.error is not None:
             raise self.error
         return self.cluster
+
+
+def start_local_cluster(workers: int | None = None, env: dict | None = None
+                        ) -> _ClusterStart:
+    """Start a local cluster of ``workers`` (default: one per core) single-threaded worker
+    processes in a thread, for :func:`run_ensemble` (``starting=``); ``env``: of its
+    workers (default: ``NUMBA_NUM_THREADS=1``, as members on one thread want). SIGINT is
+    ignored here until the workers are spawned (they keep ignoring it, see _client)."""
+    n = workers or os.cpu_count() or 1
+    starting = _ClusterStart(n, {"NUMBA_NUM_THREADS": "1"} if env is None else env)
+    with _sigint_ignored():
+        starting.start()
+        starting.wait_spawned()
+    return starting
+
+
+def close_started(starting: _ClusterStart | None) -> None:
+    """Close a cluster from :func:`start_local_cluster` that no ensemble used."""
+    if starting is not None:
+        _discard(starting).join()
 
 
 def _discard(starting: _ClusterStart) -> threading.Thread:
