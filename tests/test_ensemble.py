@@ -405,6 +405,29 @@ vary:
     pd.testing.assert_frame_equal(a.drop(columns=list(timings)), b.drop(columns=list(timings)))
 
 
+def test_members_keep_their_own_threads_on_a_cluster(tmp_path):
+    """A base scenario that sets numerics.threads keeps it on the cluster; a cluster started
+    earlier for single-threaded members (NUMBA_NUM_THREADS=1) does not fit and is closed."""
+    import multiprocessing
+
+    from avflow.ensemble.orchestrate import start_local_cluster
+
+    text = (SCENARIOS / "plane_box_2d.yaml").read_text().replace("dx: 10.0", "dx: 25.0")
+    (tmp_path / "plane.yaml").write_text(text + "numerics: {threads: 2}\n")
+    ens = load_ensemble(write(tmp_path, """
+base: plane.yaml
+vary:
+  rheology.delta_deg: [18.0, 22.0]
+"""))
+    assert ens.members[0].scenario.numerics.threads == 2
+    outcome = run_ensemble(ens, tmp_path / "out", workers=1, starting=start_local_cluster(1))
+    assert outcome.ok and outcome.where == "local cluster"
+    for m in ens.members:
+        with xr.open_dataset(tmp_path / "out" / "members" / f"{m.scenario_hash}.nc") as ds:
+            assert yaml.safe_load(ds.attrs["scenario"])["numerics"]["threads"] == 2
+    assert not multiprocessing.active_children()
+
+
 @pytest.mark.parametrize("start_s, where", [(1000.0, "here"), (0.0, "local cluster")])
 def test_cluster_started_while_the_first_member_runs(start_s, where, tmp_path, monkeypatch):
     """On SPECULATE_MIN_CORES cores or more the local cluster starts while the first member

@@ -481,9 +481,13 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
             speculative.append(start_local_cluster(None, env))
 
     def started_fits(n: int | None) -> _ClusterStart | None:
-        if speculative and isinstance(speculative[-1], _ClusterStart) and \
-                speculative[-1].n == (n or os.cpu_count() or 1) and speculative[-1].env == env:
+        """The cluster started earlier if it has the workers wanted, else None (it closes
+        meanwhile)."""
+        if not speculative or not isinstance(speculative[-1], _ClusterStart):
+            return None
+        if speculative[-1].n == (n or os.cpu_count() or 1) and speculative[-1].env == env:
             return speculative.pop()
+        speculative.append(_discard(speculative.pop()))
         return None
 
     try:
