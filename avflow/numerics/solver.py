@@ -230,8 +230,12 @@ class Solver:
 
         layout, c = self._grid, self._g_cells
         threads = self.threads_used()
+        chunk = None
         if threads > 1:
             numba.set_num_threads(threads)
+            # blocks handed out one at a time, not split evenly up front: a thread that the
+            # system deschedules (a busy machine) then holds up one block, not its share
+            chunk = numba.set_parallel_chunksize(1)
         names = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
         if layout.compact:
             arrays = [getattr(state, name) for name in names]
@@ -251,6 +255,8 @@ class Solver:
             float(self.h_zero), float(self.cfl), float(t_target), int(max_steps),
             float(stop_volume), float(stop_kinetic), peak_h, peak_speed, arrival, last_moved,
             state.stats, *self._parallel_from)
+        if chunk is not None:
+            numba.set_parallel_chunksize(chunk)
         if not layout.compact:
             for name, full in zip(names, arrays):
                 getattr(state, name)[:] = full[layout.place]

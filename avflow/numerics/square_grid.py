@@ -594,7 +594,7 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
             last = True
         r0, r1, n_cells = _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo,
                                          prev_hi, lo, hi, band0, band1)
-        n_blocks = min(4 * threads, (r1 - r0 + 1) // min_block_rows)
+        n_blocks = min(8 * threads, (r1 - r0 + 1) // min_block_rows)
         if threads == 1 or n_cells < min_parallel_cells:
             n_blocks = 1
         ok = False
@@ -607,7 +607,7 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             if r1 >= r0:
-                if n_blocks > 1:  # blocks of at least 16 rows, a few per thread
+                if n_blocks > 1:  # blocks of at least 16 rows, 8 per thread
                     sweep_parallel(n_blocks, nx, ny, valid, face_order, x_code, x_frame,
                                    x_length, y_code, y_frame, y_length, cell_area, inv_area,
                                    cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu,
