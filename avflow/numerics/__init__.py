@@ -3,6 +3,58 @@
 - :mod:`avflow.numerics.kinetic`: rectangular-Maxwellian half fluxes (seed eqs. 28-41);
 - :mod:`avflow.numerics.rheology`: friction laws behind one signature (eqs. 15, 42-50);
 - :mod:`avflow.numerics.kernels`: the Numba sweeps of one step and the time loop (eqs. 26-56);
+- :mod:`avflow.numerics.square_grid`: the structured square-grid kernel, on Numba's threads;
 - :mod:`avflow.numerics.solver`: :class:`~avflow.numerics.solver.Solver` and its state;
 - :mod:`avflow.numerics.analytic`: exact dam-break solutions to test against.
+
+Numba's cache of compiled kernels (``cache=True``) checks only the file that defines a
+function, not the functions it inlines from other files: after a change to ``kinetic.py``
+alone, the time loops of ``kernels.py`` came back from the cache with the old half fluxes.
+So the cache goes to a folder named after a digest of every file the kernels are compiled
+from (:func:`kernel_cache_dir`), unless ``NUMBA_CACHE_DIR`` is set: a changed file, a new
+version, is a new folder, compiled afresh.
 """
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+#: What the kernels are compiled from: these modules, and the constants Numba freezes into
+#: them from the terrain (boundary and face codes).
+_KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/rheology.py", "numerics/kernels.py",
+                   "numerics/reconstruction.py", "numerics/square_grid.py",
+                   "terrain/mesh.py", "terrain/squaregrid.py")
+
+
+def kernel_cache_dir() -> Path:
+    """``avflow/numerics/__pycache__/kernels-<digest>``: the digest of the kernels' sources."""
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for name in _KERNEL_SOURCES:
+        digest.update(name.encode())
+        digest.update((package / name).read_bytes())
+    return Path(__file__).resolve().parent / "__pycache__" / f"kernels-{digest.hexdigest()[:16]}"
+
+
+def _import_kernels() -> None:
+    """Import the kernel modules with Numba's cache folder set to :func:`kernel_cache_dir`
+    (where their dispatchers look is fixed when they are decorated), then put the setting
+    back: other packages' cached functions in the same process keep their own folders."""
+    from numba.core import config
+
+    saved = config.CACHE_DIR
+    if not os.environ.get("NUMBA_CACHE_DIR"):  # else the user's choice stands
+        try:
+            config.CACHE_DIR = str(kernel_cache_dir())
+        except OSError:  # sources unreadable (a zipped install): Numba's own locations
+            pass
+    try:
+        from avflow.numerics import (kernels, kinetic, reconstruction,  # noqa: F401
+                                     rheology, square_grid)
+    finally:
+        config.CACHE_DIR = saved
+
+
+_import_kernels()

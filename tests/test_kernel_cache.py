@@ -1,0 +1,37 @@
+"""Numba's cache of the kernels follows every file they are compiled from."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+import avflow.numerics as numerics
+from avflow.numerics import kernels, kinetic, reconstruction, rheology, square_grid
+
+
+def test_a_change_to_any_kernel_source_is_a_new_cache_folder(monkeypatch):
+    """Numba checks only the defining file: a change to kinetic.py alone left kernels.py's
+    time loops in the cache with the old half fluxes inlined. The folder is named after all
+    of them, the terrain's frozen codes included."""
+    first = numerics.kernel_cache_dir()
+    real = Path.read_bytes
+    for changed in ("kinetic.py", "rheology.py", "squaregrid.py", "mesh.py"):
+        monkeypatch.setattr(Path, "read_bytes",
+                            lambda self, c=changed: real(self) + (b"#" if self.name == c else b""))
+        assert numerics.kernel_cache_dir() != first, changed
+    monkeypatch.setattr(Path, "read_bytes", real)
+    assert numerics.kernel_cache_dir() == first
+
+
+def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
+    from numba.core import config
+
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        pytest.skip("NUMBA_CACHE_DIR is set: the kernels use the user's folder")
+    folder = numerics.kernel_cache_dir()
+    for dispatcher in (kernels.advance, kernels.step_faces, kernels.step_profile,
+                       kinetic.half_fluxes, rheology.friction, reconstruction.reconstruct_faces,
+                       square_grid.advance_grid, square_grid.sweep_serial,
+                       square_grid.sweep_parallel):
+        assert Path(dispatcher._cache._cache_path).is_relative_to(folder), dispatcher
+    assert config.CACHE_DIR != str(folder)  # other packages' caches stay where Numba puts them
