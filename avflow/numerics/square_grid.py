@@ -41,10 +41,10 @@ from avflow.numerics.kernels import (DRY, FAILED, MAX_RETRIES, MAX_STEPS,
                                      REACHED_TARGET, STOPPED, ST_CLAMPED, ST_DT_LIMIT,
                                      ST_DT_MAX, ST_DT_MIN, ST_FILM, ST_KINETIC, ST_KINETIC_PEAK,
                                      ST_MOVING, ST_OUTFLOW, ST_RETRIES, ST_STEPS, ST_TIME, TRANSPORT_EPS,
-                                     _dirac_face, _final_momentum,
+                                     _dirac_face, _emitted, _final_momentum,
                                      _limit, _observe, _open_mass, _speed,
                                      _trial_momentum)
-from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out, sound_speed
+from avflow.numerics.kinetic import half_flux_in, half_flux_out
 from avflow.terrain.squaregrid import (CANONICAL_ORDER, HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -70,29 +70,13 @@ def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
     thickness and velocity it emits (zero at or below h_zero), sound speed c, ``sqrt(3) c``,
     ``k / 2`` and ``k / 3`` with ``k = c / (sqrt(3) g cos)`` (the factors of the half fluxes,
     :func:`avflow.numerics.kinetic.half_fluxes`, computed there per face side), and the speed
-    ``|q| / h`` at time n. The same operations as the face kernel's, so the same bits."""
+    ``|q| / h`` at time n: the face kernel's :func:`~avflow.numerics.kernels._emitted`, so the
+    same bits."""
     for c in range(c0, c1 + 1):
         i = base + c
-        hc = h[i]
-        out[c, E_SPEED] = _speed(hc, hu[i], hv[i])
-        if hc <= h_zero:
-            out[c, E_H] = 0.0
-            out[c, E_U1] = 0.0
-            out[c, E_U2] = 0.0
-            out[c, E_C] = 0.0
-            out[c, E_S] = 0.0
-            out[c, E_KH] = 0.0
-            out[c, E_K3] = 0.0
-        else:
-            sc = sound_speed(hc, g * gamma_z[i])
-            k = sc * density[i]
-            out[c, E_H] = hc
-            out[c, E_U1] = hu[i] / hc
-            out[c, E_U2] = hv[i] / hc
-            out[c, E_C] = sc
-            out[c, E_S] = SQRT3 * sc
-            out[c, E_KH] = 0.5 * k
-            out[c, E_K3] = k / 3.0
+        (out[c, E_H], out[c, E_U1], out[c, E_U2], out[c, E_C], out[c, E_S], out[c, E_KH],
+         out[c, E_K3]) = _emitted(h[i], hu[i], hv[i], h_zero, g * gamma_z[i], density[i])
+        out[c, E_SPEED] = _speed(h[i], hu[i], hv[i])
 
 
 @njit(error_model="numpy", cache=True, inline="always")
