@@ -792,6 +792,57 @@ def _in_index_order(items, count, stamps, stamp):
 
 
 @njit(error_model="numpy", cache=True)
+def step_size(stats, cfl, t, t_target):
+    """The next step of a time loop: ``cfl`` times the state's CFL limit (the whole interval
+    when nothing moves), cut to land on ``t_target``. Returns ``(dt, dt_decide, last)``:
+    ``dt_decide`` is the uncut step, with which the Coulomb threshold is always tested (the
+    decision depends on the state alone), ``last`` whether the step lands on ``t_target``."""
+    dt_max = stats[ST_DT_LIMIT]
+    dt = cfl * dt_max if dt_max < np.inf else t_target - t
+    if t + dt >= t_target:
+        return t_target - t, dt, True
+    return dt, dt, False
+
+
+@njit(error_model="numpy", cache=True)
+def record_step(stats, dt, dt_limit, moving, film, kinetic, clamped, outflow, stop_volume,
+                stop_kinetic, steps, max_steps):
+    """A finished step into ``stats`` (the ``ST_*`` slots; ``kinetic`` is the sum of
+    h A |u|^2), then the stop rules: STOPPED (moving volume under ``stop_volume``, or kinetic
+    energy at most ``stop_kinetic`` times its peak; negative: rule off), MAX_STEPS, or
+    REACHED_TARGET to go on. ``steps``: taken in this call so far."""
+    stats[ST_DT_LIMIT] = dt_limit
+    stats[ST_MOVING] = moving
+    stats[ST_FILM] = film
+    stats[ST_KINETIC] = 0.5 * kinetic
+    stats[ST_KINETIC_PEAK] = max(stats[ST_KINETIC_PEAK], 0.5 * kinetic)
+    stats[ST_CLAMPED] += clamped
+    stats[ST_OUTFLOW] += outflow
+    stats[ST_DT_MIN] = min(stats[ST_DT_MIN], dt)
+    stats[ST_DT_MAX] = max(stats[ST_DT_MAX], dt)
+    if stop_volume >= 0.0 and moving < stop_volume:
+        return STOPPED
+    if stop_kinetic >= 0.0 and kinetic <= stop_kinetic * (2.0 * stats[ST_KINETIC_PEAK]):
+        return STOPPED
+    if stats[ST_STEPS] + steps >= max_steps:
+        return MAX_STEPS
+    return REACHED_TARGET
+
+
+@njit(error_model="numpy", cache=True)
+def end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv):
+    """The end of a time loop that swaps two buffers each step: the newest state back in
+    ``(h, hu, hv)`` when it sits in the work buffers (an odd number of steps), and the
+    time and step count into ``stats``."""
+    if steps % 2 == 1:
+        h[:] = cur_h
+        hu[:] = cur_hu
+        hv[:] = cur_hv
+    stats[ST_TIME] = t
+    stats[ST_STEPS] += steps
+
+
+@njit(error_model="numpy", cache=True)
 def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
             gamma_x, gamma_y, gamma_z, curvature,
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
@@ -855,13 +906,7 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             n_wet += 1
     n_previous = 0
     while t < t_target:
-        dt_max = stats[ST_DT_LIMIT]
-        dt = cfl * dt_max if dt_max < np.inf else t_target - t
-        dt_decide = dt  # the threshold is always tested with the state's own CFL step
-        last = False
-        if t + dt >= t_target:
-            dt = t_target - t
-            last = True
+        dt, dt_decide, last = step_size(stats, cfl, t, t_target)
         ok = False
         if not structured:
             for c in range(n_previous):
@@ -990,28 +1035,9 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv
-        stats[ST_DT_LIMIT] = lim
-        stats[ST_MOVING] = moving
-        stats[ST_FILM] = film
-        stats[ST_KINETIC] = 0.5 * kinetic
-        stats[ST_KINETIC_PEAK] = max(stats[ST_KINETIC_PEAK], 0.5 * kinetic)
-        stats[ST_CLAMPED] += clamped
-        stats[ST_OUTFLOW] += out
-        stats[ST_DT_MIN] = min(stats[ST_DT_MIN], dt)
-        stats[ST_DT_MAX] = max(stats[ST_DT_MAX], dt)
-        if stop_volume >= 0.0 and moving < stop_volume:
-            status = STOPPED
+        status = record_step(stats, dt, lim, moving, film, kinetic, clamped, out, stop_volume,
+                             stop_kinetic, steps, max_steps)
+        if status != REACHED_TARGET:
             break
-        if stop_kinetic >= 0.0 and kinetic <= stop_kinetic * (2.0 * stats[ST_KINETIC_PEAK]):
-            status = STOPPED
-            break
-        if stats[ST_STEPS] + steps >= max_steps:
-            status = MAX_STEPS
-            break
-    if steps % 2 == 1:  # the newest state sits in the work buffers
-        h[:] = cur_h
-        hu[:] = cur_hu
-        hv[:] = cur_hv
-    stats[ST_TIME] = t
-    stats[ST_STEPS] += steps
+    end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv)
     return status

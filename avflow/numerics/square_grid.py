@@ -37,13 +37,10 @@ import types
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.kernels import (DRY, FAILED, MAX_RETRIES, MAX_STEPS,
-                                     REACHED_TARGET, STOPPED, ST_CLAMPED, ST_DT_LIMIT,
-                                     ST_DT_MAX, ST_DT_MIN, ST_FILM, ST_KINETIC, ST_KINETIC_PEAK,
-                                     ST_MOVING, ST_OUTFLOW, ST_RETRIES, ST_STEPS, ST_TIME, TRANSPORT_EPS,
-                                     _dirac_face, _emitted, _final_momentum,
-                                     _limit, _observe, _open_mass, _speed,
-                                     _trial_momentum)
+from avflow.numerics.kernels import (DRY, FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
+                                     ST_TIME, TRANSPORT_EPS, _dirac_face, _emitted,
+                                     _final_momentum, _limit, _observe, _open_mass, _speed,
+                                     _trial_momentum, end_loop, record_step, step_size)
 from avflow.numerics.kinetic import half_flux_in, half_flux_out
 from avflow.terrain.squaregrid import (CANONICAL_ORDER, HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
@@ -569,13 +566,7 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     band0, band1 = 0, ny - 1  # the first step looks at every row
     while t < t_target:
-        dt_max = stats[ST_DT_LIMIT]
-        dt = cfl * dt_max if dt_max < np.inf else t_target - t
-        dt_decide = dt
-        last = False
-        if t + dt >= t_target:
-            dt = t_target - t
-            last = True
+        dt, dt_decide, last = step_size(stats, cfl, t, t_target)
         r0, r1, n_cells = _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo,
                                          prev_hi, lo, hi, band0, band1)
         n_blocks = min(8 * threads, (r1 - r0 + 1) // min_block_rows)
@@ -639,28 +630,9 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv
-        stats[ST_DT_LIMIT] = _limit(inv_lim)
-        stats[ST_MOVING] = moving
-        stats[ST_FILM] = film
-        stats[ST_KINETIC] = 0.5 * kinetic
-        stats[ST_KINETIC_PEAK] = max(stats[ST_KINETIC_PEAK], 0.5 * kinetic)
-        stats[ST_CLAMPED] += clamped
-        stats[ST_OUTFLOW] += outflow
-        stats[ST_DT_MIN] = min(stats[ST_DT_MIN], dt)
-        stats[ST_DT_MAX] = max(stats[ST_DT_MAX], dt)
-        if stop_volume >= 0.0 and moving < stop_volume:
-            status = STOPPED
+        status = record_step(stats, dt, _limit(inv_lim), moving, film, kinetic, clamped, outflow,
+                             stop_volume, stop_kinetic, steps, max_steps)
+        if status != REACHED_TARGET:
             break
-        if stop_kinetic >= 0.0 and kinetic <= stop_kinetic * (2.0 * stats[ST_KINETIC_PEAK]):
-            status = STOPPED
-            break
-        if stats[ST_STEPS] + steps >= max_steps:
-            status = MAX_STEPS
-            break
-    if steps % 2 == 1:  # the newest state sits in the work buffers
-        h[:] = cur_h
-        hu[:] = cur_hu
-        hv[:] = cur_hv
-    stats[ST_TIME] = t
-    stats[ST_STEPS] += steps
+    end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv)
     return status
