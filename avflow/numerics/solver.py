@@ -133,6 +133,10 @@ class Solver:
         n = m.n_cells
         self._grid = None
         self._released = False
+        # Per-cell factors derived from the geometry once: P / (2 A) for the CFL limit
+        # (eq. 41) and 1 / (sqrt(3) g cos(theta)) for the kinetic particle density.
+        self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
+        self._density = density_factor(self.gravity * self.terrain.gamma_z)
         if self.kernel != "faces":
             layout = square_grid(self.terrain) if self.order == 1 else None
             if layout is None and self.kernel == "grid":
@@ -148,10 +152,6 @@ class Solver:
         # Per face: mass flux, then the momentum it brings to each side (x, y of side i,
         # x, y of side j), so a Dirac face can take back what a dry side must not receive.
         self._flux = np.zeros((m.n_faces, 5))
-        # Per-cell factors derived from the geometry once: P / (2 A) for the CFL limit
-        # (eq. 41) and 1 / (sqrt(3) g cos(theta)) for the kinetic particle density.
-        self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
-        self._density = density_factor(self.gravity * self.terrain.gamma_z)
         # Faces of every cell (CSR), for the active lists of the face kernel.
         fc = m.face_cells
         owners = np.concatenate([fc[:, 0], fc[fc[:, 1] >= 0, 1]])
@@ -175,18 +175,16 @@ class Solver:
         #: (cells, rows per block) from which a step runs on threads (tests lower them)
         self._parallel_from = (MIN_PARALLEL_CELLS, MIN_BLOCK_ROWS)
         t, m = self.terrain, self.terrain.mesh
-        g = self.gravity
         full = layout.full
         self._g_cells = {
             "cell_area": full(m.cell_area, 1.0),
             "inv_area": full(1.0 / m.cell_area, 1.0),
-            "cfl_factor": full(m.cell_perimeter / (2.0 * m.cell_area)),
-            "density": full(density_factor(g * t.gamma_z)),
+            "cfl_factor": full(self._cfl_factor),
+            "density": full(self._density),
             "gamma_x": full(t.gamma_x), "gamma_y": full(t.gamma_y), "gamma_z": full(t.gamma_z),
             "curvature": full(t.curvature),
         }
         n = layout.n_places
-        self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
         self._h_work, self._hu_work, self._hv_work = np.zeros(n), np.zeros(n), np.zeros(n)
         self._g_flag = np.zeros(n, dtype=np.uint8)
         if not layout.compact:  # state and observers on the full grid, copied in and out
