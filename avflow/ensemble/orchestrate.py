@@ -686,7 +686,10 @@ class _client:
             self.cluster = self.starting.result(self.check)
             self.timings["cluster"] = self.starting.elapsed
             clock = time.perf_counter()
-            self.client = Client(self.cluster)
+            # not the process's default scheduler: this process's file I/O (member maps,
+            # ensemble.nc) would then take a distributed.Lock through xarray, and fail with
+            # "ConnectionPool is closed" once the cluster closes beside the writes
+            self.client = Client(self.cluster, set_as_default=False)
             self.client.register_plugin(_ignore_sigint_plugin())  # restarted workers too
             self.timings["connect"] = time.perf_counter() - clock
         self.check()
@@ -843,9 +846,10 @@ def _connect(scheduler: str, timeout: float):
                                                    or os.sep in scheduler):
         raise ClusterError(f"--scheduler {scheduler}: no such scheduler file")
     try:
+        # not the default scheduler, as for the local cluster (see _client.__enter__)
         if is_file:
-            return Client(scheduler_file=scheduler, timeout=f"{timeout}s")
-        return Client(scheduler, timeout=f"{timeout}s")
+            return Client(scheduler_file=scheduler, timeout=f"{timeout}s", set_as_default=False)
+        return Client(scheduler, timeout=f"{timeout}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError) as err:
         detail = " ".join(str(err).split()) or type(err).__name__
         raise ClusterError(f"--scheduler {scheduler}: cannot connect within {timeout:g} s "
@@ -937,7 +941,7 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
         future = client.submit(run_batch, items, True, key=key, pure=False, retries=1)
         futures[future] = chunk
         check()
-    pending = as_completed(list(futures), raise_errors=False)
+    pending = as_completed(list(futures), loop=client.loop, raise_errors=False)
     while not pending.is_empty():
         check()
         done = pending.next_batch(block=False)
