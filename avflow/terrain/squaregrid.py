@@ -61,12 +61,13 @@ class SquareGrid:
     #: (ny * nx,) uint8: the order code of each cell's faces (:data:`CANONICAL_ORDER` mostly)
     face_order: np.ndarray
     x_code: np.ndarray  #: (ny, nx + 1) int8 face codes
-    #: (ny, nx + 1, 4): the face normal seen from each side ``(n0x, n0y, n1x, n1y)`` (the
-    #: face kernel's frame rows 0; rows 1, the tangents, follow from n and the sign bits)
+    #: (ny, 4, nx + 1): the face normal seen from each side ``(n0x, n0y, n1x, n1y)`` (the
+    #: face kernel's frame rows 0; rows 1, the tangents, follow from n and the sign bits),
+    #: one contiguous line per component and row: the kernel's face loops vectorise on it
     x_frame: np.ndarray
     x_length: np.ndarray  #: (ny, nx + 1) m
     y_code: np.ndarray  #: (ny + 1, nx) int8
-    y_frame: np.ndarray  #: (ny + 1, nx, 4)
+    y_frame: np.ndarray  #: (ny + 1, 4, nx)
     y_length: np.ndarray  #: (ny + 1, nx) m
 
     @property
@@ -104,8 +105,8 @@ def square_grid(terrain) -> SquareGrid | None:
     ri, ci = row[i], col[i]
     x_code = np.zeros((ny, nx + 1), dtype=np.int8)
     y_code = np.zeros((ny + 1, nx), dtype=np.int8)
-    x_frame = np.zeros((ny, nx + 1, 4))
-    y_frame = np.zeros((ny + 1, nx, 4))
+    x_frame = np.zeros((ny, 4, nx + 1))
+    y_frame = np.zeros((ny + 1, 4, nx))
     x_length = np.zeros((ny, nx + 1))
     y_length = np.zeros((ny + 1, nx))
     # face index of each cell's W, E, S, N side (every cell has four faces)
@@ -137,7 +138,7 @@ def square_grid(terrain) -> SquareGrid | None:
         if np.any(codes[r, c] != NO_FACE):
             raise ValueError("two faces share one place of the grid")
         codes[r, c] = code | sign_bits[f]
-        frames[r, c] = normals[f]
+        frames[r, :, c] = normals[f]  # (len(f), 4): the advanced indices come first
         lengths[r, c] = mesh.face_length[f]
         sides[i[f], own] = f
         if other is not None:
