@@ -123,6 +123,24 @@ def test_dem_with_holes_agrees_bit_for_bit(nodata, law, params):
     assert a.t == 40.0 and a.h.shape == (ter.n_cells,)
 
 
+@pytest.mark.parametrize("law,params", [
+    (Law.POULIQUEN, (math.tan(math.radians(20.0)), math.tan(math.radians(32.0)), 1.0, 0.136)),
+    (Law.SAMOSAT, (0.155, 0.0, 0.222, 0.001 / 200.0, 0.43, 0.05, 4.13))])
+def test_laws_with_transcendental_functions_agree_bit_for_bit(law, params):
+    """Pouliquen (exp) and samosAT (log) run the grid kernel's cell loops that read the law
+    at run time (Coulomb and Voellmy have their own, vectorised, copies): the same bits."""
+    z, x, y = valley()
+    ter = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="wall")
+    xx, yy = ter.cell_xy()
+    h0 = np.where((xx - 60.0) ** 2 + (yy - 100.0) ** 2 < 30.0**2, 5.0, 0.0)
+    (a, sa), (b, sb) = run_both(ter, h0, 30.0, law=law, params=params, h_zero=1e-3,
+                                h_dry=1e-3)
+    assert sa == sb
+    assert_same_state(a, b)
+    assert_round_off(a, b)
+    assert np.count_nonzero(a.h) > 100  # it flowed
+
+
 def test_film_rule_off_agrees_bit_for_bit():
     """h_zero = 0: every film flows (the seed's dam-break setting)."""
     z, x, y = valley(holes=False)

@@ -182,7 +182,8 @@ class Solver:
             "cfl_factor": full(self._cfl_factor),
             "density": full(self._density),
             "gamma_x": full(t.gamma_x), "gamma_y": full(t.gamma_y), "gamma_z": full(t.gamma_z),
-            "curvature": full(t.curvature),
+            # (3, places): one contiguous line per component, for the kernel's vector loops
+            "curvature": np.ascontiguousarray(full(t.curvature).T),
         }
         n = layout.n_places
         self._h_work, self._hu_work, self._hv_work = np.zeros(n), np.zeros(n), np.zeros(n)
