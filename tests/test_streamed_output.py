@@ -6,6 +6,7 @@ equals the in-memory one (``write_netcdf(to_dataset(result))``) variable by vari
 that fails or is interrupted leaves no file, no temporary, and an older output untouched.
 """
 
+import dataclasses
 import re
 
 import netCDF4
@@ -266,3 +267,138 @@ def test_ensemble_member_file_is_streamed_and_equals_the_in_memory_one(tmp_path)
     with xr.open_dataset(old, decode_cf=False) as a, \
             xr.open_dataset(member, decode_cf=False) as b:
         xr.testing.assert_identical(a.drop_vars(clocks), b.drop_vars(clocks))
+
+
+# --- the fields refreshed only where the flow is or was (issue 11 item 4) -------------------
+
+
+def full_center_of_mass(terrain, h):
+    """The centre of mass as it was computed before the windowed sums: over every cell."""
+    w = h * terrain.mesh.cell_area
+    total = w.sum()
+    if total <= 0.0:
+        return (np.nan, np.nan, np.nan)
+    if terrain.kind == "profile":
+        x, y = terrain.x, np.zeros_like(terrain.x)
+    else:
+        x, y = terrain.cell_xy()
+    return (float(np.sum(w * x) / total), float(np.sum(w * y) / total),
+            float(np.sum(w * terrain.bed_elevation) / total))
+
+
+def sliding(terrain, records=12):
+    """States of a blob that slides across the map, end to end, and leaves the cells behind
+    it dry (h exactly 0), with what a window must not miss: discharges in dry cells, cells at
+    rest, h = -0.0 far from the flow, a map dry for two records and then wet elsewhere."""
+    from avflow.numerics import kernels as K
+    from avflow.numerics.solver import State
+
+    if terrain.kind == "profile":
+        xs, ys = terrain.x, np.zeros_like(terrain.x)
+    else:
+        xs, ys = terrain.cell_xy()
+    radius = max(np.ptp(xs), np.ptp(ys)) / 8.0
+    rng = np.random.default_rng(4)
+    for k in range(records):
+        cx = xs.min() + np.ptp(xs) * k / (records - 1)
+        cy = ys.min() + np.ptp(ys) * (0.3 + 0.4 * k / (records - 1))
+        d = np.hypot(xs - cx, ys - cy)
+        h = np.where(d < radius, 1.0 + rng.random(d.size), 0.0)
+        hu, hv = h * 3.0, -h * rng.random(d.size)
+        hu[d < radius / 3], hv[d < radius / 3] = 0.0, 0.0  # at rest in the middle
+        hu[np.argmax(d)] = 2.0  # a discharge in a dry cell: no velocity, dry
+        if k in (4, 5):  # nothing on the map, twice
+            h[:] = 0.0
+        if k == 7:
+            h[np.argmax(d)] = -0.0  # not +0.0: refreshed (h -0.0, dry)
+        stats = np.zeros(K.N_STATS)
+        stats[K.ST_TIME] = float(k)
+        yield State(h=h, hu=hu, hv=hv, flag=np.zeros(h.size, np.uint8), peak_h=h.copy(),
+                    peak_speed=np.zeros(h.size), arrival=np.full(h.size, np.nan),
+                    last_moved=np.full(h.size, np.nan), stats=stats)
+
+
+class Windows(Both):
+    """Both, keeping the windows its fields were refreshed in."""
+
+    def finish(self, result):
+        self.windows = list(self._fields.windows)
+        return super().finish(result)
+
+
+@pytest.mark.parametrize("kind", ["profile", "grid", "dem", "triangles"])
+def test_windowed_fields_equal_the_whole_map_as_the_flow_slides_and_dries(kind, tmp_path):
+    """A flow that crosses the map and leaves it dry behind: every record's fields, refreshed
+    in the window where the flow is or was, equal those of the whole map (snapshot_fields,
+    cast to the file's dtypes) bit for bit, and so does the centre of mass; the streamed file
+    equals the in-memory one."""
+    from avflow.output.dataset import WindowedFields, snapshot_fields
+    from avflow.simulation.runner import center_of_mass
+
+    result = simulate(scenarios(tmp_path)[kind])
+    terrain = result.terrain
+    states = list(sliding(terrain))
+    dtypes = {"h": np.float32, "u": np.float32, "v": np.float32, "flow_state": np.int8}
+
+    def whole(state):
+        fields = snapshot_fields(terrain, state.h, state.hu, state.hv, cell_flags(state))
+        return {name: np.asarray(v).astype(dtypes[name]) for name, v in fields.items()}
+
+    first = whole(states[0])
+    fields = WindowedFields(terrain, states[0].h, first, {n: dtypes[n] for n in first})
+    for state in states[1:]:
+        got, want = fields.update(state.h, state.hu, state.hv), whole(state)
+        assert list(got) == list(want)
+        for name in want:
+            assert got[name].dtype == want[name].dtype, name
+            assert got[name].tobytes() == want[name].tobytes(), (state.t, name)
+        assert (np.array(center_of_mass(terrain, state.h)).tobytes()
+                == np.array(full_center_of_mass(terrain, state.h)).tobytes()), state.t
+    size = int(np.prod(first["h"].shape))
+    assert () in fields.windows  # dry twice: nothing refreshed
+    assert all(np.prod(w) < size for w in fields.windows)  # never the whole map
+    if kind != "triangles":  # (the nodes of a mesh are in no order of space)
+        assert min(np.prod(w) for w in fields.windows if w) < size / 4
+
+    with Windows(tmp_path / "streamed.nc") as stream:
+        for state in states:
+            stream.record(state, 0.0, terrain)
+        run = dataclasses.replace(result, snapshots=stream)
+        stream.finish(run)
+    assert stream.windows == fields.windows
+    old = write_netcdf(to_dataset(run), tmp_path / "in_memory.nc")
+    assert_same_file(old, tmp_path / "streamed.nc")
+    with xr.open_dataset(old) as ds:
+        assert int(ds["flow_state"][-1].max()) == 2 and float(ds["h"][4].max()) == 0.0
+
+
+def test_windowed_file_of_a_flow_moving_down_a_plane(tmp_path):
+    """A real run: a cylinder sliding down a plane, 13 snapshots refreshed in windows that
+    are a small part of the map; the file equals the in-memory one."""
+    scenario = avflow.load_scenario(SCENARIOS / "plane_cylinder.yaml").with_updates(
+        {"grid.dx": 25.0, "time.end": 24.0, "output.every": 2.0})
+    with Windows(tmp_path / "streamed.nc") as stream:
+        result = simulate(scenario, snapshots=stream)
+        stream.finish(result)
+    ny, nx = result.terrain.grid_shape
+    areas = [np.prod(w) for w in stream.windows]
+    assert len(areas) == 12 and max(areas) < ny * nx / 4 and areas[-1] > areas[0]
+    old = write_netcdf(to_dataset(result), tmp_path / "in_memory.nc")
+    assert_same_file(old, tmp_path / "streamed.nc")
+
+
+def test_window_sums_are_numpys_sums_bit_for_bit():
+    from avflow.simulation.runner import window_sums
+
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        n = int(rng.choice([rng.integers(1, 300), rng.integers(300, 200_000)]))
+        lo = int(rng.integers(0, n))
+        hi = int(rng.integers(lo + 1, n + 1))
+        a = np.zeros((2, n))
+        a[:, lo:hi] = rng.standard_normal((2, hi - lo)) * 10.0 ** rng.uniform(-5, 5, hi - lo)
+        a[1, :lo] = -0.0  # the zeros outside may be negative ones
+        got = window_sums(a[:, lo:hi], lo, n)
+        assert list(got) == [np.sum(a[0]), np.sum(a[1])]
+    # a zero sum: its sign is the zeros' outside the window, which it does not see
+    assert window_sums(np.array([1.0, -1.0]), 3, 10) == 0.0

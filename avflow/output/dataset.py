@@ -13,7 +13,7 @@ import xarray as xr
 from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, link_coordinates,
                               per_width, time_coords)
 from avflow.output.ugrid import to_ugrid_dataset
-from avflow.simulation.runner import RunResult
+from avflow.simulation.runner import RunResult, flags_of, wet_cells
 from avflow.terrain.raster import cf_grid_mapping
 
 #: The variables on (time, space), one value per cell and snapshot (``v`` not on profiles).
@@ -29,24 +29,125 @@ def snapshot_fields(terrain, h, hu, hv, flag) -> dict:
     output grid ``(..., [y,] x)`` (NaN outside a DEM, flow_state -1), or on the nodes of a
     triangle mesh. One snapshot ``(cells,)`` or a stack ``(time, cells)`` give the same values.
     """
-    h = np.asarray(h)
+    values = _cell_values(np.asarray(h), hu, hv, flag, _basis(terrain))
+    if terrain.kind == "triangles":  # fields on the nodes of a UGRID mesh, no grid
+        return values
+    return {name: terrain.to_grid(v, fill=-1).astype(np.int8) if name == "flow_state"
+            else terrain.to_grid(v) for name, v in values.items()}
+
+
+def _basis(terrain):
+    """(e1_x, e2_x, e1_y, e2_y) per cell: the horizontal components of the cells' tangent
+    basis, which turn (u, v) along the bed into the output's u and v; None on profiles."""
+    if terrain.kind == "profile":
+        return None
+    e1, e2 = terrain.tangent_basis[:, 0, :], terrain.tangent_basis[:, 1, :]
+    return e1[:, 0], e2[:, 0], e1[:, 1], e2[:, 1]
+
+
+def _cell_values(h, hu, hv, flag, basis) -> dict:
+    """h, u (v) and flow_state per cell, before any grid: the arithmetic of
+    :func:`snapshot_fields` and :class:`WindowedFields` (one, so both give the same bits).
+    ``basis``: :func:`_basis` of those cells, or None on profiles (u along the bed)."""
     with np.errstate(invalid="ignore", divide="ignore"):
         ua = np.where(h > 0, np.asarray(hu) / h, 0.0)
         va = np.where(h > 0, np.asarray(hv) / h, 0.0)
     flags = np.asarray(flag).astype(np.int8)
-    if terrain.kind == "triangles":  # fields on the nodes of a UGRID mesh, no grid
-        e1, e2 = terrain.tangent_basis[:, 0, :], terrain.tangent_basis[:, 1, :]
-        return {"h": h, "u": ua * e1[:, 0] + va * e2[:, 0], "v": ua * e1[:, 1] + va * e2[:, 1],
-                "flow_state": flags}
-    if terrain.kind == "profile":
-        velocity = {"u": terrain.to_grid(ua)}
-    else:
-        # Velocity along the bed, as the components of its horizontal projection.
-        e1, e2 = terrain.tangent_basis[:, 0, :], terrain.tangent_basis[:, 1, :]
-        velocity = {"u": terrain.to_grid(ua * e1[:, 0] + va * e2[:, 0]),
-                    "v": terrain.to_grid(ua * e1[:, 1] + va * e2[:, 1])}
-    return {"h": terrain.to_grid(h), **velocity,
-            "flow_state": terrain.to_grid(flags, fill=-1).astype(np.int8)}
+    if basis is None:
+        return {"h": h, "u": ua, "flow_state": flags}
+    # Velocity along the bed, as the components of its horizontal projection.
+    e1x, e2x, e1y, e2y = basis
+    return {"h": h, "u": ua * e1x + va * e2x, "v": ua * e1y + va * e2y, "flow_state": flags}
+
+
+class WindowedFields:
+    """The fields of successive snapshots (:func:`snapshot_fields` of one snapshot), kept in
+    arrays of the file's dtypes that are refreshed only where the flow is or was.
+
+    ``first``: the fields of the first snapshot, already on the output grid (or the nodes),
+    whose thickness per cell is ``h``; ``dtypes``: the dtype of each field in the file. Each
+    :meth:`update` refreshes the window of cells that hold material now or did at the
+    previous snapshot: the rows x columns bounding them on grids, the range of cells holding
+    them on profiles and meshes. A cell whose h is +0.0 (bit for bit) has the fields of a
+    dry cell whatever its hu and hv (h 0, u = v = 0 turned by its basis, flow_state 0): a
+    cell outside the window held +0.0 then and holds it now, so its fields are unchanged.
+    The cost is one pass over h (its bits) and the work on the window, not on the map; the
+    values are those of :func:`snapshot_fields` of the whole map, cast to ``dtypes``, bit for
+    bit (``tests/test_streamed_output.py``).
+    """
+
+    def __init__(self, terrain, h, first: dict, dtypes: dict):
+        self.values = {name: np.array(v, dtype=dtypes[name]) for name, v in first.items()}
+        self.grid = terrain.kind == "grid"
+        self.cell_index = terrain.cell_index if self.grid else None
+        basis = _basis(terrain)
+        self.basis = None if basis is None else tuple(np.ascontiguousarray(e) for e in basis)
+        if self.grid:
+            self.shape = terrain.grid_shape
+            if self.cell_index is not None:  # cell of each place, -1 outside the DEM
+                cellmap = np.full(int(np.prod(self.shape)), -1, dtype=np.int64)
+                cellmap[self.cell_index] = np.arange(self.cell_index.size)
+                self.cellmap = cellmap.reshape(self.shape)
+        self.box = self.wet_box(h)
+        #: the windows refreshed, (rows, columns) or (cells,) each (what the tests look at)
+        self.windows: list[tuple] = []
+
+    def wet_box(self, h, cells=None):
+        """(row0, row1, col0, col1) on grids, (cell0, cell1) elsewhere (ends excluded)
+        bounding the cells whose h is not +0.0 (``cells``, :func:`wet_cells` of h if
+        known); None when there are none."""
+        cells = wet_cells(h) if cells is None else cells
+        if not cells.size:
+            return None
+        if not self.grid:
+            return int(cells[0]), int(cells[-1]) + 1
+        places = cells if self.cell_index is None else self.cell_index[cells]
+        rows, cols = np.divmod(places, self.shape[1])
+        return int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1
+
+    def update(self, h, hu, hv, wet=None) -> dict:
+        """The fields of the snapshot with these per-cell h, hu, hv (the arrays kept, on the
+        output grid: valid until the next update); ``wet``: :func:`wet_cells` of h if known."""
+        box = self.wet_box(h, wet)
+        window = _union(self.box, box)
+        self.box = box
+        if window is None:  # dry then and now
+            self.windows.append(())
+            return self.values
+        if not self.grid:  # a range of cells, the same range of the output
+            block = slice(*window)
+            self.windows.append((block.stop - block.start,))
+            inside = cells = block
+        else:
+            r0, r1, c0, c1 = window
+            block = (slice(r0, r1), slice(c0, c1))
+            self.windows.append((r1 - r0, c1 - c0))
+            if self.cell_index is None:  # the places are the cells, row by row
+                inside = cells = None
+            else:  # the window's places that hold a cell
+                cm = self.cellmap[block]
+                inside = cm >= 0
+                cells = cm[inside]
+
+        def take(a):
+            a = np.asarray(a)
+            return a.reshape(self.shape)[block] if cells is None else a[cells]
+
+        h, hu, hv = take(h), take(hu), take(hv)
+        basis = None if self.basis is None else tuple(take(e) for e in self.basis)
+        for name, v in _cell_values(h, hu, hv, flags_of(h, hu, hv), basis).items():
+            if inside is None or isinstance(inside, slice):
+                self.values[name][block] = v
+            else:
+                self.values[name][block][inside] = v
+        return self.values
+
+
+def _union(a, b):
+    """The box bounding boxes a and b (None: empty)."""
+    if a is None or b is None:
+        return b if a is None else a
+    return tuple(min(x, y) if k % 2 == 0 else max(x, y) for k, (x, y) in enumerate(zip(a, b)))
 
 
 def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:

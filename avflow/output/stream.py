@@ -14,8 +14,18 @@ summaries, the global attributes) and renames the file over the output. A run th
 that fails leaves no file: the temporary, and any folder made for it, is removed, and a
 file already at the output is untouched.
 
+Cost follows the flow: a record holds the whole map, but only the window of cells where
+the flow is or was at the previous output time is computed again
+(:class:`~avflow.output.dataset.WindowedFields`; the centre of mass likewise,
+:func:`~avflow.simulation.runner.center_of_mass`). What still grows with the map is one
+pass over h to find the flow, and compressing and writing the record: the dry part of the
+map is deflated too (about 1 ms per field and 180k dry cells), which the file's format
+(zlib with shuffle, one chunk per record) asks for.
+
 Memory: the state, the terrain and one snapshot, whatever the number of snapshots (the
-times and series, a few numbers per snapshot, are kept for the end).
+times and series, a few numbers per snapshot, are kept for the end); HDF5's chunk cache
+holds one record per field (its default, up to 64 MiB a variable, kept every record of a
+run until the file was closed and compressed them all then).
 
 The file equals ``write_netcdf(to_dataset(result), path)`` variable by variable (names,
 order, dimensions, dtypes, values, attributes, compression, ``_FillValue``, the CF time
@@ -36,9 +46,9 @@ from types import SimpleNamespace
 import numpy as np
 import xarray as xr
 
-from avflow.output.dataset import TIME_FIELDS, snapshot_fields, to_dataset
+from avflow.output.dataset import TIME_FIELDS, WindowedFields, to_dataset
 from avflow.output.netcdf import encoding_for, make_temporary, publish, write_error
-from avflow.simulation.runner import RunResult, Snapshots, cell_flags
+from avflow.simulation.runner import RunResult, Snapshots, cell_flags, wet_cells
 
 try:  # the lock xarray takes around netCDF-C calls: HDF5 is not thread-safe, and two
     # members may run in the threads of one dask worker (xarray's own calls take it too)
@@ -69,6 +79,7 @@ class SnapshotStream(Snapshots):
         self._created: list[Path] = []  # folders made for the file
         self._nc = None  # netCDF4.Dataset, open from the first snapshot to finish()
         self._store = None  # xarray's store around it
+        self._fields: WindowedFields | None = None  # the fields' last record, on the grid
 
     def __enter__(self) -> SnapshotStream:
         return self
@@ -82,12 +93,13 @@ class SnapshotStream(Snapshots):
         """One output time: its time and series kept, its fields appended to the file."""
         if self.finished:
             raise RuntimeError(f"{self.path}: the stream is finished")
-        self.record_series(state, moving, terrain)
+        wet = wet_cells(state.h)  # where the flow is: the centre of mass and the fields
+        self.record_series(state, moving, terrain, wet)
         try:
             if self._nc is None:
                 self._start(state, terrain)
             else:
-                self._append(state, terrain)
+                self._append(state, wet)
         except BaseException as err:
             self._fail(err)
 
@@ -117,10 +129,22 @@ class SnapshotStream(Snapshots):
         self._store = NetCDF4DataStore(self._nc)  # takes the lock itself
         ds.isel(time=slice(0, 0)).dump_to_store(self._store, encoding=encoding,
                                                 unlimited_dims=["time"])
-        self._write({name: ds[name].values[0] for name in TIME_FIELDS if name in ds})
+        names = [name for name in TIME_FIELDS if name in ds]
+        with _NETCDF_LOCK:
+            for name in names:
+                # HDF5 keeps every chunk written in its cache, up to 64 MiB a variable, and
+                # compresses them all on closing: a cache of one record writes each record
+                # when the next comes (memory: one snapshot; the same file)
+                var = self._nc.variables[name]
+                var.set_var_chunk_cache(size=int(np.prod(var.chunking())) * var.dtype.itemsize,
+                                        nelems=7, preemption=1.0)
+        self._fields = WindowedFields(terrain, state.h, {n: ds[n].values[0] for n in names},
+                                      {n: self._nc.variables[n].dtype for n in names})
+        self._write(self._fields.values)
 
-    def _append(self, state, terrain) -> None:
-        self._write(snapshot_fields(terrain, state.h, state.hu, state.hv, cell_flags(state)))
+    def _append(self, state, wet) -> None:
+        # the fields again only in the window where the flow is or was (the rest is dry)
+        self._write(self._fields.update(state.h, state.hu, state.hv, wet))
 
     def _write(self, fields: dict) -> None:
         """One record of every field on (time, space)."""
@@ -129,7 +153,7 @@ class SnapshotStream(Snapshots):
             with _NETCDF_LOCK:
                 var = self._nc.variables[name]
                 var.set_auto_maskandscale(False)  # the values as given, NaN included
-                var[self.records] = values.astype(var.dtype)  # as xarray casts
+                var[self.records] = np.asarray(values, dtype=var.dtype)  # as xarray casts
         self.records += 1
 
     def finish(self, result: RunResult) -> xr.Dataset:
@@ -148,7 +172,7 @@ class SnapshotStream(Snapshots):
             rest.dump_to_store(self._store, encoding=encoding_for(rest))
             with _NETCDF_LOCK:
                 self._nc.close()
-            self._nc = self._store = None
+            self._nc = self._store = self._fields = None
             publish(self._tmp, self.path)
         except BaseException as err:
             self._fail(err)
@@ -163,7 +187,7 @@ class SnapshotStream(Snapshots):
                     self._nc.close()
             except Exception:  # noqa: BLE001 - removed anyway
                 pass
-            self._nc = self._store = None
+            self._nc = self._store = self._fields = None
         if self._tmp is not None:
             self._tmp.unlink(missing_ok=True)
             self._tmp = None

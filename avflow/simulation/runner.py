@@ -7,6 +7,7 @@ The runner is the only place that decides output times; the time loop itself run
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time as _time
 from dataclasses import dataclass, field
@@ -72,34 +73,137 @@ class Snapshots:
         self.hv.append(state.hv.copy())
         self.flag.append(cell_flags(state))
 
-    def record_series(self, state: State, moving: float, terrain: Terrain) -> None:
-        """The time and the scalars of one output time (every kind of snapshots keeps them)."""
+    def record_series(self, state: State, moving: float, terrain: Terrain,
+                      wet: np.ndarray | None = None) -> None:
+        """The time and the scalars of one output time (every kind of snapshots keeps them);
+        ``wet``: :func:`wet_cells` of ``state.h`` when the caller has them."""
         self.time.append(state.t)
         self.moving_volume.append(moving)
-        self.center_of_mass.append(center_of_mass(terrain, state.h))
+        self.center_of_mass.append(center_of_mass(terrain, state.h, wet))
 
 
-def center_of_mass(terrain: Terrain, h: np.ndarray) -> tuple:
-    """Volume-weighted centre (x, y, z) of the material, m (x along the bed on profiles)."""
-    w = h * terrain.mesh.cell_area
-    total = w.sum()
-    if total <= 0.0:
+def center_of_mass(terrain: Terrain, h: np.ndarray, wet: np.ndarray | None = None) -> tuple:
+    """Volume-weighted centre (x, y, z) of the material, m (x along the bed on profiles).
+
+    The sums run over the cells from the first to the last that hold material (elsewhere
+    h is +0.0 and adds nothing) and equal numpy's sums over every cell bit for bit
+    (:func:`window_sums`): the cost follows the flow, not the map; the values are unchanged.
+    ``wet``: :func:`wet_cells` of ``h`` if known.
+    """
+    wet = wet_cells(h) if wet is None else wet
+    if not wet.size:  # nothing on the map: every sum is 0
         return (np.nan, np.nan, np.nan)
+    lo, hi = int(wet[0]), int(wet[-1]) + 1
+    area = terrain.mesh.cell_area
     if terrain.kind == "profile":
-        x, y = terrain.x, np.zeros_like(terrain.x)
+        x, y = terrain.x, None  # y: 0 everywhere
     else:
         x, y = terrain.cell_xy()
+    coords = (x, y, terrain.bed_elevation)
     # sums of products, not `w @ x`: BLAS's threaded dot took 22 ms a call on 179k cells
     # beside the kernel's threads (a third of a run's time went to snapshots' centres)
-    return (float(np.sum(w * x) / total), float(np.sum(w * y) / total),
-            float(np.sum(w * terrain.bed_elevation) / total))
+    rows = np.empty((4, hi - lo))
+    w = np.multiply(h[lo:hi], area[lo:hi], out=rows[0])
+    for k, c in enumerate(coords, start=1):
+        np.multiply(w, 0.0 if c is None else c[lo:hi], out=rows[k])
+    sums = window_sums(rows, lo, h.size)
+    if sums is None or not sums.all():  # a zero sum (its sign), or a numpy that sums otherwise
+        whole = h * area
+        sums = [np.sum(whole)] + [np.sum(whole * (np.zeros_like(x) if c is None else c))
+                                  for c in coords]
+    total = sums[0]
+    if total <= 0.0:
+        return (np.nan, np.nan, np.nan)
+    return tuple(float(s / total) for s in sums[1:])
+
+
+#: numpy's pairwise summation (np.add.reduce of float64): blocks of this many values are
+#: summed by 8 accumulators, longer runs are halved (the first half a multiple of 8).
+_PAIRWISE_BLOCK = 128
+
+#: Cells per block in :func:`wet_cells`' first pass.
+_WET_BLOCK = 256
+
+
+def wet_cells(h: np.ndarray) -> np.ndarray:
+    """Ascending indices of the cells whose h is not +0.0 bit for bit (-0.0 and NaN count):
+    every other cell holds nothing. One pass over h, then only the blocks of cells that
+    hold some material (a flow on a large map costs about what it costs on a small one)."""
+    wet = np.ascontiguousarray(h, dtype=np.float64).view(np.uint64) != 0
+    n = wet.size
+    k = n - n % _WET_BLOCK
+    blocks = np.flatnonzero(wet[:k].reshape(-1, _WET_BLOCK).any(axis=1))
+    tail = bool(wet[k:].any())
+    if not blocks.size and not tail:
+        return np.zeros(0, dtype=np.intp)
+    start = int(blocks[0]) * _WET_BLOCK if blocks.size else k
+    end = n if tail else (int(blocks[-1]) + 1) * _WET_BLOCK
+    return start + np.flatnonzero(wet[start:end])
+
+
+def window_sums(rows: np.ndarray, lo: int, n: int) -> np.ndarray | None:
+    """``np.sum(a)`` of each of the arrays ``a`` of ``n`` values that are a row of ``rows``
+    from index ``lo`` on and +-0 elsewhere, bit for bit (but the sign of a zero sum),
+    summing only ``rows``; None where this numpy sums otherwise.
+
+    numpy sums float64 pairwise, down to blocks of 128 (:data:`_PAIRWISE_BLOCK`); the same
+    halving here, where a half outside the window is 0 and one inside is summed by numpy
+    (a row of a 2-D reduce is summed as the 1-D array). A zero changes no sum but a zero
+    one: there the sign comes from the zeros outside. Checked against ``np.sum`` once per
+    process (:func:`_window_sums_work`).
+    """
+    if not _window_sums_work():
+        return None
+    return _pairwise_window(np.asarray(rows, dtype=np.float64), lo, n)
+
+
+def _pairwise_window(rows, lo, n):
+    hi = lo + rows.shape[-1]
+
+    def pairwise(start, m):
+        end = start + m
+        if end <= lo or start >= hi:
+            return 0.0
+        if lo <= start and end <= hi:
+            return np.add.reduce(rows[..., start - lo:end - lo], axis=-1)
+        if m <= _PAIRWISE_BLOCK:  # one of numpy's blocks: with its zeros around the window
+            block = np.zeros(rows.shape[:-1] + (m,))
+            a, b = max(start, lo), min(end, hi)
+            block[..., a - start:b - start] = rows[..., a - lo:b - lo]
+            return np.add.reduce(block, axis=-1)
+        half = m // 2
+        half -= half % 8
+        return pairwise(start, half) + pairwise(start + half, m - half)
+
+    return pairwise(0, n)
+
+
+@functools.cache
+def _window_sums_work() -> bool:
+    """Whether this numpy sums as :func:`window_sums` assumes: random windows of arrays of
+    a few lengths, one row and several, against ``np.sum`` of each."""
+    rng = np.random.default_rng(11)
+    for n, lo, hi in ((1000, 130, 771), (5003, 17, 4999), (70001, 9000, 52345),
+                      (300, 0, 300), (129, 5, 6), (7, 2, 5)):
+        a = np.zeros((3, n))
+        a[:, lo:hi] = rng.standard_normal((3, hi - lo)) * 10.0 ** rng.uniform(-3, 3, hi - lo)
+        want = [np.add.reduce(np.ascontiguousarray(row)) for row in a]
+        if (list(_pairwise_window(a[:, lo:hi], lo, n)) != want
+                or _pairwise_window(a[0, lo:hi], lo, n) != want[0]):
+            return False
+    return True
 
 
 def cell_flags(state: State) -> np.ndarray:
     """0 dry, 1 flowing (above the Coulomb threshold), 2 at rest under the threshold."""
-    flags = np.full(state.h.shape, FLAG_FLOWING, dtype=np.uint8)
-    flags[(state.hu == 0.0) & (state.hv == 0.0)] = FLAG_STOPPED
-    flags[state.h <= 0.0] = FLAG_DRY
+    return flags_of(state.h, state.hu, state.hv)
+
+
+def flags_of(h: np.ndarray, hu: np.ndarray, hv: np.ndarray) -> np.ndarray:
+    """:func:`cell_flags` of any cells' h, hu, hv (e.g. a window of the map's)."""
+    flags = np.full(np.shape(h), FLAG_FLOWING, dtype=np.uint8)
+    flags[(hu == 0.0) & (hv == 0.0)] = FLAG_STOPPED
+    flags[h <= 0.0] = FLAG_DRY
     return flags
 
 
@@ -208,9 +312,9 @@ def _check_release_size(scenario, terrain: Terrain, h0: np.ndarray) -> None:
 
 def _non_finite(state: State, terrain: Terrain) -> str | None:
     """None when h, hu and hv are finite everywhere; else what is not, in a few words."""
+    if all(np.isfinite(getattr(state, name)).all() for name in ("h", "hu", "hv")):
+        return None  # (the usual case: no array of flags kept)
     bad = {name: ~np.isfinite(getattr(state, name)) for name in ("h", "hu", "hv")}
-    if not any(b.any() for b in bad.values()):
-        return None
     cells = np.flatnonzero(bad["h"] | bad["hu"] | bad["hv"])
     which = ", ".join(name for name, b in bad.items() if b.any())
     x = terrain.x[cells[0]] if terrain.kind == "profile" else terrain.cell_xy()[0][cells[0]]
