@@ -24,7 +24,7 @@ from pathlib import Path
 #: What the kernels are compiled from: these modules, and the constants Numba freezes into
 #: them from the terrain (boundary and face codes).
 _KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/rheology.py", "numerics/kernels.py",
-                   "numerics/reconstruction.py", "numerics/square_grid.py",
+                   "numerics/reconstruction.py", "numerics/square_grid.py", "numerics/vectorize.py",
                    "terrain/mesh.py", "terrain/squaregrid.py")
 
 

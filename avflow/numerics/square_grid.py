@@ -43,6 +43,7 @@ from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_
                                      _trial_momentum, end_loop, record_step, step_size)
 from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
+from avflow.numerics.vectorize import by_law, friction_law, in_select, line_sum, noalias, out_select
 from avflow.terrain.squaregrid import (CANONICAL_ORDER, HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -62,25 +63,7 @@ E_H, E_U1, E_U2, E_C, E_S, E_KH, E_K3, E_SPEED = range(8)
 N_EMIT = 8
 
 
-def _noalias(dispatcher):
-    """Compile ``dispatcher`` telling LLVM that its array arguments never overlap (Numba's
-    ``noalias`` flag, which its decorator does not expose): without it a loop that reads
-    thirty arrays and writes ten needs hundreds of overlap checks, and LLVM leaves it
-    scalar (the final update: 27 ns a cell scalar, 14.5 vectorised). True of every caller
-    here: the state is double-buffered, each ring row and output line is its own array.
-    Where Numba's private hook is missing (another version), the loops stay scalar, with
-    the same results."""
-    compiler = getattr(dispatcher, "_compiler", None)
-    if compiler is not None and hasattr(compiler, "_customize_flags"):
-        def customize(flags):
-            flags.noalias = True
-            return flags
-
-        compiler._customize_flags = customize
-    return dispatcher
-
-
-@_noalias
+@noalias
 @njit(error_model="numpy", cache=True)
 def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
     """Per cell ``c0..c1`` of a row, once per step, what its faces and its own update read
@@ -184,46 +167,10 @@ def _ordered(order, start, a_w, a_e, a_s, a_n):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _out_select(h, un, c, s, kh, k3):
-    """:func:`~avflow.numerics.kinetic.half_flux_out` without branches: every case computed,
-    the one that applies selected (the same operations on the value kept, so the same
-    bits), so that a line of faces vectorises."""
-    a = un - s
-    b = un + s
-    ap = a if a > 0.0 else 0.0
-    bp = b if b > 0.0 else 0.0
-    rect_h = kh * (bp * bp - ap * ap)
-    rect_q = k3 * (bp * bp * bp - ap * ap * ap)
-    leaving = un > 0.0  # Dirac density (c = 0): all of it or nothing
-    dirac_h = h * un if leaving else 0.0
-    dirac_q = h * un * un if leaving else 0.0
-    f_h = rect_h if c > 0.0 else dirac_h
-    f_q = rect_q if c > 0.0 else dirac_q
-    return (f_h if h > 0.0 else 0.0), (f_q if h > 0.0 else 0.0)
-
-
-@njit(error_model="numpy", cache=True, inline="always")
-def _in_select(h, un, c, s, kh, k3):
-    """:func:`~avflow.numerics.kinetic.half_flux_in` without branches, as :func:`_out_select`."""
-    a = un - s
-    b = un + s
-    am = a if a < 0.0 else 0.0
-    bm = b if b < 0.0 else 0.0
-    rect_h = kh * (bm * bm - am * am)
-    rect_q = k3 * (bm * bm * bm - am * am * am)
-    leaving = un > 0.0
-    dirac_h = 0.0 if leaving else h * un
-    dirac_q = 0.0 if leaving else h * un * un
-    f_h = rect_h if c > 0.0 else dirac_h
-    f_q = rect_q if c > 0.0 else dirac_q
-    return (f_h if h > 0.0 else 0.0), (f_q if h > 0.0 else 0.0)
-
-
-@njit(error_model="numpy", cache=True, inline="always")
 def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, n0x,
                   n0y, n1x, n1y, length):
-    """:func:`_face_flux` of an INNER face, without branches (:func:`_out_select`,
-    :func:`_in_select`): the same operations, the same bits, and a line of them
+    """:func:`_face_flux` of an INNER face, without branches (:func:`~avflow.numerics.vectorize.out_select`,
+    :func:`~avflow.numerics.vectorize.in_select`): the same operations, the same bits, and a line of them
     vectorises."""
     s0 = -1.0 if code & SIGN0 else 1.0
     s1 = -1.0 if code & SIGN1 else 1.0
@@ -233,10 +180,10 @@ def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, kh
     t1y = s1 * n1x
     uni = ui1 * n0x + ui2 * n0y
     uti = ui1 * t0x + ui2 * t0y
-    fp_h, fp_q = _out_select(hi, uni, ci, si, khi, k3i)
+    fp_h, fp_q = out_select(hi, uni, ci, si, khi, k3i)
     unj = uj1 * n1x + uj2 * n1y
     utj = uj1 * t1x + uj2 * t1y
-    gm_h, gm_q = _in_select(hj, unj, cj, sj, khj, k3j)
+    gm_h, gm_q = in_select(hj, unj, cj, sj, khj, k3j)
     f_n = (fp_q + gm_q) * length
     f_t = (uti * fp_h + utj * gm_h) * length
     fh = (fp_h + gm_h) * length
@@ -244,7 +191,7 @@ def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, kh
             f_n * n1x + f_t * t1x, f_n * n1y + f_t * t1y)
 
 
-@_noalias
+@noalias
 @njit(error_model="numpy", cache=True)
 def _x_faces(k0, k1, codes, frames, lengths, emit, out):
     """x faces ``k0..k1`` of a row (face k between cells k - 1 and k) into ``out[:, k]``
@@ -288,7 +235,7 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
         o4[k] = f4
 
 
-@_noalias
+@noalias
 @njit(error_model="numpy", cache=True)
 def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
     """y faces ``c0..c1`` between two rows (``below``: the emitted states of the lower row,
@@ -382,7 +329,7 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
     One loop without jumps (selects; :func:`_ordered_select`), which LLVM vectorises for
     the laws without transcendental functions (Coulomb, Voellmy): the face kernel's
     operations on every value kept, so the same bits."""
-    lw = _law(law)  # a constant in the copies of _by_law
+    lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
     e_u1, e_u2, e_speed = em[E_U1], em[E_U2], em[E_SPEED]
@@ -415,18 +362,6 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
         flags[c + 1] = DRY if (valid[i] == 0 or dry) else fi
 
 
-@njit(error_model="numpy", cache=True, fastmath={"reassoc"})
-def _line_sum(a, c0, c1):
-    """``a[c0] + ... + a[c1]``, reassociated so that LLVM vectorises it (the per-cell add
-    chain cost 1.2 ns a cell). The order is fixed by the compiled code and the bounds: the
-    same bits on 1 or N threads; against the face kernel's cell-by-cell sums, round-off."""
-    s = 0.0
-    c0 = max(c0, 0)
-    for j in range(c1 + 1 - c0):
-        s += a[c0 + j]
-    return s
-
-
 #: Per-cell lines of a row kept by :func:`_final_row` for its sums: inverse CFL limit,
 #: kinetic energy, moving volume, film volume, outflow
 N_SCRATCH = 5
@@ -447,9 +382,9 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
     cell outside the DEM keeps h = 0 and q = 0; a cell that went below 0 makes the step be
     redone, whatever it wrote), and what the row's sums need is kept per cell in
     ``t_*`` (separate arrays: lines of one array might overlap for LLVM, and the checks
-    kept the loop scalar), then added line by line (:func:`_line_sum`: the grid-wide diagnostics
+    kept the loop scalar), then added line by line (:func:`~avflow.numerics.vectorize.line_sum`: the grid-wide diagnostics
     differ from the face kernel's cell-by-cell sums by round-off)."""
-    lw = _law(law)  # a constant in the copies of _by_law
+    lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
     e_u1, e_u2, e_speed = em[E_U1], em[E_U2], em[E_SPEED]
@@ -563,10 +498,10 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
     inv_lim = 0.0
     for c in range(c0, c1 + 1):
         inv_lim = max(inv_lim, t_inv[c])
-    outflow = _line_sum(t_out, c0, c1)
-    moving = _line_sum(t_mov, c0, c1)
-    film = _line_sum(t_film, c0, c1)
-    kinetic = _line_sum(t_kin, c0, c1)
+    outflow = line_sum(t_out, c0, c1)
+    moving = line_sum(t_mov, c0, c1)
+    film = line_sum(t_film, c0, c1)
+    kinetic = line_sum(t_kin, c0, c1)
     rows[r, R_OK] = 1.0 if n_bad == 0 else 0.0
     rows[r, R_OUT] = outflow
     rows[r, R_INV] = inv_lim
@@ -578,48 +513,19 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
     wet_hi[r] = w_hi
 
 
-@njit(error_model="numpy", cache=True, inline="always")
-def _law(law):
-    """The friction law of the cell loops: the argument itself here; a constant in the
-    copies made by :func:`_by_law`."""
-    return law
-
-
-def _by_law(fn, law: int | None, label: str):
-    """``fn`` compiled with the friction law a constant (``law``; None: read at run time),
-    under its own name (Numba's cache files are named after the function).
-
-    In a copy for one law, LLVM folds the law's branches in :func:`friction` away, and the
-    loop of a law without transcendental functions (Coulomb, Voellmy) vectorises (8 cells
-    at once here); with Pouliquen's ``exp`` or samosAT's ``log`` in it, a loop stays
-    scalar, so those laws share the copy that reads the law at run time.
-    """
-    namespace = dict(fn.__globals__)
-    if law is not None:
-        constant = njit(error_model="numpy", cache=True, inline="always")(
-            types.FunctionType((lambda law: LAW).__code__, {"LAW": law}, "_law_" + label))
-        namespace["_law"] = constant
-    copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + "_" + label,
-                              fn.__defaults__, fn.__closure__)
-    copy.__qualname__ = fn.__qualname__ + "_" + label
-    copy.__module__ = fn.__module__
-    copy.__doc__ = fn.__doc__
-    return _noalias(njit(error_model="numpy", cache=True)(copy))
-
-
-_trial_cells_coulomb = _by_law(_trial_cells, COULOMB, "coulomb")
-_trial_cells_voellmy = _by_law(_trial_cells, VOELLMY, "voellmy")
-_trial_cells_any = _by_law(_trial_cells, None, "any")
-_final_cells_coulomb = _by_law(_final_cells, COULOMB, "coulomb")
-_final_cells_voellmy = _by_law(_final_cells, VOELLMY, "voellmy")
-_final_cells_any = _by_law(_final_cells, None, "any")
+_trial_cells_coulomb = by_law(_trial_cells, COULOMB, "coulomb")
+_trial_cells_voellmy = by_law(_trial_cells, VOELLMY, "voellmy")
+_trial_cells_any = by_law(_trial_cells, None, "any")
+_final_cells_coulomb = by_law(_final_cells, COULOMB, "coulomb")
+_final_cells_voellmy = by_law(_final_cells, VOELLMY, "voellmy")
+_final_cells_any = by_law(_final_cells, None, "any")
 
 
 @njit(error_model="numpy", cache=True)
 def _trial_row(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, ys, yn, em,
                inv_area, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, law, params, g,
                h_zero, dt, dt_decide, flags, qx_out, qy_out):
-    """:func:`_trial_cells`, in its copy for the law (:func:`_by_law`)."""
+    """:func:`_trial_cells`, in its copy for the law (:func:`~avflow.numerics.vectorize.by_law`)."""
     if law == COULOMB:
         _trial_cells_coulomb(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, ys, yn, em,
                      inv_area, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, COULOMB,
@@ -641,7 +547,7 @@ def _final_row(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x_l
                law, params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
                last_moved, rows, wet_lo, wet_hi, t_inv, t_kin, t_mov, t_film,
                  t_out):
-    """:func:`_final_cells`, in its copy for the law (:func:`_by_law`)."""
+    """:func:`_final_cells`, in its copy for the law (:func:`~avflow.numerics.vectorize.by_law`)."""
     if law == COULOMB:
         _final_cells_coulomb(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x_len,
                      ys_len, yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area,
