@@ -882,6 +882,13 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
     union = np.empty(0 if structured else m2, dtype=np.int64)
     active2 = np.empty(0 if structured else f2, dtype=np.int64)
     all_cells = np.arange(m2 if structured else 0)
+    # order-1 profile sweep (avflow.numerics.profile): its work lines, once per call
+    m1 = h.size if structured and not order2 else 0
+    p_work = np.zeros((_PROFILE_WORK, m1 + 2 if m1 else 0))
+    p_flag = np.full(m1 + 2 if m1 else 0, DRY, dtype=flag.dtype)
+    p_kappa = np.empty(m1)
+    for i in range(m1):
+        p_kappa[i] = curvature[i, 0]
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     status = REACHED_TARGET
@@ -924,12 +931,11 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             t_new = t_target if last else t + dt
             fallbacks = 0
             if structured and not order2:
-                ok, out, lim, moving, film, clamped, kinetic = step_profile(
-                    face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
-                    curvature,
-                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, flag,
-                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved, False, recon, True)
+                ok, out, lim, moving, film, clamped, kinetic = profile_step(
+                    face_cells[0, 1], face_cells[n, 1], cell_area[0], cfl_factor, density,
+                    gamma_x, gamma_z, p_kappa, cur_h, cur_hu, nxt_h, nxt_hu, nxt_hv, flag, law,
+                    params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
+                    arrival, last_moved, True, p_work, p_flag)
             elif not order2:
                 ok, out, lim, moving, film, clamped, kinetic = step_faces(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
@@ -1041,3 +1047,9 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             break
     end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv)
     return status
+
+
+# The order-1 profile sweep lives in its own module, which builds on this one's scalar
+# functions: imported last (Numba resolves advance()'s globals when it first compiles).
+from avflow.numerics.profile import N_WORK as _PROFILE_WORK  # noqa: E402
+from avflow.numerics.profile import step as profile_step  # noqa: E402, F401

@@ -1,0 +1,260 @@
+"""The 1D profile sweep at order 1, in loops that LLVM vectorises.
+
+The same step as :func:`avflow.numerics.kernels.step_profile` (seed eqs. 26-56 on a line:
+rectangular fluxes, trial momentum and Coulomb threshold of eqs. 47-49, Dirac faces of
+eqs. 51-53, projection of eq. 50, curvature and film rules, walls and open ends), cut in
+four passes over contiguous lines, each free of jumps (:mod:`avflow.numerics.vectorize`):
+
+1. per cell, what it emits: ``|u|`` and its outward (+x) and inward (-x) half fluxes;
+2. per face, the flux: the half flux of the cell on its left plus that of the cell on its
+   right (the two ends: wall or open side, apart);
+3. per cell, the trial momentum and the flag of eq. 49;
+4. per cell, mass through the faces that keep the rectangular density, the projection and
+   the observers; the step's sums per cell, added line by line afterwards.
+
+``step_profile`` fused passes 1-3 in one loop carrying the left face from one cell to the
+next, which LLVM cannot vectorise. Every value kept is computed with the operations of
+``step_profile``: the state, the flags and the observers are its bits (tested); the sums
+over the line (moving volume, film, kinetic energy) are added in another order and differ
+by round-off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from avflow.numerics.kernels import (DRY, FLOWING, TRANSPORT_EPS, _final_momentum, _limit,
+                                     _observe, _open_mass, _trial_momentum)
+from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.numerics.rheology import COULOMB, VOELLMY
+from avflow.numerics.vectorize import (by_law, friction_law, in_select, line_sum, noalias,
+                                       out_select)
+from avflow.terrain.mesh import OUTFLOW, WALL
+
+#: Lines of the work array (:func:`work_array`): per cell (padded to n + 2)
+W_UP_H, W_UP_Q, W_DOWN_H, W_DOWN_Q, W_SPEED, W_FLUX_H, W_FLUX_Q, W_KAPPA = range(8)
+W_QX, W_INV, W_KIN, W_MOV, W_FILM = range(8, 13)
+N_WORK = 13
+
+
+@noalias
+@njit(error_model="numpy", cache=True)
+def _emit(n, h, hu, gamma_z, density, h_zero, g, up_h, up_q, down_h, down_q, speed):
+    """Pass 1: per cell, ``|u|`` and the half fluxes of :func:`half_fluxes` towards +x
+    (``up``) and -x (``down``), from the thickness it emits (0 at or below h_zero)."""
+    h_wet = max(h_zero, 0.0)
+    for k in range(n):
+        hk = h[k]
+        wet = hk > h_wet  # _emitting(): h if h > h_zero else 0
+        he = hk if wet else 0.0
+        hs = hk if wet else 1.0
+        g_normal = g * gamma_z[k]
+        c = math.sqrt(0.5 * g_normal * hs)  # sound_speed(he, g_normal)
+        c = c if wet & (g_normal > 0.0) else 0.0
+        u = hu[k] / hs if wet else 0.0
+        kk = c * density[k]
+        s = SQRT3 * c
+        fp_h, fp_q = out_select(he, u, c, s, 0.5 * kk, kk / 3.0)
+        fm_h, fm_q = in_select(he, u, c, s, 0.5 * kk, kk / 3.0)
+        up_h[k] = fp_h
+        up_q[k] = fp_q
+        down_h[k] = fm_h
+        down_q[k] = fm_q
+        speed[k] = abs(u)
+
+
+@noalias
+@njit(error_model="numpy", cache=True)
+def _faces(n, up_h, up_q, down_h, down_q, flux_h, flux_q):
+    """Pass 2: the inner faces 1..n-1, each the sum of its two half fluxes."""
+    for j in range(n - 1):
+        i = j + 1
+        flux_h[i] = up_h[i - 1] + down_h[i]
+        flux_q[i] = up_q[i - 1] + down_q[i]
+
+
+def _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h, down_q,
+          flux_h, flux_q):
+    """The two end faces, as :func:`step_profile`: a wall mirrors the cell (no mass, twice
+    the pressure); an open side lets out what leaves and nothing in."""
+    if left == WALL:
+        flux_h[0] = 0.0
+        flux_q[0] = 2.0 * down_q[0]
+    else:
+        h0 = h[0] if h[0] > h_zero else 0.0
+        c0 = sound_speed(h0, g * gamma_z[0])
+        u0 = hu[0] / h0 if h0 > 0.0 else 0.0
+        gp_h, gp_q, _, _ = half_fluxes(h0, min(u0, 0.0), c0, c0 * density[0])
+        flux_h[0] = _open_mass(-(gp_h + down_h[0])) * -1.0
+        flux_q[0] = gp_q + down_q[0]
+    m = n - 1
+    if right == WALL:
+        flux_h[n] = 0.0
+        flux_q[n] = 2.0 * up_q[m]
+    else:
+        hm = h[m] if h[m] > h_zero else 0.0
+        um = hu[m] / hm if hm > 0.0 else 0.0
+        cm = sound_speed(hm, g * gamma_z[m])
+        _, _, gm_h, gm_q = half_fluxes(hm, max(um, 0.0), cm, cm * density[m])
+        flux_h[n] = _open_mass(up_h[m] + gm_h)
+        flux_q[n] = up_q[m] + gm_q
+
+
+_ends = njit(error_model="numpy", cache=True)(_ends)
+
+
+def _trial(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g, h_zero,
+           dx, dt, dt_decide, qx_out, flag_out):
+    """Pass 3: per cell, the trial momentum of eq. 47 and the flag of eq. 49
+    (``flag_out[k + 1]``: the flag line is padded by one cell at each end)."""
+    lw = friction_law(law)  # a constant in the copies of by_law
+    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
+    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    for k in range(n):
+        u = speed[k]
+        fl_h, fr_h, fl_q, fr_q = flux_h[k], flux_h[k + 1], flux_q[k], flux_q[k + 1]
+        qx, _, fk = _trial_momentum(h[k], h_zero, u, hu[k], 0.0, (fl_h - fr_h) / dx,
+                                    (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
+                                    gamma_z[k], kappa[k] * (u * u), lw, p0, p1, p2, p3, p4, p5,
+                                    p6, p7, g, False)
+        qx_out[k] = qx
+        flag_out[k + 1] = fk
+
+
+def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
+           law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
+           flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film):
+    """Pass 4: per cell, the new thickness (Dirac faces carry nothing), the momentum of
+    eq. 50, the observers (``observe``: False for a Runge-Kutta stage), what the sums need.
+    Returns ``(cells below 0, clamped)``; a cell below 0 makes the step be redone,
+    whatever it wrote."""
+    lw = friction_law(law)
+    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
+    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    r = dt / dx
+    n_bad = 0
+    clamped = 0
+    for k in range(n):
+        fk = pflag[k + 1]
+        f_l = pflag[k]
+        f_r = pflag[k + 2]
+        h_old = h[k]
+        gx, gz = gamma_x[k], gamma_z[k]
+        speed_n = speed[k]
+        fl, fr, ql, qr = flux_h[k], flux_h[k + 1], flux_q[k], flux_q[k + 1]
+        q = q_trial[k]
+        kap = kappa[k]
+        cfl_k = cfl_factor[k]
+        old_peak_h, old_peak_speed = peak_h[k], peak_speed[k]
+        old_arrival, old_moved = arrival[k], last_moved[k]
+        cold = dirac & (fk != FLOWING)  # _dirac_face(); the ends' ghosts share the flag
+        dirac_l = cold & (f_l != FLOWING)
+        dirac_r = cold & (f_r != FLOWING)
+        fl = 0.0 if dirac_l else fl
+        fr = 0.0 if dirac_r else fr
+        hn = h_old + r * (fl - fr)
+        n_bad += 1 if hn < 0.0 else 0
+        # a dry cell takes momentum only with mass: a Dirac face carries neither, not even
+        # its pressure (zero temperature, eq. 53)
+        ql = 0.0 if dirac_l else ql
+        qr = 0.0 if dirac_r else qr
+        dry_q = dt * ((ql - qr) / dx + g * hn * gx)
+        q = dry_q if (fk == DRY) & (dirac_l | dirac_r) else q
+        qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, q, 0.0, dt, gz,
+                                    kap * (speed_n * speed_n), lw, p0, p1, p2, p3, p4, p5, p6,
+                                    p7, g, h_old, False)
+        h_new[k] = hn
+        hu_new[k] = qx
+        hv_new[k] = 0.0
+        flag[k] = fk
+        clamped += cl
+        speed_k, inv_k = _observe(hn, abs(qx), cfl_k, gz, g)
+        peak_h[k] = hn if observe & (hn > old_peak_h) else old_peak_h
+        peak_speed[k] = speed_k if observe & (speed_k > old_peak_speed) else old_peak_speed
+        arrives = observe & (hn > h_dry) & math.isnan(old_arrival)
+        arrival[k] = t_new if arrives else old_arrival
+        last_moved[k] = t_new if observe & (speed_k > 0.0) else old_moved
+        # kernels._moves with the transport max(|fl|, |fr|)
+        transport = max(abs(fl), abs(fr))
+        moves = (speed_k > 0.0) & ((speed_n == 0.0) | (transport > TRANSPORT_EPS * hn * speed_n))
+        t_inv[k] = inv_k
+        t_kin[k] = hn * dx * speed_k * speed_k
+        t_mov[k] = hn * dx if moves & (hn > h_dry) else 0.0
+        t_film[k] = hn * dx if moves & (hn <= h_dry) else 0.0
+    return n_bad, clamped
+
+
+_trial_coulomb = by_law(_trial, COULOMB, "coulomb")
+_trial_voellmy = by_law(_trial, VOELLMY, "voellmy")
+_trial_any = by_law(_trial, None, "any")
+_final_coulomb = by_law(_final, COULOMB, "coulomb")
+_final_voellmy = by_law(_final, VOELLMY, "voellmy")
+_final_any = by_law(_final, None, "any")
+
+
+@njit(error_model="numpy", cache=True)
+def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
+         hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+         peak_speed, arrival, last_moved, observe, work, pflag):
+    """One order-1 step on a profile of uniform ``dx`` with end conditions ``left`` and
+    ``right`` (WALL or OUTFLOW): :func:`~avflow.numerics.kernels.step_profile`'s numbers.
+    ``kappa``: the curvature line (``curvature[:, 0]``, contiguous); ``work``: float lines
+    ``(N_WORK, n + 2)``, ``pflag``: ``n + 2`` flags (uint8), allocated once per time loop.
+    Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
+    n = h.size
+    up_h, up_q, down_h, down_q = work[W_UP_H], work[W_UP_Q], work[W_DOWN_H], work[W_DOWN_Q]
+    speed, flux_h, flux_q = work[W_SPEED], work[W_FLUX_H], work[W_FLUX_Q]
+    q_trial, t_inv, t_kin = work[W_QX], work[W_INV], work[W_KIN]
+    t_mov, t_film = work[W_MOV], work[W_FILM]
+    _emit(n, h, hu, gamma_z, density, h_zero, g, up_h, up_q, down_h, down_q, speed)
+    _faces(n, up_h, up_q, down_h, down_q, flux_h, flux_q)
+    _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h, down_q,
+          flux_h, flux_q)
+    # the copy of passes 3 and 4 for the law (written out: functions held in variables are
+    # Numba's experimental first-class functions)
+    if law == COULOMB:
+        _trial_coulomb(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
+                       h_zero, dx, dt, dt_decide, q_trial, pflag)
+    elif law == VOELLMY:
+        _trial_voellmy(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
+                       h_zero, dx, dt, dt_decide, q_trial, pflag)
+    else:
+        _trial_any(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
+                   h_zero, dx, dt, dt_decide, q_trial, pflag)
+    pflag[0] = pflag[1]  # the ends' ghosts share their cell's flag
+    pflag[n + 1] = pflag[n]
+    if law == COULOMB:
+        n_bad, clamped = _final_coulomb(
+            n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
+            law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
+            flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
+    elif law == VOELLMY:
+        n_bad, clamped = _final_voellmy(
+            n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
+            law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
+            flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
+    else:
+        n_bad, clamped = _final_any(
+            n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
+            law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
+            flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
+    if n_bad > 0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
+    # what left through open ends (the fluxes of faces that are not Dirac)
+    outflow = 0.0
+    if left == OUTFLOW:
+        fk = pflag[1]
+        if not (dirac and fk != FLOWING):
+            outflow += max(-flux_h[0], 0.0) * dt
+    if right == OUTFLOW:
+        fk = pflag[n]
+        if not (dirac and fk != FLOWING):
+            outflow += max(flux_h[n], 0.0) * dt
+    inv_lim = 0.0
+    for k in range(n):
+        inv_lim = max(inv_lim, t_inv[k])
+    return (True, outflow, _limit(inv_lim), line_sum(t_mov, 0, n - 1),
+            line_sum(t_film, 0, n - 1), clamped, line_sum(t_kin, 0, n - 1))
