@@ -319,9 +319,12 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
                  h, hu, hv, h_new, hu_new, hv_new, flux, flag,
                  law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                  arrival, last_moved, order2, recon, observe):
-    """One step on a profile (faces in line order, uniform dx): the fast structured sweep.
+    """One step on a profile (faces in line order, uniform dx), the face loop fused into the
+    cell loops: the time loop runs it at order 2; at order 1 it runs the vectorised
+    :func:`avflow.numerics.profile.step`, and this fused sweep is the reference that one is
+    tested against, bit for bit (``tests/test_profile_sweep.py``).
 
-    Same arithmetic as :func:`step_faces`, with the face loop fused into the cell loops.
+    Same arithmetic as :func:`step_faces`.
     With ``order2`` the faces see the reconstructed states ``recon`` (h_L, u_L, h_R, u_R per
     cell, :func:`avflow.numerics.reconstruction.reconstruct_profile`) instead of the averages.
     ``observe``: update the observers (peaks, arrival, last motion); False for a
