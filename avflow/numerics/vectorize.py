@@ -97,9 +97,10 @@ def friction_law(law):
     return law
 
 
-def by_law(fn, law: int | None, label: str):
+def by_law(fn, law: int | None, label: str, **names):
     """``fn`` compiled with the friction law a constant (``law``; None: read at run time),
-    under its own name (Numba's cache files are named after the function).
+    under its own name (Numba's cache files are named after the function); ``names``: other
+    globals of ``fn`` replaced in the copy (the copies for the same law of what it calls).
 
     In a copy for one law, LLVM folds the law's branches in :func:`~avflow.numerics.rheology.friction` away, and the
     loop of a law without transcendental functions (Coulomb, Voellmy) vectorises (8 cells
@@ -113,6 +114,7 @@ def by_law(fn, law: int | None, label: str):
             types.FunctionType((lambda law: LAW).__code__, {"LAW": law},  # noqa: F821
                                "friction_law_" + label))
         namespace["friction_law"] = constant
+    namespace.update(names)
     copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + "_" + label,
                               fn.__defaults__, fn.__closure__)
     copy.__qualname__ = fn.__qualname__ + "_" + label
