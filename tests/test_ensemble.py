@@ -405,6 +405,56 @@ vary:
     pd.testing.assert_frame_equal(a.drop(columns=list(timings)), b.drop(columns=list(timings)))
 
 
+def _same_outputs(a_dir, b_dir):
+    """ensemble.nc and summary.csv of two runs of one ensemble equal, but for the timings."""
+    timings = {"wall_time", "member_time"}
+    with xr.open_dataset(a_dir / "ensemble.nc", decode_times=False) as a, \
+            xr.open_dataset(b_dir / "ensemble.nc", decode_times=False) as b:
+        assert set(a.variables) == set(b.variables) and "path_runout_s" in a
+        for name in set(a.variables) - timings:
+            np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=name)
+        assert {k: str(v) for k, v in a.attrs.items()} == {k: str(v) for k, v in b.attrs.items()}
+    a = pd.read_csv(a_dir / "summary.csv")
+    b = pd.read_csv(b_dir / "summary.csv")
+    assert list(a.columns) == list(b.columns)
+    pd.testing.assert_frame_equal(a.drop(columns=list(timings)), b.drop(columns=list(timings)))
+
+
+def test_the_end_reads_each_member_file_once(tmp_path, monkeypatch):
+    """What ensemble.nc and the path analysis need of a member file (its maps, its cells) is
+    read once, as the member finishes (on its worker on dask); the end opens no member file
+    again. Where that read is missing (a part that could not be read), the end reads the
+    file itself, and the outputs are the same."""
+    from avflow.ensemble import orchestrate
+
+    text = (SCENARIOS / "plane_box_2d.yaml").read_text().replace("dx: 10.0", "dx: 25.0")
+    (tmp_path / "plane.yaml").write_text(text)
+    ens = load_ensemble(write(tmp_path, """
+base: plane.yaml
+vary:
+  rheology.delta_deg: [18.0, 22.0]
+  release.volume_factor: [0.5, 1.0]
+"""))
+    opened = []
+    real_open = xr.open_dataset
+
+    def counting_open(path, *args, **kwargs):
+        if "members" in str(path):
+            opened.append(str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(xr, "open_dataset", counting_open)
+    assert run_ensemble(ens, tmp_path / "once", workers=0).ok
+    assert sorted(opened) == sorted(str(tmp_path / "once" / "members" / f"{m.scenario_hash}.nc")
+                                    for m in ens.members)
+    monkeypatch.setattr(orchestrate, "member_digest",
+                        lambda path, profile: {"maps": None, "points": None})
+    opened.clear()
+    assert run_ensemble(ens, tmp_path / "again", workers=0).ok
+    assert len(opened) == 2 * len(ens.members)  # the maps, then the cells, at the end
+    _same_outputs(tmp_path / "once", tmp_path / "again")
+
+
 def test_members_keep_their_own_threads_on_a_cluster(tmp_path):
     """A base scenario that sets numerics.threads keeps it on the cluster; a cluster started
     earlier for single-threaded members (NUMBA_NUM_THREADS=1) does not fit and is closed."""

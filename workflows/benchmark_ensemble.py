@@ -28,6 +28,9 @@ For each run, one row:
   and waiting for the cluster to close. Stages that overlap (the cluster starting while
   this process warms or runs members) are each timed on their own clock.
 
+Every run's row goes to stderr as it ends, with ``timings``: all of ``Outcome.timings`` (the
+table keeps the fastest run of each worker count).
+
 Timings mean something only on an otherwise idle machine: the load average is printed.
 """
 
@@ -82,7 +85,8 @@ def measure_here(dx: float, members: int, workers: int, batch: int | None, out: 
             "here": t.get("warm_here", t.get("probe", 0.0)), "cluster": t.get("cluster", 0.0),
             "warm": t.get("warm_workers", 0.0), "first": t.get("first_result", 0.0),
             "runs": runs, "idle": runs - member / k,
-            "write": sum(t.get(k, 0.0) for k in ("path", "tables", "ensemble_nc", "close"))}
+            "write": sum(t.get(k, 0.0) for k in ("path", "tables", "ensemble_nc", "close")),
+            "timings": {k: round(v, 3) for k, v in t.items()}}
 
 
 def measure(args, workers: int, out: Path) -> dict:
@@ -154,9 +158,11 @@ def main() -> None:
     root = Path(tempfile.mkdtemp(prefix="avflow-bench-"))
     try:
         for workers in (int(w) for w in args.workers.split(",")):
-            runs = [measure(args, workers, root / f"w{workers}-{i}") for i in range(args.repeat)]
+            runs = []
+            for i in range(args.repeat):
+                runs.append(measure(args, workers, root / f"w{workers}-{i}"))
+                print(json.dumps(runs[-1]), file=sys.stderr, flush=True)  # kept if stopped
             rows.append(min(runs, key=lambda r: r["wall"]))
-            print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # kept if stopped later
     finally:
         shutil.rmtree(root, ignore_errors=True)
     average = os.getloadavg()

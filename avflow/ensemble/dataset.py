@@ -180,12 +180,12 @@ def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool,
 
 
 class MemberMaps:
-    """The maps of an ensemble's members, read one member file at a time: the orchestrator
-    reads each file as its member finishes (while the others run), so that ensemble.nc is
-    assembled from memory at the end. The first grid read is the reference; a member on
-    another grid stops the stacking (:func:`_stacked_maps` says so). The coordinates, the
-    bed and the grid mapping are those of the lowest-numbered member, as when the files
-    were read in member order."""
+    """The maps of an ensemble's members, one member at a time: each member's worker reads
+    them back from its file as the member finishes (:func:`read_member_maps`, kept here
+    with :meth:`put`), so that ensemble.nc is assembled from memory at the end. The first
+    grid kept is the reference; a member on another grid stops the stacking
+    (:func:`_stacked_maps` says so). The coordinates, the bed and the grid mapping are those
+    of the lowest-numbered member, as when the files were read in member order."""
 
     def __init__(self, n: int, profile: bool):
         self.n, self.profile = n, profile
@@ -202,39 +202,37 @@ class MemberMaps:
         if self.different or index in self.done:
             return
         with xr.open_dataset(path, decode_times=False) as ds:
-            names = ["x", "x_horizontal"] if self.profile else ["y", "x"]
-            here = {c: ds[c].values for c in names if c in ds.coords}
-            if self.reference is None:
-                self.reference = here
-                shape = (self.n, *ds["peak_thickness"].shape)
-                for name in (*MAPS, *PROBABILITY_ONLY, "reached"):
-                    self.maps[name] = np.full(shape, np.nan)
-            elif any(here[c].shape != self.reference[c].shape
-                     or not np.array_equal(here[c], self.reference[c])
-                     for c in self.reference):
-                self.different = True
-                self.maps = {}
-                return
-            if self.first is None or index < self.first:
-                self.first = index
-                self.grid_coords = {c: (ds[c].dims, ds[c].values, dict(ds[c].attrs))
-                                    for c in names if c in ds.coords}
-                if "bed_elevation" in ds:
-                    self.grid_coords["bed_elevation"] = (
-                        ds["bed_elevation"].dims, ds["bed_elevation"].values.astype(float),
-                        dict(ds["bed_elevation"].attrs))
-                gm = ds["peak_thickness"].attrs.get("grid_mapping")
-                self.crs = ({"long_name": "coordinate reference system", **ds[gm].attrs}
-                            if gm and gm in ds.variables else None)
-            for name in (*MAPS, *PROBABILITY_ONLY):
-                if self.maps[name] is None:
-                    continue
-                if name not in ds:  # a member file written before the map existed
-                    self.maps[name] = None
-                    continue
-                self.maps[name][index] = ds[name].values
-            threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
-            self.maps["reached"][index] = np.nan_to_num(ds["peak_thickness"].values) >= threshold
+            self.put(index, read_member_maps(ds, self.profile))
+
+    def put(self, index: int, read: dict) -> None:
+        """One member's maps as :func:`read_member_maps` read them (on a worker, as the
+        member finished, or here); what :meth:`add` keeps of its file."""
+        if self.different or index in self.done:
+            return
+        here = read["coords"]
+        if self.reference is None:
+            self.reference = here
+            shape = (self.n, *read["shape"])
+            for name in (*MAPS, *PROBABILITY_ONLY, "reached"):
+                self.maps[name] = np.full(shape, np.nan)
+        elif any(here[c].shape != self.reference[c].shape
+                 or not np.array_equal(here[c], self.reference[c])
+                 for c in self.reference):
+            self.different = True
+            self.maps = {}
+            return
+        if self.first is None or index < self.first:
+            self.first = index
+            self.grid_coords = read["grid_coords"]
+            self.crs = read["crs"]
+        for name in (*MAPS, *PROBABILITY_ONLY):
+            if self.maps[name] is None:
+                continue
+            if read["maps"].get(name) is None:  # a member file written before the map existed
+                self.maps[name] = None
+                continue
+            self.maps[name][index] = read["maps"][name]
+        self.maps["reached"][index] = read["reached"]
         self.done.add(index)
 
     def result(self, members: set[int]):
@@ -250,6 +248,29 @@ class MemberMaps:
                     values[index] = np.nan
         return self.maps, self.grid_coords, "peak_thickness and deposit_thickness stacked", \
             self.crs
+
+
+def read_member_maps(ds: xr.Dataset, profile: bool) -> dict:
+    """What :class:`MemberMaps` keeps of one member's run Dataset (an open member file): its
+    grid coordinates, bed and grid mapping, its :data:`MAPS` and :data:`PROBABILITY_ONLY`
+    (None where the file lacks one) and ``reached``, where its peak thickness passed its
+    runout threshold. Plain arrays and dicts: a worker reads it as the member finishes and
+    returns it with the member's row."""
+    names = ["x", "x_horizontal"] if profile else ["y", "x"]
+    coords = {c: ds[c].values for c in names if c in ds.coords}
+    grid_coords = {c: (ds[c].dims, coords[c], dict(ds[c].attrs)) for c in coords}
+    if "bed_elevation" in ds:
+        grid_coords["bed_elevation"] = (
+            ds["bed_elevation"].dims, ds["bed_elevation"].values.astype(float),
+            dict(ds["bed_elevation"].attrs))
+    gm = ds["peak_thickness"].attrs.get("grid_mapping")
+    crs = ({"long_name": "coordinate reference system", **ds[gm].attrs}
+           if gm and gm in ds.variables else None)
+    maps = {name: ds[name].values if name in ds else None for name in (*MAPS, *PROBABILITY_ONLY)}
+    threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
+    reached = np.nan_to_num(maps["peak_thickness"]) >= threshold
+    return {"coords": coords, "grid_coords": grid_coords, "crs": crs, "maps": maps,
+            "reached": reached, "shape": maps["peak_thickness"].shape}
 
 
 def _probabilities(ensemble: Ensemble, maps: dict, ok: np.ndarray, space: tuple, coords: dict,

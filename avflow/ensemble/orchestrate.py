@@ -141,16 +141,63 @@ def cluster_scenario(scenario):
     return scenario.with_updates({"numerics.threads": 1})
 
 
-def run_member(scenario_yaml: str, out_path: str, one_thread: bool = False) -> dict:
+def member_digest(path: str | os.PathLike, profile: bool) -> dict:
+    """What the end of an ensemble needs of a member file, read in one opening: the maps of
+    ``ensemble.nc`` (:func:`avflow.ensemble.dataset.read_member_maps`) and the cells of the
+    path analysis (:func:`avflow.output.path.run_points`). A worker reads it as its member
+    finishes (the file is still in the page cache) and returns it with the member's row, so
+    that the end reads no member file again. A part that cannot be read is None: the file is
+    read again at the end, which reports the error as before."""
+    import xarray as xr
+
+    from avflow.ensemble.dataset import read_member_maps
+    from avflow.output.path import run_points
+
+    digest = {"maps": None, "points": None}
+    try:
+        # engine named: the engine xarray picks for these files, without the search of every
+        # installed backend (0.6 s at a process's first file: rioxarray imported)
+        with xr.open_dataset(path, decode_times=False, engine="netcdf4") as ds:
+            for key, read in (("maps", lambda: read_member_maps(ds, profile)),
+                              ("points", lambda: _narrow_fields(run_points(ds)))):
+                try:
+                    digest[key] = read()
+                except Exception:  # noqa: BLE001 - read (and reported) again at the end
+                    pass
+    except Exception:  # noqa: BLE001 - idem
+        pass
+    return digest
+
+
+def _narrow_fields(points):
+    """A member's RunPoints with its peak fields in float32 where that holds every value
+    exactly (they are float32 in the file; run_points makes them float64): half the bytes
+    to send and to keep. The path analysis works on them in float64 (``np.asarray(...,
+    dtype=float)``), the same values to the bit."""
+    import numpy as np
+
+    for name, values in points.fields.items():
+        narrow = values.astype(np.float32)
+        if narrow.astype(values.dtype).tobytes() == values.tobytes():
+            points.fields[name] = narrow
+    return points
+
+
+def run_member(scenario_yaml: str, out_path: str, one_thread: bool = False,
+               digest: bool | None = None) -> dict:
     """Run one member and write its NetCDF atomically; never raises for a model error.
 
     Idempotent: if ``out_path`` is already complete (a previous run, or the same task run
     twice after a lost worker) its stored summary is returned and nothing is recomputed.
     ``one_thread``: a member on a dask worker runs its :func:`cluster_scenario`.
+    ``digest``: None, or whether the ensemble is on a profile: the row then carries the
+    file's :func:`member_digest` under ``"digest"`` (when a file was written).
     """
     started = time.perf_counter()
     row = read_member_row(out_path)
     if row is not None:
+        if digest is not None:
+            row["digest"] = member_digest(out_path, digest)
         row.update(reused=True, member_time=time.perf_counter() - started)
         return row
     from avflow.output.stream import SnapshotStream
@@ -182,14 +229,16 @@ def run_member(scenario_yaml: str, out_path: str, one_thread: bool = False) -> d
                    else " | ".join(str(err).splitlines()) or repr(err))
         row = {name: math.nan for name in SUMMARY_FIELDS}
         row.update(status="failed", steps=0, error=f"{type(err).__name__}: {message}")
+    if digest is not None and row["status"] != "failed":
+        row["digest"] = member_digest(out_path, digest)
     row.update(reused=False, member_time=time.perf_counter() - started)
     return row
 
 
-def run_batch(items: list[tuple[int, str, str]], one_thread: bool = False
-              ) -> list[tuple[int, dict]]:
+def run_batch(items: list[tuple[int, str, str]], one_thread: bool = False,
+              digest: bool | None = None) -> list[tuple[int, dict]]:
     """Several members in one task (``(index, yaml, out_path)`` each): fewer, longer tasks."""
-    return [(index, run_member(text, out, one_thread)) for index, text, out in items]
+    return [(index, run_member(text, out, one_thread, digest)) for index, text, out in items]
 
 
 def tiny_scenario_yaml(ensemble: Ensemble, one_thread: bool = False) -> str | None:
@@ -214,11 +263,23 @@ def dask_setup(worker) -> None:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
+        import avflow.ensemble.dataset  # noqa: F401 - member_digest
+        import avflow.output.path  # noqa: F401
         import avflow.output.stream  # noqa: F401
         import avflow.scenario.schema  # noqa: F401
         import avflow.simulation.runner  # noqa: F401
     except Exception:  # noqa: BLE001 - best effort: the member imports (and reports) itself
         pass
+
+
+def dask_teardown(worker) -> None:
+    """Preload of the local cluster's workers, as one closes: every object frozen out of the
+    garbage collector (``gc.freeze``), so that the process exits at once. The collections of
+    Python's shutdown took 0.4 s in a worker that had run members (avflow, Numba, xarray
+    loaded: 230 000 objects), and the end of an ensemble waits for its workers to exit."""
+    import gc
+
+    gc.freeze()
 
 
 def warm(scenario_yaml: str | None) -> bool:
@@ -281,10 +342,12 @@ TIMINGS = {
     "first_result": "from the first task submitted to the first result back",
     "runs": "from the first task submitted (or the first member here) to the last result",
     "connect": "a client on the local cluster, once it is up (a worker plugin registered)",
-    "path": "the path analysis on a worker after the last result (the maps left read here)",
+    "path": "the member table and the path analysis, here, on the members' cells read back "
+            "as each member finished (by its worker on dask; a file not read then is read now)",
     "close": "waiting at the end for the local cluster to close (it closes meanwhile)",
-    "tables": "the member table, the path analysis (here) and summary.csv",
-    "ensemble_nc": "reading the member maps, building and writing ensemble.nc",
+    "tables": "summary.csv (and summary.parquet, failures.csv)",
+    "ensemble_nc": "building and writing ensemble.nc (from the maps read back as members "
+                   "finished)",
 }
 
 
@@ -406,47 +469,61 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     timings["check"] = time.perf_counter() - clock
     progress.update(len(rows), n_failed)
 
-    # The member maps of ensemble.nc are read here as members finish, while the others
-    # run (the parent has nothing else to do then): the end is assembled from memory.
-    maps = None  # MemberMaps, made when the first is read (xarray imported then, not before)
+    # What the end needs of each member file (the maps of ensemble.nc, the cells of the
+    # path analysis) is read once, by the worker as its member finishes (member_digest),
+    # and kept here as the rows come in; the files of reused members are read here while
+    # the others run (this process has nothing else to do then). The end reads no member
+    # file again: the path analysis, summary.csv and ensemble.nc are made from memory.
+    profile = ensemble.base.terrain.kind == "profile"
+    maps = None  # MemberMaps, made when the first is kept (xarray imported then, not before)
+    points: dict[int, object] = {}  # realization -> RunPoints, for the path analysis
     unread = [m for m in ensemble.members if m.index in rows
               and rows[m.index]["status"] != "failed"]  # reused members, read when idle
 
-    def read_one() -> bool:
-        """Read one finished member's maps; False when none is left to read."""
+    def keep(index: int, digest: dict) -> None:
+        """A member's :func:`member_digest`; a part missing is read at the end."""
         nonlocal maps
-        if not write_outputs or not unread:
-            return False
-        if maps is None:
-            from avflow.ensemble.dataset import MemberMaps
+        if write_outputs and digest.get("maps") is not None:
+            if maps is None:
+                from avflow.ensemble.dataset import MemberMaps
 
-            maps = MemberMaps(len(ensemble.members), ensemble.base.terrain.kind == "profile")
+                maps = MemberMaps(len(ensemble.members), profile)
+            try:
+                maps.put(index, digest["maps"])
+            except Exception:  # noqa: BLE001 - read again, and reported, for ensemble.nc
+                pass
+        if digest.get("points") is not None:
+            points[index] = _share_grid(digest["points"], points)
+
+    def read_one() -> bool:
+        """Read one reused member's file; False when none is left to read."""
+        if not unread:
+            return False
         member = unread.pop(0)
-        try:
-            maps.add(member.index, member_path(outdir, member))
-        except Exception:  # noqa: BLE001 - read again, and reported, when ensemble.nc is made
-            pass
+        keep(member.index, member_digest(member_path(outdir, member), profile))
         return True
 
     def record(member: Member, row: dict) -> None:
         nonlocal n_failed
+        digest = row.pop("digest", None)
         rows[member.index] = row
         if row["status"] not in OK_STATUSES:
             n_failed += 1
             progress.failure(member, row["error"])
         if row["status"] != "failed":
-            unread.append(member)
+            if digest is None:  # a worker of an older avflow: read here
+                unread.append(member)
+            else:
+                keep(member.index, digest)
         progress.update(len(rows), n_failed)
 
-    def finish(path_ds=None, path_ran: bool = False) -> object:
-        """The member table, summary.csv and ensemble.nc (``path_ds``: the path analysis,
-        when already made elsewhere)."""
+    def finish() -> object:
+        """The member table, the path analysis, summary.csv and ensemble.nc."""
         clock = time.perf_counter()
         table = member_table(ensemble, rows, outdir)
-        if not path_ran:
-            path_ds = _path_analysis(ensemble, table, outdir)  # adds the path_* columns
-        else:
-            path_ds = _merge_path_columns(table, path_ds)
+        path_ds = _path_analysis(ensemble, table, outdir, points)  # adds path_* columns
+        timings["path"] = time.perf_counter() - clock
+        clock = time.perf_counter()
         if write_outputs:
             write_tables(table, outdir)
             timings["tables"] = time.perf_counter() - clock
@@ -494,7 +571,7 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
         started = time.perf_counter()
         if todo and workers is None and scheduler is None and client is None:
             todo, workers = _choose_where(ensemble, todo, outdir, record, progress,
-                                          speculate)
+                                          speculate, profile)
             timings["probe"] = time.perf_counter() - started
             where = "here" if workers == 0 else where
             if workers == 0 and speculative:  # not needed: it closes while they run here
@@ -503,7 +580,7 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
             clock = time.perf_counter()
             for member in todo:
                 record(member, run_member(member.scenario.source_text,
-                                          str(member_path(outdir, member))))
+                                          str(member_path(outdir, member)), digest=profile))
             timings["runs"] = time.perf_counter() - clock
             wall = time.perf_counter() - started
         elif todo:
@@ -518,23 +595,16 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
                 startup = time.perf_counter() - t0
                 _run_on_dask(cl.client, todo, outdir,
                              batch or auto_batch(len(todo), max(n_workers, 1)), record,
-                             sigint.check, timings, idle=read_one)
+                             sigint.check, timings, idle=read_one, digest=profile)
                 wall = time.perf_counter() - started - startup
                 progress.close()
                 _clean_temporaries(folder)
-                # The path analysis reads every member file again: on a worker (the other
-                # workers of a local cluster close meanwhile), while this process reads the
-                # maps left; then the cluster closes while the tables are written.
-                clock = time.perf_counter()
-                keep = cl.shrink_soon()  # the others close while it runs
-                path = _submit_path_analysis(cl.client, ensemble, member_table(
-                    ensemble, rows, outdir), outdir, keep)
+                # The cluster closes while the reused members left are read and the path
+                # analysis, summary.csv and ensemble.nc are made here, from memory.
+                cl.close_soon()
                 while read_one():
                     sigint.check()
-                path_ds, path_ran = _path_result(cl.client, path, sigint.check)
-                timings["path"] = time.perf_counter() - clock
-                cl.close_soon()
-                table = finish(path_ds, path_ran)
+                table = finish()
                 sigint.check()  # a Ctrl-C while writing them: said once they are written
         else:
             wall = time.perf_counter() - started
@@ -552,6 +622,8 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
     if table is None:
         progress.close()
         _clean_temporaries(folder)
+        while read_one():  # reused members: each file opened once
+            pass
         table = finish()
     _close_speculative(speculative)
     ran = sum(not r.get("reused") for r in rows.values())
@@ -560,8 +632,8 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
 
 
 def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
-                  progress: ProgressLine, speculate: Callable[[], None] = lambda: None
-                  ) -> tuple[list[Member], int | None]:
+                  progress: ProgressLine, speculate: Callable[[], None] = lambda: None,
+                  digest: bool | None = None) -> tuple[list[Member], int | None]:
     """Where the members run when nothing says: ``(members left, workers)``, 0 for here.
 
     A local cluster costs :data:`CLUSTER_START_S` before its first result: a few short
@@ -571,7 +643,8 @@ def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
     left of :data:`CLUSTER_START_S`: on :data:`SPECULATE_MIN_CORES` cores or more the
     cluster starts (``speculate``) while the first member runs, its other cores being idle
     then. Members estimated at more than :data:`PROBE_MAX_CELLS` cells go to the cluster
-    without a probe. One line on stderr says what was chosen.
+    without a probe. One line on stderr says what was chosen. ``digest``: see
+    :func:`run_member`.
     """
     cores = os.cpu_count() or 1
     n = len(todo)
@@ -596,7 +669,8 @@ def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
     warm(tiny_scenario_yaml(ensemble))  # Numba's kernels loaded: t1 is the member's own
     started = time.perf_counter()
     first = todo[0]
-    record(first, run_member(first.scenario.source_text, str(member_path(outdir, first))))
+    record(first, run_member(first.scenario.source_text, str(member_path(outdir, first)),
+                             digest=digest))
     t1 = time.perf_counter() - started
     serial = t1 * (n - 1)
     start = CLUSTER_START_S
@@ -700,19 +774,6 @@ class _client:
             raise ClusterError(f"no dask worker joined {where} within {WORKER_TIMEOUT:g} s; "
                                "start one with `dask worker ADDRESS`") from None
         self.check()
-
-    def shrink_soon(self) -> str | None:
-        """A local cluster down to its first worker, the others closing in the background:
-        that worker's address (None elsewhere: a given client or scheduler keeps all)."""
-        if self.cluster is None:
-            return None
-        try:
-            workers = self.client.scheduler_info(n_workers=-1)["workers"]
-            first = min(workers, key=lambda a: str(workers[a].get("name")))
-            self.cluster.scale(1)  # SpecCluster keeps the first named worker: "0"
-        except Exception:  # noqa: BLE001 - all of it closes at the end anyway
-            return None
-        return first
 
     def close_soon(self) -> None:
         """Start closing the local cluster in a thread (its workers exit meanwhile)."""
@@ -918,7 +979,8 @@ class _sigint_ignored:
 def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
                  record: Callable[[Member, dict], None],
                  check: Callable[[], None] = lambda: None, timings: dict | None = None,
-                 idle: Callable[[], bool] = lambda: False) -> None:
+                 idle: Callable[[], bool] = lambda: False, digest: bool | None = None
+                 ) -> None:
     """Submit the members in batches; results are recorded as they complete.
 
     A lost worker is the scheduler's business: its tasks are run again elsewhere (the member
@@ -926,7 +988,8 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
     after repeated losses) marks its members failed. ``check`` is called every 50 ms while
     waiting (it raises on a Ctrl-C noted meanwhile, see :class:`_deferred_sigint`); ``idle``
     does a bit of work meanwhile (False: nothing left to do). Every member runs its
-    :func:`cluster_scenario` (one thread unless it says otherwise).
+    :func:`cluster_scenario` (one thread unless it says otherwise); ``digest``: see
+    :func:`run_member` (the worker reads back what the end needs of each member file).
     """
     from distributed import as_completed
 
@@ -938,7 +1001,8 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
         chunk = todo[start:start + batch]
         items = [(m.index, m.scenario.source_text, str(member_path(outdir, m))) for m in chunk]
         key = "avflow-member-" + "-".join(m.scenario_hash for m in chunk[:1]) + f"-{len(chunk)}"
-        future = client.submit(run_batch, items, True, key=key, pure=False, retries=1)
+        future = client.submit(run_batch, items, True, digest, key=key, pure=False,
+                               retries=1)
         futures[future] = chunk
         check()
     pending = as_completed(list(futures), loop=client.loop, raise_errors=False)
@@ -977,79 +1041,41 @@ def _record_task(future, chunk: list[Member], by_index: dict, record) -> None:
 # =========================================================================================
 
 
-def _path_analysis(ensemble: Ensemble, table, outdir: Path):
+def _path_analysis(ensemble: Ensemble, table, outdir: Path, points: dict | None = None):
     """Runout along one path for every member (:mod:`avflow.output.path`; the base
     scenario's ``output.path``, else the farthest-travelling member's centre-of-mass track):
     ``path_*`` columns in ``table`` and the ``ensemble.nc`` variables, or None with a line
-    on stderr when it cannot be done (the members' files are untouched)."""
+    on stderr when it cannot be done (the members' files are untouched). ``points``: the
+    members' cells read already (realization -> RunPoints); the other files are read here."""
     from avflow.output.path import PathSettings, ensemble_path
 
     try:
-        return ensemble_path(table, outdir, PathSettings.from_scenario(ensemble.base.output.path))
+        return ensemble_path(table, outdir, PathSettings.from_scenario(ensemble.base.output.path),
+                             points)
     except Exception as err:  # noqa: BLE001 - the members are done; say why, go on
         print(f"avflow: warning: path analysis skipped: {' '.join(str(err).split())}",
               file=sys.stderr)
         return None
 
 
-def _path_task(settings, table, outdir: Path):
-    """:func:`_path_analysis` on a worker: ``(path_* columns, variables, warning)``."""
-    from avflow.output.path import PathSettings, ensemble_path
-
-    try:
-        ds = ensemble_path(table, outdir, PathSettings.from_scenario(settings))
-    except Exception as err:  # noqa: BLE001 - said by this process, which tries again
-        return None, None, " ".join(str(err).split())
-    return table[[c for c in table.columns if c.startswith("path_")]], ds, ""
+def _same_bits(a, b) -> bool:
+    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
 
 
-def _submit_path_analysis(client, ensemble: Ensemble, table, outdir: Path,
-                          worker: str | None = None):
-    """The path analysis as a task (a future; on ``worker`` if it is still there), or None
-    where it cannot be submitted."""
-    try:
-        return client.submit(_path_task, ensemble.base.output.path, table, Path(outdir),
-                             pure=False, priority=10, workers=[worker] if worker else None,
-                             allow_other_workers=True)
-    except Exception:  # noqa: BLE001 - made here then
-        return None
-
-
-def _path_result(client, future, check: Callable[[], None]) -> tuple[object, bool]:
-    """``((columns, variables), True)`` from the worker, or ``(None, False)``: then this
-    process makes it (and says why it cannot, as before), also when no worker is left."""
-    if future is None:
-        return None, False
-    try:
-        asked = time.monotonic()
-        while not future.done():
-            check()
-            time.sleep(0.02)
-            if time.monotonic() - asked > 1.0:
-                asked = time.monotonic()
-                if future.status == "pending" and not client.nthreads():
-                    return None, False
-        columns, ds, warning = future.result()
-    except KeyboardInterrupt:
-        raise
-    except Exception:  # noqa: BLE001 - a lost worker: made here
-        return None, False
-    finally:
-        future.release()
-    if warning:
-        return None, False
-    return (columns, ds), True
-
-
-def _merge_path_columns(table, made):
-    """The path_* columns made on a worker into ``table``; its ensemble.nc variables."""
-    if made is None:
-        return None
-    columns, ds = made
-    if columns is not None:
-        for name in columns.columns:
-            table[name] = columns[name].to_numpy()
-    return ds
+def _share_grid(points, kept: dict):
+    """``points`` (a member's RunPoints) with the cell coordinates, bed and grid of a member
+    kept before where they are the same to the bit: one copy of the grid for the members
+    that share it, not one each."""
+    other = next(iter(kept.values()), None)
+    if other is None or other.kind != points.kind:
+        return points
+    for name in ("x", "y", "z"):
+        if _same_bits(getattr(points, name), getattr(other, name)):
+            setattr(points, name, getattr(other, name))
+    if points.grid is not None and other.grid is not None and len(points.grid) == len(
+            other.grid) and all(_same_bits(a, b) for a, b in zip(points.grid, other.grid)):
+        points.grid = other.grid
+    return points
 
 
 def member_table(ensemble: Ensemble, rows: dict[int, dict], outdir: Path):

@@ -964,19 +964,20 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
     return text, written
 
 
-def _ensemble_results(table, outdir: Path, settings: PathSettings, line: PathLine | None):
+def _ensemble_results(table, outdir: Path, settings: PathSettings, line: PathLine | None,
+                      points: dict | None = None):
     """Every member with a file, along one path: the line, else the centre-of-mass track of
-    the member whose centre of mass travelled farthest."""
-    import xarray as xr
-
+    the member whose centre of mass travelled farthest. ``points``: realization ->
+    :class:`RunPoints` already read from the member files (by the workers, as each member
+    finished); the member files not among them are read here."""
     files = [(int(k), outdir / str(f)) for k, f in zip(table["realization"], table["file"])
              if isinstance(f, str) and f]
     if not files:
         raise PathError(f"{outdir}: no member produced a file")
+    points = points or {}
     members = {}
     for k, path in files:
-        with xr.open_dataset(path, decode_times=False) as ds:
-            members[k] = run_points(ds)
+        members[k] = points[k] if k in points else member_points(path)
     if line is None:
         if settings.line is not None:
             line = read_line(settings.line)
@@ -999,16 +1000,27 @@ def _ensemble_results(table, outdir: Path, settings: PathSettings, line: PathLin
     return line, results, rows, members[files[0][0]]
 
 
-def ensemble_path(table, outdir, settings: PathSettings):
+def member_points(path) -> RunPoints:
+    """:func:`run_points` of a run file (what the ensemble path analysis needs of a member)."""
+    import xarray as xr
+
+    with xr.open_dataset(path, decode_times=False) as ds:
+        return run_points(ds)
+
+
+def ensemble_path(table, outdir, settings: PathSettings, points: dict | None = None):
     """Add the ``path_*`` columns to an ensemble's member table (in place) and return the
     ``ensemble.nc`` variables: the scalars along ``realization``, the path line and the
-    cross-section maxima on a common ``path_s`` axis; attributes record the settings."""
+    cross-section maxima on a common ``path_s`` axis; attributes record the settings.
+    ``points``: realization -> :class:`RunPoints` of members read already (the others are
+    read from their files; their peak fields may be float32 holding the same values:
+    :func:`analyse` works in float64)."""
     import xarray as xr
 
     outdir = Path(outdir)
     if not any(isinstance(f, str) and f for f in table["file"]):
         return None  # every member failed: nothing to follow
-    line, results, rows, _ = _ensemble_results(table, outdir, settings, None)
+    line, results, rows, _ = _ensemble_results(table, outdir, settings, None, points)
     n = len(table)
     index = {int(k): i for i, k in enumerate(table["realization"])}
     first = results[0][1]
