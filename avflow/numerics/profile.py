@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 from avflow.numerics.kernels import (DRY, FLOWING, TRANSPORT_EPS, _final_momentum, _limit,
@@ -34,10 +33,11 @@ from avflow.numerics.vectorize import (by_law, friction_law, in_select, line_sum
                                        out_select)
 from avflow.terrain.mesh import OUTFLOW, WALL
 
-#: Lines of the work array (:func:`work_array`): per cell (padded to n + 2)
-W_UP_H, W_UP_Q, W_DOWN_H, W_DOWN_Q, W_SPEED, W_FLUX_H, W_FLUX_Q, W_KAPPA = range(8)
-W_QX, W_INV, W_KIN, W_MOV, W_FILM = range(8, 13)
-N_WORK = 13
+#: Lines of :func:`step`'s work array, ``(N_WORK, n + 2)``: per cell the half fluxes up
+#: (+x) and down, |u|, the face fluxes (n + 1), the trial discharge, and what the sums need
+W_UP_H, W_UP_Q, W_DOWN_H, W_DOWN_Q, W_SPEED, W_FLUX_H, W_FLUX_Q = range(7)
+W_QX, W_INV, W_KIN, W_MOV, W_FILM = range(7, 12)
+N_WORK = 12
 
 
 @noalias
@@ -76,6 +76,7 @@ def _faces(n, up_h, up_q, down_h, down_q, flux_h, flux_q):
         flux_q[i] = up_q[i - 1] + down_q[i]
 
 
+@njit(error_model="numpy", cache=True)
 def _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h, down_q,
           flux_h, flux_q):
     """The two end faces, as :func:`step_profile`: a wall mirrors the cell (no mass, twice
@@ -102,8 +103,6 @@ def _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h
         flux_h[n] = _open_mass(up_h[m] + gm_h)
         flux_q[n] = up_q[m] + gm_q
 
-
-_ends = njit(error_model="numpy", cache=True)(_ends)
 
 
 def _trial(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g, h_zero,

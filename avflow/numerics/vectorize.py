@@ -97,6 +97,15 @@ def friction_law(law):
     return law
 
 
+#: The law of a copy made by :func:`by_law` (each copy's globals hold its own)
+LAW = -1
+
+
+def _law_constant(law):
+    """:func:`friction_law` of a copy: its ``LAW``, whatever the argument."""
+    return LAW
+
+
 def by_law(fn, law: int | None, label: str, **names):
     """``fn`` compiled with the friction law a constant (``law``; None: read at run time),
     under its own name (Numba's cache files are named after the function); ``names``: other
@@ -111,8 +120,7 @@ def by_law(fn, law: int | None, label: str, **names):
     if law is not None:
         # inlined where it is called, never compiled (nor cached) on its own
         constant = njit(error_model="numpy", inline="always")(
-            types.FunctionType((lambda law: LAW).__code__, {"LAW": law},  # noqa: F821
-                               "friction_law_" + label))
+            types.FunctionType(_law_constant.__code__, {"LAW": law}, "friction_law_" + label))
         namespace["friction_law"] = constant
     namespace.update(names)
     copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + "_" + label,
