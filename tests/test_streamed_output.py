@@ -326,12 +326,17 @@ class Windows(Both):
         return super().finish(result)
 
 
+@pytest.mark.parametrize("pieces", [False, True])
 @pytest.mark.parametrize("kind", ["profile", "grid", "dem", "triangles"])
-def test_windowed_fields_equal_the_whole_map_as_the_flow_slides_and_dries(kind, tmp_path):
+def test_windowed_fields_equal_the_whole_map_as_the_flow_slides_and_dries(kind, pieces,
+                                                                         tmp_path,
+                                                                         monkeypatch):
     """A flow that crosses the map and leaves it dry behind: every record's fields, refreshed
     in the window where the flow is or was, equal those of the whole map (snapshot_fields,
     cast to the file's dtypes) bit for bit, and so does the centre of mass; the streamed file
     equals the in-memory one."""
+    if pieces:  # a window refreshed in pieces of 7 cells (rows of it on grids)
+        monkeypatch.setattr("avflow.output.dataset.REFRESH_CELLS", 7)
     from avflow.output.dataset import WindowedFields, snapshot_fields
     from avflow.simulation.runner import center_of_mass
 

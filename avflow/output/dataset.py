@@ -60,6 +60,11 @@ def _cell_values(h, hu, hv, flag, basis) -> dict:
     return {"h": h, "u": ua * e1x + va * e2x, "v": ua * e1y + va * e2y, "flow_state": flags}
 
 
+#: Cells refreshed at once by :meth:`WindowedFields.update` (its temporaries: about fifteen
+#: arrays of this many values, 30 MB)
+REFRESH_CELLS = 1 << 18
+
+
 class WindowedFields:
     """The fields of successive snapshots (:func:`snapshot_fields` of one snapshot), kept in
     arrays of the file's dtypes that are refreshed only where the flow is or was.
@@ -107,7 +112,11 @@ class WindowedFields:
 
     def update(self, h, hu, hv, wet=None) -> dict:
         """The fields of the snapshot with these per-cell h, hu, hv (the arrays kept, on the
-        output grid: valid until the next update); ``wet``: :func:`wet_cells` of h if known."""
+        output grid: valid until the next update); ``wet``: :func:`wet_cells` of h if known.
+
+        The window is refreshed in pieces of about :data:`REFRESH_CELLS` cells (rows of it
+        on grids): the temporaries of a piece (some fifteen arrays) then stay small, where a
+        window covering a 1 m DEM's flow made them 0.5 GiB at once."""
         box = self.wet_box(h, wet)
         window = _union(self.box, box)
         self.box = box
@@ -115,19 +124,28 @@ class WindowedFields:
             self.windows.append(())
             return self.values
         if not self.grid:  # a range of cells, the same range of the output
-            block = slice(*window)
-            self.windows.append((block.stop - block.start,))
-            inside = cells = block
-        else:
-            r0, r1, c0, c1 = window
-            block = (slice(r0, r1), slice(c0, c1))
-            self.windows.append((r1 - r0, c1 - c0))
+            self.windows.append((window[1] - window[0],))
+            for a in range(window[0], window[1], REFRESH_CELLS):
+                block = slice(a, min(a + REFRESH_CELLS, window[1]))
+                self._refresh(block, block, block, h, hu, hv)
+            return self.values
+        r0, r1, c0, c1 = window
+        self.windows.append((r1 - r0, c1 - c0))
+        rows = max(1, REFRESH_CELLS // (c1 - c0))
+        for a in range(r0, r1, rows):
+            block = (slice(a, min(a + rows, r1)), slice(c0, c1))
             if self.cell_index is None:  # the places are the cells, row by row
                 inside = cells = None
-            else:  # the window's places that hold a cell
+            else:  # the piece's places that hold a cell
                 cm = self.cellmap[block]
                 inside = cm >= 0
                 cells = cm[inside]
+            self._refresh(block, inside, cells, h, hu, hv)
+        return self.values
+
+    def _refresh(self, block, inside, cells, h, hu, hv) -> None:
+        """The fields of one piece of the window: ``block`` of the output, whose ``inside``
+        places hold the ``cells`` (None: the places are the cells; slices on profiles)."""
 
         def take(a):
             a = np.asarray(a)
@@ -140,7 +158,6 @@ class WindowedFields:
                 self.values[name][block] = v
             else:
                 self.values[name][block][inside] = v
-        return self.values
 
 
 def _union(a, b):
