@@ -51,7 +51,7 @@ from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_
 from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import by_law, friction_law, in_select, line_sum, noalias, out_select
-from avflow.terrain.squaregrid import (CANONICAL_ORDER, HIGH_OPEN, HIGH_WALL, INNER, KIND,
+from avflow.terrain.squaregrid import (HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
 # Columns of the per-row results of pass 3
@@ -154,26 +154,6 @@ def _face_flux(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, 
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _ordered(order, start, a_w, a_e, a_s, a_n):
-    """``start`` plus the four side terms (W, E, S, N) in the cell's face order (the order of
-    the face indices in the mesh: the face kernel's order of summation, bit for bit)."""
-    if order == CANONICAL_ORDER:
-        return (((start + a_w) + a_e) + a_s) + a_n
-    s = start
-    for k in range(4):
-        d = (order >> (2 * k)) & 3
-        if d == 0:
-            s += a_w
-        elif d == 1:
-            s += a_e
-        elif d == 2:
-            s += a_s
-        else:
-            s += a_n
-    return s
-
-
-@njit(error_model="numpy", cache=True, inline="always")
 def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, n0x,
                   n0y, n1x, n1y, length):
     """:func:`_face_flux` of an INNER face, without branches (:func:`~avflow.numerics.vectorize.out_select`,
@@ -248,7 +228,11 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
     """y faces ``c0..c1`` between two rows (``below``: the emitted states of the lower row,
     ``above``: of the upper one) into ``out[:, c]``, in two passes as :func:`_x_faces` (at
     the map's south and north sides every face is a boundary face: the missing row's
-    values, whatever the ring holds, are overwritten by the second pass)."""
+    values, whatever the ring holds, are overwritten by the second pass).
+
+    The twin of :func:`_x_faces` with the west cell at k - 1 there and the row below at c
+    here: one function taking that shift as an argument ran 4x slower (its loop stayed
+    scalar), so the two are written apart."""
     b_h, b_u1, b_u2, b_c = below[E_H], below[E_U1], below[E_U2], below[E_C]
     b_s, b_kh, b_k3 = below[E_S], below[E_KH], below[E_K3]
     a_h, a_u1, a_u2, a_c = above[E_H], above[E_U1], above[E_U2], above[E_C]
@@ -295,10 +279,10 @@ def _pick(d, a_w, a_e, a_s, a_n):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _ordered_select(order, start, a_w, a_e, a_s, a_n):
-    """:func:`_ordered` without branches: ``start`` plus the four side terms in the cell's
-    face order, each term picked by a select (the same additions in the same order, so the
-    same bits, the canonical order included). Written out: with a loop over the four
-    terms LLVM left the cell loop scalar."""
+    """``start`` plus the four side terms (W, E, S, N) in the cell's face order (the order
+    of the face indices in the mesh: the face kernel's order of summation, bit for bit),
+    each term picked by a select. Written out: with a loop over the four terms LLVM left
+    the cell loop scalar."""
     o = np.int64(order)
     s = start + _pick(o & 3, a_w, a_e, a_s, a_n)
     s = s + _pick((o >> 2) & 3, a_w, a_e, a_s, a_n)
