@@ -331,16 +331,20 @@ def test_missing_base_is_an_error_on_the_ensemble_file(tmp_path, capsys):
 # =========================================================================================
 
 
-def test_grid_ensemble_maps_and_exceedance(tmp_path):
+def grid_ensemble(tmp_path, extra=""):
+    """Four members (two friction angles, two volumes) of the plane box at 25 m cells."""
     text = (SCENARIOS / "plane_box_2d.yaml").read_text().replace("dx: 10.0", "dx: 25.0")
     (tmp_path / "plane.yaml").write_text(text)
-    ens = load_ensemble(write(tmp_path, """
+    return load_ensemble(write(tmp_path, """
 base: plane.yaml
 vary:
   rheology.delta_deg: [18.0, 22.0]
   release.volume_factor: [0.5, 1.0]
-thresholds: [0.5, 2.0]
-"""))
+""" + extra))
+
+
+def test_grid_ensemble_maps_and_exceedance(tmp_path):
+    ens = grid_ensemble(tmp_path, "thresholds: [0.5, 2.0]")
     out = tmp_path / "out"
     outcome = run_ensemble(ens, out, workers=0)
     assert outcome.ok and outcome.ran == 4
@@ -370,14 +374,7 @@ def test_members_on_a_cluster_run_on_one_thread_and_equal_a_run_here(tmp_path):
     sets a number (the hash does not change); here they keep the default (every core). The
     ensemble.nc and summary.csv of a cluster run are those of the run here, but for the
     timings."""
-    text = (SCENARIOS / "plane_box_2d.yaml").read_text().replace("dx: 10.0", "dx: 25.0")
-    (tmp_path / "plane.yaml").write_text(text)
-    ens = load_ensemble(write(tmp_path, """
-base: plane.yaml
-vary:
-  rheology.delta_deg: [18.0, 22.0]
-  release.volume_factor: [0.5, 1.0]
-"""))
+    ens = grid_ensemble(tmp_path)
     member = ens.members[0].scenario
     assert member.numerics.threads is None
     one = cluster_scenario(member)
@@ -427,14 +424,7 @@ def test_the_end_reads_each_member_file_once(tmp_path, monkeypatch):
     file itself, and the outputs are the same."""
     from avflow.ensemble import orchestrate
 
-    text = (SCENARIOS / "plane_box_2d.yaml").read_text().replace("dx: 10.0", "dx: 25.0")
-    (tmp_path / "plane.yaml").write_text(text)
-    ens = load_ensemble(write(tmp_path, """
-base: plane.yaml
-vary:
-  rheology.delta_deg: [18.0, 22.0]
-  release.volume_factor: [0.5, 1.0]
-"""))
+    ens = grid_ensemble(tmp_path)
     opened = []
     real_open = xr.open_dataset
 
