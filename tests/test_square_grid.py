@@ -240,3 +240,57 @@ def test_released_buffers_are_rebuilt_and_the_run_goes_on_bit_for_bit():
     a_solver.advance(a, 20.0)
     b_solver.advance(b, 20.0)
     assert_same_state(a, b)
+
+
+@pytest.mark.parametrize("holes", [False, True])
+def test_work_buffers_are_copied_only_near_the_flow(holes):
+    """The grid kernel copies the state into its work buffers only where the flow comes
+    near (per row a hull that grows), not the whole map at each call. Work buffers full of
+    NaN between calls, with two flows in the same rows (hulls with gaps between them) and a
+    second state on the same solver, change no bit against a fresh face kernel; and the
+    second state's flags are those of a fresh grid solver (a flag buffer kept by the
+    solver once gave it the first state's flags where it never swept)."""
+    z, x, y = valley(nx=80, holes=holes)
+    ter = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="wall")
+    h0 = cylinder(ter, (60.0, 40.0), radius=20.0, thickness=4.0) \
+        + cylinder(ter, (60.0, 160.0), radius=20.0, thickness=4.0) \
+        + cylinder(ter, (250.0, 100.0), radius=15.0, thickness=3.0)
+    faces, grid = pair(ter)
+    first = grid.new_state(h0[::-1].copy())  # another flow, left in the buffers
+    grid.advance(first, 30.0)
+    reference, state = faces.new_state(h0), grid.new_state(h0)
+    for t in np.linspace(2.0, 40.0, 12):
+        for work in (grid._h_work, grid._hu_work, grid._hv_work):
+            work.fill(np.nan)
+        assert grid.advance(state, t) == faces.advance(reference, t)
+        assert_same_state(reference, state)
+    fresh = Solver(ter, Law.COULOMB, np.array([math.tan(math.radians(20.0))]), kernel="grid",
+                   threads=1)
+    again = fresh.new_state(h0)
+    for t in np.linspace(2.0, 40.0, 12):
+        fresh.advance(again, t)
+    np.testing.assert_array_equal(state.flag, again.flag)
+
+
+def test_work_hull_holds_the_state_with_no_gap():
+    """The hull of each row (:func:`_sync_work`) holds the state in every cell it covers,
+    when the flow comes back to a row far from where it was (the gap copied too), and
+    covers the swept cells of the rows around, one more column each side."""
+    from avflow.numerics.square_grid import _sync_work
+
+    nx, ny = 20, 4
+    state = [np.arange(nx * ny, dtype=float) + k * 1000.0 for k in range(3)]
+    work = [np.full(nx * ny, np.nan) for _ in range(3)]
+    sync_lo, sync_hi = np.full(ny, nx), np.full(ny, -1)
+    lo, hi = np.full(ny, nx), np.full(ny, -1)
+    for r, (a, b) in ((1, (12, 14)), (1, (2, 3)), (2, (17, 19))):  # right, then far left
+        lo[:], hi[:] = nx, -1
+        lo[r], hi[r] = a, b
+        _sync_work(nx, ny, r, r, lo, hi, sync_lo, sync_hi, *state, *work)
+    assert list(zip(sync_lo, sync_hi)) == [(1, 15), (1, 19), (1, 19), (16, 19)]
+    for q in range(ny):
+        held = slice(q * nx + sync_lo[q], q * nx + sync_hi[q] + 1)
+        for s, w in zip(state, work):
+            np.testing.assert_array_equal(w[held], s[held])
+        outside = np.r_[q * nx:held.start, held.stop:(q + 1) * nx]
+        assert np.isnan(work[0][outside]).all()  # nothing copied beyond the hull

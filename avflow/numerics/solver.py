@@ -244,12 +244,19 @@ class Solver:
                 full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
                 full[layout.place] = getattr(state, name)
         h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays
+        # the state's own flags: the kernel writes those of the cells it sweeps and keeps
+        # the others (a flag buffer kept by the solver gave a second state the flags the
+        # first had left where the second never swept)
+        flag = state.flag if layout.compact else self._g_flag
+        if not layout.compact:
+            flag.fill(K.DRY)
+            flag[layout.place] = state.flag
         status = advance_grid(
             threads, layout.nx, layout.ny, layout.valid, layout.face_order, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
             c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
             c["gamma_z"], c["curvature"], h, hu, hv, self._h_work, self._hu_work,
-            self._hv_work, self._g_flag, int(self.law),
+            self._hv_work, flag, int(self.law),
             self.params, float(self.gravity), bool(self.dirac), float(self.h_dry),
             float(self.h_zero), float(self.cfl), float(t_target), int(max_steps),
             float(stop_volume), float(stop_kinetic), peak_h, peak_speed, arrival, last_moved,
@@ -259,7 +266,7 @@ class Solver:
         if not layout.compact:
             for name, full in zip(names, arrays):
                 getattr(state, name)[:] = full[layout.place]
-        state.flag[:] = self._g_flag[layout.place]
+            state.flag[:] = flag[layout.place]
         return STATUS_NAMES[status]
 
     def new_state(self, h0: np.ndarray) -> State:
@@ -290,8 +297,11 @@ class Solver:
             self._cfl_factor, self.terrain.gamma_z, state.h, state.hu, state.hv, self.gravity)
 
     def volume(self, state: State) -> float:
-        """Total volume on the mesh (m^3; m^2 per unit width on a profile), compensated sum."""
-        return math.fsum(state.h * self.terrain.mesh.cell_area)
+        """Total volume on the mesh (m^3; m^2 per unit width on a profile), compensated sum.
+        Over the cells that hold something: the dry ones add exact zeros, which change no
+        exact sum, and the sum then costs the flow, not the map."""
+        held = np.flatnonzero(state.h)
+        return math.fsum(state.h[held] * self.terrain.mesh.cell_area[held])
 
     def advance(self, state: State, t_target: float, *, stop_volume: float = -1.0,
                 stop_kinetic: float = -1.0, max_steps: int = 10**9) -> str:

@@ -45,6 +45,7 @@ import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
+                                     ST_STEPS,
                                      ST_TIME, TRANSPORT_EPS,
                                      _final_momentum, _limit, _observe, _open_mass,
                                      _trial_momentum, end_loop, record_step, step_size)
@@ -719,9 +720,11 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
     t = stats[ST_TIME]
     status = REACHED_TARGET
     steps = 0
-    h_work[:] = h
-    hu_work[:] = hu
-    hv_work[:] = hv
+    # The work buffers hold h, hu, hv wherever a step may read them: per row the columns
+    # sync_lo .. sync_hi, copied from (h, hu, hv) as the flow first comes near them (a
+    # copy of the whole map at each call was the one cost left that grew with the map)
+    sync_lo = np.full(ny, nx, dtype=np.int64)
+    sync_hi = np.full(ny, -1, dtype=np.int64)
     rows = np.zeros((ny, N_ROW))
     wet_lo = np.full(ny, nx, dtype=np.int64)
     wet_hi = np.full(ny, -1, dtype=np.int64)
@@ -743,6 +746,8 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
         dt, dt_decide, last = step_size(stats, cfl, t, t_target)
         r0, r1, n_cells = _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo,
                                          prev_hi, lo, hi, band0, band1)
+        _sync_work(nx, ny, r0, r1, lo, hi, sync_lo, sync_hi, h, hu, hv, h_work, hu_work,
+                   hv_work)
         n_blocks = min(8 * threads, (r1 - r0 + 1) // min_block_rows)
         if threads == 1 or n_cells < min_parallel_cells:
             n_blocks = 1
@@ -808,5 +813,49 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
                              stop_volume, stop_kinetic, steps, max_steps)
         if status != REACHED_TARGET:
             break
-    end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv)
+    if steps % 2 == 1:  # the newest state is in the work buffers: back where it changed
+        for r in range(ny):
+            a, b = r * nx + sync_lo[r], r * nx + sync_hi[r] + 1
+            h[a:b] = cur_h[a:b]
+            hu[a:b] = cur_hu[a:b]
+            hv[a:b] = cur_hv[a:b]
+    end_loop(stats, t, 0, h, hu, hv, cur_h, cur_hu, cur_hv)  # time and steps, no copy
+    stats[ST_STEPS] += steps
     return status
+
+
+@njit(error_model="numpy", cache=True)
+def _sync_work(nx, ny, r0, r1, lo, hi, sync_lo, sync_hi, h, hu, hv, h_work, hu_work, hv_work):
+    """Before a step that sweeps columns ``lo[r] .. hi[r]`` of rows ``r0 .. r1``: the work
+    buffers take (h, hu, hv) in every cell the step may read that they do not hold yet, per
+    row a hull ``sync_lo .. sync_hi`` that only grows. The step reads a row's swept cells,
+    one more on each side, and the swept cells of the rows above and below (their y faces);
+    the hull of row q covers the swept columns of rows q - 1 .. q + 1, one more each side.
+    A cell outside every hull so far was never written, in either buffer, so ``h`` (the
+    caller's) still holds its value; inside, both buffers hold the state, as the sweep
+    writes each cell it leaves once more (:func:`_swept_columns`)."""
+    for q in range(max(r0 - 1, 0), min(r1 + 2, ny)):
+        a = nx
+        b = -1
+        for r in range(max(q - 1, r0), min(q + 2, r1 + 1)):
+            if lo[r] <= hi[r]:
+                a = min(a, lo[r] - 1)
+                b = max(b, hi[r] + 1)
+        if b < 0:
+            continue
+        a = max(a, 0)
+        b = min(b, nx - 1)
+        s0, s1 = sync_lo[q], sync_hi[q]
+        if s0 > s1:  # nothing held yet in this row
+            s0, s1 = b + 1, b
+        base = q * nx
+        for c in range(a, s0):  # gaps between the hull and the cells read included
+            h_work[base + c] = h[base + c]
+            hu_work[base + c] = hu[base + c]
+            hv_work[base + c] = hv[base + c]
+        for c in range(s1 + 1, b + 1):
+            h_work[base + c] = h[base + c]
+            hu_work[base + c] = hu[base + c]
+            hv_work[base + c] = hv[base + c]
+        sync_lo[q] = min(a, s0)
+        sync_hi[q] = max(b, s1)
