@@ -30,7 +30,7 @@ from test_xarray_file import dem_scenario
 FAST = SCENARIOS / "seed_dambreak_flat_dx20.yaml"  # 100 cells, 138 snapshots
 
 #: Only the storage of these differs in a streamed file: ``time`` is unlimited, so the
-#: variables on time alone are chunked, and flow_state is one chunk per snapshot.
+#: variables on time alone are chunked.
 STORAGE = ("chunksizes", "contiguous", "preferred_chunks")
 
 
@@ -78,7 +78,7 @@ def assert_same_file(old, new):
         for name in a.variables:
             ea, eb = ({k: v for k, v in d.encoding.items() if k != "source"}
                       for d in (a[name], b[name]))
-            if a[name].dims[:1] == ("time",) and (a[name].ndim == 1 or name == "flow_state"):
+            if a[name].dims[:1] == ("time",) and a[name].ndim == 1:
                 assert ea["contiguous"] and not eb["contiguous"], name
                 assert eb["chunksizes"] == (1, *a[name].shape[1:]) if a[name].ndim > 1 \
                     else eb["chunksizes"] == a[name].shape, name
@@ -110,6 +110,43 @@ def test_streamed_file_equals_the_in_memory_one(kind, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".nc") == [
         "in_memory.nc", "streamed.nc"]
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("kind, tile, share", [("grid", 4, 0.8), ("dem", 2, 1.0)])
+def test_a_record_writes_only_the_tiles_of_the_flow(kind, tile, share, tmp_path, monkeypatch):
+    """Small tiles: the streamed file still equals the in-memory one, every value (the dry
+    tiles never written read as 0 on the plane, the tiles all in the DEM's 3 x 3 hole as
+    NaN), and the stream writes fewer tiles than the records hold: on the plane less than
+    80% of them; on the DEM (NaN fill: its dry tiles are written) all but the hole's. Fails
+    if a skipped tile reads anything else (a fill value lost reads 9.97e36), or if every
+    tile is written."""
+    import avflow.output.netcdf as nc
+    import avflow.output.stream as st
+
+    monkeypatch.setattr(nc, "TILE", tile)
+    written = []
+    blocks = st._Tiles.blocks
+
+    def counted(self, wet):
+        out = blocks(self, wet)
+        written.append(sum(-(-(r.stop - r.start) // tile) * -(-(c.stop - c.start) // tile)
+                           for r, c in out))
+        return out
+
+    monkeypatch.setattr(st._Tiles, "blocks", counted)
+    scenario = scenarios(tmp_path)[kind]
+    if kind == "dem":  # the release down the slope of the hole: the flow leaves it aside
+        scenario = scenario.with_updates({"release.center": [1150.0, 2030.0]})
+    old, new = both_files(scenario, tmp_path)
+    assert_same_file(old, new)
+    with xr.open_dataset(new, decode_cf=False) as ds:
+        assert ds["h"].encoding["chunksizes"] == (1, tile, tile)
+        assert ("_FillValue" not in ds["h"].attrs) if kind == "grid" \
+            else np.isnan(ds["h"].attrs["_FillValue"])
+        records, ny, nx = ds["h"].shape
+    fields = 3  # h, u, v
+    assert len(written) == fields * records
+    assert sum(written) < share * fields * records * -(-ny // tile) * -(-nx // tile)
 
 
 def test_cli_file_equals_the_in_memory_one_but_for_the_clocks(tmp_path, capsys):

@@ -13,8 +13,8 @@ snapshots and the end of the file (the maps of the run, the static maps) all cou
 Prints the wall times, their ratios (target < 1.3), and the largest difference of the final
 thickness on the common part (the flow never reaches the small map's walls: checked). For
 the whole run also where the time went: the loop; one snapshot (its fields refreshed where
-the flow is or was, its centre of mass, its record compressed and written: the dry part of
-the map is compressed too); the end of the file (the maps of the run, the static maps);
+the flow is or was, its centre of mass, the tiles of its record that hold the flow
+compressed and written, flow_state whole); the end of the file (the maps of the run, the static maps);
 and the rest, set-up (terrain, solver, the first use of the state) and summaries, which
 grow with the map.
 

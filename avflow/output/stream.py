@@ -14,25 +14,27 @@ summaries, the global attributes) and renames the file over the output. A run th
 that fails leaves no file: the temporary, and any folder made for it, is removed, and a
 file already at the output is untouched.
 
-Cost follows the flow: a record holds the whole map, but only the window of cells where
-the flow is or was at the previous output time is computed again
-(:class:`~avflow.output.dataset.WindowedFields`; the centre of mass likewise,
-:func:`~avflow.simulation.runner.center_of_mass`). What still grows with the map is one
-pass over h to find the flow, and compressing and writing the record: the dry part of the
-map is deflated too (about 1 ms per field and 180k dry cells), which the file's format
-(zlib with shuffle, one chunk per record) asks for.
+Cost follows the flow: only the window of cells where the flow is or was at the previous
+output time is computed again (:class:`~avflow.output.dataset.WindowedFields`; the centre of
+mass likewise, :func:`~avflow.simulation.runner.center_of_mass`), and a record of a map
+field on (time, y, x) writes only its tiles (the chunks, 128 x 128 cells) that hold a wet
+cell (:class:`_Tiles`): a tile never written reads as the variable's fill value, which is
+0, a dry cell, on a map without holes (HDF5's fill value, with no CF ``_FillValue``), and
+NaN on a DEM with NODATA holes (there the tiles that hold a DEM cell are written every
+time, those all in the holes never). What still grows with the map is one pass over h to
+find the flow and flow_state, one deflated chunk a record (1 byte a cell).
 
 Memory: the state, the terrain and one snapshot, whatever the number of snapshots (the
 times and series, a few numbers per snapshot, are kept for the end); HDF5's chunk cache
-holds one record per field (its default, up to 64 MiB a variable, kept every record of a
+holds one chunk per field (its default, up to 64 MiB a variable, kept every record of a
 run until the file was closed and compressed them all then).
 
 The file equals ``write_netcdf(to_dataset(result), path)`` variable by variable (names,
 order, dimensions, dtypes, values, attributes, compression, ``_FillValue``, the CF time
 units, the global attributes; ``tests/test_streamed_output.py``). Only the storage differs:
 ``time`` is unlimited, so the variables on ``time`` alone are chunked rather than
-contiguous and ``flow_state`` is stored one chunk per snapshot (uncompressed as before). The
-float fields take NaN as ``_FillValue`` when the first snapshot has a NaN, as
+contiguous, and HDF5 keeps only the tiles written. The float fields take NaN as
+``_FillValue`` when the first snapshot has a NaN, as
 :func:`~avflow.output.netcdf.encoding_for` does looking at every snapshot: NaN there is the
 cells outside a DEM, the same in every snapshot (a non-finite state fails the run).
 """
@@ -80,6 +82,7 @@ class SnapshotStream(Snapshots):
         self._nc = None  # netCDF4.Dataset, open from the first snapshot to finish()
         self._store = None  # xarray's store around it
         self._fields: WindowedFields | None = None  # the fields' last record, on the grid
+        self._tiles: dict[str, _Tiles] = {}  # the tiled fields and what each record writes
 
     def __enter__(self) -> SnapshotStream:
         return self
@@ -97,13 +100,13 @@ class SnapshotStream(Snapshots):
         self.record_series(state, moving, terrain, wet)
         try:
             if self._nc is None:
-                self._start(state, terrain)
+                self._start(state, terrain, wet)
             else:
                 self._append(state, wet)
         except BaseException as err:
             self._fail(err)
 
-    def _start(self, state, terrain) -> None:
+    def _start(self, state, terrain, wet) -> None:
         """The temporary file, its dimensions and the fields' variables (time unlimited),
         then the first snapshot. The file stays open until :meth:`finish`: every variable
         is made in one session, so the attributes keep their order."""
@@ -116,10 +119,18 @@ class SnapshotStream(Snapshots):
         ds = to_dataset(SimpleNamespace(terrain=terrain, snapshots=first), part="fields")
         ds = ds.drop_vars(list(ds.coords))  # written at the end, in to_dataset's order
         encoding = encoding_for(ds)  # NaN fill: the first snapshot has the DEM's holes
-        for name in TIME_FIELDS:  # flow_state (int8, no encoding): one chunk per snapshot too
+        for name in TIME_FIELDS:  # one chunk per snapshot where encoding_for sets none
             if name in ds:
                 encoding.setdefault(name, {}).setdefault("chunksizes",
                                                          (1, *ds[name].shape[1:]))
+        tiled = [name for name in TIME_FIELDS if name in ds and ds[name].ndim == 3
+                 and encoding[name]["chunksizes"][1:] != ds[name].shape[1:]]
+        # HDF5 gives a chunk never written the variable's fill value. With no CF fill (no
+        # hole in the map), make it 0, the value of a dry cell, then drop the attribute
+        # that setting it made (HDF5 keeps the value in the dataset's creation properties)
+        zero_fill = [name for name in tiled if encoding[name].get("_FillValue") is None]
+        for name in zero_fill:
+            encoding[name]["_FillValue"] = np.zeros((), dtype=encoding[name]["dtype"])
         with _NETCDF_LOCK:
             self._nc = netCDF4.Dataset(self._tmp, "w", format="NETCDF4")
             for var in ds.variables.values():  # in the order write_netcdf makes them
@@ -131,30 +142,61 @@ class SnapshotStream(Snapshots):
                                                 unlimited_dims=["time"])
         names = [name for name in TIME_FIELDS if name in ds]
         with _NETCDF_LOCK:
+            self._nc.sync()  # the HDF5 datasets made, their fill value with them
+            for name in zero_fill:
+                self._nc.variables[name].delncattr("_FillValue")
             for name in names:
                 # HDF5 keeps every chunk written in its cache, up to 64 MiB a variable, and
-                # compresses them all on closing: a cache of one record writes each record
-                # when the next comes (memory: one snapshot; the same file)
+                # compresses them all on closing: a cache of one chunk writes each chunk
+                # when the next comes (memory: one tile, or one snapshot; the same file)
                 var = self._nc.variables[name]
                 var.set_var_chunk_cache(size=int(np.prod(var.chunking())) * var.dtype.itemsize,
                                         nelems=7, preemption=1.0)
         self._fields = WindowedFields(terrain, state.h, {n: ds[n].values[0] for n in names},
                                       {n: self._nc.variables[n].dtype for n in names})
-        self._write(self._fields.values)
+        self._tiles = {name: _Tiles(ds[name].values[0], encoding[name]["chunksizes"][1:],
+                                    0.0 if name in zero_fill else np.nan, terrain.cell_index)
+                       for name in tiled}
+        self._write(self._fields.values, wet)
+        for name in zero_fill:  # the dry tiles left unwritten read as 0: check it once
+            self._check_fill(name, wet)
 
     def _append(self, state, wet) -> None:
         # the fields again only in the window where the flow is or was (the rest is dry)
-        self._write(self._fields.update(state.h, state.hu, state.hv, wet))
+        self._write(self._fields.update(state.h, state.hu, state.hv, wet), wet)
 
-    def _write(self, fields: dict) -> None:
-        """One record of every field on (time, space)."""
+    def _write(self, fields: dict, wet: np.ndarray) -> None:
+        """One record of every field on (time, space); of a tiled field only the blocks of
+        tiles that hold a ``wet`` cell (:func:`wet_cells`) or differ from the fill
+        (:class:`_Tiles`)."""
         for name, values in fields.items():
             values = np.asarray(values)
+            tiles = self._tiles.get(name)
             with _NETCDF_LOCK:
                 var = self._nc.variables[name]
                 var.set_auto_maskandscale(False)  # the values as given, NaN included
-                var[self.records] = np.asarray(values, dtype=var.dtype)  # as xarray casts
+                values = np.asarray(values, dtype=var.dtype)  # as xarray casts
+                if tiles is None:
+                    var[self.records] = values
+                    continue
+                for rows, cols in tiles.blocks(wet):
+                    var[self.records, rows, cols] = values[rows, cols]
         self.records += 1
+
+    def _check_fill(self, name, wet) -> None:
+        """Read back one cell of the first record that no block wrote: 0 as a dry cell
+        holds, else (a netCDF library that does not keep HDF5's fill value) every tile is
+        written from now on, the first record again."""
+        tiles = self._tiles[name]
+        skipped = tiles.skipped(wet)
+        if skipped is None:
+            return
+        with _NETCDF_LOCK:
+            var = self._nc.variables[name]
+            if var[0, skipped[0], skipped[1]] == 0:
+                return
+            del self._tiles[name]
+            var[0] = np.asarray(self._fields.values[name], dtype=var.dtype)
 
     def finish(self, result: RunResult) -> xr.Dataset:
         """Write the rest of the run and rename the file over the output.
@@ -205,3 +247,78 @@ class SnapshotStream(Snapshots):
         if error is not None:
             raise error from err
         raise err
+
+
+class _Tiles:
+    """Which tiles of a map field on (time, y, x) a record writes (the chunks,
+    :func:`~avflow.output.netcdf.field_chunks`). HDF5 stores only the chunks written; one
+    never written reads as the variable's fill value, ``fill``: NaN (the CF fill where the
+    map has NODATA holes), or 0 (no hole: the HDF5 fill is made 0, the CF attribute
+    dropped). A record writes the tiles that hold a wet cell, and the tiles whose dry
+    values are not the fill: on a map with holes those that hold a DEM cell. So a record
+    costs the flow's tiles, plus the DEM's where it has holes, not the map's.
+
+    ``first``: the field's first record (its NaN are the holes); ``tile``: the chunk's
+    (rows, columns); ``cell_index``: each cell's place on the map (None: the cells are
+    the places)."""
+
+    def __init__(self, first: np.ndarray, tile: tuple, fill: float, cell_index=None):
+        self.shape = first.shape
+        self.tile = tile
+        self.cell_index = cell_index
+        ty, tx = tile
+        bands, cols = -(-self.shape[0] // ty), -(-self.shape[1] // tx)
+        pad = np.zeros((bands * ty, cols * tx), dtype=bool)
+        # dry values that differ from the fill: 0 where fill is NaN, NaN where fill is 0
+        pad[:self.shape[0], :self.shape[1]] = ~np.isnan(first) if np.isnan(fill) \
+            else np.isnan(first)
+        #: (bands, columns of tiles): a tile written by every record
+        self.static = pad.reshape(bands, ty, cols, tx).any(axis=(1, 3))
+
+    def _needed(self, wet) -> np.ndarray:
+        need = self.static.copy()
+        if wet.size:
+            places = wet if self.cell_index is None else self.cell_index[wet]
+            rows, cols = np.divmod(places, self.shape[1])
+            need[rows // self.tile[0], cols // self.tile[1]] = True
+        if not need.any():  # every record writes something: it makes the record exist
+            need[0, 0] = True
+        return need
+
+    def blocks(self, wet) -> list[tuple[slice, slice]]:
+        """(rows, columns) of the map to write for a record whose ``wet`` cells are these
+        (:func:`~avflow.simulation.runner.wet_cells`): per band of tiles each run of
+        consecutive tiles needed, the same run in consecutive bands as one block. Each
+        block covers whole chunks, so HDF5 never reads one back."""
+        return self._cut(self._needed(wet))
+
+    def _cut(self, need) -> list[tuple[slice, slice]]:
+        ty, tx = self.tile
+        ny, nx = self.shape
+        edges = np.diff(need.astype(np.int8), axis=1, prepend=0, append=0)
+        open_runs: dict[tuple[int, int], int] = {}  # run of tiles -> its first band
+        blocks = []
+
+        def close(run, first, end):
+            blocks.append((slice(first * ty, min(end * ty, ny)),
+                           slice(run[0] * tx, min(run[1] * tx, nx))))
+
+        for band in range(need.shape[0]):
+            runs = set(zip(np.flatnonzero(edges[band] == 1).tolist(),
+                           np.flatnonzero(edges[band] == -1).tolist()))
+            for run in [r for r in open_runs if r not in runs]:
+                close(run, open_runs.pop(run), band)
+            for run in runs:
+                open_runs.setdefault(run, band)
+        for run, first in open_runs.items():
+            close(run, first, need.shape[0])
+        return blocks
+
+    def skipped(self, wet) -> tuple[int, int] | None:
+        """(row, column) of a cell that a record with these ``wet`` cells does not write,
+        or None."""
+        written = np.zeros(self.shape, dtype=bool)
+        for rows, cols in self._cut(self._needed(wet)):
+            written[rows, cols] = True
+        left = np.argwhere(~written)
+        return None if not left.size else (int(left[0, 0]), int(left[0, 1]))
