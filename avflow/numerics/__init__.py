@@ -12,7 +12,7 @@ function, not the functions it inlines from other files: after a change to ``kin
 alone, the time loops of ``kernels.py`` came back from the cache with the old half fluxes.
 So the cache goes to a folder named after a digest of every file the kernels are compiled
 from (:func:`kernel_cache_dir`), unless ``NUMBA_CACHE_DIR`` is set: a changed file, a new
-version, is a new folder, compiled afresh.
+version, is a new folder, compiled afresh, and the folders of other versions are removed.
 """
 
 from __future__ import annotations
@@ -38,6 +38,17 @@ def kernel_cache_dir() -> Path:
     return Path(__file__).resolve().parent / "__pycache__" / f"kernels-{digest.hexdigest()[:16]}"
 
 
+def _prune(current: Path) -> None:
+    """Remove the cache folders of other versions of the sources (``kernels-<digest>``
+    beside ``current``): each edit or upgrade made one, some 5 MB, and none was ever read
+    again. Best effort: a folder that cannot be removed stays."""
+    import shutil
+
+    for folder in current.parent.glob("kernels-*"):
+        if folder.name != current.name and folder.is_dir():
+            shutil.rmtree(folder, ignore_errors=True)
+
+
 def _import_kernels() -> None:
     """Import the kernel modules with Numba's cache folder set to :func:`kernel_cache_dir`
     (where their dispatchers look is fixed when they are decorated), then put the setting
@@ -47,7 +58,9 @@ def _import_kernels() -> None:
     saved = config.CACHE_DIR
     if not os.environ.get("NUMBA_CACHE_DIR"):  # else the user's choice stands
         try:
-            config.CACHE_DIR = str(kernel_cache_dir())
+            folder = kernel_cache_dir()
+            config.CACHE_DIR = str(folder)
+            _prune(folder)
         except OSError:  # sources unreadable (a zipped install): Numba's own locations
             pass
     try:
