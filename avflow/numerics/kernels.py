@@ -766,14 +766,21 @@ def activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp, c
             _in_index_order(touched, k, cell_stamp, stamp))
 
 
+#: Blocks of indices that :func:`_in_index_order` scans (2^SCAN_SHIFT): 64 stamps, 512 bytes
+SCAN_SHIFT = 6
+SCAN_BLOCK = 1 << SCAN_SHIFT
+
+
 @njit(error_model="numpy", cache=True, inline="always")
 def _in_index_order(items, count, stamps, stamp):
     """Put the ``count`` listed indices (those with ``stamps == stamp``) in increasing order.
 
     Faces and cells are swept in index order: memory order, and the same sums, bit for bit,
     as a sweep of the whole mesh. A short list is sorted; a long one is rebuilt by a scan of
-    the stamps over the index range it spans (sorting k entries costs more than scanning
-    that range once k log2 k exceeds it).
+    the stamps over the blocks of :data:`SCAN_BLOCK` indices that hold one of its items
+    (sorting k entries costs more than scanning that range once k log2 k exceeds it). Only
+    those blocks: on a grid the range a flow spans is the rows it covers times the map's
+    width, and scanning all of it made a step on a map 4x larger 20% dearer.
     """
     if count == 0:
         return 0
@@ -782,13 +789,17 @@ def _in_index_order(items, count, stamps, stamp):
     for c in range(1, count):
         lo = min(lo, items[c])
         hi = max(hi, items[c])
-    # scan only the index range the items span: the cost follows the flow, not the map
     if count * math.log2(count + 2.0) > hi - lo + 1:
+        held = np.zeros(((hi - lo) >> SCAN_SHIFT) + 1, dtype=np.bool_)
+        for c in range(count):
+            held[(items[c] - lo) >> SCAN_SHIFT] = True
         count = 0
-        for i in range(lo, hi + 1):
-            if stamps[i] == stamp:
-                items[count] = i
-                count += 1
+        for b in range(held.size):
+            if held[b]:
+                for i in range(lo + (b << SCAN_SHIFT), min(lo + ((b + 1) << SCAN_SHIFT), hi + 1)):
+                    if stamps[i] == stamp:
+                        items[count] = i
+                        count += 1
     else:
         items[:count].sort()
     return count
