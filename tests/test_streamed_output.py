@@ -149,6 +149,20 @@ def test_a_record_writes_only_the_tiles_of_the_flow(kind, tile, share, tmp_path,
     assert sum(written) < share * fields * records * -(-ny // tile) * -(-nx // tile)
 
 
+def test_a_lost_fill_value_falls_back_to_whole_records(tmp_path, monkeypatch):
+    """Where the netCDF library would not keep HDF5's fill value at 0 (here: none given,
+    so the unwritten tiles read netCDF's default fill, 9.97e36), the stream sees it on the
+    first record and writes every tile from then on: the file still equals the in-memory
+    one. Fails if the check or the fallback is taken out."""
+    import avflow.output.netcdf as nc
+    import avflow.output.stream as st
+
+    monkeypatch.setattr(nc, "TILE", 4)
+    monkeypatch.setattr(st, "_dry_fill", lambda dtype: None)
+    old, new = both_files(scenarios(tmp_path)["grid"], tmp_path)
+    assert_same_file(old, new)
+
+
 def test_cli_file_equals_the_in_memory_one_but_for_the_clocks(tmp_path, capsys):
     """`avflow run` (streamed) against avflow.run + write_netcdf of the same scenario: two
     runs, so only wall_time and compile_time differ."""

@@ -130,7 +130,7 @@ class SnapshotStream(Snapshots):
         # that setting it made (HDF5 keeps the value in the dataset's creation properties)
         zero_fill = [name for name in tiled if encoding[name].get("_FillValue") is None]
         for name in zero_fill:
-            encoding[name]["_FillValue"] = np.zeros((), dtype=encoding[name]["dtype"])
+            encoding[name]["_FillValue"] = _dry_fill(encoding[name]["dtype"])
         with _NETCDF_LOCK:
             self._nc = netCDF4.Dataset(self._tmp, "w", format="NETCDF4")
             for var in ds.variables.values():  # in the order write_netcdf makes them
@@ -144,7 +144,8 @@ class SnapshotStream(Snapshots):
         with _NETCDF_LOCK:
             self._nc.sync()  # the HDF5 datasets made, their fill value with them
             for name in zero_fill:
-                self._nc.variables[name].delncattr("_FillValue")
+                if "_FillValue" in self._nc.variables[name].ncattrs():
+                    self._nc.variables[name].delncattr("_FillValue")
             for name in names:
                 # HDF5 keeps every chunk written in its cache, up to 64 MiB a variable, and
                 # compresses them all on closing: a cache of one chunk writes each chunk
@@ -247,6 +248,13 @@ class SnapshotStream(Snapshots):
         if error is not None:
             raise error from err
         raise err
+
+
+def _dry_fill(dtype):
+    """The fill value given to HDF5 for a tiled field on a map without holes: 0, a dry
+    cell's value (a function, so that a test can take it away and see the fallback of
+    :meth:`SnapshotStream._check_fill` at work)."""
+    return np.zeros((), dtype=dtype)
 
 
 class _Tiles:
