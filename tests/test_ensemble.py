@@ -616,3 +616,29 @@ vary:
         for p in reversed(procs):  # only the processes this test started
             _stop(p)
         log.close()
+
+
+def test_warm_up_covers_every_kernel_the_members_run(tmp_path):
+    """The time loop is compiled per mesh kind and order: an ensemble varying
+    numerics.order warms one tiny scenario of each order (workers compiling a kernel at
+    once can crash, numba issue 4807), one varying the friction angle only one."""
+    from avflow.ensemble.orchestrate import tiny_scenario_yamls
+
+    coarse_base(tmp_path)
+    both = load_ensemble(write(tmp_path, """
+name: orders
+base: base.yaml
+vary:
+  numerics.order: [1, 2]
+  rheology.delta_deg: [14.0, 16.0]
+"""))
+    tiny = tiny_scenario_yamls(both, one_thread=True)
+    assert len(both.members) == 4 and len(tiny) == 2
+    assert sorted(parse_scenario(t).numerics.order for t in tiny) == [1, 2]
+    one = load_ensemble(write(tmp_path, """
+name: angles
+base: base.yaml
+vary:
+  rheology.delta_deg: [14.0, 16.0, 18.0]
+""", name="angles.yaml"))
+    assert len(tiny_scenario_yamls(one)) == 1

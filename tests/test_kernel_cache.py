@@ -29,7 +29,7 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     if os.environ.get("NUMBA_CACHE_DIR"):
         pytest.skip("NUMBA_CACHE_DIR is set: the kernels use the user's folder")
     folder = numerics.kernel_cache_dir()
-    for dispatcher in (kernels.advance, kernels.step_faces, kernels.step_profile,
+    for dispatcher in (*kernels.ADVANCE.values(), kernels.step_faces, kernels.step_profile,
                        kinetic.half_fluxes, rheology.friction, reconstruction.reconstruct_faces,
                        square_grid.advance_grid, square_grid.sweep_serial,
                        square_grid.sweep_parallel):

@@ -241,17 +241,42 @@ def run_batch(items: list[tuple[int, str, str]], one_thread: bool = False,
     return [(index, run_member(text, out, one_thread, digest)) for index, text, out in items]
 
 
-def tiny_scenario_yaml(ensemble: Ensemble, one_thread: bool = False) -> str | None:
-    """The first member cut to a couple of steps: enough to compile every kernel (those of
-    its :func:`cluster_scenario` with ``one_thread``: a single thread runs other kernels)."""
+def tiny_scenario_yaml(ensemble: Ensemble, one_thread: bool = False,
+                       member: int = 0) -> str | None:
+    """A member (the first) cut to a couple of steps: enough to compile every kernel it runs
+    (those of its :func:`cluster_scenario` with ``one_thread``: a single thread runs other
+    kernels)."""
     try:
-        scenario = ensemble.members[0].scenario
+        scenario = ensemble.members[member].scenario
         if one_thread:
             scenario = cluster_scenario(scenario)
         return scenario.with_updates(
             {"time.end": 1e-3, "time.max_steps": 2, "output.every": 1e-3}).source_text
     except Exception:  # noqa: BLE001
         return None
+
+
+def tiny_scenario_yamls(ensemble: Ensemble, one_thread: bool = False) -> list[str]:
+    """:func:`tiny_scenario_yaml` of the first member of each kind of kernel among the
+    members: the time loop is compiled per mesh kind and order (and the square-grid kernel
+    per thread count), so an ensemble that varies ``numerics.order`` (or the terrain, the
+    kernel, the threads) needs each warmed before its workers start (numba issue 4807).
+    The friction laws need nothing more: every law's copy is compiled with the sweep."""
+    seen, out = set(), []
+    for k, member in enumerate(getattr(ensemble, "members", ())):
+        try:
+            sc = member.scenario
+            key = (sc.terrain.kind, sc.grid.mesh, sc.numerics.order, sc.numerics.kernel,
+                   sc.numerics.threads)
+        except AttributeError:
+            key = None
+        if key in seen:
+            continue
+        seen.add(key)
+        text = tiny_scenario_yaml(ensemble, one_thread, member=k)
+        if text is not None:
+            out.append(text)
+    return out
 
 
 def dask_setup(worker) -> None:
@@ -282,8 +307,9 @@ def dask_teardown(worker) -> None:
     gc.freeze()
 
 
-def warm(scenario_yaml: str | None) -> bool:
-    """Run a tiny scenario and write its file: imports, Numba kernels, NetCDF libraries.
+def warm(scenario_yaml: str | list[str] | None) -> bool:
+    """Run a tiny scenario (each of a list) and write its file: imports, Numba kernels,
+    NetCDF libraries.
 
     In the parent before any worker takes a member, it compiles (or loads) the cache=True
     kernels once: workers compiling the same cache at once can crash (numba issue 4807).
@@ -292,6 +318,8 @@ def warm(scenario_yaml: str | None) -> bool:
     """
     if scenario_yaml is None:
         return False
+    if isinstance(scenario_yaml, list):
+        return all([warm(text) for text in scenario_yaml]) and bool(scenario_yaml)
     from avflow.output.stream import SnapshotStream
     from avflow.simulation.runner import simulate
     from avflow.scenario.schema import parse_scenario
@@ -586,7 +614,7 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: st
         elif todo:
             t0 = time.perf_counter()
             with _deferred_sigint() as sigint, _client(
-                    scheduler, workers, client, tiny_scenario_yaml(ensemble, one_thread=True),
+                    scheduler, workers, client, tiny_scenario_yamls(ensemble, one_thread=True),
                     connect_timeout, sigint.check, timings, env,
                     started_fits(workers) if scheduler is None and client is None
                     else None) as cl:
@@ -666,7 +694,7 @@ def _choose_where(ensemble: Ensemble, todo: list[Member], outdir: Path, record,
     speculated = time.perf_counter()
     if cores >= SPECULATE_MIN_CORES:
         speculate()
-    warm(tiny_scenario_yaml(ensemble))  # Numba's kernels loaded: t1 is the member's own
+    warm(tiny_scenario_yamls(ensemble))  # Numba's kernels loaded: t1 is the member's own
     started = time.perf_counter()
     first = todo[0]
     record(first, run_member(first.scenario.source_text, str(member_path(outdir, first)),
