@@ -619,9 +619,10 @@ vary:
 
 
 def test_warm_up_covers_every_kernel_the_members_run(tmp_path):
-    """The time loop is compiled per mesh kind and order: an ensemble varying
-    numerics.order warms one tiny scenario of each order (workers compiling a kernel at
-    once can crash, numba issue 4807), one varying the friction angle only one."""
+    """The time loop is compiled per mesh kind and order (per law on square grids): an
+    ensemble varying numerics.order warms one tiny scenario of each order (workers
+    compiling a kernel at once can crash, numba issue 4807), one varying the law one per
+    law, one varying the friction angle only one."""
     from avflow.ensemble.orchestrate import tiny_scenario_yamls
 
     coarse_base(tmp_path)
@@ -642,3 +643,14 @@ vary:
   rheology.delta_deg: [14.0, 16.0, 18.0]
 """, name="angles.yaml"))
     assert len(tiny_scenario_yamls(one)) == 1
+    laws = load_ensemble(write(tmp_path, """
+name: laws
+base: base.yaml
+vary:
+  rheology:
+    - {law: coulomb, delta_deg: 14.0}
+    - {law: coulomb, delta_deg: 16.0}
+    - {law: voellmy, mu: 0.3, xi: 2000.0}
+""", name="laws.yaml"))
+    assert [parse_scenario(t).rheology.law for t in tiny_scenario_yamls(laws)] == [
+        "coulomb", "voellmy"]

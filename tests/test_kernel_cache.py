@@ -29,9 +29,12 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     if os.environ.get("NUMBA_CACHE_DIR"):
         pytest.skip("NUMBA_CACHE_DIR is set: the kernels use the user's folder")
     folder = numerics.kernel_cache_dir()
+    loops = [square_grid.grid_loop(law, parallel) for law in (rheology.COULOMB, -1)
+             for parallel in (False, True)]
+    sweeps = [loop.py_func.__globals__[name] for loop in loops
+              for name in ("sweep_serial", "sweep_parallel")]
     for dispatcher in (*kernels.ADVANCE.values(), kernels.step_faces, kernels.step_profile,
                        kinetic.half_fluxes, rheology.friction, reconstruction.reconstruct_faces,
-                       square_grid.advance_grid, square_grid.sweep_serial,
-                       square_grid.sweep_parallel):
+                       *loops, *sweeps):
         assert Path(dispatcher._cache._cache_path).is_relative_to(folder), dispatcher
     assert config.CACHE_DIR != str(folder)  # other packages' caches stay where Numba puts them

@@ -258,16 +258,16 @@ def tiny_scenario_yaml(ensemble: Ensemble, one_thread: bool = False,
 
 def tiny_scenario_yamls(ensemble: Ensemble, one_thread: bool = False) -> list[str]:
     """:func:`tiny_scenario_yaml` of the first member of each kind of kernel among the
-    members: the time loop is compiled per mesh kind and order (and the square-grid kernel
-    per thread count), so an ensemble that varies ``numerics.order`` (or the terrain, the
-    kernel, the threads) needs each warmed before its workers start (numba issue 4807).
-    The friction laws need nothing more: every law's copy is compiled with the sweep."""
+    members: the time loop is compiled per mesh kind and order, and the square-grid one per
+    friction law and thread count, so an ensemble that varies ``numerics.order`` or the law
+    (or the terrain, the kernel, the threads) needs each warmed before its workers start
+    (workers compiling one kernel at once can crash: numba issue 4807)."""
     seen, out = set(), []
     for k, member in enumerate(getattr(ensemble, "members", ())):
         try:
             sc = member.scenario
             key = (sc.terrain.kind, sc.grid.mesh, sc.numerics.order, sc.numerics.kernel,
-                   sc.numerics.threads)
+                   sc.numerics.threads, sc.rheology.law)
         except AttributeError:
             key = None
         if key in seen:

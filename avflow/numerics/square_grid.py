@@ -32,8 +32,10 @@ sweep per friction law. 28 ns a cell on one core here, against 51 ns for the sam
 arithmetic written with branches.
 
 ``prange`` runs serially when a function is compiled without ``parallel``: the sweep is
-compiled twice (``sweep_serial``, ``sweep_parallel``), and one thread takes the serial one,
-which never touches Numba's thread pool (safe inside dask workers and any thread).
+compiled twice (serial and parallel), and one thread takes the serial one, which never
+touches Numba's thread pool (safe inside dask workers and any thread). The time loop is
+compiled per friction law and with or without the parallel sweep (:func:`grid_loop`), so a
+run compiles only what it runs.
 """
 
 from __future__ import annotations
@@ -625,13 +627,13 @@ def _sweep(n_blocks, nx, ny, valid, face_order, x_code, x_frame, x_length, y_cod
         a = r0 + (n_rows * blk) // n_blocks
         b = r0 + (n_rows * (blk + 1)) // n_blocks - 1
         if a <= b:
-            if law == COULOMB:
+            if LAW_KIND == COULOMB:
                 _sweep_block_coulomb(
                     a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                     peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
-            elif law == VOELLMY:
+            elif LAW_KIND == VOELLMY:
                 _sweep_block_voellmy(
                     a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
@@ -645,13 +647,28 @@ def _sweep(n_blocks, nx, ny, valid, face_order, x_code, x_frame, x_length, y_cod
                     peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
 
 
-def _compiled(fn, parallel: bool):
-    """``fn`` compiled serial or parallel, under its own name: Numba's cache files are named
-    after the function (name and line), not after its flags, so two dispatchers of one
-    function would load each other's machine code (the "serial" pass then ran on the thread
-    pool, 5x slower on a busy machine)."""
-    suffix = "_parallel" if parallel else "_serial"
-    copy = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + suffix,
+#: ``LAW_KIND`` of the sweep's copy that reads the law at run time (Pouliquen, samosAT)
+ANY_LAW = -1
+#: Placeholders of the constants of the copies of :func:`_sweep` (the law whose cell loops
+#: it runs) and of :func:`_advance_grid` (whether it has the parallel sweep): see
+#: :func:`grid_loop`
+LAW_KIND = ANY_LAW
+PARALLEL = True
+
+
+def _compiled(fn, parallel: bool, law_kind: int, threaded: bool | None = None, **names):
+    """``fn`` compiled serial or parallel for one law (``LAW_KIND``; ``names``: other
+    globals replaced), under its own name: Numba's cache files are named after the function
+    (name and line), not after its flags, so two dispatchers of one function would load
+    each other's machine code (the "serial" pass then ran on the thread pool, 5x slower on a
+    busy machine). ``threaded``: the ``PARALLEL`` constant, where it differs from Numba's
+    flag (the time loop with the parallel sweep is itself compiled serial)."""
+    threaded = parallel if threaded is None else threaded
+    label = {COULOMB: "coulomb", VOELLMY: "voellmy"}.get(law_kind, "any")
+    suffix = f"_{label}_{'parallel' if threaded else 'serial'}"
+    namespace = dict(fn.__globals__)
+    namespace.update(LAW_KIND=law_kind, PARALLEL=threaded, **names)
+    copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + suffix,
                               fn.__defaults__, fn.__closure__)
     copy.__qualname__ = fn.__qualname__ + suffix
     copy.__module__ = fn.__module__
@@ -659,7 +676,28 @@ def _compiled(fn, parallel: bool):
     return njit(error_model="numpy", cache=True, parallel=parallel)(copy)
 
 
-sweep_serial, sweep_parallel = _compiled(_sweep, False), _compiled(_sweep, True)
+#: Placeholders of the sweeps :func:`_advance_grid`'s copies call (see :func:`grid_loop`)
+sweep_serial = sweep_parallel = None
+_LOOPS: dict = {}
+
+
+def grid_loop(law: int, parallel: bool):
+    """The time loop (:func:`_advance_grid`) for one friction law, with the parallel sweep
+    or without: each copy compiles only its law's cell loops, and the serial one never the
+    parallel sweep (a first run compiled every law's, serial and parallel: 32 s here)."""
+    return _LOOPS[law if law in (COULOMB, VOELLMY) else ANY_LAW, bool(parallel)]
+
+
+def _make_loops() -> None:
+    """Every copy's dispatcher, made as the module is imported (nothing is compiled yet):
+    Numba fixes a dispatcher's cache folder when it is made, and only the import sets the
+    versioned folder (:mod:`avflow.numerics`)."""
+    for kind in (COULOMB, VOELLMY, ANY_LAW):
+        serial = _compiled(_sweep, False, kind)
+        for parallel in (False, True):
+            threaded = _compiled(_sweep, True, kind) if parallel else serial
+            _LOOPS[kind, parallel] = _compiled(_advance_grid, False, kind, parallel,
+                                               sweep_serial=serial, sweep_parallel=threaded)
 
 
 @njit(error_model="numpy", cache=True)
@@ -701,8 +739,23 @@ MIN_PARALLEL_CELLS = 32768
 MIN_BLOCK_ROWS = 16
 
 
-@njit(error_model="numpy", cache=True)
 def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+                 y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
+                 curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
+                 law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
+                 stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats,
+                 min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
+    """:func:`_advance_grid` (its arguments, its status) in the copy for ``law`` and, with
+    ``threads`` > 1, with the parallel sweep (:func:`grid_loop`)."""
+    return grid_loop(law, threads > 1)(
+        threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+        y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
+        curvature, h, hu, hv, h_work, hu_work, hv_work, flag, law, params, g, dirac, h_dry,
+        h_zero, cfl, t_target, max_steps, stop_volume, stop_kinetic, peak_h, peak_speed,
+        arrival, last_moved, stats, min_parallel_cells, min_block_rows)
+
+
+def _advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                  curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
@@ -761,7 +814,7 @@ def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, 
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             if r1 >= r0:
-                if n_blocks > 1:  # blocks of at least 16 rows, 8 per thread
+                if PARALLEL and n_blocks > 1:  # blocks of at least 16 rows, 8 per thread
                     sweep_parallel(n_blocks, nx, ny, valid, face_order, x_code, x_frame,
                                    x_length, y_code, y_frame, y_length, cell_area, inv_area,
                                    cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu,
@@ -859,3 +912,6 @@ def _sync_work(nx, ny, r0, r1, lo, hi, sync_lo, sync_hi, h, hu, hv, h_work, hu_w
             hv_work[base + c] = hv[base + c]
         sync_lo[q] = min(a, s0)
         sync_hi[q] = max(b, s1)
+
+
+_make_loops()
