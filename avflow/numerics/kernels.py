@@ -881,7 +881,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     A template: :func:`advance` runs its copy for the mesh kind and the order, where
     ``STRUCTURED`` and ``ORDER2`` are constants (``structured`` and ``order`` are not read):
     Numba drops the branches of the other kinds before it types the function, so a run
-    compiles only the sweeps it uses (section 6 at order 1: 27 s -> 11 s cold, this machine).
+    compiles only the sweeps it uses (section 6 at order 1, Coulomb: 27 s -> 7 s cold, this machine).
     """
     t = stats[ST_TIME]
     # order-2 work arrays: one allocation per call, none per step
@@ -1069,20 +1069,28 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
 # The order-1 profile sweep lives in its own module, which builds on this one's scalar
 # functions: imported last (Numba resolves advance()'s globals when it first compiles).
 from avflow.numerics.profile import N_WORK as _PROFILE_WORK  # noqa: E402
-from avflow.numerics.profile import step as profile_step  # noqa: E402, F401
+from avflow.numerics.profile import STEP as _PROFILE_STEP  # noqa: E402
+from avflow.numerics.profile import law_kind as _law_kind  # noqa: E402
+
+#: Placeholder of the profile sweep :func:`_advance`'s copies call (their law's copy)
+profile_step = None
 
 
 #: Placeholders of the constants of :func:`_advance`'s copies (see :func:`advance`)
 STRUCTURED = ORDER2 = False
 
 
-def _advance_for(structured: bool, order2: bool):
-    """:func:`_advance` compiled with the mesh kind and the order constants, under its own
+def _advance_for(structured: bool, order2: bool, kind: int | None = None):
+    """:func:`_advance` compiled with the mesh kind and the order constants (and, on a
+    profile at order 1, calling the sweep of the friction law ``kind``), under its own
     name (Numba's cache files are named after the function)."""
     import types
 
     namespace = dict(_advance.__globals__, STRUCTURED=structured, ORDER2=order2)
     name = f"advance_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
+    if kind is not None:
+        namespace["profile_step"] = _PROFILE_STEP[kind]
+        name += "_" + _PROFILE_STEP[kind].py_func.__name__.removeprefix("step_")
     copy = types.FunctionType(_advance.__code__, namespace, name, _advance.__defaults__,
                               _advance.__closure__)
     copy.__qualname__ = name
@@ -1091,8 +1099,12 @@ def _advance_for(structured: bool, order2: bool):
     return njit(error_model="numpy", cache=True)(copy)
 
 
-#: The time loop per (structured, order 2)
-ADVANCE = {(s, o): _advance_for(s, o) for s in (True, False) for o in (False, True)}
+#: The time loop per (structured, order 2, law kind): the law only for profiles at order 1,
+#: whose sweep has a copy per law (:data:`avflow.numerics.profile.STEP`), None elsewhere
+ADVANCE = {(s, o, k): _advance_for(s, o, k)
+           for s, o, kinds in ((True, False, tuple(_PROFILE_STEP)), (True, True, (None,)),
+                               (False, False, (None,)), (False, True, (None,)))
+           for k in kinds}
 
 
 def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
@@ -1102,8 +1114,10 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
             stats, order, limiter, face_offset, emit):
     """The time loop (:func:`_advance`, its arguments and status codes) compiled for this
-    mesh kind (``structured``: a profile) and ``order`` alone."""
-    return ADVANCE[bool(structured), order == 2](
+    mesh kind (``structured``: a profile) and ``order`` alone (and, on a profile at order
+    1, for the friction ``law``)."""
+    structured, order2 = bool(structured), order == 2
+    return ADVANCE[structured, order2, _law_kind(law) if structured and not order2 else None](
         structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
         gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_work, hu_work, hv_work, flux,
         transport, flag, law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps,

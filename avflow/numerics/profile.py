@@ -194,10 +194,9 @@ _final_voellmy = by_law(_final, VOELLMY, "voellmy")
 _final_any = by_law(_final, None, "any")
 
 
-@njit(error_model="numpy", cache=True)
-def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
-         hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-         peak_speed, arrival, last_moved, observe, work, pflag):
+def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
+          hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+          peak_speed, arrival, last_moved, observe, work, pflag):
     """One order-1 step on a profile of uniform ``dx`` with end conditions ``left`` and
     ``right`` (WALL or OUTFLOW): :func:`~avflow.numerics.kernels.step_profile`'s numbers.
     ``kappa``: the curvature line (``curvature[:, 0]``, contiguous); ``work``: float lines
@@ -213,11 +212,12 @@ def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h
     _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h, down_q,
           flux_h, flux_q)
     # the copy of passes 3 and 4 for the law (written out: functions held in variables are
-    # Numba's experimental first-class functions)
-    if law == COULOMB:
+    # Numba's experimental first-class functions); LAW_KIND is a constant in each copy of
+    # this function (STEP), so Numba compiles only its law's passes
+    if LAW_KIND == COULOMB:
         _trial_coulomb(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
                        h_zero, dx, dt, dt_decide, q_trial, pflag)
-    elif law == VOELLMY:
+    elif LAW_KIND == VOELLMY:
         _trial_voellmy(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
                        h_zero, dx, dt, dt_decide, q_trial, pflag)
     else:
@@ -225,12 +225,12 @@ def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h
                    h_zero, dx, dt, dt_decide, q_trial, pflag)
     pflag[0] = pflag[1]  # the ends' ghosts share their cell's flag
     pflag[n + 1] = pflag[n]
-    if law == COULOMB:
+    if LAW_KIND == COULOMB:
         n_bad, clamped = _final_coulomb(
             n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
             law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
             flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
-    elif law == VOELLMY:
+    elif LAW_KIND == VOELLMY:
         n_bad, clamped = _final_voellmy(
             n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
             law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
@@ -257,3 +257,41 @@ def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h
         inv_lim = max(inv_lim, t_inv[k])
     return (True, outflow, _limit(inv_lim), line_sum(t_mov, 0, n - 1),
             line_sum(t_film, 0, n - 1), clamped, line_sum(t_kin, 0, n - 1))
+
+
+#: ``LAW_KIND`` of the copy of :func:`_step` that reads the law at run time (Pouliquen,
+#: samosAT); the name, a placeholder of the copies' constant
+ANY_LAW = -1
+LAW_KIND = ANY_LAW
+
+
+def law_kind(law: int) -> int:
+    """The copy of the sweep that runs ``law``: its own for Coulomb and Voellmy."""
+    return law if law in (COULOMB, VOELLMY) else ANY_LAW
+
+
+def _step_for(kind: int):
+    import types
+
+    label = {COULOMB: "coulomb", VOELLMY: "voellmy"}.get(kind, "any")
+    copy = types.FunctionType(_step.__code__, dict(_step.__globals__, LAW_KIND=kind),
+                              "step_" + label, _step.__defaults__, _step.__closure__)
+    copy.__qualname__ = "step_" + label
+    copy.__module__ = _step.__module__
+    copy.__doc__ = _step.__doc__
+    return njit(error_model="numpy", cache=True)(copy)
+
+
+#: :func:`_step` per law kind (made at import: Numba fixes a dispatcher's cache folder then)
+STEP = {kind: _step_for(kind) for kind in (COULOMB, VOELLMY, ANY_LAW)}
+
+
+def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
+         hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+         peak_speed, arrival, last_moved, observe, work, pflag):
+    """:func:`_step` in the copy for ``law`` (from Python; the time loop calls its law's
+    copy itself)."""
+    return STEP[law_kind(law)](
+        left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
+        hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+        peak_speed, arrival, last_moved, observe, work, pflag)
