@@ -881,7 +881,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     A template: :func:`advance` runs its copy for the mesh kind and the order, where
     ``STRUCTURED`` and ``ORDER2`` are constants (``structured`` and ``order`` are not read):
     Numba drops the branches of the other kinds before it types the function, so a run
-    compiles only the sweeps it uses (section 6 at order 1, Coulomb: 27 s -> 7 s cold, this machine).
+    compiles only the sweeps it uses (section 6 at order 1, Coulomb: 27 s -> 7 s cold, this
+    machine).
     """
     t = stats[ST_TIME]
     # order-2 work arrays: one allocation per call, none per step
