@@ -739,6 +739,33 @@ def merge_lists(first, n_first, second, n_second, stamps, stamp, out):
 
 
 @njit(error_model="numpy", cache=True)
+def cell_faces(face_cells, n_cells):
+    """The faces of every cell (CSR: ``idx[ptr[c]:ptr[c + 1]]``): the faces whose first
+    cell it is, in index order, then those whose second cell it is. A counting sort, one
+    pass over the faces (numpy's stable argsort of the owners took 11 ms on 179k cells)."""
+    n_faces = face_cells.shape[0]
+    ptr = np.zeros(n_cells + 1, dtype=np.int64)
+    for f in range(n_faces):
+        ptr[face_cells[f, 0] + 1] += 1
+        if face_cells[f, 1] >= 0:
+            ptr[face_cells[f, 1] + 1] += 1
+    for c in range(n_cells):
+        ptr[c + 1] += ptr[c]
+    idx = np.empty(ptr[n_cells], dtype=np.int64)
+    fill = ptr[:n_cells].copy()
+    for f in range(n_faces):  # first sides, then second sides: the order of a stable sort
+        i = face_cells[f, 0]
+        idx[fill[i]] = f
+        fill[i] += 1
+    for f in range(n_faces):
+        j = face_cells[f, 1]
+        if j >= 0:
+            idx[fill[j]] = f
+            fill[j] += 1
+    return ptr, idx
+
+
+@njit(error_model="numpy", cache=True)
 def activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp, cell_stamp,
              stamp, active_faces, touched):
     """Faces of the wet cells and the cells on both their sides, each listed once (sorted).

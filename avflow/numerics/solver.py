@@ -153,13 +153,7 @@ class Solver:
         # x, y of side j), so a Dirac face can take back what a dry side must not receive.
         self._flux = np.zeros((m.n_faces, 5))
         # Faces of every cell (CSR), for the active lists of the face kernel.
-        fc = m.face_cells
-        owners = np.concatenate([fc[:, 0], fc[fc[:, 1] >= 0, 1]])
-        faces = np.concatenate([np.arange(m.n_faces), np.flatnonzero(fc[:, 1] >= 0)])
-        order = np.argsort(owners, kind="stable")
-        self._cell_face_idx = np.ascontiguousarray(faces[order], dtype=np.int64)
-        self._cell_face_ptr = np.concatenate(
-            [[0], np.cumsum(np.bincount(owners, minlength=n))]).astype(np.int64)
+        self._cell_face_ptr, self._cell_face_idx = K.cell_faces(m.face_cells, n)
         self._transport = np.zeros(n)
         # what each cell emits through its faces, once per step (face kernel, order 1)
         self._emit = np.zeros((n if self.order == 1 and not m.structured_1d else 0, 7))
