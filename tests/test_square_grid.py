@@ -244,26 +244,35 @@ def test_released_buffers_are_rebuilt_and_the_run_goes_on_bit_for_bit():
 
 @pytest.mark.parametrize("holes", [False, True])
 def test_work_buffers_are_copied_only_near_the_flow(holes):
-    """The grid kernel copies the state into its work buffers only where the flow comes
-    near (per row a hull that grows), not the whole map at each call. Work buffers full of
-    NaN between calls, with two flows in the same rows (hulls with gaps between them) and a
-    second state on the same solver, change no bit against a fresh face kernel; and the
-    second state's flags are those of a fresh grid solver (a flag buffer kept by the
-    solver once gave it the first state's flags where it never swept)."""
+    """Both kernels copy the state into their work buffers only where the flow comes near
+    (the grid kernel per row a hull that grows, the face kernel each cell a step first
+    touches), not the whole map at each call. Work buffers full of NaN between calls, with
+    two flows in the same rows (hulls with gaps between them) and a second state on the
+    same solvers (the face kernel's stamps kept from the first), change no bit: the two
+    kernels agree, and the face kernel agrees with a fresh one; and the second state's
+    flags are those of a fresh grid solver (a flag buffer kept by the solver once gave it
+    the first state's flags where it never swept)."""
     z, x, y = valley(nx=80, holes=holes)
     ter = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="wall")
     h0 = cylinder(ter, (60.0, 40.0), radius=20.0, thickness=4.0) \
         + cylinder(ter, (60.0, 160.0), radius=20.0, thickness=4.0) \
         + cylinder(ter, (250.0, 100.0), radius=15.0, thickness=3.0)
     faces, grid = pair(ter)
-    first = grid.new_state(h0[::-1].copy())  # another flow, left in the buffers
-    grid.advance(first, 30.0)
+    for solver in (faces, grid):  # another flow, left in the buffers and the stamps
+        first = solver.new_state(h0[::-1].copy())
+        solver.advance(first, 30.0)
     reference, state = faces.new_state(h0), grid.new_state(h0)
     for t in np.linspace(2.0, 40.0, 12):
-        for work in (grid._h_work, grid._hu_work, grid._hv_work):
+        for work in (grid._h_work, grid._hu_work, grid._hv_work,
+                     faces._h_work, faces._hu_work, faces._hv_work):
             work.fill(np.nan)
         assert grid.advance(state, t) == faces.advance(reference, t)
         assert_same_state(reference, state)
+    fresh_faces = pair(ter)[0]  # and the face kernel as a fresh solver runs it
+    again = fresh_faces.new_state(h0)
+    for t in np.linspace(2.0, 40.0, 12):
+        fresh_faces.advance(again, t)
+    assert_same_state(again, reference)
     fresh = Solver(ter, Law.COULOMB, np.array([math.tan(math.radians(20.0))]), kernel="grid",
                    threads=1)
     again = fresh.new_state(h0)

@@ -888,7 +888,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
-            stats, order, limiter, face_offset, emit):
+            stats, order, limiter, face_offset, emit, face_stamp, cell_stamp, cell_sync,
+            synced, clock):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -904,6 +905,12 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     faces, projection), averaged by :func:`heun_faces`. ``emit`` (n_cells, 7): the face
     kernel's per-cell work array at order 1 (:func:`_emitted`), empty otherwise.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
+
+    Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
+    ``cell_stamp`` and ``cell_sync`` (per cell, -1 at first), ``synced`` (per cell, any) and
+    ``clock`` (int64[2]: the steps stamped so far, the calls). The stamps then never repeat,
+    and nothing per call costs the map: at order 1 the work buffers take the state of a cell
+    when a step first touches it in the call, and only those cells go back at the end.
 
     A template: :func:`advance` runs its copy for the mesh kind and the order, where
     ``STRUCTURED`` and ``ORDER2`` are constants (``structured`` and ``order`` are not read):
@@ -942,15 +949,17 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     # step, so a cell left untouched needs no copy; those touched last time are copied.
     n = h.size
     nf = face_cells.shape[0]
-    h_work[:] = h
-    hu_work[:] = hu
-    hv_work[:] = hv
+    if STRUCTURED or ORDER2:  # the whole state into the work buffers (faces, order 1: lazily)
+        h_work[:] = h
+        hu_work[:] = hu
+        hv_work[:] = hv
+    clock[1] += 1
+    call = clock[1]
+    n_synced = 0
     wet = np.empty(n, dtype=np.int64)
     touched = np.empty(n, dtype=np.int64)
     previous = np.empty(n, dtype=np.int64)
     active_faces = np.empty(nf, dtype=np.int64)
-    face_stamp = np.full(nf, -1, dtype=np.int64)
-    cell_stamp = np.full(n, -1, dtype=np.int64)
     n_wet = 0
     for i in range(n):
         if h[i] > h_zero:
@@ -969,8 +978,21 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells,
                                            face_stamp, cell_stamp,
                                            (STAMPS_PER_STEP if ORDER2 else 1)
-                                           * (stats[ST_STEPS] + steps),
+                                           * (clock[0] + steps),
                                            active_faces, touched)
+            if not ORDER2:
+                # a cell touched for the first time in this call: its state into the work
+                # buffers (never written yet in this call, so h holds it); both buffers then
+                # agree on it, as the copies of `previous` keep them
+                for c in range(n_touched):
+                    i = touched[c]
+                    if cell_sync[i] != call:
+                        cell_sync[i] = call
+                        h_work[i] = h[i]
+                        hu_work[i] = hu[i]
+                        hv_work[i] = hv[i]
+                        synced[n_synced] = i
+                        n_synced += 1
         n_changed = n_touched if not STRUCTURED else 0
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
@@ -1037,7 +1059,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                             wet2[n_wet2] = i
                             n_wet2 += 1
                     # fresh stamps for each attempt: stage 1 listed with the step's first
-                    stamp = STAMPS_PER_STEP * (stats[ST_STEPS] + steps) + 2 * attempt
+                    stamp = STAMPS_PER_STEP * (clock[0] + steps) + 2 * attempt
                     n_active2, n_touched2 = activate(wet2, n_wet2, cell_face_ptr, cell_face_idx,
                                                      face_cells, face_stamp, cell_stamp,
                                                      stamp + 1, active2, touched2)
@@ -1090,7 +1112,18 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                              stop_kinetic, steps, max_steps)
         if status != REACHED_TARGET:
             break
-    end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv)
+    clock[0] += steps + 1  # the next call's stamps follow this one's
+    if STRUCTURED or ORDER2:
+        end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv)
+    else:  # the newest state back only where a step touched, if it is in the work buffers
+        if steps % 2 == 1:
+            for c in range(n_synced):
+                i = synced[c]
+                h[i] = cur_h[i]
+                hu[i] = cur_hu[i]
+                hv[i] = cur_hv[i]
+        end_loop(stats, t, 0, h, hu, hv, cur_h, cur_hu, cur_hv)
+        stats[ST_STEPS] += steps
     return status
 
 
@@ -1140,7 +1173,8 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
-            stats, order, limiter, face_offset, emit):
+            stats, order, limiter, face_offset, emit, face_stamp, cell_stamp, cell_sync,
+            synced, clock):
     """The time loop (:func:`_advance`, its arguments and status codes) compiled for this
     mesh kind (``structured``: a profile) and ``order`` alone (and, on a profile at order
     1, for the friction ``law``)."""
@@ -1150,4 +1184,5 @@ def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fact
         gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_work, hu_work, hv_work, flux,
         transport, flag, law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps,
         stop_volume, stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr,
-        cell_face_idx, stats, order, limiter, face_offset, emit)
+        cell_face_idx, stats, order, limiter, face_offset, emit, face_stamp, cell_stamp,
+        cell_sync, synced, clock)

@@ -154,6 +154,12 @@ class Solver:
         self._flux = np.zeros((m.n_faces, 5))
         # Faces of every cell (CSR), for the active lists of the face kernel.
         self._cell_face_ptr, self._cell_face_idx = K.cell_faces(m.face_cells, n)
+        # What the face kernel keeps from one call to the next (see kernels._advance)
+        self._face_stamp = np.full(m.n_faces, -1, dtype=np.int64)
+        self._cell_stamp = np.full(n, -1, dtype=np.int64)
+        self._cell_sync = np.full(n, -1, dtype=np.int64)
+        self._synced = np.empty(n, dtype=np.int64)
+        self._clock = np.zeros(2, dtype=np.int64)
         self._transport = np.zeros(n)
         # what each cell emits through its faces, once per step (face kernel, order 1)
         self._emit = np.zeros((n if self.order == 1 and not m.structured_1d else 0, 7))
@@ -321,5 +327,6 @@ class Solver:
             bool(self.dirac), float(self.h_dry), float(self.h_zero), float(self.cfl), float(t_target),
             int(max_steps), float(stop_volume), float(stop_kinetic), state.peak_h, state.peak_speed, state.arrival,
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
-            int(self.order), LIMITERS[self.limiter], self._face_offset, self._emit)
+            int(self.order), LIMITERS[self.limiter], self._face_offset, self._emit,
+            self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock)
         return STATUS_NAMES[status]
