@@ -2,7 +2,6 @@
 
 import math
 
-import numpy as np
 import pytest
 
 from avflow.numerics.kernels import _project

@@ -175,8 +175,8 @@ def main(argv=None) -> int:
             import shutil
 
             shutil.rmtree(folder, ignore_errors=True)
-    print(f"| DEM | cells | snapshots | snapshots kept | peak RSS MiB | estimate MiB | "
-          f"wall s | time loop s | file MiB | file bound MiB |")
+    print("| DEM | cells | snapshots | snapshots kept | peak RSS MiB | estimate MiB | "
+          "wall s | time loop s | file MiB | file bound MiB |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['run']} | {r['cells']:,} | {r['snapshots']} | {r['path']} | "
