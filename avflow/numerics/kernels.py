@@ -1128,7 +1128,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
 
 
 # The order-1 profile sweep lives in its own module, which builds on this one's scalar
-# functions: imported last (Numba resolves advance()'s globals when it first compiles).
+# functions: imported last, before the copies of _advance are made (each copy's globals are
+# a snapshot of this module's, taken then).
 from avflow.numerics.profile import N_WORK as _PROFILE_WORK  # noqa: E402
 from avflow.numerics.profile import STEP as _PROFILE_STEP  # noqa: E402
 from avflow.numerics.profile import law_kind as _law_kind  # noqa: E402
