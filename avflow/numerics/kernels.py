@@ -40,13 +40,14 @@ from avflow.numerics.kinetic import (SQRT3, half_flux_in, half_flux_out, half_fl
 from avflow.numerics.reconstruction import N_WORK, reconstruct_faces, reconstruct_profile
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.rheology import friction
+from avflow.numerics.vectorize import law_kind, law_label, specialize
 
 # Per-cell flag of sweep 1 (kept for output): which density the cell takes in sweep 2.
 FLOWING = 0  #: above the Coulomb threshold: rectangular density
 UNDER_THRESHOLD = 1  #: wet and under the threshold: Dirac density, q = 0 (eqs. 51, 56)
 DRY = 2  #: dry at time n: zero temperature as well, momentum from the projection
 
-# Status returned by advance()
+# Status returned by the time loop (time_loop)
 REACHED_TARGET = 0
 STOPPED = 1
 MAX_STEPS = 2
@@ -63,7 +64,7 @@ STAMPS_PER_STEP = 2 * MAX_RETRIES + 1
 #: such a cell transports nothing and must not keep a run alive.
 TRANSPORT_EPS = 1e-9
 
-# Slots of the float64 ``stats`` vector shared between advance() and its caller.
+# Slots of the float64 ``stats`` vector shared between the time loop and its caller.
 ST_TIME = 0
 ST_DT_LIMIT = 1  #: dt allowed by the CFL condition with cfl = 1, for the next step
 ST_STEPS = 2
@@ -873,12 +874,18 @@ def record_step(stats, dt, dt_limit, moving, film, kinetic, clamped, outflow, st
 @njit(error_model="numpy", cache=True)
 def end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv):
     """The end of a time loop that swaps two buffers each step: the newest state back in
-    ``(h, hu, hv)`` when it sits in the work buffers (an odd number of steps), and the
-    time and step count into ``stats``."""
+    ``(h, hu, hv)`` when it sits in the work buffers (an odd number of steps), and
+    :func:`record_end`. (Loops that know where the buffers differ copy only there.)"""
     if steps % 2 == 1:
         h[:] = cur_h
         hu[:] = cur_hu
         hv[:] = cur_hv
+    record_end(stats, t, steps)
+
+
+@njit(error_model="numpy", cache=True)
+def record_end(stats, t, steps):
+    """The time and the step count of a time loop's call into ``stats``."""
     stats[ST_TIME] = t
     stats[ST_STEPS] += steps
 
@@ -912,7 +919,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     and nothing per call costs the map: at order 1 the work buffers take the state of a cell
     when a step first touches it in the call, and only those cells go back at the end.
 
-    A template: :func:`advance` runs its copy for the mesh kind and the order, where
+    A template: :func:`time_loop` gives its copy for the mesh kind and the order, where
     ``STRUCTURED`` and ``ORDER2`` are constants (``structured`` and ``order`` are not read):
     Numba drops the branches of the other kinds before it types the function, so a run
     compiles only the sweeps it uses (section 6 at order 1, Coulomb: 27 s -> 7 s cold, this
@@ -1122,8 +1129,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                 h[i] = cur_h[i]
                 hu[i] = cur_hu[i]
                 hv[i] = cur_hv[i]
-        end_loop(stats, t, 0, h, hu, hv, cur_h, cur_hu, cur_hv)
-        stats[ST_STEPS] += steps
+        record_end(stats, t, steps)
     return status
 
 
@@ -1132,33 +1138,24 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
 # a snapshot of this module's, taken then).
 from avflow.numerics.profile import N_WORK as _PROFILE_WORK  # noqa: E402
 from avflow.numerics.profile import STEP as _PROFILE_STEP  # noqa: E402
-from avflow.numerics.profile import law_kind as _law_kind  # noqa: E402
 
 #: Placeholder of the profile sweep :func:`_advance`'s copies call (their law's copy)
 profile_step = None
 
 
-#: Placeholders of the constants of :func:`_advance`'s copies (see :func:`advance`)
+#: Placeholders of the constants of :func:`_advance`'s copies (see :func:`time_loop`)
 STRUCTURED = ORDER2 = False
 
 
 def _advance_for(structured: bool, order2: bool, kind: int | None = None):
     """:func:`_advance` compiled with the mesh kind and the order constants (and, on a
-    profile at order 1, calling the sweep of the friction law ``kind``), under its own
-    name (Numba's cache files are named after the function)."""
-    import types
-
-    namespace = dict(_advance.__globals__, STRUCTURED=structured, ORDER2=order2)
-    name = f"advance_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
+    profile at order 1, calling the sweep of the friction law ``kind``)."""
+    suffix = f"_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
+    names = {}
     if kind is not None:
-        namespace["profile_step"] = _PROFILE_STEP[kind]
-        name += "_" + _PROFILE_STEP[kind].py_func.__name__.removeprefix("step_")
-    copy = types.FunctionType(_advance.__code__, namespace, name, _advance.__defaults__,
-                              _advance.__closure__)
-    copy.__qualname__ = name
-    copy.__module__ = _advance.__module__
-    copy.__doc__ = _advance.__doc__
-    return njit(error_model="numpy", cache=True)(copy)
+        suffix += "_" + law_label(kind)
+        names["profile_step"] = _PROFILE_STEP[kind]
+    return specialize(_advance, suffix, STRUCTURED=structured, ORDER2=order2, **names)
 
 
 #: The time loop per (structured, order 2, law kind): the law only for profiles at order 1,
@@ -1169,21 +1166,9 @@ ADVANCE = {(s, o, k): _advance_for(s, o, k)
            for k in kinds}
 
 
-def advance(structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-            gamma_x, gamma_y, gamma_z, curvature,
-            h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
-            law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
-            stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
-            stats, order, limiter, face_offset, emit, face_stamp, cell_stamp, cell_sync,
-            synced, clock):
-    """The time loop (:func:`_advance`, its arguments and status codes) compiled for this
+def time_loop(structured: bool, order: int, law: int):
+    """The time loop (:func:`_advance`: its arguments, its status codes) compiled for this
     mesh kind (``structured``: a profile) and ``order`` alone (and, on a profile at order
     1, for the friction ``law``)."""
     structured, order2 = bool(structured), order == 2
-    return ADVANCE[structured, order2, _law_kind(law) if structured and not order2 else None](
-        structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-        gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_work, hu_work, hv_work, flux,
-        transport, flag, law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps,
-        stop_volume, stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr,
-        cell_face_idx, stats, order, limiter, face_offset, emit, face_stamp, cell_stamp,
-        cell_sync, synced, clock)
+    return ADVANCE[structured, order2, law_kind(law) if structured and not order2 else None]

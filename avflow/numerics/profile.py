@@ -29,8 +29,8 @@ from avflow.numerics.kernels import (DRY, FLOWING, TRANSPORT_EPS, _final_momentu
                                      _observe, _open_mass, _trial_momentum)
 from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
 from avflow.numerics.rheology import COULOMB, VOELLMY
-from avflow.numerics.vectorize import (by_law, friction_law, in_select, line_sum, noalias,
-                                       out_select)
+from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_kind,
+                                       law_label, line_sum, noalias, out_select, specialize)
 from avflow.terrain.mesh import OUTFLOW, WALL
 
 #: Lines of :func:`step`'s work array, ``(N_WORK, n + 2)``: per cell the half fluxes up
@@ -259,31 +259,12 @@ def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, 
             line_sum(t_film, 0, n - 1), clamped, line_sum(t_kin, 0, n - 1))
 
 
-#: ``LAW_KIND`` of the copy of :func:`_step` that reads the law at run time (Pouliquen,
-#: samosAT); the name, a placeholder of the copies' constant
-ANY_LAW = -1
+#: Placeholder of the constant of :func:`_step`'s copies: the law kind whose passes it runs
 LAW_KIND = ANY_LAW
 
-
-def law_kind(law: int) -> int:
-    """The copy of the sweep that runs ``law``: its own for Coulomb and Voellmy."""
-    return law if law in (COULOMB, VOELLMY) else ANY_LAW
-
-
-def _step_for(kind: int):
-    import types
-
-    label = {COULOMB: "coulomb", VOELLMY: "voellmy"}.get(kind, "any")
-    copy = types.FunctionType(_step.__code__, dict(_step.__globals__, LAW_KIND=kind),
-                              "step_" + label, _step.__defaults__, _step.__closure__)
-    copy.__qualname__ = "step_" + label
-    copy.__module__ = _step.__module__
-    copy.__doc__ = _step.__doc__
-    return njit(error_model="numpy", cache=True)(copy)
-
-
-#: :func:`_step` per law kind (made at import: Numba fixes a dispatcher's cache folder then)
-STEP = {kind: _step_for(kind) for kind in (COULOMB, VOELLMY, ANY_LAW)}
+#: :func:`_step` per law kind (:func:`~avflow.numerics.vectorize.law_kind`)
+STEP = {kind: specialize(_step, "_" + law_label(kind), LAW_KIND=kind)
+        for kind in (COULOMB, VOELLMY, ANY_LAW)}
 
 
 def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,

@@ -225,7 +225,7 @@ class Solver:
         """The time loop on the square-grid kernel (see :meth:`advance`)."""
         import numba
 
-        from avflow.numerics.square_grid import advance_grid
+        from avflow.numerics.square_grid import grid_loop
 
         layout, c = self._grid, self._g_cells
         threads = self.threads_used()
@@ -251,7 +251,7 @@ class Solver:
         if not layout.compact:
             flag.fill(K.DRY)
             flag[layout.place] = state.flag
-        status = advance_grid(
+        status = grid_loop(int(self.law), threads > 1)(
             threads, layout.nx, layout.ny, layout.valid, layout.face_order, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
             c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
@@ -319,7 +319,7 @@ class Solver:
         if self._grid is not None:
             return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps)
         m, t = self.terrain.mesh, self.terrain
-        status = K.advance(
+        status = K.time_loop(m.structured_1d, self.order, int(self.law))(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,

@@ -8,7 +8,7 @@ in the grid, with no face lists and no per-face index arrays, and each cell's th
 discharge and sound speed are read once per face sweep of its row.
 
 One step is a wavefront over the rows of the *swept region* (the rows and columns the flow
-covers, one cell around, see :func:`advance_grid`): at stage k, the faces of row k (its x
+covers, one cell around, see :func:`_advance_grid`): at stage k, the faces of row k (its x
 faces and the y faces below it, from what each cell emits, computed once per cell), the
 trial momentum and Coulomb flag of row k - 1 (eqs. 47, 49), the final update of row k - 2
 (Dirac faces, projection of eq. 50, observers). A row's fluxes and flags live in a ring of
@@ -41,19 +41,18 @@ run compiles only what it runs.
 from __future__ import annotations
 
 import math
-import types
 
 import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                     ST_STEPS,
                                      ST_TIME, TRANSPORT_EPS,
                                      _final_momentum, _limit, _observe, _open_mass,
-                                     _trial_momentum, end_loop, record_step, step_size)
+                                     _trial_momentum, record_end, record_step, step_size)
 from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
-from avflow.numerics.vectorize import by_law, friction_law, in_select, line_sum, noalias, out_select
+from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
+                                       law_kind, line_sum, noalias, out_select, specialize)
 from avflow.terrain.squaregrid import (HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -647,57 +646,42 @@ def _sweep(n_blocks, nx, ny, valid, face_order, x_code, x_frame, x_length, y_cod
                     peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
 
 
-#: ``LAW_KIND`` of the sweep's copy that reads the law at run time (Pouliquen, samosAT)
-ANY_LAW = -1
-#: Placeholders of the constants of the copies of :func:`_sweep` (the law whose cell loops
-#: it runs) and of :func:`_advance_grid` (whether it has the parallel sweep): see
+#: Placeholders of the constants of the copies of :func:`_sweep` (the law kind whose cell
+#: loops it runs) and of :func:`_advance_grid` (whether it has the parallel sweep): see
 #: :func:`grid_loop`
 LAW_KIND = ANY_LAW
 PARALLEL = True
-
-
-def _compiled(fn, parallel: bool, law_kind: int, threaded: bool | None = None, **names):
-    """``fn`` compiled serial or parallel for one law (``LAW_KIND``; ``names``: other
-    globals replaced), under its own name: Numba's cache files are named after the function
-    (name and line), not after its flags, so two dispatchers of one function would load
-    each other's machine code (the "serial" pass then ran on the thread pool, 5x slower on a
-    busy machine). ``threaded``: the ``PARALLEL`` constant, where it differs from Numba's
-    flag (the time loop with the parallel sweep is itself compiled serial)."""
-    threaded = parallel if threaded is None else threaded
-    label = {COULOMB: "coulomb", VOELLMY: "voellmy"}.get(law_kind, "any")
-    suffix = f"_{label}_{'parallel' if threaded else 'serial'}"
-    namespace = dict(fn.__globals__)
-    namespace.update(LAW_KIND=law_kind, PARALLEL=threaded, **names)
-    copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + suffix,
-                              fn.__defaults__, fn.__closure__)
-    copy.__qualname__ = fn.__qualname__ + suffix
-    copy.__module__ = fn.__module__
-    copy.__doc__ = fn.__doc__
-    return njit(error_model="numpy", cache=True, parallel=parallel)(copy)
-
-
-#: Placeholders of the sweeps :func:`_advance_grid`'s copies call (see :func:`grid_loop`)
+#: Placeholders of the sweeps :func:`_advance_grid`'s copies call
 sweep_serial = sweep_parallel = None
-_LOOPS: dict = {}
+
+
+def _sweep_for(kind: int, parallel: bool):
+    """:func:`_sweep` for one law kind, compiled serial or parallel (``prange`` runs
+    serially without Numba's ``parallel``), each under its own name."""
+    return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
+                      parallel=parallel, LAW_KIND=kind)
+
+
+def _loops() -> dict:
+    """:func:`_advance_grid` per (law kind, with the parallel sweep): the serial copy never
+    compiles the parallel sweep, and each its law's cell loops alone."""
+    loops = {}
+    for kind in (COULOMB, VOELLMY, ANY_LAW):
+        serial = _sweep_for(kind, False)
+        for parallel in (False, True):
+            loops[kind, parallel] = specialize(
+                _advance_grid, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
+                PARALLEL=parallel, sweep_serial=serial,
+                sweep_parallel=_sweep_for(kind, True) if parallel else serial)
+    return loops
 
 
 def grid_loop(law: int, parallel: bool):
-    """The time loop (:func:`_advance_grid`) for one friction law, with the parallel sweep
-    or without: each copy compiles only its law's cell loops, and the serial one never the
-    parallel sweep (a first run compiled every law's, serial and parallel: 32 s here)."""
-    return _LOOPS[law if law in (COULOMB, VOELLMY) else ANY_LAW, bool(parallel)]
-
-
-def _make_loops() -> None:
-    """Every copy's dispatcher, made as the module is imported (nothing is compiled yet):
-    Numba fixes a dispatcher's cache folder when it is made, and only the import sets the
-    versioned folder (:mod:`avflow.numerics`)."""
-    for kind in (COULOMB, VOELLMY, ANY_LAW):
-        serial = _compiled(_sweep, False, kind)
-        for parallel in (False, True):
-            threaded = _compiled(_sweep, True, kind) if parallel else serial
-            _LOOPS[kind, parallel] = _compiled(_advance_grid, False, kind, parallel,
-                                               sweep_serial=serial, sweep_parallel=threaded)
+    """The time loop (:func:`_advance_grid`: its arguments, its status codes) for one
+    friction law, with the parallel sweep (``threads`` > 1) or without: each copy compiles
+    only its law's cell loops, and the serial one never the parallel sweep (a first run
+    compiled every law's, serial and parallel: 32 s here)."""
+    return _LOOPS[law_kind(law), bool(parallel)]
 
 
 @njit(error_model="numpy", cache=True)
@@ -739,29 +723,13 @@ MIN_PARALLEL_CELLS = 32768
 MIN_BLOCK_ROWS = 16
 
 
-def advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
-                 y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
-                 curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
-                 law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
-                 stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats,
-                 min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
-    """:func:`_advance_grid` (its arguments, its status) in the copy for ``law`` and, with
-    ``threads`` > 1, with the parallel sweep (:func:`grid_loop`)."""
-    return grid_loop(law, threads > 1)(
-        threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
-        y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
-        curvature, h, hu, hv, h_work, hu_work, hv_work, flag, law, params, g, dirac, h_dry,
-        h_zero, cfl, t_target, max_steps, stop_volume, stop_kinetic, peak_h, peak_speed,
-        arrival, last_moved, stats, min_parallel_cells, min_block_rows)
-
-
 def _advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                  curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
                  stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats,
                  min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
-    """:func:`avflow.numerics.kernels.advance` for a square grid at order 1 (same arguments
+    """:func:`avflow.numerics.kernels.time_loop` for a square grid at order 1 (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
     least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
@@ -872,8 +840,7 @@ def _advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length,
             h[a:b] = cur_h[a:b]
             hu[a:b] = cur_hu[a:b]
             hv[a:b] = cur_hv[a:b]
-    end_loop(stats, t, 0, h, hu, hv, cur_h, cur_hu, cur_hv)  # time and steps, no copy
-    stats[ST_STEPS] += steps
+    record_end(stats, t, steps)
     return status
 
 
@@ -914,4 +881,4 @@ def _sync_work(nx, ny, r0, r1, lo, hi, sync_lo, sync_hi, h, hu, hv, h_work, hu_w
         sync_hi[q] = max(b, s1)
 
 
-_make_loops()
+_LOOPS = _loops()  # made at import: Numba fixes a dispatcher's cache folder then

@@ -106,6 +106,43 @@ def _law_constant(law):
     return LAW
 
 
+#: The law kind of the copies that read the law at run time (Pouliquen, samosAT): their
+#: ``exp`` and ``log`` keep a loop scalar anyway, so they share one copy
+ANY_LAW = -1
+
+
+def law_kind(law: int) -> int:
+    """The copy that runs ``law``: its own for Coulomb and Voellmy, :data:`ANY_LAW` else."""
+    from avflow.numerics.rheology import COULOMB, VOELLMY
+
+    return law if law in (COULOMB, VOELLMY) else ANY_LAW
+
+
+def law_label(kind: int) -> str:
+    """The name of a law kind in the names of its copies."""
+    from avflow.numerics.rheology import COULOMB, VOELLMY
+
+    return {COULOMB: "coulomb", VOELLMY: "voellmy"}.get(kind, "any")
+
+
+def specialize(fn, suffix: str, parallel: bool = False, **names):
+    """``fn`` compiled as a copy named ``fn.__name__ + suffix`` whose globals ``names`` are
+    replaced (constants Numba then folds, branches it drops before typing, or the copies of
+    what it calls). Its own name: Numba's cache files are named after the function (name
+    and line), not after its globals or flags, so two copies under one name would load each
+    other's machine code (a "serial" sweep once ran on the thread pool that way). Make the
+    copies as the module is imported: Numba fixes a dispatcher's cache folder then
+    (:mod:`avflow.numerics`)."""
+    namespace = dict(fn.__globals__)
+    namespace.update(names)
+    copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + suffix,
+                              fn.__defaults__, fn.__closure__)
+    copy.__qualname__ = fn.__qualname__ + suffix
+    copy.__module__ = fn.__module__
+    copy.__doc__ = fn.__doc__
+    return njit(error_model="numpy", cache=True, parallel=parallel)(copy)
+
+
 def by_law(fn, law: int | None, label: str, **names):
     """``fn`` compiled with the friction law a constant (``law``; None: read at run time),
     under its own name (Numba's cache files are named after the function); ``names``: other
@@ -116,18 +153,10 @@ def by_law(fn, law: int | None, label: str, **names):
     at once here); with Pouliquen's ``exp`` or samosAT's ``log`` in it, a loop stays
     scalar, so those laws share the copy that reads the law at run time.
     """
-    namespace = dict(fn.__globals__)
     if law is not None:
         # inlined where it is called, never compiled (nor cached) on its own
-        constant = njit(error_model="numpy", inline="always")(
-            types.FunctionType(_law_constant.__code__, {"LAW": law}, "friction_law_" + label))
-        namespace["friction_law"] = constant
-    namespace.update(names)
-    copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + "_" + label,
-                              fn.__defaults__, fn.__closure__)
-    copy.__qualname__ = fn.__qualname__ + "_" + label
-    copy.__module__ = fn.__module__
-    copy.__doc__ = fn.__doc__
-    return noalias(njit(error_model="numpy", cache=True)(copy))
+        names.setdefault("friction_law", njit(error_model="numpy", inline="always")(
+            types.FunctionType(_law_constant.__code__, {"LAW": law}, "friction_law_" + label)))
+    return noalias(specialize(fn, "_" + label, **names))
 
 
