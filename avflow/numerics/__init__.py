@@ -25,7 +25,8 @@ from pathlib import Path
 #: them from the terrain (boundary and face codes).
 _KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/rheology.py", "numerics/kernels.py",
                    "numerics/reconstruction.py", "numerics/square_grid.py", "numerics/vectorize.py",
-                   "numerics/profile.py", "terrain/mesh.py", "terrain/squaregrid.py")
+                   "numerics/profile.py", "numerics/face_sweep.py",
+                   "terrain/mesh.py", "terrain/squaregrid.py")
 
 
 def kernel_cache_dir() -> Path:

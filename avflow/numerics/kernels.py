@@ -896,7 +896,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
             stats, order, limiter, face_offset, emit, face_stamp, cell_stamp, cell_sync,
-            synced, clock):
+            synced, clock, sweep_geo, sweep_work):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -909,8 +909,11 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     ``order`` 2: limited reconstruction (``limiter``, :mod:`avflow.numerics.reconstruction`;
     ``face_offset[f, side]``: from each cell's centre half the way to its neighbour's, in its
     basis) and Heun's two stages, each a full step of the seed's scheme (threshold, Dirac
-    faces, projection), averaged by :func:`heun_faces`. ``emit`` (n_cells, 7): the face
-    kernel's per-cell work array at order 1 (:func:`_emitted`), empty otherwise.
+    faces, projection), averaged by :func:`heun_faces`. ``emit``: :func:`step_faces`' per-cell
+    work array at order 1, empty (the loops run it at order 2 only). ``sweep_geo,
+    sweep_work``: what the face kernel's order-1 step reads and works in
+    (:func:`avflow.numerics.face_sweep.geometry`, :func:`~avflow.numerics.face_sweep.work`;
+    empty elsewhere, :func:`~avflow.numerics.face_sweep.unused`).
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
     Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
@@ -982,11 +985,10 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                 nxt_h[i] = cur_h[i]
                 nxt_hu[i] = cur_hu[i]
                 nxt_hv[i] = cur_hv[i]
+            stamp1 = (STAMPS_PER_STEP if ORDER2 else 1) * (clock[0] + steps)
             n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells,
-                                           face_stamp, cell_stamp,
-                                           (STAMPS_PER_STEP if ORDER2 else 1)
-                                           * (clock[0] + steps),
-                                           active_faces, touched)
+                                           face_stamp, cell_stamp, stamp1, active_faces,
+                                           touched)
             if not ORDER2:
                 # a cell touched for the first time in this call: its state into the work
                 # buffers (never written yet in this call, so h holds it); both buffers then
@@ -1010,14 +1012,13 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     gamma_x, gamma_z, p_kappa, cur_h, cur_hu, nxt_h, nxt_hu, nxt_hv, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved, True, p_work, p_flag)
-            elif not ORDER2:
-                ok, out, lim, moving, film, clamped, kinetic = step_faces(
+            elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
+                ok, out, lim, moving, film, clamped, kinetic = faces_step(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                    gamma_x, gamma_y, gamma_z, curvature,
-                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
-                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved, active_faces, n_active, touched, n_touched, False,
-                    face_state, True, emit)
+                    gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
+                    flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+                    peak_speed, arrival, last_moved, active_faces, n_active, touched,
+                    n_touched, sweep_geo, sweep_work)
             elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
                 reconstruct_profile(cur_h, cur_hu, h_zero, limiter, recon)
                 ok, out, lim, moving, film, clamped, kinetic = step_profile(
@@ -1139,8 +1140,12 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
 from avflow.numerics.profile import N_WORK as _PROFILE_WORK  # noqa: E402
 from avflow.numerics.profile import STEP as _PROFILE_STEP  # noqa: E402
 
-#: Placeholder of the profile sweep :func:`_advance`'s copies call (their law's copy)
+from avflow.numerics.face_sweep import STEP as _FACES_STEP  # noqa: E402
+
+#: Placeholders of the order-1 sweeps :func:`_advance`'s copies call (their law's copy):
+#: the profile's and the faces' (:mod:`avflow.numerics.face_sweep`)
 profile_step = None
+faces_step = None
 
 
 #: Placeholders of the constants of :func:`_advance`'s copies (see :func:`time_loop`)
@@ -1148,27 +1153,31 @@ STRUCTURED = ORDER2 = False
 
 
 def _advance_for(structured: bool, order2: bool, kind: int | None = None):
-    """:func:`_advance` compiled with the mesh kind and the order constants (and, on a
-    profile at order 1, calling the sweep of the friction law ``kind``)."""
+    """:func:`_advance` compiled with the mesh kind and the order constants (and, at order
+    1, calling the sweep of the friction law ``kind``)."""
     suffix = f"_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
     names = {}
     if kind is not None:
         suffix += "_" + law_label(kind)
-        names["profile_step"] = _PROFILE_STEP[kind]
+        if structured:
+            names["profile_step"] = _PROFILE_STEP[kind]
+        else:
+            names["faces_step"] = _FACES_STEP[kind]
     return specialize(_advance, suffix, STRUCTURED=structured, ORDER2=order2, **names)
 
 
-#: The time loop per (structured, order 2, law kind): the law only for profiles at order 1,
-#: whose sweep has a copy per law (:data:`avflow.numerics.profile.STEP`), None elsewhere
+#: The time loop per (structured, order 2, law kind): the law only at order 1, whose
+#: sweeps have a copy per law (:data:`avflow.numerics.profile.STEP`,
+#: :data:`avflow.numerics.face_sweep.STEP`), None at order 2
 ADVANCE = {(s, o, k): _advance_for(s, o, k)
            for s, o, kinds in ((True, False, tuple(_PROFILE_STEP)), (True, True, (None,)),
-                               (False, False, (None,)), (False, True, (None,)))
+                               (False, False, tuple(_FACES_STEP)), (False, True, (None,)))
            for k in kinds}
 
 
 def time_loop(structured: bool, order: int, law: int):
     """The time loop (:func:`_advance`: its arguments, its status codes) compiled for this
-    mesh kind (``structured``: a profile) and ``order`` alone (and, on a profile at order
-    1, for the friction ``law``)."""
+    mesh kind (``structured``: a profile) and ``order`` alone (and, at order 1, for the
+    friction ``law``)."""
     structured, order2 = bool(structured), order == 2
-    return ADVANCE[structured, order2, law_kind(law) if structured and not order2 else None]
+    return ADVANCE[structured, order2, None if order2 else law_kind(law)]

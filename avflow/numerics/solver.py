@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from avflow.numerics import kernels as K
+from avflow.numerics import face_sweep  # noqa: I001 (after kernels, which it builds on)
 from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
@@ -161,8 +162,13 @@ class Solver:
         self._synced = np.empty(n, dtype=np.int64)
         self._clock = np.zeros(2, dtype=np.int64)
         self._transport = np.zeros(n)
-        # what each cell emits through its faces, once per step (face kernel, order 1)
-        self._emit = np.zeros((n if self.order == 1 and not m.structured_1d else 0, 7))
+        # the face kernel at order 1 in gather form: its geometry and work arrays
+        if self.order == 1 and not m.structured_1d:
+            self._sweep = (face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature),
+                           face_sweep.work(n, m.n_faces))
+        else:
+            self._sweep = face_sweep.unused()
+        self._emit = np.zeros((0, 7))  # step_faces' own (order 1 only: the reference)
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
                              else np.zeros((0, 2, 2)))
 
@@ -328,5 +334,6 @@ class Solver:
             int(max_steps), float(stop_volume), float(stop_kinetic), state.peak_h, state.peak_speed, state.arrival,
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
             int(self.order), LIMITERS[self.limiter], self._face_offset, self._emit,
-            self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock)
+            self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock,
+            *self._sweep)
         return STATUS_NAMES[status]
