@@ -163,3 +163,45 @@ def test_classical_scheme_without_dirac_faces():
     ter = plane_triangle_terrain(tri_block(25.0, 90.0), 10.0, None, walls())
     h0 = cylinder(ter, (300.0, 150.0), radius=50.0, thickness=5.0)
     compare_steps(ter, Law.COULOMB, (math.tan(math.radians(24.0)),), h0, 30, dirac=False)
+
+
+@pytest.mark.parametrize("mesh_kind", ["triangles", "grid"])
+def test_active_lists_are_the_faces_of_the_wet_cells_in_order(mesh_kind):
+    """kernels.activate against numpy: the faces with a wet side and the cells on both
+    sides of those, each once and sorted, for wet sets from one cell to all of them and
+    scattered ones, stamp after stamp (the stamps of earlier lists never leak in)."""
+    if mesh_kind == "triangles":
+        ter = plane_triangle_terrain(tri_block(20.0, 70.0), 10.0, None, walls(x_max="outflow"))
+    else:
+        x = np.arange(50) * 5.0 + 2.5
+        y = np.arange(37) * 5.0 + 2.5
+        xx, yy = np.meshgrid(x, y)
+        ter = surface_terrain(600.0 - 0.5 * xx + 0.01 * (yy - 90.0) ** 2, x, y,
+                              walls(y_min="outflow"))
+    solver = Solver(ter, Law.COULOMB, np.array([0.3]), kernel="faces")
+    mesh = ter.mesh
+    fc = mesh.face_cells
+    n, n_faces = mesh.n_cells, mesh.n_faces
+    active = np.empty(n_faces, dtype=np.int64)
+    touched = np.empty(n, dtype=np.int64)
+    face_stamp = np.full(n_faces, -1, dtype=np.int64)
+    cell_stamp = np.full(n, -1, dtype=np.int64)
+    rng = np.random.default_rng(7)
+    xx, yy = ter.cell_xy()
+    sets = [np.array([0]), np.array([n - 1]), np.arange(n), np.array([], dtype=np.int64)]
+    sets += [np.flatnonzero(rng.random(n) < p) for p in (0.001, 0.05, 0.5)]
+    sets += [np.flatnonzero(np.hypot(xx - cx, yy - 100.0) < 40.0) for cx in (60.0, 200.0)]
+    for stamp, wet in enumerate(sets):
+        wet = wet.astype(np.int64)
+        n_active, n_touched = K.activate(wet, wet.size, solver._cell_face_ptr,
+                                         solver._cell_face_idx, fc, face_stamp, cell_stamp,
+                                         stamp, active, touched)
+        is_wet = np.zeros(n, dtype=bool)
+        is_wet[wet] = True
+        want = np.flatnonzero(is_wet[fc[:, 0]]
+                              | ((fc[:, 1] >= 0) & is_wet[np.maximum(fc[:, 1], 0)]))
+        sides = np.concatenate([fc[want, 0], fc[want, 1]])
+        np.testing.assert_array_equal(active[:n_active], want)
+        np.testing.assert_array_equal(touched[:n_touched], np.unique(sides[sides >= 0]))
+        assert np.all(face_stamp[want] == stamp)
+        assert np.all(cell_stamp[touched[:n_touched]] == stamp)
