@@ -97,26 +97,26 @@ def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
     for j in range(c1 + 1 - c0):
         i = i0 + j
         c = c0 + j
-        hc = h[i]
-        q1 = hu[i]
-        q2 = hv[i]
-        wet = hc > h_wet
-        hs = hc if wet else 1.0
-        g_normal = g * gamma_z[i]
-        sound = math.sqrt(0.5 * g_normal * hs)  # sound_speed(): 0 on a vertical bed
-        sound = sound if g_normal > 0.0 else 0.0
-        k = sound * density[i]
-        o_h[c] = hc if wet else 0.0
-        o_u1[c] = q1 / hs if wet else 0.0
-        o_u2[c] = q2 / hs if wet else 0.0
-        o_c[c] = sound if wet else 0.0
-        o_s[c] = SQRT3 * sound if wet else 0.0
-        o_kh[c] = 0.5 * k if wet else 0.0
-        o_k3[c] = k / 3.0 if wet else 0.0
-        positive = hc > 0.0  # _speed(): |q| / h wherever h > 0, film included
-        hp = hc if positive else 1.0
-        speed = math.sqrt(q1 * q1 + q2 * q2) / hp
-        o_speed[c] = speed if positive else 0.0
+        (o_h[c], o_u1[c], o_u2[c], o_c[c], o_s[c], o_kh[c], o_k3[c],
+         o_speed[c]) = emitted_cell(h[i], hu[i], hv[i], g * gamma_z[i], density[i], h_wet)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def emitted_cell(hc, q1, q2, g_normal, dens, h_wet):
+    """One cell of :func:`_emit_row`: ``(h, u1, u2, c, sqrt(3) c, k / 2, k / 3, |q| / h)``,
+    every case computed and the one that applies selected (a dry cell divides by 1)."""
+    wet = hc > h_wet
+    hs = hc if wet else 1.0
+    sound = math.sqrt(0.5 * g_normal * hs)  # sound_speed(): 0 on a vertical bed
+    sound = sound if g_normal > 0.0 else 0.0
+    k = sound * dens
+    positive = hc > 0.0  # _speed(): |q| / h wherever h > 0, film included
+    hp = hc if positive else 1.0
+    speed = math.sqrt(q1 * q1 + q2 * q2) / hp
+    return ((hc if wet else 0.0), (q1 / hs if wet else 0.0), (q2 / hs if wet else 0.0),
+            (sound if wet else 0.0), (SQRT3 * sound if wet else 0.0),
+            (0.5 * k if wet else 0.0), (k / 3.0 if wet else 0.0),
+            (speed if positive else 0.0))
 
 
 @njit(error_model="numpy", cache=True, inline="always")
