@@ -14,17 +14,19 @@ one run). Each pass over cells is one loop without jumps over a run, which LLVM 
 2. per active face, the rectangular flux, added to both cells' sums in face order (scalar,
    :func:`_face_fluxes`); only the mass flux is kept;
 3. per touched cell, the trial momentum (eq. 47) and the Coulomb flag (eq. 49);
-4. per active face, in face order, the mass of the faces that are not Dirac (eqs. 51-53)
-   and what a dry side takes back through a Dirac face (its momentum recomputed);
+4. per active face with a side at zero temperature, in face order, the mass of the faces
+   that are not Dirac (eqs. 51-53) and what a dry side takes back through a Dirac face
+   (:func:`_add_masses`; a flowing cell has no Dirac face, so its sum of pass 2 stands);
 5. per touched cell, the new thickness, the projection of eq. 50, the observers, and the
    step's sums, added cell after cell in the lists' order (step_faces' order).
 
-What it saved, on 401 x 401 triangle nodes, all wet, one core of this machine class (an
-Intel Xeon with about 10 GB/s for one core): the cell passes (emit, trial, final) cost 8,
-12 and 10 ns a node against 12, 10 and 58 in step_faces (whose final sweep, scalar with
-jumps, read each cell's values through the touched list); the face passes are memory-bound
-(a face reads its 64-byte frame): 21 and 8 ns a face with the momentum kept per face, less
-with the mass flux alone. The time loop's rate: 7.0e6 against 3.9e6-4.9e6 node-updates/s.
+Measured on 401 x 401 triangle nodes, all wet, one core of this machine class (a shared
+Intel Xeon whose speed varies by a third from one minute to the next: the figures are the
+best of 25 calls interleaved with step_faces in one process): a step costs 103-114 ns a node
+against 131-141 for step_faces. The cell passes cost 10, 4 and 19 ns a node (emit, trial,
+final with the sums) against 12, 10 and 58; pass 4, 7 ns against 23 (it passes over the
+faces between flowing cells). The face pass, 21 ns a face, scalar and bound by its
+arithmetic, is step_faces' own, and is now two thirds of the step.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.kernels import (DRY, OUTFLOW, TRANSPORT_EPS, WALL, _dirac_face,
+from avflow.numerics.kernels import (DRY, FLOWING, OUTFLOW, TRANSPORT_EPS, WALL, _dirac_face,
                                      _final_momentum, _limit, _observe, _open_mass,
                                      _trial_momentum)
 from avflow.numerics.kinetic import half_flux_in, half_flux_out
@@ -127,11 +129,12 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
 
 @njit(error_model="numpy", cache=True)
 def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h_sum, x_sum,
-                 y_sum):
+                 y_sum, transport):
     """The faces of runs ``r0 .. r0 + n_runs - 1`` (:func:`runs_of`): the flux of each
     added to its cells' sums in face order (the scatter of step_faces sweep 1a: the same
-    sums, bit for bit). Only the mass flux is kept (``mass[f]``): the few Dirac faces with
-    a dry side recompute their momentum in :func:`_add_masses`. Scalar, about 20 ns a face
+    sums, bit for bit), and the largest ``|F_h| / L`` through each cell's faces. Only the
+    mass flux is kept (``mass[f]``): the few Dirac faces with a dry side recompute their
+    momentum in :func:`_add_masses`. Scalar, about 20 ns a face
     here, bound by its arithmetic (reading the frames alone costs 3): a vector loop over
     lines of the cells' values copied per block of faces took 31 ns, the copies 8 of them
     (LLVM keeps a loop that gathers the cells' values itself scalar)."""
@@ -144,24 +147,32 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
             fh, qix, qiy, qjx, qjy = _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2,
                                                 e_c, e_s, e_kh, e_k3)
             mass[f] = fh
+            unit = abs(fh) / face_length[f]
             h_sum[i] -= fh
             x_sum[i] -= qix
             y_sum[i] -= qiy
+            transport[i] = max(transport[i], unit)
             if j >= 0:
                 h_sum[j] += fh
                 x_sum[j] += qjx
                 y_sum[j] += qjy
+                transport[j] = max(transport[j], unit)
 
 
 @njit(error_model="numpy", cache=True)
 def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, flag, dirac, dt,
-                h_sum, x_sum, y_sum, transport):
+                h_sum, x_sum, y_sum):
     """The faces of runs ``r0 ..`` once the flags are known, in face order (step_faces
-    sweep 2a): the mass of the faces that keep the rectangular density and the largest ``|F_h| / L`` that
-    crossed; a Dirac face (both cells at zero temperature, eqs. 51-53) carries none, and a
-    dry side takes back the momentum it had brought to the trial's sum (recomputed: the same
-    operations on the same values, so the same bits). Returns the volume that left through
-    the open faces among them."""
+    sweep 2a), for the cells at zero temperature (under the threshold or dry): the mass of
+    the faces that keep the rectangular density; a Dirac face (both cells at zero
+    temperature, eqs. 51-53) carries none, and a dry side takes back the momentum it had
+    brought to the trial's sum (recomputed: the same operations on the same values, so the
+    same bits). A flowing cell has no Dirac face: its sums from :func:`_face_fluxes` are
+    already these (the same faces in the same order), and a face between two flowing cells
+    is passed over. The transport is left as it is: it decides whether a cell that moves
+    counts as moving, and a cell at zero temperature either ends at rest (q = 0 under the
+    threshold, eq. 56) or just set off (dry at time n: it counts whatever its faces
+    carried). Returns the volume that left through the open faces."""
     e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
     e_s, e_kh, e_k3 = emit[E_S], emit[E_KH], emit[E_K3]
     outflow = 0.0
@@ -171,6 +182,9 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
             j = pairs[f, 1]
             fl_i = flag[i]
             fl_j = flag[j] if j >= 0 else fl_i
+            open_side = j == OUTFLOW
+            if fl_i == FLOWING and fl_j == FLOWING and not open_side:
+                continue
             if _dirac_face(dirac, fl_i, fl_j):
                 if fl_i == DRY or (j >= 0 and fl_j == DRY):
                     _, qix, qiy, qjx, qjy = _face_flux(f, i, j, face_frame, face_length, e_h,
@@ -183,13 +197,12 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
                         y_sum[j] -= qjy
                 continue
             fh = mass[f]
-            unit = abs(fh) / face_length[f]
-            h_sum[i] -= fh
-            transport[i] = max(transport[i], unit)
+            if fl_i != FLOWING:
+                h_sum[i] -= fh
             if j >= 0:
-                h_sum[j] += fh
-                transport[j] = max(transport[j], unit)
-            elif j == OUTFLOW:
+                if fl_j != FLOWING:
+                    h_sum[j] += fh
+            elif open_side:
                 outflow += max(fh, 0.0) * dt
     return outflow
 
@@ -197,10 +210,10 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
 @noalias
 @njit(error_model="numpy", cache=True)
 def _emit_cells(runs, n_runs, h, hu, hv, gamma_z, density, h_zero, g, o_h, o_u1, o_u2, o_c,
-                o_s, o_kh, o_k3, o_speed, h_sum, x_sum, y_sum):
+                o_s, o_kh, o_k3, o_speed, h_sum, x_sum, y_sum, transport):
     """The cells of the runs: what each emits through its faces (the square-grid kernel's
-    :func:`~avflow.numerics.square_grid.emitted_cell`, one line per value); its sums start
-    at 0."""
+    :func:`~avflow.numerics.square_grid.emitted_cell`, one line per value); its sums and
+    transport start at 0."""
     h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as kernels._emitted
     for r in range(n_runs):
         a = max(runs[2 * r], 0)
@@ -211,14 +224,16 @@ def _emit_cells(runs, n_runs, h, hu, hv, gamma_z, density, h_zero, g, o_h, o_u1,
             h_sum[i] = 0.0
             x_sum[i] = 0.0
             y_sum[i] = 0.0
+            transport[i] = 0.0
 
 
 def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu, hv,
                  gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide, flag,
-                 h_sum, x_sum, y_sum, transport):
-    """The cells of the runs (:func:`runs_of`): the trial momentum of eq. 47 and the flag of eq. 49 from their sums
+                 h_sum, x_sum, y_sum):
+    """The cells of the runs (:func:`runs_of`): the trial momentum of eq. 47 and the flag of
+    eq. 49 from their sums
     (step_faces sweep 1b), into ``x_sum, y_sum`` (a dry cell keeps its momentum sum); the
-    mass sum and the transport start again at 0 for the final pass."""
+    mass sum of a cell at zero temperature starts again at 0 for :func:`_add_masses`."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
@@ -236,11 +251,11 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
                                          gamma_z[i], centripetal, lw, p0, p1, p2, p3, p4, p5, p6,
                                          p7, g, False)
             dry = h[i] <= h_zero
+            flowing = (fi == FLOWING) & (not dry)
             x_sum[i] = mx if dry else qx
             y_sum[i] = my if dry else qy
             flag[i] = DRY if dry else fi
-            h_sum[i] = 0.0
-            transport[i] = 0.0
+            h_sum[i] = mh if flowing else 0.0  # summed again without its Dirac faces
 
 
 def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h,
@@ -332,27 +347,28 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
 
     # 1. what each touched cell emits; its sums start at 0
     _emit_cells(runs, n_runs, h, hu, hv, gamma_z, density, h_zero, g, emit[E_H], e_u1, e_u2,
-                emit[E_C], emit[E_S], emit[E_KH], emit[E_K3], e_speed, h_new, hu_new, hv_new)
+                emit[E_C], emit[E_S], emit[E_KH], emit[E_K3], e_speed, h_new, hu_new, hv_new,
+                transport)
     # 2. the active faces' fluxes and the cells' sums, in face order
     _face_fluxes(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit, mass, h_new,
-                 hu_new, hv_new)
+                 hu_new, hv_new, transport)
     # 3. the trial and the flags
     if LAW_KIND == COULOMB:
         _trial_coulomb(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu, hv,
                        gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide,
-                       flag, h_new, hu_new, hv_new, transport)
+                       flag, h_new, hu_new, hv_new)
     elif LAW_KIND == VOELLMY:
         _trial_voellmy(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu, hv,
                        gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide,
-                       flag, h_new, hu_new, hv_new, transport)
+                       flag, h_new, hu_new, hv_new)
     else:
         _trial_any(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu, hv,
                    gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide,
-                   flag, h_new, hu_new, hv_new, transport)
+                   flag, h_new, hu_new, hv_new)
     # 4. the mass through the faces that are not Dirac, in face order; what left through
     # the open ones
     outflow = _add_masses(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
-                          mass, flag, dirac, dt, h_new, hu_new, hv_new, transport)
+                          mass, flag, dirac, dt, h_new, hu_new, hv_new)
     # 5. the new state, the observers
     if LAW_KIND == COULOMB:
         n_bad, clamped = _final_coulomb(
