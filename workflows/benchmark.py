@@ -45,12 +45,14 @@ WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 #: gamma x/y/z, curvature (80), codes and order (4), two faces' normals and lengths (80),
 #: observers read (32); written h, hu, hv (24), flag (1), observers (about 16), each twice.
 #: Profile sweep: h, hu, gamma_x, gamma_z, density, cfl, curvature row (64), observers (32);
-#: written h, hu, hv, two flux values, flag, observers (about 58), twice. Face kernel: per
-#: face (2 per grid cell, 3 per triangle node) its cells (16), frame (64), length (8), flux
-#: written and read back (5 values, 80 with the write counted twice, 120 in all); per cell
-#: the work sums written and read (48 + 24), h, hu, hv (24), factors (80), observers (48).
-BYTES_PER_CELL = {"profile": 212, "grid": 300, "faces-grid": 2 * 208 + 224,
-                  "faces-tri": 3 * 208 + 224}
+#: written h, hu, hv, two flux values, flag, observers (about 58), twice. Face kernel at
+#: order 1 (numerics.face_sweep, five passes): per face (2 per grid cell, 3 per triangle
+#: node) its cells (int32, 8, read twice), frame (64), length (8), mass flux written (16);
+#: per cell, read over the passes: h, hu, hv, the factors, the emitted lines, the sums and
+#: the observers (about 430); written: the emitted lines, the sums (twice), the flags, the
+#: new state, the observers and the lines of the step's sums (about 225, twice).
+BYTES_PER_CELL = {"profile": 212, "grid": 300, "faces-grid": 2 * 104 + 880,
+                  "faces-tri": 3 * 104 + 880}
 
 
 #: An all-wet case is timed over at least this many seconds: it runs on past its end time,
