@@ -21,12 +21,13 @@ one run). Each pass over cells is one loop without jumps over a run, which LLVM 
    step's sums, added cell after cell in the lists' order (step_faces' order).
 
 Measured on 401 x 401 triangle nodes, all wet, one core of this machine class (a shared
-Intel Xeon whose speed varies by a third from one minute to the next: the figures are the
-best of 25 calls interleaved with step_faces in one process): a step costs 103-114 ns a node
-against 131-141 for step_faces. The cell passes cost 10, 4 and 19 ns a node (emit, trial,
-final with the sums) against 12, 10 and 58; pass 4, 7 ns against 23 (it passes over the
-faces between flowing cells). The face pass, 21 ns a face, scalar and bound by its
-arithmetic, is step_faces' own, and is now two thirds of the step.
+Intel Xeon whose speed varies by a third from one minute to the next: the best of 25 calls
+interleaved with step_faces in one process): a step costs 102-105 ns a node against
+129-130 for step_faces (84-93 against 121-135 a cell on a 400 x 400 grid). The cell passes
+cost 10, 4 and 19 ns a node (emit, trial, final with the sums) against 12, 10 and 58;
+pass 4, 7 ns against 23 (it passes over the faces between flowing cells). The face pass,
+21 ns a face, scalar and bound by its arithmetic, is step_faces' own, and is now two thirds
+of the step.
 """
 
 from __future__ import annotations
