@@ -186,12 +186,15 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
     return n_bad, clamped
 
 
-_trial_coulomb = by_law(_trial, COULOMB, "coulomb")
-_trial_voellmy = by_law(_trial, VOELLMY, "voellmy")
-_trial_any = by_law(_trial, None, "any")
-_final_coulomb = by_law(_final, COULOMB, "coulomb")
-_final_voellmy = by_law(_final, VOELLMY, "voellmy")
-_final_any = by_law(_final, None, "any")
+#: Passes 3 and 4 per law kind: a copy for each law whose loop vectorises, one that reads
+#: the law at run time for the others (:func:`~avflow.numerics.vectorize.by_law`)
+TRIAL = {kind: by_law(_trial, None if kind == ANY_LAW else kind, law_label(kind))
+         for kind in (COULOMB, VOELLMY, ANY_LAW)}
+FINAL = {kind: by_law(_final, None if kind == ANY_LAW else kind, law_label(kind))
+         for kind in (COULOMB, VOELLMY, ANY_LAW)}
+
+#: Placeholders of :func:`_step`'s copies (:data:`STEP`): their law's passes 3 and 4
+trial_pass = final_pass = None
 
 
 def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
@@ -211,35 +214,17 @@ def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, 
     _faces(n, up_h, up_q, down_h, down_q, flux_h, flux_q)
     _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h, down_q,
           flux_h, flux_q)
-    # the copy of passes 3 and 4 for the law (written out: functions held in variables are
-    # Numba's experimental first-class functions); LAW_KIND is a constant in each copy of
-    # this function (STEP), so Numba compiles only its law's passes
-    if LAW_KIND == COULOMB:
-        _trial_coulomb(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
-                       h_zero, dx, dt, dt_decide, q_trial, pflag)
-    elif LAW_KIND == VOELLMY:
-        _trial_voellmy(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
-                       h_zero, dx, dt, dt_decide, q_trial, pflag)
-    else:
-        _trial_any(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g,
-                   h_zero, dx, dt, dt_decide, q_trial, pflag)
+    # passes 3 and 4 of the law: globals of each copy of this function (STEP), so Numba
+    # compiles only its law's (written as calls: functions held in variables are Numba's
+    # experimental first-class functions)
+    trial_pass(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params, g, h_zero,
+               dx, dt, dt_decide, q_trial, pflag)
     pflag[0] = pflag[1]  # the ends' ghosts share their cell's flag
     pflag[n + 1] = pflag[n]
-    if LAW_KIND == COULOMB:
-        n_bad, clamped = _final_coulomb(
-            n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
-            law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
-            flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
-    elif LAW_KIND == VOELLMY:
-        n_bad, clamped = _final_voellmy(
-            n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
-            law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
-            flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
-    else:
-        n_bad, clamped = _final_any(
-            n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
-            law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
-            flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
+    n_bad, clamped = final_pass(
+        n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag, law,
+        params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new, flag,
+        peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
     if n_bad > 0:
         return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
     # what left through open ends (the fluxes of faces that are not Dirac)
@@ -259,11 +244,10 @@ def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, 
             line_sum(t_film, 0, n - 1), clamped, line_sum(t_kin, 0, n - 1))
 
 
-#: Placeholder of the constant of :func:`_step`'s copies: the law kind whose passes it runs
-LAW_KIND = ANY_LAW
-
-#: :func:`_step` per law kind (:func:`~avflow.numerics.vectorize.law_kind`)
-STEP = {kind: specialize(_step, "_" + law_label(kind), LAW_KIND=kind)
+#: :func:`_step` per law kind (:func:`~avflow.numerics.vectorize.law_kind`), each calling
+#: its law's passes 3 and 4
+STEP = {kind: specialize(_step, "_" + law_label(kind), trial_pass=TRIAL[kind],
+                         final_pass=FINAL[kind])
         for kind in (COULOMB, VOELLMY, ANY_LAW)}
 
 
