@@ -66,12 +66,13 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
             fl = flag.copy()
             ob = {name: obs[name].copy() for name in OBSERVERS}
             flux = np.zeros((n_faces, 5))
+            transport = np.zeros(n)
             law_args = (int(law), solver.params, G, dirac, h_dry, h_zero, dt, dt, t_new)
             if kernel == "reference":
                 r = K.step_faces(mesh.face_cells, mesh.face_frame, mesh.face_length,
                                  mesh.cell_area, solver._cfl_factor, solver._density,
                                  terrain.gamma_x, terrain.gamma_y, terrain.gamma_z,
-                                 terrain.curvature, h, hu, hv, *new, flux, np.zeros(n), fl,
+                                 terrain.curvature, h, hu, hv, *new, flux, transport, fl,
                                  *law_args, ob["peak_h"], ob["peak_speed"], ob["arrival"],
                                  ob["last_moved"], active, n_active, touched, n_touched,
                                  False, np.zeros((0, 2, 3)), True, emit)
@@ -79,7 +80,7 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                 r = step_new(mesh.face_cells, mesh.face_frame, mesh.face_length,
                              mesh.cell_area, solver._cfl_factor, solver._density,
                              terrain.gamma_x, terrain.gamma_y, terrain.gamma_z, h, hu, hv, *new,
-                             fl, *law_args, ob["peak_h"], ob["peak_speed"],
+                             transport, fl, *law_args, ob["peak_h"], ob["peak_speed"],
                              ob["arrival"], ob["last_moved"], active, n_active, touched,
                              n_touched, *solver._sweep)
             results.append(r)

@@ -41,16 +41,14 @@ from avflow.numerics.kernels import (DRY, FLOWING, OUTFLOW, TRANSPORT_EPS, WALL,
                                      _final_momentum, _limit, _observe, _open_mass,
                                      _trial_momentum)
 from avflow.numerics.kinetic import half_flux_in, half_flux_out
-from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
-from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, law_label, noalias,
+from avflow.numerics.vectorize import (friction_law, law_copies, law_label, noalias,
                                        specialize)
 
-# Lines of the per-cell work array (N_CELL_LINES, n): the largest |F_h| / L that crossed,
-# what the step's sums need
-C_TRANSPORT, C_INV, C_KIN, C_MOV, C_FILM = range(5)
-N_CELL_LINES = 5
+# Lines of the per-cell work array (N_CELL_LINES, n): what the step's sums need
+C_INV, C_KIN, C_MOV, C_FILM = range(4)
+N_CELL_LINES = 4
 
 
 def geometry(mesh, inv_area, curvature):
@@ -137,8 +135,7 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
     added to its cells' sums in face order (the scatter of step_faces sweep 1a: the same
     sums, bit for bit), and the largest ``|F_h| / L`` through each cell's faces. Only the
     mass flux is kept (``mass[f]``): the few Dirac faces with a dry side recompute their
-    momentum in :func:`_add_masses`. Scalar, about 20 ns a face
-    here, bound by its arithmetic (reading the frames alone costs 3): a vector loop over
+    momentum in :func:`_add_masses`. Scalar, about 20 ns a face here, bound by its arithmetic (reading the frames alone costs 3): a vector loop over
     lines of the cells' values copied per block of faces took 31 ns, the copies 8 of them
     (LLVM keeps a loop that gathers the cells' values itself scalar)."""
     e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
@@ -234,8 +231,7 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
                  gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide, flag,
                  h_sum, x_sum, y_sum):
     """The cells of the runs (:func:`runs_of`): the trial momentum of eq. 47 and the flag of
-    eq. 49 from their sums
-    (step_faces sweep 1b), into ``x_sum, y_sum`` (a dry cell keeps its momentum sum); the
+    eq. 49 from their sums (step_faces sweep 1b), into ``x_sum, y_sum`` (a dry cell keeps its momentum sum); the
     mass sum of a cell at zero temperature starts again at 0 for :func:`_add_masses`."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
@@ -320,31 +316,28 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
     return n_bad, clamped
 
 
-#: The cell passes per law kind: a copy for each law whose loop vectorises, one that reads
-#: the law at run time for the others (:func:`~avflow.numerics.vectorize.by_law`)
-TRIAL = {kind: by_law(_trial_cells, None if kind == ANY_LAW else kind, law_label(kind))
-         for kind in (COULOMB, VOELLMY, ANY_LAW)}
-FINAL = {kind: by_law(_final_cells, None if kind == ANY_LAW else kind, law_label(kind))
-         for kind in (COULOMB, VOELLMY, ANY_LAW)}
+#: The cell passes per law kind (:func:`~avflow.numerics.vectorize.law_copies`)
+TRIAL = law_copies(_trial_cells)
+FINAL = law_copies(_final_cells)
 
 #: Placeholders of :func:`_step`'s copies (:data:`STEP`): their law's cell passes
 trial_cells = final_cells = None
 
 
 def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, gamma_x,
-          gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac,
-          h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
+          gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport, flag, law, params, g,
+          dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
           active_faces, n_active, touched, n_touched, geo, wk):
     """One order-1 step over the active lists (sorted): the numbers of
     :func:`~avflow.numerics.kernels.step_faces`, with ``geo`` from :func:`geometry` and
-    ``wk`` from :func:`work`. ``h_new, hu_new, hv_new`` first hold the cells' sums. Each
+    ``wk`` from :func:`work`. ``h_new, hu_new, hv_new`` first hold the cells' sums;
+    ``transport`` (per cell): the largest ``|F_h| / L`` through its faces. Each
     pass is one call over all the runs of its list (a call per run cost a flow on a map 4x
     larger, cut into more runs, a fifth more). Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
     pairs, inv_area, curv = geo
     emit, mass, per_cell, runs = wk
     e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
-    transport = per_cell[C_TRANSPORT]
     t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
     t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
     k11, k12, k22 = curv[0], curv[1], curv[2]
@@ -392,4 +385,4 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
 #: its law's cell passes, so Numba compiles only those
 STEP = {kind: specialize(_step, "_" + law_label(kind), trial_cells=TRIAL[kind],
                          final_cells=FINAL[kind])
-        for kind in (COULOMB, VOELLMY, ANY_LAW)}
+        for kind in TRIAL}

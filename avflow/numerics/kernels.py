@@ -895,8 +895,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
-            stats, order, limiter, face_offset, emit, face_stamp, cell_stamp, cell_sync,
-            synced, clock, sweep_geo, sweep_work):
+            stats, order, limiter, face_offset, face_stamp, cell_stamp, cell_sync, synced, clock,
+            sweep_geo, sweep_work):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -909,9 +909,10 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     ``order`` 2: limited reconstruction (``limiter``, :mod:`avflow.numerics.reconstruction`;
     ``face_offset[f, side]``: from each cell's centre half the way to its neighbour's, in its
     basis) and Heun's two stages, each a full step of the seed's scheme (threshold, Dirac
-    faces, projection), averaged by :func:`heun_faces`. ``emit``: :func:`step_faces`' per-cell
-    work array at order 1, empty (the loops run it at order 2 only). ``sweep_geo,
-    sweep_work``: what the face kernel's order-1 step reads and works in
+    faces, projection), averaged by :func:`heun_faces`. ``flux`` (n_faces, 5): the face
+    fluxes of order 2 (empty at order 1); ``transport`` (per cell): the largest mass flux
+    per metre through its faces in the last step. ``sweep_geo, sweep_work``: what the face
+    kernel's order-1 step reads and works in
     (:func:`avflow.numerics.face_sweep.geometry`, :func:`~avflow.numerics.face_sweep.work`;
     empty elsewhere, :func:`~avflow.numerics.face_sweep.unused`).
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
@@ -935,6 +936,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     recon = np.zeros((m2 if STRUCTURED else 0, 4))
     work = np.zeros((0 if STRUCTURED else m2, N_WORK))
     face_state = np.zeros((0 if STRUCTURED else f2, 2, 3))
+    no_emit = np.zeros((0, 7))  # step_faces' emitted values: read at order 1 only
     s_h = np.zeros(m2)
     s_hu = np.zeros(m2)
     s_hv = np.zeros(m2)
@@ -985,10 +987,11 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                 nxt_h[i] = cur_h[i]
                 nxt_hu[i] = cur_hu[i]
                 nxt_hv[i] = cur_hv[i]
-            stamp1 = (STAMPS_PER_STEP if ORDER2 else 1) * (clock[0] + steps)
             n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells,
-                                           face_stamp, cell_stamp, stamp1, active_faces,
-                                           touched)
+                                           face_stamp, cell_stamp,
+                                           (STAMPS_PER_STEP if ORDER2 else 1)
+                                           * (clock[0] + steps),
+                                           active_faces, touched)
             if not ORDER2:
                 # a cell touched for the first time in this call: its state into the work
                 # buffers (never written yet in this call, so h holds it); both buffers then
@@ -1016,9 +1019,9 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                 ok, out, lim, moving, film, clamped, kinetic = faces_step(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
-                    flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                    peak_speed, arrival, last_moved, active_faces, n_active, touched,
-                    n_touched, sweep_geo, sweep_work)
+                    transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
+                    t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
+                    touched, n_touched, sweep_geo, sweep_work)
             elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
                 reconstruct_profile(cur_h, cur_hu, h_zero, limiter, recon)
                 ok, out, lim, moving, film, clamped, kinetic = step_profile(
@@ -1054,7 +1057,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
                     law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved, active_faces, n_active, touched, n_touched, True,
-                    face_state, False, emit)
+                    face_state, False, no_emit)
                 if ok:
                     n_wet2 = 0
                     for c in range(n_touched):
@@ -1080,7 +1083,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                         nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag,
                         law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                         peak_speed, arrival, last_moved, active2, n_active2, touched2,
-                        n_touched2, True, face_state, False, emit)
+                        n_touched2, True, face_state, False, no_emit)
                 if ok:
                     out = 0.5 * (out + out2)
                     clamped += clamped2

@@ -28,9 +28,8 @@ from numba import njit
 from avflow.numerics.kernels import (DRY, FLOWING, TRANSPORT_EPS, _final_momentum, _limit,
                                      _observe, _open_mass, _trial_momentum)
 from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
-from avflow.numerics.rheology import COULOMB, VOELLMY
-from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_kind,
-                                       law_label, line_sum, noalias, out_select, specialize)
+from avflow.numerics.vectorize import (friction_law, in_select, law_copies, law_kind, law_label,
+                                       line_sum, noalias, out_select, specialize)
 from avflow.terrain.mesh import OUTFLOW, WALL
 
 #: Lines of :func:`step`'s work array, ``(N_WORK, n + 2)``: per cell the half fluxes up
@@ -186,12 +185,9 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
     return n_bad, clamped
 
 
-#: Passes 3 and 4 per law kind: a copy for each law whose loop vectorises, one that reads
-#: the law at run time for the others (:func:`~avflow.numerics.vectorize.by_law`)
-TRIAL = {kind: by_law(_trial, None if kind == ANY_LAW else kind, law_label(kind))
-         for kind in (COULOMB, VOELLMY, ANY_LAW)}
-FINAL = {kind: by_law(_final, None if kind == ANY_LAW else kind, law_label(kind))
-         for kind in (COULOMB, VOELLMY, ANY_LAW)}
+#: Passes 3 and 4 per law kind (:func:`~avflow.numerics.vectorize.law_copies`)
+TRIAL = law_copies(_trial)
+FINAL = law_copies(_final)
 
 #: Placeholders of :func:`_step`'s copies (:data:`STEP`): their law's passes 3 and 4
 trial_pass = final_pass = None
@@ -248,7 +244,7 @@ def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, 
 #: its law's passes 3 and 4
 STEP = {kind: specialize(_step, "_" + law_label(kind), trial_pass=TRIAL[kind],
                          final_pass=FINAL[kind])
-        for kind in (COULOMB, VOELLMY, ANY_LAW)}
+        for kind in TRIAL}
 
 
 def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,

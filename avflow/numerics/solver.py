@@ -152,7 +152,8 @@ class Solver:
         self._hv_work = np.zeros(n)
         # Per face: mass flux, then the momentum it brings to each side (x, y of side i,
         # x, y of side j), so a Dirac face can take back what a dry side must not receive.
-        self._flux = np.zeros((m.n_faces, 5))
+        # (order 2 only: the order-1 sweeps keep their fluxes in their own work lines)
+        self._flux = np.zeros((m.n_faces if self.order == 2 else 0, 5))
         # Faces of every cell (CSR), for the active lists of the face kernel.
         self._cell_face_ptr, self._cell_face_idx = K.cell_faces(m.face_cells, n)
         # What the face kernel keeps from one call to the next (see kernels._advance)
@@ -162,13 +163,12 @@ class Solver:
         self._synced = np.empty(n, dtype=np.int64)
         self._clock = np.zeros(2, dtype=np.int64)
         self._transport = np.zeros(n)
-        # the face kernel at order 1 in gather form: its geometry and work arrays
+        # the face kernel at order 1 (numerics.face_sweep): its geometry and work arrays
         if self.order == 1 and not m.structured_1d:
             self._sweep = (face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature),
                            face_sweep.work(n, m.n_faces))
         else:
             self._sweep = face_sweep.unused()
-        self._emit = np.zeros((0, 7))  # step_faces' own (order 1 only: the reference)
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
                              else np.zeros((0, 2, 2)))
 
@@ -333,7 +333,7 @@ class Solver:
             bool(self.dirac), float(self.h_dry), float(self.h_zero), float(self.cfl), float(t_target),
             int(max_steps), float(stop_volume), float(stop_kinetic), state.peak_h, state.peak_speed, state.arrival,
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
-            int(self.order), LIMITERS[self.limiter], self._face_offset, self._emit,
+            int(self.order), LIMITERS[self.limiter], self._face_offset,
             self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock,
             *self._sweep)
         return STATUS_NAMES[status]

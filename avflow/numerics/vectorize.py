@@ -160,3 +160,12 @@ def by_law(fn, law: int | None, label: str, **names):
     return noalias(specialize(fn, "_" + label, **names))
 
 
+def law_copies(fn):
+    """:func:`by_law`'s copies of ``fn`` per law kind (:func:`law_kind`): Coulomb and
+    Voellmy each their own, :data:`ANY_LAW` the one that reads the law at run time."""
+    from avflow.numerics.rheology import COULOMB, VOELLMY
+
+    return {kind: by_law(fn, None if kind == ANY_LAW else kind, law_label(kind))
+            for kind in (COULOMB, VOELLMY, ANY_LAW)}
+
+
