@@ -52,7 +52,7 @@ from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_
 from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
-                                       law_kind, line_sum, noalias, out_select, specialize)
+                                       law_kind, line_max, line_sum, noalias, out_select, specialize)
 from avflow.terrain.squaregrid import (HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -73,7 +73,7 @@ N_EMIT = 8
 
 
 @noalias
-@njit(error_model="numpy", cache=True)
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
 def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
     """Per cell ``c0..c1`` of a row, once per step, what its faces and its own update read
     (``out[E_*, c]``, one contiguous line per quantity): thickness and velocity it emits
@@ -181,7 +181,7 @@ def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, kh
 
 
 @noalias
-@njit(error_model="numpy", cache=True)
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
 def _x_faces(k0, k1, codes, frames, lengths, emit, out):
     """x faces ``k0..k1`` of a row (face k between cells k - 1 and k) into ``out[:, k]``
     (``frames``: the row's ``(4, nx + 1)`` normals).
@@ -225,7 +225,7 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
 
 
 @noalias
-@njit(error_model="numpy", cache=True)
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
 def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
     """y faces ``c0..c1`` between two rows (``below``: the emitted states of the lower row,
     ``above``: of the upper one) into ``out[:, c]``, in two passes as :func:`_x_faces` (at
@@ -317,7 +317,7 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
     """Per cell of a row: the flux divergence, the trial momentum of eq. 47 and the flag of
     eq. 49 (``flags[c + 1]``: the flag lines carry one column of padding on each side;
     ``qx_out[c]``, ``qy_out[c]``); a dry cell keeps its momentum sum for
-    :func:`_final_cells` (as the face kernel's sweep 1b).
+    :func:`_final_state` (as the face kernel's sweep 1b).
 
     One loop without jumps (selects; :func:`_ordered_select`), which LLVM vectorises for
     the laws without transcendental functions (Coulomb, Voellmy): the face kernel's
@@ -355,28 +355,32 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
         flags[c + 1] = DRY if (valid[i] == 0 or dry) else fi
 
 
-#: Per-cell lines of a row kept by :func:`_final_cells` for its sums: inverse CFL limit,
+#: Per-cell lines of a row kept by :func:`_final_sums` for its sums: inverse CFL limit,
 #: kinetic energy, moving volume, film volume, outflow
 N_SCRATCH = 5
 
+#: Bits of a cell's byte in the line :func:`_final_state` leaves for :func:`_final_sums`:
+#: its W, E, S, N faces are Dirac faces; its update was kept (inside the DEM, h >= 0)
+M_W, M_E, M_S, M_N, M_GOOD = 1, 2, 4, 8, 16
 
-def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x_len, ys_len,
-                 yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area, cfl_factor,
-                 gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag,
-                 law, params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
-                 last_moved, rows, wet_lo, wet_hi, t_inv, t_kin, t_mov, t_film,
-                 t_out):
-    """Per cell of row r: mass through the faces that keep the rectangular density, the
-    projection, the observers; the row's sums (``rows[r]``) and the columns of its wet
-    cells. ``fl_s, fl, fl_n``: the flags of the rows below, of this one and above (cell c
-    at ``c + 1``).
+
+def _final_state(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, ys, yn, em,
+                 fl_s, fl, fl_n, qx_in, qy_in, cell_area, gamma_x, gamma_y, gamma_z,
+                 curvature, h, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_zero, dt,
+                 marks):
+    """Final update of a row, its state (the first of two loops, :func:`_final_sums` the
+    second): mass through the faces that keep the rectangular density, the projection;
+    writes h, q and the flag of each cell, and ``marks[c]`` (its Dirac faces and whether its
+    update was kept, ``M_*``). Returns ``(cells that went below 0, cells clamped)``.
+    ``fl_s, fl, fl_n``: the flags of the rows below, of this one and above (cell c at
+    ``c + 1``).
 
     A loop per cell without jumps, so that LLVM vectorises it: every write is a select (a
     cell outside the DEM keeps h = 0 and q = 0; a cell that went below 0 makes the step be
-    redone, whatever it wrote), and what the row's sums need is kept per cell in
-    ``t_*`` (separate arrays: lines of one array might overlap for LLVM, and the checks
-    kept the loop scalar), then added line by line (:func:`~avflow.numerics.vectorize.line_sum`: the grid-wide diagnostics
-    differ from the face kernel's cell-by-cell sums by round-off)."""
+    redone, whatever it wrote). The update is cut in two loops because one loop over the
+    forty-odd lines of both kept most of their base pointers on the stack (some 200 stack
+    loads and stores per 8 cells, 650 instructions): 14.1 ns a cell in one loop, 13.4 in
+    the two, on a row of 400 here."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
@@ -389,8 +393,6 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
     i0 = max(base + c0, 0)
     n_bad = 0
     clamped = 0
-    w_lo = fl.size
-    w_hi = -1
     for j in range(c1 + 1 - c0):
         c = c0 + j
         i = i0 + j
@@ -415,11 +417,7 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         u1 = e_u1[c]
         u2 = e_u2[c]
         kappa11, kappa12, kappa22 = k11[i], k12[i], k22[i]
-        cfl_i = cfl_factor[i]
-        len_w, len_e, len_s, len_n = x_len[c], x_len[c + 1], ys_len[c], yn_len[c]
         old_flag = flag[i]
-        old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
-        old_arrival, old_moved = arrival[i], last_moved[i]
         # Dirac faces (eqs. 51-53): both sides at zero temperature; a boundary ghost shares
         # its cell's flag
         cold = dirac & (fi != FLOWING)
@@ -447,7 +445,6 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
         qx, qy, cl = _final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
                                      p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
-        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_i, gz, g)
         # writes: the new value where the cell is updated, else what is there
         flag[i] = fi if inside else old_flag
         # (a cell outside the DEM keeps h = 0, q = 0; one that went below 0 writes what it
@@ -455,12 +452,63 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         h_new[i] = hn if good else h_old
         hu_new[i] = qx if good else 0.0
         hv_new[i] = qy if good else 0.0
+        clamped += cl if good else 0
+        marks[c] = (((M_W if d_w else 0) | (M_E if d_e else 0)) | ((M_S if d_s else 0)
+                    | (M_N if d_n else 0))) | (M_GOOD if good else 0)
+    return n_bad, clamped
+
+
+def _final_sums(r, base, c0, c1, x_code, y_south, y_north, x_len, ys_len, yn_len, x_mass,
+                ys_mass, yn_mass, e_speed, marks, cell_area, cfl_factor, gamma_z, h_new,
+                hu_new, hv_new, g, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
+                last_moved, rows, wet_lo, wet_hi, n_bad, clamped, t_inv, t_kin, t_mov,
+                t_film, t_out):
+    """The second loop of a row's final update (after :func:`_final_state`, from what it
+    wrote): the observers, and the row's sums (``rows[r]``) and the columns of its wet
+    cells. ``x_mass, ys_mass, yn_mass``: the mass flux lines of the row's x faces and of
+    its y faces below and above; ``marks``: :func:`_final_state`'s.
+
+    What the row's sums need is kept per cell in ``t_*`` (separate arrays: lines of one
+    array might overlap for LLVM, and the checks kept the loop scalar), then added line by
+    line (:func:`~avflow.numerics.vectorize.line_sum`: the grid-wide diagnostics differ from
+    the face kernel's cell-by-cell sums by round-off)."""
+    c0 = max(c0, 0)
+    i0 = max(base + c0, 0)
+    w_lo = x_len.size
+    w_hi = -1
+    for j in range(c1 + 1 - c0):
+        c = c0 + j
+        i = i0 + j
+        m = marks[c]
+        good = (m & M_GOOD) != 0
+        d_w = (m & M_W) != 0
+        d_e = (m & M_E) != 0
+        d_s = (m & M_S) != 0
+        d_n = (m & M_N) != 0
+        w_code, e_code, s_code, n_code = x_code[c], x_code[c + 1], y_south[c], y_north[c]
+        w_in = (w_code & KIND) == INNER
+        s_in = (s_code & KIND) == INNER
+        # the mass side terms of _side_terms: +F to a face's second cell, -F to its first
+        w0, e0, s0, n0 = x_mass[c], x_mass[c + 1], ys_mass[c], yn_mass[c]
+        wm = w0 if w_in else -w0
+        e_m = -e0
+        sm = s0 if s_in else -s0
+        nm = -n0
+        area = cell_area[i]
+        hn = h_new[i]  # the update where it was kept (good); nothing below reads it else
+        qx = hu_new[i]
+        qy = hv_new[i]
+        speed_n = e_speed[c]
+        len_w, len_e, len_s, len_n = x_len[c], x_len[c + 1], ys_len[c], yn_len[c]
+        old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
+        old_arrival, old_moved = arrival[i], last_moved[i]
+        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
+                                g)
         peak_h[i] = hn if good & (hn > old_peak_h) else old_peak_h
         peak_speed[i] = speed if good & (speed > old_peak_speed) else old_peak_speed
         arrives = good & (hn > h_dry) & math.isnan(old_arrival)
         arrival[i] = t_new if arrives else old_arrival
         last_moved[i] = t_new if good & (speed > 0.0) else old_moved
-        clamped += cl if good else 0
         # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
         # per metre (kernels._moves; compared as |fh| > eps h |u^n| L: no division)
         limit = TRANSPORT_EPS * hn * speed_n
@@ -475,10 +523,10 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         t_film[c] = hn * area if moves & (hn <= h_dry) else 0.0
         # what left through open sides (a face's flux is outward from its owner: -term for
         # the cell's own faces), through the faces that are not Dirac
-        open_w = ((x_code[c] & KIND) == HIGH_OPEN) & (not d_w) & (wm < 0.0)
-        open_e = ((x_code[c + 1] & KIND) == LOW_OPEN) & (not d_e) & (e_m < 0.0)
-        open_s = ((y_south[c] & KIND) == HIGH_OPEN) & (not d_s) & (sm < 0.0)
-        open_n = ((y_north[c] & KIND) == LOW_OPEN) & (not d_n) & (nm < 0.0)
+        open_w = ((w_code & KIND) == HIGH_OPEN) & (not d_w) & (wm < 0.0)
+        open_e = ((e_code & KIND) == LOW_OPEN) & (not d_e) & (e_m < 0.0)
+        open_s = ((s_code & KIND) == HIGH_OPEN) & (not d_s) & (sm < 0.0)
+        open_n = ((n_code & KIND) == LOW_OPEN) & (not d_n) & (nm < 0.0)
         out_w = -wm * dt if open_w else 0.0
         out_e = -e_m * dt if open_e else 0.0
         out_s = -sm * dt if open_s else 0.0
@@ -488,9 +536,7 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         w_lo = min(w_lo, c) if wet else w_lo
         w_hi = max(w_hi, c) if wet else w_hi
     # the row's sums (in an order of their own: the face kernel's sums differ by round-off)
-    inv_lim = 0.0
-    for c in range(c0, c1 + 1):
-        inv_lim = max(inv_lim, t_inv[c])
+    inv_lim = line_max(t_inv, c0, c1)
     outflow = line_sum(t_out, c0, c1)
     moving = line_sum(t_mov, c0, c1)
     film = line_sum(t_film, c0, c1)
@@ -504,6 +550,9 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
     rows[r, R_CLAMPED] = clamped
     wet_lo[r] = w_lo
     wet_hi[r] = w_hi
+
+
+_final_sums = noalias(njit(error_model="numpy", cache=True, _nrt=False)(_final_sums))
 
 
 
@@ -521,7 +570,7 @@ def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_c
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y,
                  gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac,
                  h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
-                 r0, r1, lo, hi, rows, wet_lo, wet_hi):
+                 r0, r1, lo, hi, rows, wet_lo, wet_hi, emit, xf, yf, fl, scratch, qx, qy, marks):
     """One step on the rows ``a..b`` of the swept band ``r0..r1``, as a wavefront: at stage
     k the faces of row k (its x faces, the y faces below it), the trial of row k - 1, the
     final update of row k - 2, so that a row's fluxes and flags are still in cache when they
@@ -532,14 +581,7 @@ def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_c
     Compiled once per friction law with that law's copies of the cell loops
     (:func:`~avflow.numerics.vectorize.by_law`): a call with some fifty arrays costs about
     0.5 us, a layer of dispatch per row cost 2.5 ns a cell at 400 columns."""
-    ring = 4
-    emit = np.zeros((ring, N_EMIT, nx))
-    xf = np.zeros((ring, 5, nx + 1))
-    yf = np.zeros((ring, 5, nx))  # yf[k % ring]: the y faces below row k
-    fl = np.full((ring, nx + 2), DRY, dtype=np.uint8)  # cell c at c + 1
-    scratch = np.zeros((N_SCRATCH, nx))
-    qx = np.zeros((ring, nx))
-    qy = np.zeros((ring, nx))
+    ring = RING
     for k in range(a - 1, b + 3):
         # --- faces of row k: what rows k - 1 and k emit, computed once per cell
         s0, s1 = _span(k, r0, r1, lo, hi, nx)
@@ -580,16 +622,19 @@ def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_c
         if a <= f <= b:
             f0, f1 = _span(f, r0, r1, lo, hi, nx)
             if f0 <= f1:
-                _final_cells(f, f * nx, f0, f1, valid, face_order, x_code[f], y_code[f],
-                           y_code[f + 1], x_length[f], y_length[f], y_length[f + 1],
-                           xf[f % ring], yf[f % ring], yf[(f + 1) % ring], emit[f % ring],
-                           fl[(f - 1) % ring],
-                           fl[f % ring], fl[(f + 1) % ring], qx[f % ring], qy[f % ring],
-                           cell_area, cfl_factor, gamma_x, gamma_y, gamma_z, curvature, h, hu,
-                           hv, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_dry,
-                           h_zero, dt, t_new, peak_h, peak_speed, arrival, last_moved, rows,
-                           wet_lo, wet_hi, scratch[0], scratch[1], scratch[2], scratch[3],
-                           scratch[4])
+                n_bad, clamped = _final_state(
+                    f * nx, f0, f1, valid, face_order, x_code[f], y_code[f], y_code[f + 1],
+                    xf[f % ring], yf[f % ring], yf[(f + 1) % ring], emit[f % ring],
+                    fl[(f - 1) % ring], fl[f % ring], fl[(f + 1) % ring], qx[f % ring],
+                    qy[f % ring], cell_area, gamma_x, gamma_y, gamma_z, curvature, h, h_new,
+                    hu_new, hv_new, flag, law, params, g, dirac, h_zero, dt, marks)
+                _final_sums(f, f * nx, f0, f1, x_code[f], y_code[f], y_code[f + 1],
+                            x_length[f], y_length[f], y_length[f + 1], xf[f % ring][0],
+                            yf[f % ring][0], yf[(f + 1) % ring][0], emit[f % ring][E_SPEED],
+                            marks, cell_area, cfl_factor, gamma_z, h_new, hu_new, hv_new, g,
+                            h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
+                            last_moved, rows, wet_lo, wet_hi, n_bad, clamped, scratch[0],
+                            scratch[1], scratch[2], scratch[3], scratch[4])
             else:
                 rows[f, R_OK] = 1.0
                 rows[f, R_OUT] = 0.0
@@ -602,12 +647,28 @@ def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_c
                 wet_hi[f] = -1
 
 
+#: Rows of the ring buffers of a block (:func:`_ring`)
+RING = 4
+
+
+@njit(error_model="numpy", cache=True)
+def _ring(nx):
+    """A block's ring buffers (:func:`_sweep_block`): what rows emit, their x faces and the
+    y faces below them, flags (cell c at c + 1), trial momenta, and lines of one row."""
+    return (np.zeros((RING, N_EMIT, nx)), np.zeros((RING, 5, nx + 1)),
+            np.zeros((RING, 5, nx)), np.full((RING, nx + 2), DRY, dtype=np.uint8),
+            np.zeros((N_SCRATCH, nx)), np.zeros((RING, nx)), np.zeros((RING, nx)),
+            np.zeros(nx, dtype=np.uint8))
+
+
 def _block_for(law, label):
     """:func:`_sweep_block` for one law (None: read at run time), calling that law's copies
-    of the cell loops."""
-    return by_law(_sweep_block, law, label,
-                  _trial_cells=by_law(_trial_cells, law, label),
-                  _final_cells=by_law(_final_cells, law, label))
+    of the cell loops; the block and the row passes it calls are compiled without
+    reference counting (:func:`~avflow.numerics.vectorize.by_law`'s ``nrt``), as they
+    allocate nothing: the buffers come from :func:`_ring`."""
+    return by_law(_sweep_block, law, label, nrt=False,
+                  _trial_cells=by_law(_trial_cells, law, label, nrt=False),
+                  _final_state=by_law(_final_state, law, label, nrt=False))
 
 
 _sweep_block_coulomb = _block_for(COULOMB, "coulomb")
@@ -626,24 +687,28 @@ def _sweep(n_blocks, nx, ny, valid, face_order, x_code, x_frame, x_length, y_cod
         a = r0 + (n_rows * blk) // n_blocks
         b = r0 + (n_rows * (blk + 1)) // n_blocks - 1
         if a <= b:
+            emit, xf, yf, fl, scratch, qx, qy, marks = _ring(nx)
             if LAW_KIND == COULOMB:
                 _sweep_block_coulomb(
                     a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
+                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
+                    emit, xf, yf, fl, scratch, qx, qy, marks)
             elif LAW_KIND == VOELLMY:
                 _sweep_block_voellmy(
                     a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
+                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
+                    emit, xf, yf, fl, scratch, qx, qy, marks)
             else:
                 _sweep_block_any(
                     a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
+                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
+                    emit, xf, yf, fl, scratch, qx, qy, marks)
 
 
 #: Placeholders of the constants of the copies of :func:`_sweep` (the law kind whose cell
