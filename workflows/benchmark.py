@@ -4,7 +4,8 @@
     python workflows/benchmark.py --quick    # smaller cases, for a look
 
 Every case runs in a fresh process (its peak resident memory is its own), after a warm-up
-call (compilation excluded), and reports cell-updates per second (cells x steps / time loop):
+call (compilation excluded), and reports cell-updates per second (cells x steps / time loop),
+the 1D and all-wet cases the fastest of three windows (``WINDOWS``):
 
 - 1D: the structured profile sweep and the generic face sweep on the same profile (a
   frictionless dam break on 200 000 cells, half dry, and the same with every cell wet);
@@ -61,17 +62,30 @@ BYTES_PER_CELL = {"profile": 212, "grid": 300, "faces-grid": 2 * 104 + 880,
 MIN_WALL = 0.5
 
 
-def _rate(solver, h0, t_warm, t_end, min_wall=0.0):
-    state = solver.new_state(h0)
-    solver.advance(state, t_warm)  # compiles, and the flow is under way
-    n0, t0 = state.steps, time.perf_counter()
-    target = t_end
-    solver.advance(state, target)
-    while time.perf_counter() - t0 < min_wall:
-        target += t_end - t_warm
+#: Windows an all-wet case is timed over; the fastest is kept (on a shared machine whose
+#: speed moved by a third from minute to minute, one window measured the neighbours)
+WINDOWS = 3
+
+
+def _rate(solver, h0, t_warm, t_end, min_wall=0.0, windows=1):
+    """``(cell-updates/s, wall, steps)`` of the fastest of ``windows`` windows, each from
+    the state at ``t_warm`` (compiled and under way) to ``t_end``, and on by as much again
+    until it lasted ``min_wall``."""
+    best = None
+    for _ in range(windows):
+        state = solver.new_state(h0)
+        solver.advance(state, t_warm)  # compiles, and the flow is under way
+        n0, t0 = state.steps, time.perf_counter()
+        target = t_end
         solver.advance(state, target)
-    wall = time.perf_counter() - t0
-    return (state.steps - n0) * h0.size / wall, wall, state.steps - n0
+        while time.perf_counter() - t0 < min_wall:
+            target += t_end - t_warm
+            solver.advance(state, target)
+        wall = time.perf_counter() - t0
+        r = ((state.steps - n0) * h0.size / wall, wall, state.steps - n0)
+        if best is None or r[0] > best[0]:
+            best = r
+    return best
 
 
 def _plane(n):
@@ -102,7 +116,8 @@ def case(name, threads):
             ter = dataclasses.replace(ter, mesh=dataclasses.replace(ter.mesh,
                                                                     structured_1d=False))
         solver = Solver(ter, Law.COULOMB, np.zeros(4), order=2 if "order2" in name else 1)
-        return (*_rate(solver, h0, 0.5, 30.0), "profile" if "generic" not in name else "faces")
+        return (*_rate(solver, h0, 0.5, 30.0, windows=WINDOWS),
+                "profile" if "generic" not in name else "faces")
     if name.startswith("grid") or name.startswith("tri"):
         n = 1000 if "1000" in name else 400
         plane, build = _plane(n)
@@ -122,7 +137,7 @@ def case(name, threads):
         if "cylinder" in name:
             return (*_rate(solver, cyl, 0.5, 10.0), solver.kernel_used)
         t_end = 1.5 if n == 1000 else 3.0
-        return (*_rate(solver, cyl + 1.0, 0.5, t_end, MIN_WALL), solver.kernel_used)
+        return (*_rate(solver, cyl + 1.0, 0.5, t_end, MIN_WALL, WINDOWS), solver.kernel_used)
     if name == "section6":
         from avflow.scenario.schema import load_scenario
         from avflow.simulation.runner import simulate
