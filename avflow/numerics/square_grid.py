@@ -749,13 +749,20 @@ def grid_loop(law: int, parallel: bool):
     return _LOOPS[law_kind(law), bool(parallel)]
 
 
+#: Cells a vector iteration of the row passes takes (8 doubles, AVX-512), and the shortest
+#: scalar remainder worth replacing by one more vector iteration over cells added to the row
+LANES = 8
+MIN_REMAINDER = 3
+
+
 @njit(error_model="numpy", cache=True)
 def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, lo, hi, band0,
                    band1):
     """Columns to sweep per row: the wet cells of each row and of the rows above and below,
     one column more on each side (every face of a wet cell and the cells beyond), joined with
     what the last step needed (a cell it changed is written once more, so both buffers agree
-    again wherever the sweep no longer goes). Only the rows ``band0 - 1 .. band1 + 1`` around
+    again wherever the sweep no longer goes), widened by up to 5 columns of cells that are
+    not wet where that makes the row's length a multiple of :data:`LANES`. Only the rows ``band0 - 1 .. band1 + 1`` around
     the last step's band are looked at (no wet cell lies beyond them). Returns the band of
     rows ``(r0, r1)`` and the number of cells swept."""
     r0 = ny
@@ -775,6 +782,16 @@ def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, l
         need_hi[r] = b
         lo[r] = min(a, prev_lo[r])
         hi[r] = max(b, prev_hi[r])
+        n = hi[r] - lo[r] + 1
+        short = (LANES - n % LANES) % LANES
+        if n > 0 and 0 < short <= LANES - MIN_REMAINDER:
+            # a whole vector iteration more instead of a scalar remainder of 3 cells or
+            # more (7 cells in scalar code cost a row 550 ns, 8 more cells in vector code
+            # 230): the cells added are not wet and touch no wet cell, so the sweep leaves
+            # them as they are
+            up = min(short, nx - 1 - hi[r])
+            hi[r] += up
+            lo[r] = max(lo[r] - (short - up), 0)
         if lo[r] <= hi[r]:
             r0 = min(r0, r)
             r1 = max(r1, r)
