@@ -317,7 +317,7 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
     """Per cell of a row: the flux divergence, the trial momentum of eq. 47 and the flag of
     eq. 49 (``flags[c + 1]``: the flag lines carry one column of padding on each side;
     ``qx_out[c]``, ``qy_out[c]``); a dry cell keeps its momentum sum for
-    :func:`_final_state` (as the face kernel's sweep 1b).
+    :func:`_final_cells` (as the face kernel's sweep 1b).
 
     One loop without jumps (selects; :func:`_ordered_select`), which LLVM vectorises for
     the laws without transcendental functions (Coulomb, Voellmy): the face kernel's
@@ -355,32 +355,38 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
         flags[c + 1] = DRY if (valid[i] == 0 or dry) else fi
 
 
-#: Per-cell lines of a row kept by :func:`_final_sums` for its sums: inverse CFL limit,
+#: Per-cell lines of a row kept by :func:`_final_cells` for its sums: inverse CFL limit,
 #: kinetic energy, moving volume, film volume, outflow
 N_SCRATCH = 5
 
-#: Bits of a cell's byte in the line :func:`_final_state` leaves for :func:`_final_sums`:
-#: its W, E, S, N faces are Dirac faces; its update was kept (inside the DEM, h >= 0)
+#: Bits of a cell's byte in the line the first loop of :func:`_final_cells` leaves for the
+#: second: its W, E, S, N faces are Dirac faces; its update was kept (inside the DEM, h >= 0)
 M_W, M_E, M_S, M_N, M_GOOD = 1, 2, 4, 8, 16
 
 
-def _final_state(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, ys, yn, em,
-                 fl_s, fl, fl_n, qx_in, qy_in, cell_area, gamma_x, gamma_y, gamma_z,
-                 curvature, h, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_zero, dt,
-                 marks):
-    """Final update of a row, its state (the first of two loops, :func:`_final_sums` the
-    second): mass through the faces that keep the rectangular density, the projection;
-    writes h, q and the flag of each cell, and ``marks[c]`` (its Dirac faces and whether its
-    update was kept, ``M_*``). Returns ``(cells that went below 0, cells clamped)``.
-    ``fl_s, fl, fl_n``: the flags of the rows below, of this one and above (cell c at
-    ``c + 1``).
+def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x_len, ys_len,
+                 yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area, cfl_factor,
+                 gamma_x, gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
+                 params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
+                 last_moved, rows, wet_lo, wet_hi, marks, t_inv, t_kin, t_mov, t_film, t_out):
+    """Final update of row r, in two loops: (1) mass through the faces that keep the
+    rectangular density, the projection; h, q and the flag of each cell, and ``marks[c]``
+    (its Dirac faces and whether its update was kept, ``M_*``); (2) from what (1) wrote, the
+    observers, the row's sums (``rows[r]``) and the columns of its wet cells. ``fl_s, fl,
+    fl_n``: the flags of the rows below, of this one and above (cell c at ``c + 1``).
 
-    A loop per cell without jumps, so that LLVM vectorises it: every write is a select (a
-    cell outside the DEM keeps h = 0 and q = 0; a cell that went below 0 makes the step be
-    redone, whatever it wrote). The update is cut in two loops because one loop over the
-    forty-odd lines of both kept most of their base pointers on the stack (some 200 stack
-    loads and stores per 8 cells, 650 instructions): 14.1 ns a cell in one loop, 13.4 in
-    the two, on a row of 400 here."""
+    Each loop is without jumps, so that LLVM vectorises it: every write is a select (a cell
+    outside the DEM keeps h = 0 and q = 0; a cell that went below 0 makes the step be
+    redone, whatever it wrote), and what the row's sums need is kept per cell in ``t_*``
+    (separate arrays: lines of one array might overlap for LLVM, and the checks kept the
+    loop scalar), then added line by line (:func:`~avflow.numerics.vectorize.line_sum`: the
+    grid-wide diagnostics differ from the face kernel's cell-by-cell sums by round-off).
+
+    Two loops, because one loop over the forty-odd lines of both kept most of their base
+    pointers on the stack (some 200 stack loads and stores in 650 instructions per 8 cells:
+    14.1 ns a cell against 13.4 in two, on a row of 400 here); in one function, because
+    a call per loop cost a row about 200 ns more (837 against 623 ns a row of 8 cells, 1241
+    against 1052 for 24)."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
@@ -393,6 +399,7 @@ def _final_state(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
     i0 = max(base + c0, 0)
     n_bad = 0
     clamped = 0
+    # 1. the state: h, q, flags, and the marks the second loop reads
     for j in range(c1 + 1 - c0):
         c = c0 + j
         i = i0 + j
@@ -455,25 +462,7 @@ def _final_state(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
         clamped += cl if good else 0
         marks[c] = (((M_W if d_w else 0) | (M_E if d_e else 0)) | ((M_S if d_s else 0)
                     | (M_N if d_n else 0))) | (M_GOOD if good else 0)
-    return n_bad, clamped
-
-
-def _final_sums(r, base, c0, c1, x_code, y_south, y_north, x_len, ys_len, yn_len, x_mass,
-                ys_mass, yn_mass, e_speed, marks, cell_area, cfl_factor, gamma_z, h_new,
-                hu_new, hv_new, g, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
-                last_moved, rows, wet_lo, wet_hi, n_bad, clamped, t_inv, t_kin, t_mov,
-                t_film, t_out):
-    """The second loop of a row's final update (after :func:`_final_state`, from what it
-    wrote): the observers, and the row's sums (``rows[r]``) and the columns of its wet
-    cells. ``x_mass, ys_mass, yn_mass``: the mass flux lines of the row's x faces and of
-    its y faces below and above; ``marks``: :func:`_final_state`'s.
-
-    What the row's sums need is kept per cell in ``t_*`` (separate arrays: lines of one
-    array might overlap for LLVM, and the checks kept the loop scalar), then added line by
-    line (:func:`~avflow.numerics.vectorize.line_sum`: the grid-wide diagnostics differ from
-    the face kernel's cell-by-cell sums by round-off)."""
-    c0 = max(c0, 0)
-    i0 = max(base + c0, 0)
+    # 2. the observers and the row's sums, from what the first loop wrote
     w_lo = x_len.size
     w_hi = -1
     for j in range(c1 + 1 - c0):
@@ -489,7 +478,7 @@ def _final_sums(r, base, c0, c1, x_code, y_south, y_north, x_len, ys_len, yn_len
         w_in = (w_code & KIND) == INNER
         s_in = (s_code & KIND) == INNER
         # the mass side terms of _side_terms: +F to a face's second cell, -F to its first
-        w0, e0, s0, n0 = x_mass[c], x_mass[c + 1], ys_mass[c], yn_mass[c]
+        w0, e0, s0, n0 = xf0[c], xf0[c + 1], ys0[c], yn0[c]
         wm = w0 if w_in else -w0
         e_m = -e0
         sm = s0 if s_in else -s0
@@ -550,9 +539,6 @@ def _final_sums(r, base, c0, c1, x_code, y_south, y_north, x_len, ys_len, yn_len
     rows[r, R_CLAMPED] = clamped
     wet_lo[r] = w_lo
     wet_hi[r] = w_hi
-
-
-_final_sums = noalias(njit(error_model="numpy", cache=True, _nrt=False)(_final_sums))
 
 
 
@@ -622,19 +608,15 @@ def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_c
         if a <= f <= b:
             f0, f1 = _span(f, r0, r1, lo, hi, nx)
             if f0 <= f1:
-                n_bad, clamped = _final_state(
-                    f * nx, f0, f1, valid, face_order, x_code[f], y_code[f], y_code[f + 1],
-                    xf[f % ring], yf[f % ring], yf[(f + 1) % ring], emit[f % ring],
-                    fl[(f - 1) % ring], fl[f % ring], fl[(f + 1) % ring], qx[f % ring],
-                    qy[f % ring], cell_area, gamma_x, gamma_y, gamma_z, curvature, h, h_new,
-                    hu_new, hv_new, flag, law, params, g, dirac, h_zero, dt, marks)
-                _final_sums(f, f * nx, f0, f1, x_code[f], y_code[f], y_code[f + 1],
-                            x_length[f], y_length[f], y_length[f + 1], xf[f % ring][0],
-                            yf[f % ring][0], yf[(f + 1) % ring][0], emit[f % ring][E_SPEED],
-                            marks, cell_area, cfl_factor, gamma_z, h_new, hu_new, hv_new, g,
-                            h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
-                            last_moved, rows, wet_lo, wet_hi, n_bad, clamped, scratch[0],
-                            scratch[1], scratch[2], scratch[3], scratch[4])
+                _final_cells(f, f * nx, f0, f1, valid, face_order, x_code[f], y_code[f],
+                             y_code[f + 1], x_length[f], y_length[f], y_length[f + 1],
+                             xf[f % ring], yf[f % ring], yf[(f + 1) % ring], emit[f % ring],
+                             fl[(f - 1) % ring], fl[f % ring], fl[(f + 1) % ring],
+                             qx[f % ring], qy[f % ring], cell_area, cfl_factor, gamma_x,
+                             gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
+                             params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed,
+                             arrival, last_moved, rows, wet_lo, wet_hi, marks, scratch[0],
+                             scratch[1], scratch[2], scratch[3], scratch[4])
             else:
                 rows[f, R_OK] = 1.0
                 rows[f, R_OUT] = 0.0
@@ -668,7 +650,7 @@ def _block_for(law, label):
     allocate nothing: the buffers come from :func:`_ring`."""
     return by_law(_sweep_block, law, label, nrt=False,
                   _trial_cells=by_law(_trial_cells, law, label, nrt=False),
-                  _final_state=by_law(_final_state, law, label, nrt=False))
+                  _final_cells=by_law(_final_cells, law, label, nrt=False))
 
 
 _sweep_block_coulomb = _block_for(COULOMB, "coulomb")
