@@ -475,14 +475,9 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         d_s = (m & M_S) != 0
         d_n = (m & M_N) != 0
         w_code, e_code, s_code, n_code = x_code[c], x_code[c + 1], y_south[c], y_north[c]
-        w_in = (w_code & KIND) == INNER
-        s_in = (s_code & KIND) == INNER
-        # the mass side terms of _side_terms: +F to a face's second cell, -F to its first
-        w0, e0, s0, n0 = xf0[c], xf0[c + 1], ys0[c], yn0[c]
-        wm = w0 if w_in else -w0
-        e_m = -e0
-        sm = s0 if s_in else -s0
-        nm = -n0
+        # the mass side terms (the momentum ones, unused, LLVM drops with their loads)
+        wm, _, _, e_m, _, _, sm, _, _, nm, _, _ = _side_terms(
+            c, x_code, y_south, xf0, xf1, xf2, xf3, xf4, ys0, ys1, ys2, ys3, ys4, yn0, yn1, yn2)
         area = cell_area[i]
         hn = h_new[i]  # the update where it was kept (good); nothing below reads it else
         qx = hu_new[i]
@@ -744,9 +739,9 @@ def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, l
     one column more on each side (every face of a wet cell and the cells beyond), joined with
     what the last step needed (a cell it changed is written once more, so both buffers agree
     again wherever the sweep no longer goes), widened by up to 5 columns of cells that are
-    not wet where that makes the row's length a multiple of :data:`LANES`. Only the rows ``band0 - 1 .. band1 + 1`` around
-    the last step's band are looked at (no wet cell lies beyond them). Returns the band of
-    rows ``(r0, r1)`` and the number of cells swept."""
+    not wet where that makes the row's length a multiple of :data:`LANES`. Only the rows
+    ``band0 - 1 .. band1 + 1`` around the last step's band are looked at (no wet cell lies
+    beyond them). Returns the band of rows ``(r0, r1)`` and the number of cells swept."""
     r0 = ny
     r1 = -1
     cells = 0

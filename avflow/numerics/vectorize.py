@@ -154,9 +154,8 @@ def specialize(fn, suffix: str, parallel: bool = False, nrt: bool = True, **name
     copy.__qualname__ = fn.__qualname__ + suffix
     copy.__module__ = fn.__module__
     copy.__doc__ = fn.__doc__
-    if not nrt:  # no reference counting (see :func:`by_law`)
-        return njit(error_model="numpy", cache=True, _nrt=False)(copy)
-    return njit(error_model="numpy", cache=True, parallel=parallel)(copy)
+    # nrt=False: no reference counting (see :func:`by_law`)
+    return njit(error_model="numpy", cache=True, parallel=parallel, _nrt=nrt)(copy)
 
 
 def by_law(fn, law: int | None, label: str, nrt: bool = True, **names):
