@@ -48,7 +48,7 @@ WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 
 #: Bytes a cell-update reads and writes (a write counted twice: the line is read first).
 #: Square-grid kernel: h, hu, hv (24), per-cell factors inv_area, area, cfl, density,
-#: gamma x/y/z, curvature (80), codes and order (4), two faces' normals and lengths (80),
+#: gamma x/y/z, curvature (80), codes and validity (3), two faces' normals and lengths (80),
 #: observers read (32); written h, hu, hv (24), flag (1), observers (about 16), each twice.
 #: Profile sweep: h, hu, gamma_x, gamma_z, density, cfl, curvature row (64), observers (32);
 #: written h, hu, hv, two flux values, flag, observers (about 58), twice. Face kernel at
@@ -57,7 +57,7 @@ WALLS = NS(x_min="wall", x_max="wall", y_min="wall", y_max="wall")
 #: per cell, read over the passes: h, hu, hv, the factors, the emitted lines, the sums and
 #: the observers (about 430); written: the emitted lines, the sums (twice), the flags, the
 #: new state, the observers and the lines of the step's sums (about 225, twice).
-BYTES_PER_CELL = {"profile": 212, "grid": 300, "faces-grid": 2 * 104 + 880,
+BYTES_PER_CELL = {"profile": 212, "grid": 299, "faces-grid": 2 * 104 + 880,
                   "faces-tri": 3 * 104 + 880}
 
 

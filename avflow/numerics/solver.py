@@ -258,7 +258,7 @@ class Solver:
             flag.fill(K.DRY)
             flag[layout.place] = state.flag
         status = grid_loop(int(self.law), threads > 1)(
-            threads, layout.nx, layout.ny, layout.valid, layout.face_order, layout.x_code,
+            threads, layout.nx, layout.ny, layout.valid, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
             c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
             c["gamma_z"], c["curvature"], h, hu, hv, self._h_work, self._hu_work,

@@ -22,7 +22,8 @@ over the rows in order: the answer is bit for bit the same on 1 or N threads. Th
 diagnostics (moving volume, film, kinetic energy, outflow) differ from the face kernel's
 (which adds cell after cell) by round-off; everything else (thickness, discharge, observers,
 time steps) is the face kernel's, bit for bit: each cell adds its faces in the order of their
-indices in the mesh (``face_order``), as the face kernel does.
+indices in the mesh, W, E, S, N on a square grid (:mod:`avflow.terrain.mesh`), as the face
+kernel does.
 
 Each pass over a row (what cells emit, x faces, y faces, trial, final update) is one loop
 that LLVM vectorises, 8 cells at a time with AVX-512 (:mod:`avflow.numerics.vectorize`
@@ -274,22 +275,11 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _pick(d, a_w, a_e, a_s, a_n):
-    """The side term of direction code d (0 W, 1 E, 2 S, 3 N), by selects."""
-    return a_w if d == 0 else (a_e if d == 1 else (a_s if d == 2 else a_n))
-
-
-@njit(error_model="numpy", cache=True, inline="always")
-def _ordered_select(order, start, a_w, a_e, a_s, a_n):
-    """``start`` plus the four side terms (W, E, S, N) in the cell's face order (the order
-    of the face indices in the mesh: the face kernel's order of summation, bit for bit),
-    each term picked by a select. Written out: with a loop over the four terms LLVM left
-    the cell loop scalar."""
-    o = np.int64(order)
-    s = start + _pick(o & 3, a_w, a_e, a_s, a_n)
-    s = s + _pick((o >> 2) & 3, a_w, a_e, a_s, a_n)
-    s = s + _pick((o >> 4) & 3, a_w, a_e, a_s, a_n)
-    return s + _pick((o >> 6) & 3, a_w, a_e, a_s, a_n)
+def _in_face_order(start, a_w, a_e, a_s, a_n):
+    """``start`` plus a cell's four side terms in the order of its faces' indices in the
+    mesh, W, E, S, N for every cell of a square grid (its faces are numbered in grid order,
+    :mod:`avflow.terrain.mesh`): the face kernel's order of summation, so the same bits."""
+    return (((start + a_w) + a_e) + a_s) + a_n
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -311,7 +301,7 @@ def _side_terms(c, x_code, y_south, xf0, xf1, xf2, xf3, xf4, ys0, ys1, ys2, ys3,
             -yn0[c], -yn1[c], -yn2[c])
 
 
-def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, ys, yn, em,
+def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
                  inv_area, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, law, params, g,
                  h_zero, dt, dt_decide, flags, qx_out, qy_out):
     """Per cell of a row: the flux divergence, the trial momentum of eq. 47 and the flag of
@@ -319,7 +309,7 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
     ``qx_out[c]``, ``qy_out[c]``); a dry cell keeps its momentum sum for
     :func:`_final_cells` (as the face kernel's sweep 1b).
 
-    One loop without jumps (selects; :func:`_ordered_select`), which LLVM vectorises for
+    One loop without jumps (selects), which LLVM vectorises for
     the laws without transcendental functions (Coulomb, Voellmy): the face kernel's
     operations on every value kept, so the same bits."""
     lw = friction_law(law)  # a constant in the copies of by_law
@@ -337,10 +327,9 @@ def _trial_cells(base, c0, c1, valid, face_order, x_code, y_south, y_north, xf, 
         i = i0 + j
         wm, wx, wy, e_m, ex, ey, sm, sx, sy, nm, nx_, ny_ = _side_terms(
             c, x_code, y_south, xf0, xf1, xf2, xf3, xf4, ys0, ys1, ys2, ys3, ys4, yn0, yn1, yn2)
-        order = face_order[i]
-        mx = _ordered_select(order, 0.0, wx, ex, sx, nx_)
-        my = _ordered_select(order, 0.0, wy, ey, sy, ny_)
-        mh = _ordered_select(order, 0.0, wm, e_m, sm, nm)
+        mx = _in_face_order(0.0, wx, ex, sx, nx_)
+        my = _in_face_order(0.0, wy, ey, sy, ny_)
+        mh = _in_face_order(0.0, wm, e_m, sm, nm)
         ia = inv_area[i]
         u1 = e_u1[c]
         u2 = e_u2[c]
@@ -364,7 +353,7 @@ N_SCRATCH = 5
 M_W, M_E, M_S, M_N, M_GOOD = 1, 2, 4, 8, 16
 
 
-def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x_len, ys_len,
+def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len,
                  yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area, cfl_factor,
                  gamma_x, gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
                  params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
@@ -414,7 +403,6 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         n_in = (y_north[c] & KIND) == INNER
         wm, wx, wy, e_m, ex, ey, sm, sx, sy, nm, nx_, ny_ = _side_terms(
             c, x_code, y_south, xf0, xf1, xf2, xf3, xf4, ys0, ys1, ys2, ys3, ys4, yn0, yn1, yn2)
-        order = face_order[i]
         area = cell_area[i]
         h_old = h[i]
         qx = qx_in[c]
@@ -432,18 +420,18 @@ def _final_cells(r, base, c0, c1, valid, face_order, x_code, y_south, y_north, x
         d_e = cold & ((f_e if e_in else fi) != FLOWING)
         d_s = cold & ((f_s if s_in else fi) != FLOWING)
         d_n = cold & ((f_n if n_in else fi) != FLOWING)
-        acc = _ordered_select(order, 0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
-                              0.0 if d_s else sm, 0.0 if d_n else nm)
+        acc = _in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
+                             0.0 if d_s else sm, 0.0 if d_n else nm)
         hn = h_old + dt / area * acc
         good = inside & (hn >= 0.0)
         n_bad += 1 if inside & (hn < 0.0) else 0
         # a dry side takes no momentum through a Dirac face: the face kernel takes back, in
         # face order, what those faces brought to the sum of the trial
         any_dirac = d_w | d_e | d_s | d_n
-        bx = _ordered_select(order, qx, -wx if d_w else 0.0, -ex if d_e else 0.0,
-                             -sx if d_s else 0.0, -nx_ if d_n else 0.0)
-        by = _ordered_select(order, qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
-                             -sy if d_s else 0.0, -ny_ if d_n else 0.0)
+        bx = _in_face_order(qx, -wx if d_w else 0.0, -ex if d_e else 0.0,
+                            -sx if d_s else 0.0, -nx_ if d_n else 0.0)
+        by = _in_face_order(qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
+                            -sy if d_s else 0.0, -ny_ if d_n else 0.0)
         bx = bx if any_dirac else qx
         by = by if any_dirac else qy
         dry = fi == DRY
@@ -547,7 +535,7 @@ def _span(r, r0, r1, lo, hi, nx):
     return lo[r], hi[r]
 
 
-def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame,
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y,
                  gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac,
                  h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
@@ -593,7 +581,7 @@ def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_c
         if a - 1 <= t <= b + 1 and 0 <= t < ny:
             t0, t1 = _span(t, r0, r1, lo, hi, nx)
             if t0 <= t1:
-                _trial_cells(t * nx, t0, t1, valid, face_order, x_code[t], y_code[t],
+                _trial_cells(t * nx, t0, t1, valid, x_code[t], y_code[t],
                            y_code[t + 1], xf[t % ring], yf[t % ring], yf[(t + 1) % ring],
                            emit[t % ring], inv_area, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, law,
                            params, g, h_zero, dt, dt_decide, fl[t % ring], qx[t % ring],
@@ -603,7 +591,7 @@ def _sweep_block(a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_c
         if a <= f <= b:
             f0, f1 = _span(f, r0, r1, lo, hi, nx)
             if f0 <= f1:
-                _final_cells(f, f * nx, f0, f1, valid, face_order, x_code[f], y_code[f],
+                _final_cells(f, f * nx, f0, f1, valid, x_code[f], y_code[f],
                              y_code[f + 1], x_length[f], y_length[f], y_length[f + 1],
                              xf[f % ring], yf[f % ring], yf[(f + 1) % ring], emit[f % ring],
                              fl[(f - 1) % ring], fl[f % ring], fl[(f + 1) % ring],
@@ -653,7 +641,7 @@ _sweep_block_voellmy = _block_for(VOELLMY, "voellmy")
 _sweep_block_any = _block_for(None, "any")
 
 
-def _sweep(n_blocks, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+def _sweep(n_blocks, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame,
            y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
            curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt,
            dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, r0, r1, lo, hi, rows,
@@ -667,21 +655,21 @@ def _sweep(n_blocks, nx, ny, valid, face_order, x_code, x_frame, x_length, y_cod
             emit, xf, yf, fl, scratch, qx, qy, marks = _ring(nx)
             if LAW_KIND == COULOMB:
                 _sweep_block_coulomb(
-                    a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
+                    a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                     peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
                     emit, xf, yf, fl, scratch, qx, qy, marks)
             elif LAW_KIND == VOELLMY:
                 _sweep_block_voellmy(
-                    a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
+                    a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                     peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
                     emit, xf, yf, fl, scratch, qx, qy, marks)
             else:
                 _sweep_block_any(
-                    a, b, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
+                    a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
                     gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                     peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
@@ -782,7 +770,7 @@ MIN_PARALLEL_CELLS = 32768
 MIN_BLOCK_ROWS = 16
 
 
-def _advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length, y_code, y_frame,
+def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame,
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                  curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
@@ -842,14 +830,14 @@ def _advance_grid(threads, nx, ny, valid, face_order, x_code, x_frame, x_length,
             t_new = t_target if last else t + dt
             if r1 >= r0:
                 if PARALLEL and n_blocks > 1:  # blocks of at least 16 rows, 8 per thread
-                    sweep_parallel(n_blocks, nx, ny, valid, face_order, x_code, x_frame,
+                    sweep_parallel(n_blocks, nx, ny, valid, x_code, x_frame,
                                    x_length, y_code, y_frame, y_length, cell_area, inv_area,
                                    cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu,
                                    cur_hv, nxt_h, nxt_hu, nxt_hv, flag, law, params, g, dirac,
                                    h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                                    arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
                 else:
-                    sweep_serial(1, nx, ny, valid, face_order, x_code, x_frame, x_length,
+                    sweep_serial(1, nx, ny, valid, x_code, x_frame, x_length,
                                  y_code, y_frame, y_length, cell_area, inv_area, cfl_factor,
                                  density,
                                  gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv,

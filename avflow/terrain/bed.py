@@ -413,19 +413,30 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
         frames.append(frame)
         lengths.append(np.linalg.norm(edge, axis=1))
 
-    rr, cc = np.nonzero(valid)
-    # each cell owns its +x and +y faces (to a valid neighbour or a boundary), and its -x /
-    # -y faces only when the neighbour there is off the grid or NODATA
-    for along_x, (dr, dc) in ((True, (0, 1)), (False, (1, 0))):
-        # in chunks of cells, in order (the same faces in the same order): a dozen
-        # temporaries per face at once made a 1 m DEM's mesh peak at twice its size
-        for lo in range(0, rr.size, FACE_CHUNK):
-            r, c = rr[lo:lo + FACE_CHUNK], cc[lo:lo + FACE_CHUNK]
-            add_faces((r, c), (r + dr, c + dc), along_x)
-        rb, cb = rr - dr, cc - dc
-        outside = (rb < 0) | (cb < 0)
-        lonely = outside | ~valid[np.clip(rb, 0, ny - 1), np.clip(cb, 0, nx - 1)]
-        add_faces((rr[lonely], cc[lonely]), (rb[lonely], cb[lonely]), along_x)
+    # The faces in grid order (:mod:`avflow.terrain.mesh`: every cell's W < E < S < N): the x
+    # faces row by row from west to east, then the y faces from south to north. A face
+    # between the places p - 1 and p along its axis belongs to the cell at p - 1 (towards
+    # +x or +y) when that cell is valid, else to the cell at p (towards -x or -y, to the
+    # side or to a NODATA cell beyond).
+    padded = np.zeros((ny + 2, nx + 2), dtype=bool)
+    padded[1:-1, 1:-1] = valid
+    for along_x in (True, False):
+        if along_x:  # places (r, k), k = 0..nx: between cells (r, k - 1) and (r, k)
+            low, high = padded[1:-1, :-1], padded[1:-1, 1:]
+        else:  # places (k, c), k = 0..ny: between cells (k - 1, c) and (k, c)
+            low, high = padded[:-1, 1:-1], padded[1:, 1:-1]
+        faces = np.flatnonzero(low | high)
+        # in chunks of faces, in order: a dozen temporaries per face at once made a 1 m
+        # DEM's mesh peak at twice its size
+        for lo in range(0, faces.size, FACE_CHUNK):
+            f = faces[lo:lo + FACE_CHUNK]
+            width = nx + 1 if along_x else nx
+            r, c = f // width, f % width  # the place: the high cell's row and column
+            r_lo, c_lo = (r, c - 1) if along_x else (r - 1, c)
+            owned = low.ravel()[f]  # the low cell is valid: it owns the face
+            i_rc = (np.where(owned, r_lo, r), np.where(owned, c_lo, c))
+            j_rc = (np.where(owned, r, r_lo), np.where(owned, c, c_lo))
+            add_faces(i_rc, j_rc, along_x)
     face_cells = np.ascontiguousarray(np.concatenate(cells), dtype=np.int64)
     del cells
     face_frame = np.ascontiguousarray(np.concatenate(frames))

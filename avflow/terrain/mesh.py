@@ -15,6 +15,13 @@ A boundary face has ``j < 0``: :data:`WALL` (solid wall, the seed's default) or
 :data:`OUTFLOW` (open: material leaves and is counted). The same arrays describe a 1D profile,
 a 2D grid and a triangular dual mesh, so the kernels need nothing else. Profiles keep their
 faces in order (face k between cells k-1 and k), which lets a structured sweep read them fast.
+
+Square grids (planes and DEMs) keep theirs in *grid order*: the x faces row by row from west
+to east (a face to the map's side or to a NODATA cell at its place in the row), then the y
+faces row by row from south to north. Every cell then has its faces' indices in the order
+W < E < S < N, the order in which the face kernel adds them to the cell; the square-grid
+kernel adds them in that same order without a per-cell table, and gives the face kernel's
+answer bit for bit.
 """
 
 from __future__ import annotations
@@ -152,23 +159,29 @@ def grid_mesh(
     len_x = float(np.hypot(*ey))
     len_y = float(np.hypot(*ex))
 
-    cells, normals, lengths, steps = [], [], [], []
-
-    def add(first, second, normal, length, step):
-        cells.append(np.stack([first.ravel(), second.ravel()], axis=1))
-        normals.append(np.broadcast_to(normal, (first.size, 2)))
-        lengths.append(np.full(first.size, length))
-        steps.append(np.full(first.size, step, dtype=np.int8))
-
-    add(idx[:, :-1], idx[:, 1:], n_x, len_x, EAST)
-    add(idx[:-1, :], idx[1:, :], n_y, len_y, NORTH)
-    add(idx[:, 0], np.full(ny, boundary["x_min"]), -n_x, len_x, WEST)
-    add(idx[:, -1], np.full(ny, boundary["x_max"]), n_x, len_x, EAST)
-    add(idx[0, :], np.full(nx, boundary["y_min"]), -n_y, len_y, SOUTH)
-    add(idx[-1, :], np.full(nx, boundary["y_max"]), n_y, len_y, NORTH)
-    face_cells = np.ascontiguousarray(np.concatenate(cells), dtype=np.int64)
-    face_normal = np.ascontiguousarray(np.concatenate(normals))
-    face_length = np.concatenate(lengths)
+    # faces in grid order (see Mesh): the x faces row by row, west to east, the map's west
+    # and east sides included, then the y faces row by row, south to north
+    # x face k of a row lies between cells k - 1 and k: (ny, nx + 1), its first cell the
+    # west one but on the map's west side
+    x_first = np.concatenate([idx[:, :1], idx], axis=1)
+    x_second = np.concatenate([np.full((ny, 1), boundary["x_min"]), idx[:, 1:],
+                               np.full((ny, 1), boundary["x_max"])], axis=1)
+    x_step = np.full((ny, nx + 1), EAST, dtype=np.int8)
+    x_step[:, 0] = WEST
+    y_first = np.concatenate([idx[:1, :], idx], axis=0)  # (ny + 1, nx), as the x faces
+    y_second = np.concatenate([np.full((1, nx), boundary["y_min"]), idx[1:, :],
+                               np.full((1, nx), boundary["y_max"])], axis=0)
+    y_step = np.full((ny + 1, nx), NORTH, dtype=np.int8)
+    y_step[0, :] = SOUTH
+    face_cells = np.ascontiguousarray(np.concatenate([
+        np.stack([x_first.ravel(), x_second.ravel()], axis=1),
+        np.stack([y_first.ravel(), y_second.ravel()], axis=1)]), dtype=np.int64)
+    steps = np.concatenate([x_step.ravel(), y_step.ravel()])
+    # a face's normal points from its first cell to its second: -n on the west and south sides
+    face_normal = np.ascontiguousarray(np.concatenate([
+        np.where((x_step.ravel() == WEST)[:, None], -n_x, n_x),
+        np.where((y_step.ravel() == SOUTH)[:, None], -n_y, n_y)]))
+    face_length = np.concatenate([np.full(x_step.size, len_x), np.full(y_step.size, len_y)])
     n = nx * ny
     return Mesh(
         cell_area=np.full(n, float(cell_area)),
@@ -177,5 +190,5 @@ def grid_mesh(
         face_normal=face_normal,
         face_length=face_length,
         shape=(ny, nx),
-        face_direction=np.concatenate(steps),
+        face_direction=steps,
     )

@@ -9,9 +9,11 @@ holds for the face (its frame as seen from each side and its length) and a code 
 cell owns it, so the structured kernel (:mod:`avflow.numerics.square_grid`) computes every
 face with the same arithmetic and needs no index array.
 
-It also holds, per cell, the order in which the face kernel adds its four faces (the order of
-their indices in the mesh): floating-point sums depend on the order, and with it the two
-kernels agree bit for bit. Cells outside the DEM (NODATA) are part of the layout, never wet,
+Floating-point sums depend on their order: the face kernel adds a cell's faces in the order
+of their indices, and a square grid's mesh numbers them in grid order (:mod:`avflow.terrain.mesh`),
+so that every cell's come W, E, S, N; the structured kernel adds them in that order, and the
+two kernels agree bit for bit. A mesh whose faces are in another order is not laid out (the
+face kernel runs it). Cells outside the DEM (NODATA) are part of the layout, never wet,
 with no face of their own (their neighbours see walls or open sides, as in the mesh).
 
 Built once per solver, outside the time loop, from :class:`~avflow.terrain.bed.Terrain`.
@@ -39,16 +41,6 @@ KIND = 7  #: the bits of a face code that hold the kinds above
 SIGN0 = 8
 SIGN1 = 16
 
-#: Per-cell order code of the four faces when they come West, East, South, North: two bits
-#: per term, first term in the lowest bits (see :func:`order_code`).
-CANONICAL_ORDER = 0 | (1 << 2) | (2 << 4) | (3 << 6)
-
-
-def order_code(sides) -> int:
-    """The code of an order of the four sides (0 W, 1 E, 2 S, 3 N), first side first."""
-    return sum(int(s) << (2 * k) for k, s in enumerate(sides))
-
-
 @dataclass(frozen=True)
 class SquareGrid:
     """Faces of a square grid by place, and per-cell data on the full ``ny x nx`` grid."""
@@ -59,8 +51,6 @@ class SquareGrid:
     place: np.ndarray
     #: (ny * nx,) uint8: 1 where the grid has a cell (0: outside the DEM)
     valid: np.ndarray
-    #: (ny * nx,) uint8: the order code of each cell's faces (:data:`CANONICAL_ORDER` mostly)
-    face_order: np.ndarray
     x_code: np.ndarray  #: (ny, nx + 1) int8 face codes
     #: (ny, 4, nx + 1): the face normal seen from each side ``(n0x, n0y, n1x, n1y)`` (the
     #: face kernel's frame rows 0; rows 1, the tangents, follow from n and the sign bits),
@@ -106,23 +96,22 @@ def square_grid(terrain) -> SquareGrid | None:
     y_frame = np.zeros((ny + 1, 4, nx))
     x_length = np.zeros((ny, nx + 1))
     y_length = np.zeros((ny + 1, nx))
-    face_order = np.zeros(ny * nx, dtype=np.uint8)
     status = _lay_out(place, nx, mesh.face_cells, mesh.face_direction, mesh.face_frame,
                       mesh.face_length, x_code, y_code, x_frame, y_frame, x_length, y_length,
-                      face_order, EAST, WEST, NORTH, OUTFLOW)
-    if status == _NOT_ROTATIONS:
-        return None  # frames that are not rotations: the face kernel runs this mesh
+                      EAST, WEST, NORTH, OUTFLOW)
+    if status == _NOT_ROTATIONS or status == _NOT_GRID_ORDER:
+        return None  # the face kernel runs this mesh
     if status != _LAID_OUT:
         raise ValueError(_LAYOUT_ERRORS[status])
     valid = np.zeros(ny * nx, dtype=np.uint8)
     valid[place] = 1
-    return SquareGrid(ny=ny, nx=nx, place=place, valid=valid, face_order=face_order,
+    return SquareGrid(ny=ny, nx=nx, place=place, valid=valid,
                       x_code=x_code, x_frame=x_frame, x_length=x_length,
                       y_code=y_code, y_frame=y_frame, y_length=y_length)
 
 
 # What _lay_out found (0: the layout is made)
-_LAID_OUT, _NOT_ROTATIONS, _TWO_FACES, _INNER_BACKWARD, _MISSING_SIDE = range(5)
+_LAID_OUT, _NOT_ROTATIONS, _NOT_GRID_ORDER, _TWO_FACES, _INNER_BACKWARD, _MISSING_SIDE = range(6)
 _LAYOUT_ERRORS = {
     _TWO_FACES: "two faces share one place of the grid",
     _INNER_BACKWARD: "a face between two cells must point east or north",
@@ -132,8 +121,7 @@ _LAYOUT_ERRORS = {
 
 @numba.njit(cache=True, nogil=True)
 def _lay_out(place, nx, face_cells, face_direction, face_frame, face_length,
-             x_code, y_code, x_frame, y_frame, x_length, y_length, face_order,
-             east, west, north, outflow):
+             x_code, y_code, x_frame, y_frame, x_length, y_length, east, west, north, outflow):
     """Fill the layout's arrays from the mesh's faces, one pass over them; returns a status
     (:data:`_LAID_OUT` or what is wrong). One loop, not numpy passes over the face arrays:
     the layout of a 179k-cell map took 38 ms in numpy, as long as the run's time loop.
@@ -142,7 +130,9 @@ def _lay_out(place, nx, face_cells, face_direction, face_frame, face_length,
     the x face ``(r, c + 1)`` (east), ``(r, c)`` (west), or the y face ``(r + 1, c)`` (north),
     ``(r, c)`` (south) of ``i = (r, c)``. Its frame seen from each side is a rotation, rows
     ``n`` and ``t = s (-n_y, n_x)`` exactly (else the face kernel runs the mesh); the sign
-    bits keep ``s``. ``face_order``: per cell, the order of its four faces' indices.
+    bits keep ``s``. Every cell's faces must have indices in the order W < E < S < N (grid
+    order, :mod:`avflow.terrain.mesh`), the order in which the face kernel adds them:
+    :data:`_NOT_GRID_ORDER` else.
 
     The mesh's codes (``east``, ``west``, ``north``, ``outflow``) come as arguments: Numba
     caches this function against this file alone, and would keep constants of mesh.py
@@ -197,16 +187,9 @@ def _lay_out(place, nx, face_cells, face_direction, face_frame, face_length,
         if j >= 0:
             sides[j, own - 1] = f  # the cell beyond sees it as its W (S) side
     for i in range(n_cells):
-        code = 0
-        taken = 0
-        for k in range(4):  # the sides by increasing face index (all four differ)
-            best = -1
-            for side in range(4):
-                if sides[i, side] < 0:
-                    return _MISSING_SIDE
-                if not (taken >> side) & 1 and (best < 0 or sides[i, side] < sides[i, best]):
-                    best = side
-            taken |= 1 << best
-            code |= best << (2 * k)
-        face_order[place[i]] = code
+        for side in range(4):
+            if sides[i, side] < 0:
+                return _MISSING_SIDE
+        if not sides[i, 0] < sides[i, 1] < sides[i, 2] < sides[i, 3]:
+            return _NOT_GRID_ORDER
     return _LAID_OUT
