@@ -350,3 +350,34 @@ def test_work_hull_holds_the_state_with_no_gap():
             np.testing.assert_array_equal(w[held], s[held])
         outside = np.r_[q * nx:held.start, held.stop:(q + 1) * nx]
         assert np.isnan(work[0][outside]).all()  # nothing copied beyond the hull
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_ring_buffers_kept_from_call_to_call_change_no_bit(threads):
+    """The kernel's ring buffers are made once per solver (a set per thread) and reused by
+    every block of every step: filled with NaN, and with FLOWING flags, between calls, they
+    change no bit against the face kernel, on one thread and on two (every step in blocks of
+    2 rows and more)."""
+    if threads > numba.config.NUMBA_NUM_THREADS:
+        pytest.skip("Numba has one thread on this machine (NUMBA_NUM_THREADS=1)")
+    from avflow.numerics.kernels import FLOWING
+
+    z, x, y = valley(nx=80)
+    ter = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="wall")
+    h0 = cylinder(ter, (60.0, 40.0), radius=20.0, thickness=4.0) \
+        + cylinder(ter, (60.0, 160.0), radius=20.0, thickness=4.0)
+    faces, _ = pair(ter)
+    grid = Solver(ter, Law.COULOMB, np.array([math.tan(math.radians(20.0))]), kernel="grid",
+                  threads=threads)
+    grid._parallel_from = (0, 2)
+    reference, state = faces.new_state(h0), grid.new_state(h0)
+    for t in np.linspace(2.0, 40.0, 12):
+        assert grid.advance(state, t) == faces.advance(reference, t)
+        assert_same_state(reference, state)
+        rings = grid._g_rings
+        assert rings[0].shape[0] == threads
+        for ring in rings:
+            if ring.dtype == np.uint8:
+                ring.fill(FLOWING if ring.ndim == 3 else 255)  # flags; the marks
+            else:
+                ring.fill(np.nan)

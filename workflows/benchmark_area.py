@@ -20,6 +20,13 @@ grow with the map.
 
 Every time is the best of 3 runs after one that compiles (before issue 11 item 4: one run
 after the compiling one, the same quantities otherwise).
+
+    python workflows/benchmark_area.py --widths
+
+The square-grid kernel's time loop per step on ever wider maps (200 to 4000 columns of
+5 m, 200 rows) around the same flow (a cylinder, r = 60 m, 8 m, Coulomb 24 degrees on a 28
+degree plane, 20 s): what a step costs beyond the flow grows with the map's width, the one
+dimension the kernel's per-row work lines span.
 """
 
 from __future__ import annotations
@@ -150,5 +157,37 @@ def main():
               "(target < 1.3)")
 
 
+def widths(columns=(200, 1000, 2000, 4000)):
+    """The time loop per step of the same flow on maps ``columns`` cells wide (one thread,
+    best of 2 after one that compiles), and its ratio to the narrowest map's."""
+    print(f"{'columns':>7s} {'steps':>6s} {'loop (ms)':>9s} {'per step (us)':>13s} "
+          f"{'ratio':>6s}")
+    first = None
+    for nx in columns:
+        plane = NS(slope_deg=28.0, azimuth_deg=90.0, extent=NS(x=[0.0, 5.0 * nx], y=[0.0, 1000.0]),
+                   elevation_at_center=0.0)
+        terrain = plane_terrain(plane, 5.0, None, WALLS)
+        xx, yy = terrain.cell_xy()
+        h0 = np.where((xx - 300.0) ** 2 + (yy - 500.0) ** 2 < 60.0**2, 8.0, 0.0)
+        solver = Solver(terrain, Law.COULOMB, np.array([math.tan(math.radians(24.0))]),
+                        threads=1)
+        best = math.inf
+        for rep in range(3):
+            state = solver.new_state(h0)
+            t0 = time.perf_counter()
+            solver.advance(state, 20.0)
+            if rep:
+                best = min(best, time.perf_counter() - t0)
+        per_step = best / state.steps
+        first = first or per_step
+        print(f"{nx:7d} {state.steps:6d} {1e3 * best:9.0f} {1e6 * per_step:13.0f} "
+              f"{per_step / first:6.2f}", flush=True)
+
+
 if __name__ == "__main__":
-    main()
+    import sys
+
+    if "--widths" in sys.argv[1:]:
+        widths()
+    else:
+        main()

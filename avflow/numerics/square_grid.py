@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -612,25 +613,37 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                 wet_hi[f] = -1
 
 
-#: Rows of the ring buffers of a block (:func:`_ring`)
+#: Rows of the ring buffers of a block (:func:`_rings`)
 RING = 4
 
 
 @njit(error_model="numpy", cache=True)
-def _ring(nx):
-    """A block's ring buffers (:func:`_sweep_block`): what rows emit, their x faces and the
-    y faces below them, flags (cell c at c + 1), trial momenta, and lines of one row."""
-    return (np.zeros((RING, N_EMIT, nx)), np.zeros((RING, 5, nx + 1)),
-            np.zeros((RING, 5, nx)), np.full((RING, nx + 2), DRY, dtype=np.uint8),
-            np.zeros((N_SCRATCH, nx)), np.zeros((RING, nx)), np.zeros((RING, nx)),
-            np.zeros(nx, dtype=np.uint8))
+def _rings(n, nx):
+    """``n`` sets of a block's ring buffers (:func:`_sweep_block`), one per thread: what rows
+    emit, their x faces and the y faces below them, flags (cell c at c + 1), trial momenta,
+    and lines of one row.
+
+    Made once per call of the time loop, not per step: a set spans the map's width (1.4 MB
+    at 2000 columns, whose fresh pages cost 0.7-1 ms to fault in and zero, each step, here).
+    What a set holds from the blocks before it (of this step or the last: the ring was
+    always reused from row to row) changes nothing: the passes over a row read the emitted
+    values and face fluxes that the passes before them wrote in the same stage; a flag read
+    one column beyond a row's trial is that of a cell next to cells that emit nothing, whose
+    face carries nothing whatever the flag says; the flags' padding columns (beyond the
+    map's sides) decide nothing, a boundary face's ghost taking its cell's flag
+    (tests/test_square_grid.py fills the sets with NaN and FLOWING flags between calls: the
+    same bits)."""
+    return (np.zeros((n, RING, N_EMIT, nx)), np.zeros((n, RING, 5, nx + 1)),
+            np.zeros((n, RING, 5, nx)), np.full((n, RING, nx + 2), DRY, dtype=np.uint8),
+            np.zeros((n, N_SCRATCH, nx)), np.zeros((n, RING, nx)), np.zeros((n, RING, nx)),
+            np.zeros((n, nx), dtype=np.uint8))
 
 
 def _block_for(law, label):
     """:func:`_sweep_block` for one law (None: read at run time), calling that law's copies
     of the cell loops; the block and the row passes it calls are compiled without
     reference counting (:func:`~avflow.numerics.vectorize.by_law`'s ``nrt``), as they
-    allocate nothing: the buffers come from :func:`_ring`."""
+    allocate nothing: the buffers come from :func:`_rings`."""
     return by_law(_sweep_block, law, label, nrt=False,
                   _trial_cells=by_law(_trial_cells, law, label, nrt=False),
                   _final_cells=by_law(_final_cells, law, label, nrt=False))
@@ -645,14 +658,17 @@ def _sweep(n_blocks, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame,
            y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
            curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt,
            dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, r0, r1, lo, hi, rows,
-           wet_lo, wet_hi):
-    """One step on the band ``r0..r1``, cut in ``n_blocks`` blocks of rows, one per task."""
+           wet_lo, wet_hi, rings):
+    """One step on the band ``r0..r1``, cut in ``n_blocks`` blocks of rows, one per task;
+    ``rings``: the ring buffers (:func:`_rings`), a set per thread."""
     n_rows = r1 - r0 + 1
     for blk in prange(n_blocks):
         a = r0 + (n_rows * blk) // n_blocks
         b = r0 + (n_rows * (blk + 1)) // n_blocks - 1
         if a <= b:
-            emit, xf, yf, fl, scratch, qx, qy, marks = _ring(nx)
+            slot = thread_slot()  # the ring buffers of the thread running this block
+            emit, xf, yf, fl = rings[0][slot], rings[1][slot], rings[2][slot], rings[3][slot]
+            scratch, qx, qy, marks = rings[4][slot], rings[5][slot], rings[6][slot], rings[7][slot]
             if LAW_KIND == COULOMB:
                 _sweep_block_coulomb(
                     a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
@@ -685,11 +701,23 @@ PARALLEL = True
 sweep_serial = sweep_parallel = None
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _first_slot():
+    """The ring buffers of a serial sweep: the first set (the thread pool untouched)."""
+    return 0
+
+
+#: Placeholder of the set of ring buffers a block of :func:`_sweep` takes: the thread's
+#: (``numba.get_thread_id``, ``0 .. get_num_threads() - 1``) in the parallel copies
+thread_slot = _first_slot
+
+
 def _sweep_for(kind: int, parallel: bool):
     """:func:`_sweep` for one law kind, compiled serial or parallel (``prange`` runs
     serially without Numba's ``parallel``), each under its own name."""
     return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
-                      parallel=parallel, LAW_KIND=kind)
+                      parallel=parallel, LAW_KIND=kind,
+                      thread_slot=numba.get_thread_id if parallel else _first_slot)
 
 
 def _loops() -> dict:
@@ -774,17 +802,21 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
                  curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
-                 stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats,
+                 stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats, rings,
                  min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
     """:func:`avflow.numerics.kernels.time_loop` for a square grid at order 1 (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
     least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
     Numba's thread pool (its size set by the caller), the others on the serial sweep.
+    ``rings``: the ring buffers of the blocks (:func:`_rings`), a set per thread of the pool
+    (one for the serial sweep), kept by the caller from call to call.
 
     Only the swept region is computed (:func:`_swept_columns`), so a step costs the area
     the flow covers; its rows are found from the extents of the wet cells kept per row.
     """
+    if PARALLEL and numba.get_num_threads() > rings[0].shape[0]:
+        threads = 1  # fewer sets of ring buffers than threads: every step serial
     t = stats[ST_TIME]
     status = REACHED_TARGET
     steps = 0
@@ -835,7 +867,8 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
                                    cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu,
                                    cur_hv, nxt_h, nxt_hu, nxt_hv, flag, law, params, g, dirac,
                                    h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                                   arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
+                                   arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
+                                   rings)
                 else:
                     sweep_serial(1, nx, ny, valid, x_code, x_frame, x_length,
                                  y_code, y_frame, y_length, cell_area, inv_area, cfl_factor,
@@ -843,7 +876,7 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
                                  gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv,
                                  nxt_h, nxt_hu, nxt_hv, flag, law, params, g, dirac, h_dry,
                                  h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival,
-                                 last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi)
+                                 last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi, rings)
             ok = True
             outflow = 0.0
             inv_lim = 0.0
