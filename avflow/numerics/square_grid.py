@@ -810,12 +810,15 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
     least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
     Numba's thread pool (its size set by the caller), the others on the serial sweep.
     ``rings``: the ring buffers of the blocks (:func:`_rings`), a set per thread of the pool
-    (one for the serial sweep), kept by the caller from call to call.
+    (one for the serial sweep), kept by the caller from call to call; the caller sets the
+    pool to ``threads`` threads (``numba.set_num_threads``), whose ids pick the sets.
+    (``numba.get_num_threads`` here would keep this loop out of Numba's cache: its compiled
+    form calls a ctypes pointer.)
 
     Only the swept region is computed (:func:`_swept_columns`), so a step costs the area
     the flow covers; its rows are found from the extents of the wet cells kept per row.
     """
-    if PARALLEL and numba.get_num_threads() > rings[0].shape[0]:
+    if threads > rings[0].shape[0]:
         threads = 1  # fewer sets of ring buffers than threads: every step serial
     t = stats[ST_TIME]
     status = REACHED_TARGET
