@@ -28,61 +28,61 @@ from numba import njit
 from avflow.numerics.kinetic import SQRT3, half_fluxes
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _inner_face(hi, qni, qti, hj, qnj, qtj, g_normal, kf):
+    """``(mass, normal momentum, tangential momentum)`` fluxes per unit length through a face
+    from cell i to cell j, from their thickness and discharge along the face's normal and
+    tangent."""
+    ui = qni / hi if hi > 0.0 else 0.0
+    vi = qti / hi if hi > 0.0 else 0.0
+    uj = qnj / hj if hj > 0.0 else 0.0
+    vj = qtj / hj if hj > 0.0 else 0.0
+    ci = math.sqrt(0.5 * g_normal * hi) if hi > 0.0 else 0.0
+    cj = math.sqrt(0.5 * g_normal * hj) if hj > 0.0 else 0.0
+    fp_h, fp_q, _, _ = half_fluxes(hi, ui, ci, ci * kf)
+    _, _, fm_h, fm_q = half_fluxes(hj, uj, cj, cj * kf)
+    return fp_h + fm_h, fp_q + fm_q, vi * fp_h + vj * fm_h
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _wall_face(hm, qn, g_normal, kf):
+    """The normal momentum flux through a wall (a mirror ghost: no mass, twice the pressure
+    of what leaves the cell towards the wall; ``qn``: its discharge towards the wall), along
+    the face's normal on the east and north sides, against it on the west and south."""
+    cm = math.sqrt(0.5 * g_normal * hm) if hm > 0.0 else 0.0
+    _, fp_q, _, _ = half_fluxes(hm, qn / hm if hm > 0.0 else 0.0, cm, cm * kf)
+    return 2.0 * fp_q
+
+
 @njit(error_model="numpy", cache=True)
 def _faces(h, hu, hv, g_normal, kf, fx, fy):
     """Mass and momentum fluxes per unit length through every x face (``fx[:, r, k]``:
     between cells k - 1 and k of row r) and y face (``fy[:, r, c]``: between rows r - 1 and
-    r), walls on the sides (a mirror ghost: no mass, twice the outgoing pressure)."""
+    r), walls on the sides: ``[mass, momentum along the face's normal, along its tangent]``
+    (x faces: x, y; y faces: y, x)."""
     ny, nx = h.shape
     for r in range(ny):
         for k in range(nx + 1):
             if 0 < k < nx:
-                hi, hj = h[r, k - 1], h[r, k]
-                ui = hu[r, k - 1] / hi if hi > 0.0 else 0.0
-                vi = hv[r, k - 1] / hi if hi > 0.0 else 0.0
-                uj = hu[r, k] / hj if hj > 0.0 else 0.0
-                vj = hv[r, k] / hj if hj > 0.0 else 0.0
-                ci = math.sqrt(0.5 * g_normal * hi) if hi > 0.0 else 0.0
-                cj = math.sqrt(0.5 * g_normal * hj) if hj > 0.0 else 0.0
-                fp_h, fp_q, _, _ = half_fluxes(hi, ui, ci, ci * kf)
-                _, _, fm_h, fm_q = half_fluxes(hj, uj, cj, cj * kf)
-                fx[0, r, k] = fp_h + fm_h
-                fx[1, r, k] = fp_q + fm_q
-                fx[2, r, k] = vi * fp_h + vj * fm_h
-            else:
+                fx[0, r, k], fx[1, r, k], fx[2, r, k] = _inner_face(
+                    h[r, k - 1], hu[r, k - 1], hv[r, k - 1], h[r, k], hu[r, k], hv[r, k],
+                    g_normal, kf)
+            else:  # the west (k = 0) or east side
                 m = k - 1 if k == nx else k
-                hm = h[r, m]
-                cm = math.sqrt(0.5 * g_normal * hm) if hm > 0.0 else 0.0
-                # what leaves the cell towards the wall (its velocity turned on the west)
-                um = (hu[r, m] / hm if hm > 0.0 else 0.0) * (1.0 if k == nx else -1.0)
-                _, fp_q, _, _ = half_fluxes(hm, um, cm, cm * kf)
-                fx[0, r, k] = 0.0
-                fx[1, r, k] = 2.0 * fp_q  # the pressure on the wall: +x on the west one
-                fx[2, r, k] = 0.0
+                toward = hu[r, m] if k == nx else -hu[r, m]
+                fx[0, r, k], fx[1, r, k], fx[2, r, k] = 0.0, _wall_face(h[r, m], toward,
+                                                                         g_normal, kf), 0.0
     for r in range(ny + 1):
         for c in range(nx):
             if 0 < r < ny:
-                hi, hj = h[r - 1, c], h[r, c]
-                ui = hv[r - 1, c] / hi if hi > 0.0 else 0.0
-                vi = hu[r - 1, c] / hi if hi > 0.0 else 0.0
-                uj = hv[r, c] / hj if hj > 0.0 else 0.0
-                vj = hu[r, c] / hj if hj > 0.0 else 0.0
-                ci = math.sqrt(0.5 * g_normal * hi) if hi > 0.0 else 0.0
-                cj = math.sqrt(0.5 * g_normal * hj) if hj > 0.0 else 0.0
-                fp_h, fp_q, _, _ = half_fluxes(hi, ui, ci, ci * kf)
-                _, _, fm_h, fm_q = half_fluxes(hj, uj, cj, cj * kf)
-                fy[0, r, c] = fp_h + fm_h
-                fy[1, r, c] = fp_q + fm_q
-                fy[2, r, c] = vi * fp_h + vj * fm_h
-            else:
+                fy[0, r, c], fy[1, r, c], fy[2, r, c] = _inner_face(
+                    h[r - 1, c], hv[r - 1, c], hu[r - 1, c], h[r, c], hv[r, c], hu[r, c],
+                    g_normal, kf)
+            else:  # the south (r = 0) or north side
                 m = r - 1 if r == ny else r
-                hm = h[m, c]
-                cm = math.sqrt(0.5 * g_normal * hm) if hm > 0.0 else 0.0
-                um = (hv[m, c] / hm if hm > 0.0 else 0.0) * (1.0 if r == ny else -1.0)
-                _, fp_q, _, _ = half_fluxes(hm, um, cm, cm * kf)
-                fy[0, r, c] = 0.0
-                fy[1, r, c] = 2.0 * fp_q
-                fy[2, r, c] = 0.0
+                toward = hv[m, c] if r == ny else -hv[m, c]
+                fy[0, r, c], fy[1, r, c], fy[2, r, c] = 0.0, _wall_face(h[m, c], toward,
+                                                                         g_normal, kf), 0.0
 
 
 @njit(error_model="numpy", cache=True)
