@@ -41,6 +41,18 @@ def cylinder(terrain, centre, radius=80.0, thickness=10.0):
     return np.where((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2 <= radius**2, thickness, 0.0)
 
 
+def faces_permuted(terrain, perm):
+    """The terrain with its mesh's faces taken in the order ``perm`` (indices of the faces):
+    the same cells and faces, numbered otherwise."""
+    import dataclasses
+
+    m = terrain.mesh
+    mesh = dataclasses.replace(m, face_cells=m.face_cells[perm], face_normal=m.face_normal[perm],
+                               face_length=m.face_length[perm], face_frame=m.face_frame[perm],
+                               face_direction=m.face_direction[perm])
+    return dataclasses.replace(terrain, mesh=mesh)
+
+
 def centroid(terrain, h):
     """Horizontal centre of mass (x, y) of the thickness h."""
     xx, yy = terrain.cell_xy()

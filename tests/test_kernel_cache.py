@@ -44,7 +44,7 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
 def test_the_square_grid_loops_can_be_cached():
     """A loop whose compiled form calls through a ctypes pointer (``numba.get_num_threads``
     in a jitted function does) is never cached: every process compiled the parallel loop
-    again (14 s here). The serial and the parallel time loops of the square grid, as a
+    again (10 s here). The serial and the parallel time loops of the square grid, as a
     2-thread run compiles or loads them, hold no such pointer."""
     import math
 

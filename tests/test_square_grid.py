@@ -21,7 +21,7 @@ from avflow.simulation.runner import simulate
 from avflow.terrain.bed import plane_terrain, surface_terrain
 from avflow.terrain.squaregrid import square_grid
 
-from conftest import SCENARIOS, cylinder, walls
+from conftest import SCENARIOS, cylinder, faces_permuted, walls
 
 STATE = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
 ROUND_OFF = ("moving", "film", "kinetic", "outflow")
@@ -91,8 +91,6 @@ def test_faces_in_grid_order(kind):
     included, have indices W < E < S < N (the order the face kernel adds them, which the
     square-grid kernel follows); a mesh with its faces in another order is not laid out,
     and the face kernel runs it, with the same answer to round-off."""
-    import dataclasses
-
     if kind == "dem":
         z, x, y = valley()
         ter = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="wall")
@@ -118,10 +116,7 @@ def test_faces_in_grid_order(kind):
     # order): no layout, the face kernel runs it
     west = np.flatnonzero(m.face_direction == 1)  # WEST: the owner's west side
     perm = np.concatenate([np.setdiff1d(np.arange(m.n_faces), west), west])
-    shuffled = dataclasses.replace(m, face_cells=m.face_cells[perm], face_normal=m.face_normal[perm],
-                                   face_length=m.face_length[perm], face_frame=m.face_frame[perm],
-                                   face_direction=m.face_direction[perm])
-    other = dataclasses.replace(ter, mesh=shuffled)
+    other = faces_permuted(ter, perm)
     assert square_grid(other) is None
     if kind == "plane":  # a pile against the west wall, whose cells add their faces in
         # another order on the shuffled mesh: the same flow, to round-off

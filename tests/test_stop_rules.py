@@ -12,7 +12,7 @@ from avflow.output.dataset import to_dataset
 from avflow.scenario import load_scenario, parse_scenario
 from avflow.simulation.runner import simulate
 from avflow.terrain.raster import write_asc
-from conftest import SCENARIOS
+from conftest import SCENARIOS, faces_permuted
 
 SECTION6 = SCENARIOS / "seed_exponential_coulomb15.yaml"
 PLANE = SCENARIOS / "plane_box_2d.yaml"
@@ -108,8 +108,6 @@ def before_grid_order(terrain):
     """A plane's terrain with its mesh's faces in the order grid_mesh made them before they
     were numbered in grid order: the x faces between cells, the y faces between cells, then
     the west, east, south and north sides."""
-    import dataclasses
-
     ny, nx = terrain.grid_shape
     n_x = ny * (nx + 1)  # x faces first, at r * (nx + 1) + k; then y faces at n_x + k * nx + c
     r, k = np.meshgrid(np.arange(ny), np.arange(1, nx), indexing="ij")
@@ -119,12 +117,8 @@ def before_grid_order(terrain):
     rows, cols = np.arange(ny), np.arange(nx)
     perm = np.concatenate([inner_x, inner_y, rows * (nx + 1), rows * (nx + 1) + nx,
                            n_x + cols, n_x + ny * nx + cols])
-    m = terrain.mesh
-    assert np.array_equal(np.sort(perm), np.arange(m.n_faces))
-    mesh = dataclasses.replace(m, face_cells=m.face_cells[perm], face_normal=m.face_normal[perm],
-                               face_length=m.face_length[perm], face_frame=m.face_frame[perm],
-                               face_direction=m.face_direction[perm])
-    return dataclasses.replace(terrain, mesh=mesh)
+    assert np.array_equal(np.sort(perm), np.arange(terrain.mesh.n_faces))
+    return faces_permuted(terrain, perm)
 
 
 @pytest.mark.parametrize("order,expected", [

@@ -623,8 +623,9 @@ def _rings(n, nx):
     emit, their x faces and the y faces below them, flags (cell c at c + 1), trial momenta,
     and lines of one row.
 
-    Made once per call of the time loop, not per step: a set spans the map's width (1.4 MB
-    at 2000 columns, whose fresh pages cost 0.7-1 ms to fault in and zero, each step, here).
+    Made once per solver (:meth:`~avflow.numerics.solver.Solver.advance` keeps them), not
+    per step: a set spans the map's width (1.4 MB at 2000 columns, whose fresh pages cost
+    0.7-1 ms a step to fault in and zero, here).
     What a set holds from the blocks before it (of this step or the last: the ring was
     always reused from row to row) changes nothing: the passes over a row read the emitted
     values and face fluxes that the passes before them wrote in the same stage; a flag read

@@ -425,12 +425,12 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
             low, high = padded[1:-1, :-1], padded[1:-1, 1:]
         else:  # places (k, c), k = 0..ny: between cells (k - 1, c) and (k, c)
             low, high = padded[:-1, 1:-1], padded[1:, 1:-1]
+        width = low.shape[1]
         faces = np.flatnonzero(low | high)
         # in chunks of faces, in order: a dozen temporaries per face at once made a 1 m
         # DEM's mesh peak at twice its size
         for lo in range(0, faces.size, FACE_CHUNK):
             f = faces[lo:lo + FACE_CHUNK]
-            width = nx + 1 if along_x else nx
             r, c = f // width, f % width  # the place: the high cell's row and column
             r_lo, c_lo = (r, c - 1) if along_x else (r - 1, c)
             owned = low.ravel()[f]  # the low cell is valid: it owns the face
