@@ -206,3 +206,36 @@ def test_active_lists_are_the_faces_of_the_wet_cells_in_order(mesh_kind):
         np.testing.assert_array_equal(touched[:n_touched], np.unique(sides[sides >= 0]))
         assert np.all(face_stamp[want] == stamp)
         assert np.all(cell_stamp[touched[:n_touched]] == stamp)
+
+
+def test_the_time_loop_lists_again_only_when_the_wet_cells_change():
+    """The face kernel's time loop keeps the active lists of the last step while the wet
+    cells stay the same: the same bits as a loop that lists them every step (one step a
+    call), for a flow that covers the whole mesh and one that spreads and stops in part.
+    The stamps show which lists were kept: on the covered mesh, those of the call's first
+    step."""
+    covered = plane_triangle_terrain(tri_block(20.0, 70.0), 10.0, None, walls())
+    spreading = plane_triangle_terrain(tri_block(22.0, 90.0), 10.0, None, walls())
+    xx, yy = spreading.cell_xy()
+    pile = np.clip(12.0 * (1.0 - np.hypot(xx - 300.0, yy - 150.0) / 90.0), 0.0, None)
+    for ter, h0 in ((covered, 1.0 + cylinder(covered, (300.0, 150.0), 60.0, 5.0)),
+                    (spreading, pile)):
+        runs = []
+        for one_step_a_call in (False, True):
+            solver = Solver(ter, Law.COULOMB, np.array([math.tan(math.radians(21.0))]),
+                            kernel="faces")
+            state = solver.new_state(h0)
+            if one_step_a_call:
+                while state.steps < 40:
+                    solver.advance(state, 1e9, max_steps=state.steps + 1)
+            else:
+                solver.advance(state, 1e9, max_steps=40)
+                if ter is covered:  # listed once, by the first step (stamp 0)
+                    assert solver._face_stamp.max() == 0
+            assert state.steps == 40
+            runs.append(state)
+        for name in ("h", "hu", "hv", "flag", *OBSERVERS):
+            np.testing.assert_array_equal(bits(getattr(runs[0], name).astype(float)),
+                                          bits(getattr(runs[1], name).astype(float)),
+                                          err_msg=name)
+        np.testing.assert_array_equal(runs[0].stats, runs[1].stats)

@@ -921,7 +921,9 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     ``cell_stamp`` and ``cell_sync`` (per cell, -1 at first), ``synced`` (per cell, any) and
     ``clock`` (int64[2]: the steps stamped so far, the calls). The stamps then never repeat,
     and nothing per call costs the map: at order 1 the work buffers take the state of a cell
-    when a step first touches it in the call, and only those cells go back at the end.
+    when a step first touches it in the call, and only those cells go back at the end. At
+    order 1 a step whose wet cells are the last step's keeps that step's active lists (a
+    flow covering its mesh, a deposit at rest: nothing is listed again).
 
     A template: :func:`time_loop` gives its copy for the mesh kind and the order, where
     ``STRUCTURED`` and ``ORDER2`` are constants (``structured`` and ``order`` are not read):
@@ -978,10 +980,15 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             wet[n_wet] = i
             n_wet += 1
     n_previous = 0
+    n_active = 0
+    n_touched = 0
+    same_wet = False  # wet cells as in the last step: its active lists still hold
     while t < t_target:
         dt, dt_decide, last = step_size(stats, cfl, t, t_target)
         ok = False
-        if not STRUCTURED:
+        if not STRUCTURED and not same_wet:
+            # (skipped while the wet cells are the last step's: its lists hold, the step
+            # rewrites all their cells in the work buffers, and they are synced already)
             for c in range(n_previous):
                 i = previous[c]
                 nxt_h[i] = cur_h[i]
@@ -1107,13 +1114,20 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
         steps += 1
         if not STRUCTURED:
             changed = union if ORDER2 else touched
-            n_wet = 0
+            # at order 1, the same wet cells as this step's keep its active lists: a flow at
+            # rest or covering its whole mesh lists nothing again (order 2 lists with stamps
+            # of its own in each stage)
+            same = not ORDER2
+            n_new = 0
             for c in range(n_changed):
                 i = changed[c]
                 previous[c] = i
                 if nxt_h[i] > h_zero:
-                    wet[n_wet] = i
-                    n_wet += 1
+                    same = same and n_new < n_wet and wet[n_new] == i
+                    wet[n_new] = i
+                    n_new += 1
+            same_wet = same and n_new == n_wet
+            n_wet = n_new
             n_previous = n_changed
         stats[ST_FALLBACK] += fallbacks
         cur_h, nxt_h = nxt_h, cur_h
