@@ -1114,9 +1114,9 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
         steps += 1
         if not STRUCTURED:
             changed = union if ORDER2 else touched
-            # at order 1, the same wet cells as this step's keep its active lists: a flow at
-            # rest or covering its whole mesh lists nothing again (order 2 lists with stamps
-            # of its own in each stage)
+            # at order 1, a next step on the same wet cells keeps this step's active lists: a
+            # flow at rest or covering its whole mesh lists nothing again (order 2 lists with
+            # stamps of its own in each stage)
             same = not ORDER2
             n_new = 0
             for c in range(n_changed):
