@@ -166,19 +166,34 @@ def test_classical_scheme_without_dirac_faces():
     compare_steps(ter, Law.COULOMB, (math.tan(math.radians(24.0)),), h0, 30, dirac=False)
 
 
+def list_terrain(mesh_kind):
+    """A mesh for the tests of the active lists: triangles with an open side, or a DEM grid
+    with an open side and a NODATA hole (walls inside the map)."""
+    if mesh_kind == "triangles":
+        return plane_triangle_terrain(tri_block(20.0, 70.0), 10.0, None, walls(x_max="outflow"))
+    x = np.arange(50) * 5.0 + 2.5
+    y = np.arange(37) * 5.0 + 2.5
+    xx, yy = np.meshgrid(x, y)
+    z = 600.0 - 0.5 * xx + 0.01 * (yy - 90.0) ** 2
+    z[15:20, 30:34] = np.nan
+    return surface_terrain(z, x, y, walls(y_min="outflow"))
+
+
+def faces_of_wet_cells(fc, n, wet):
+    """numpy's answer: the faces with a wet side, and the cells on the sides of those."""
+    is_wet = np.zeros(n, dtype=bool)
+    is_wet[wet] = True
+    want = np.flatnonzero(is_wet[fc[:, 0]] | ((fc[:, 1] >= 0) & is_wet[np.maximum(fc[:, 1], 0)]))
+    sides = np.concatenate([fc[want, 0], fc[want, 1]])
+    return want, np.unique(sides[sides >= 0])
+
+
 @pytest.mark.parametrize("mesh_kind", ["triangles", "grid"])
 def test_active_lists_are_the_faces_of_the_wet_cells_in_order(mesh_kind):
     """kernels.activate against numpy: the faces with a wet side and the cells on both
     sides of those, each once and sorted, for wet sets from one cell to all of them and
     scattered ones, stamp after stamp (the stamps of earlier lists never leak in)."""
-    if mesh_kind == "triangles":
-        ter = plane_triangle_terrain(tri_block(20.0, 70.0), 10.0, None, walls(x_max="outflow"))
-    else:
-        x = np.arange(50) * 5.0 + 2.5
-        y = np.arange(37) * 5.0 + 2.5
-        xx, yy = np.meshgrid(x, y)
-        ter = surface_terrain(600.0 - 0.5 * xx + 0.01 * (yy - 90.0) ** 2, x, y,
-                              walls(y_min="outflow"))
+    ter = list_terrain(mesh_kind)
     solver = Solver(ter, Law.COULOMB, np.array([0.3]), kernel="faces")
     mesh = ter.mesh
     fc = mesh.face_cells
@@ -197,43 +212,105 @@ def test_active_lists_are_the_faces_of_the_wet_cells_in_order(mesh_kind):
         n_active, n_touched = K.activate(wet, wet.size, solver._cell_face_ptr,
                                          solver._cell_face_idx, fc, face_stamp, cell_stamp,
                                          stamp, active, touched)
-        is_wet = np.zeros(n, dtype=bool)
-        is_wet[wet] = True
-        want = np.flatnonzero(is_wet[fc[:, 0]]
-                              | ((fc[:, 1] >= 0) & is_wet[np.maximum(fc[:, 1], 0)]))
-        sides = np.concatenate([fc[want, 0], fc[want, 1]])
+        want, want_cells = faces_of_wet_cells(fc, n, wet)
         np.testing.assert_array_equal(active[:n_active], want)
-        np.testing.assert_array_equal(touched[:n_touched], np.unique(sides[sides >= 0]))
+        np.testing.assert_array_equal(touched[:n_touched], want_cells)
         assert np.all(face_stamp[want] == stamp)
         assert np.all(cell_stamp[touched[:n_touched]] == stamp)
 
 
+@pytest.mark.parametrize("mesh_kind", ["triangles", "grid"])
+def test_mended_lists_are_those_listed_from_scratch(mesh_kind):
+    """kernels.relist mends the last active lists after some cells became wet and others
+    dry: the same lists as numpy's (and activate's), sorted, with the cells that joined
+    and left the touched list, and only the listed faces and cells marked, along a chain
+    of wet sets that grow, shrink, move, split and jump (a change as large as the set)."""
+    ter = list_terrain(mesh_kind)
+    solver = Solver(ter, Law.COULOMB, np.array([0.3]), kernel="faces")
+    mesh = ter.mesh
+    fc = mesh.face_cells
+    n, n_faces = mesh.n_cells, mesh.n_faces
+    bufs = [np.empty(n_faces, dtype=np.int64) for _ in range(2)]
+    cells = [np.empty(n, dtype=np.int64) for _ in range(2)]
+    fresh_faces, gone_faces = np.empty((2, n_faces), dtype=np.int64)
+    added = np.empty(n, dtype=np.int64)
+    dropped = np.empty(2 * n_faces, dtype=np.int64)
+    face_stamp = np.full(n_faces, -1, dtype=np.int64)
+    cell_stamp = np.full(n, -1, dtype=np.int64)
+    xx, yy = ter.cell_xy()
+    rng = np.random.default_rng(11)
+    chain = [np.flatnonzero(np.hypot(xx - 150.0, yy - 100.0) < r) for r in (30.0, 45.0, 60.0)]
+    chain += [np.flatnonzero(np.hypot(xx - cx, yy - 100.0) < 50.0) for cx in (160.0, 175.0)]
+    ring = np.hypot(xx - 175.0, yy - 100.0)
+    chain += [np.flatnonzero((ring < 50.0) & (ring > 20.0)),          # a hole opens
+              np.flatnonzero((ring < 50.0) & (np.abs(xx - 175.0) > 8.0)),  # and splits
+              np.flatnonzero(rng.random(n) < 0.02),                   # a jump
+              np.flatnonzero(rng.random(n) < 0.02), np.arange(n), np.array([0, n - 1]),
+              np.array([], dtype=np.int64), np.array([n // 2])]
+    stamp = 5
+    first = chain[0].astype(np.int64)
+    n_active, n_touched = K.activate(first, first.size, solver._cell_face_ptr,
+                                     solver._cell_face_idx, fc, face_stamp, cell_stamp, stamp,
+                                     bufs[0], cells[0])
+    last = first
+    for k, wet in enumerate(chain[1:]):
+        wet = wet.astype(np.int64)
+        gained = np.setdiff1d(wet, last)
+        lost = np.setdiff1d(last, wet)
+        h = np.zeros(n)
+        h[wet] = 1.0
+        old_cells = cells[k % 2][:n_touched].copy()
+        n_active, n_touched, n_joined, n_dropped = K.relist(
+            gained, gained.size, lost, lost.size, h, 0.0, solver._cell_face_ptr,
+            solver._cell_face_idx, fc, face_stamp, cell_stamp, stamp, bufs[k % 2], n_active,
+            cells[k % 2], n_touched, bufs[(k + 1) % 2], cells[(k + 1) % 2], fresh_faces, gone_faces,
+            added, dropped)
+        want, want_cells = faces_of_wet_cells(fc, n, wet)
+        np.testing.assert_array_equal(bufs[(k + 1) % 2][:n_active], want, err_msg=f"set {k + 1}")
+        np.testing.assert_array_equal(cells[(k + 1) % 2][:n_touched], want_cells)
+        np.testing.assert_array_equal(added[:n_joined], np.setdiff1d(want_cells, old_cells))
+        np.testing.assert_array_equal(dropped[:n_dropped], np.setdiff1d(old_cells, want_cells))
+        np.testing.assert_array_equal(np.flatnonzero(face_stamp == stamp), want)
+        np.testing.assert_array_equal(np.flatnonzero(cell_stamp == stamp), want_cells)
+        last = wet
+
+
 def test_the_time_loop_lists_again_only_when_the_wet_cells_change():
     """The face kernel's time loop keeps the active lists of the last step while the wet
-    cells stay the same: the same bits as a loop that lists them every step (one step a
-    call), for a flow that covers the whole mesh and one that spreads and stops in part.
-    The stamps show which lists were kept: on the covered mesh, those of the call's first
-    step."""
+    cells stay the same, and mends them where a few changed: the same bits as a loop that
+    lists them from scratch every step (one step a call), for a flow that covers the whole
+    mesh, one that spreads and stops in part, and one that slides down a steep plane,
+    leaving dry cells behind it (a film under h_zero). The stamps show which step listed
+    from the wet cells last."""
     covered = plane_triangle_terrain(tri_block(20.0, 70.0), 10.0, None, walls())
     spreading = plane_triangle_terrain(tri_block(22.0, 90.0), 10.0, None, walls())
+    steep = plane_triangle_terrain(tri_block(35.0, 90.0), 10.0, None, walls())
     xx, yy = spreading.cell_xy()
     pile = np.clip(12.0 * (1.0 - np.hypot(xx - 300.0, yy - 150.0) / 90.0), 0.0, None)
-    for ter, h0 in ((covered, 1.0 + cylinder(covered, (300.0, 150.0), 60.0, 5.0)),
-                    (spreading, pile)):
+    for ter, h0, h_zero in ((covered, 1.0 + cylinder(covered, (300.0, 150.0), 60.0, 5.0), 0.0),
+                            (spreading, pile, 0.0),
+                            (steep, cylinder(steep, (150.0, 150.0), 50.0, 4.0), 1e-3)):
         runs = []
+        dried = 0
         for one_step_a_call in (False, True):
             solver = Solver(ter, Law.COULOMB, np.array([math.tan(math.radians(21.0))]),
-                            kernel="faces")
+                            kernel="faces", h_zero=h_zero)
             state = solver.new_state(h0)
             if one_step_a_call:
-                while state.steps < 40:
+                while state.steps < 60:
+                    was_wet = state.h > h_zero
                     solver.advance(state, 1e9, max_steps=state.steps + 1)
+                    dried += np.count_nonzero(was_wet & (state.h <= h_zero))
             else:
-                solver.advance(state, 1e9, max_steps=40)
-                if ter is covered:  # listed once, by the first step (stamp 0)
-                    assert solver._face_stamp.max() == 0
-            assert state.steps == 40
+                solver.advance(state, 1e9, max_steps=60)
+                # the stamp of the last step that listed from the wet cells: the covered
+                # mesh's first; the flows that spread and slide change more than
+                # K.RELIST_SHARE of their few wet cells in their first steps, then only mend
+                assert solver._face_stamp.max() == (0 if ter is covered else 2)
+            assert state.steps == 60
             runs.append(state)
+        if ter is steep:  # what this case is for: cells leave the lists
+            assert dried > 50
         for name in ("h", "hu", "hv", "flag", *OBSERVERS):
             np.testing.assert_array_equal(bits(getattr(runs[0], name).astype(float)),
                                           bits(getattr(runs[1], name).astype(float)),
