@@ -36,6 +36,7 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     for dispatcher in (*kernels.ADVANCE.values(), *face_sweep.STEP.values(), kernels.step_faces,
                        kernels.step_profile,
                        kinetic.half_fluxes, rheology.friction, reconstruction.reconstruct_faces,
+                       reconstruction.reconstruct_cells,
                        *loops, *sweeps):
         assert Path(dispatcher._cache._cache_path).is_relative_to(folder), dispatcher
     assert config.CACHE_DIR != str(folder)  # other packages' caches stay where Numba puts them

@@ -116,6 +116,57 @@ def test_2d_rest_mass_and_symmetry(mesh):
     assert abs(centroid(terrain, state.h)[1] - 300.0) < 1e-6
 
 
+@pytest.mark.parametrize("mesh", ["triangles", "dem"])
+def test_the_cell_reconstruction_is_the_face_reconstruction(mesh):
+    """reconstruction.reconstruct_cells (each cell sweeps its own faces; what the time loop
+    runs) writes reconstruct_faces' face states (a sweep over the faces that adds each to
+    both its cells) bit for bit, on every active face, along an order-2 run with fronts,
+    dry neighbours and the map's edge: triangles on a refined curved bed (a tangent basis
+    per node) and a DEM grid with a NODATA hole and an open side."""
+    from avflow.numerics.reconstruction import N_WORK, reconstruct_cells, reconstruct_faces
+    from avflow.terrain.trimesh import triangle_terrain
+
+    x, y = np.arange(0.0, 301.0, 10.0), np.arange(0.0, 201.0, 10.0)
+    xx, yy = np.meshgrid(x, y)
+    z = -math.tan(math.radians(25.0)) * xx + 25.0 * np.exp(
+        -((xx - 200.0) ** 2 + (yy - 100.0) ** 2) / 50.0**2)
+    if mesh == "triangles":
+        terrain = triangle_terrain(z, x, y, walls(), refine_angle_deg=4.0, refine_levels=1)
+    else:
+        z[8:11, 15:18] = np.nan
+        terrain = surface_terrain(z, x, y, walls(x_max="outflow"))
+    solver = coulomb(terrain, 20.0, h_zero=1e-6, order=2)
+    state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
+    m = terrain.mesh
+    n, n_faces = m.n_cells, m.n_faces
+    active = np.empty(n_faces, dtype=np.int64)
+    touched = np.empty(n, dtype=np.int64)
+    stamps = (np.full(n_faces, -1, dtype=np.int64), np.full(n, -1, dtype=np.int64))
+    fronts = 0
+    for k, t in enumerate((0.0, 2.0, 5.0, 9.0, 14.0)):
+        solver.advance(state, t)
+        wet = np.flatnonzero(state.h > solver.h_zero)
+        n_active, n_touched = K.activate(wet, wet.size, solver._cell_face_ptr,
+                                         solver._cell_face_idx, m.face_cells, *stamps, k,
+                                         active, touched)
+        args = (m.face_cells, m.face_frame, m.face_length, solver._face_offset, m.cell_area,
+                state.h, state.hu, state.hv, solver.h_zero)
+        by_face = np.full((n_faces, 2, 3), np.nan)
+        by_cell = np.full((n_faces, 2, 3), np.nan)
+        reconstruct_faces(*args, active, n_active, touched, n_touched, np.zeros((n, N_WORK)),
+                          by_face)
+        reconstruct_cells(*args, solver._cell_face_ptr, solver._cell_face_idx, touched,
+                          n_touched, np.zeros((n, 2)), by_cell)
+        listed = active[:n_active]
+        np.testing.assert_array_equal(by_face[listed].view(np.int64),
+                                      by_cell[listed].view(np.int64), err_msg=f"t = {t}")
+        fc = m.face_cells[listed]
+        inner = fc[:, 1] >= 0
+        fronts += np.count_nonzero((state.h[fc[inner, 0]] > solver.h_zero)
+                                   != (state.h[fc[inner, 1]] > solver.h_zero))
+    assert fronts > 100  # wet cells beside dry ones: the limiter's and the velocity's fronts
+
+
 def test_a_plane_turned_by_90_degrees_turns_the_answer():
     """Azimuth 90 (facing +x) and 0 (facing +y) on a square map: the same flow, transposed."""
     out = []

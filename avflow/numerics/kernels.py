@@ -37,7 +37,7 @@ from numba import njit
 
 from avflow.numerics.kinetic import (SQRT3, half_flux_in, half_flux_out, half_fluxes,
                                      sound_speed)
-from avflow.numerics.reconstruction import N_WORK, reconstruct_faces, reconstruct_profile
+from avflow.numerics.reconstruction import reconstruct_cells, reconstruct_profile
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.rheology import friction
 from avflow.numerics.vectorize import law_kind, law_label, specialize
@@ -741,9 +741,10 @@ def merge_lists(first, n_first, second, n_second, stamps, stamp, out):
 
 @njit(error_model="numpy", cache=True)
 def cell_faces(face_cells, n_cells):
-    """The faces of every cell (CSR: ``idx[ptr[c]:ptr[c + 1]]``): the faces whose first
-    cell it is, in index order, then those whose second cell it is. A counting sort, one
-    pass over the faces (numpy's stable argsort of the owners took 11 ms on 179k cells)."""
+    """The faces of every cell (CSR: ``idx[ptr[c]:ptr[c + 1]]``), in index order (the order
+    in which the face sweeps add them to the cell: a sweep over a cell's own faces that
+    sums them in this order gets the same bits). A counting sort, one pass over the faces
+    (numpy's stable argsort of the owners took 11 ms on 179k cells)."""
     n_faces = face_cells.shape[0]
     ptr = np.zeros(n_cells + 1, dtype=np.int64)
     for f in range(n_faces):
@@ -754,11 +755,10 @@ def cell_faces(face_cells, n_cells):
         ptr[c + 1] += ptr[c]
     idx = np.empty(ptr[n_cells], dtype=np.int64)
     fill = ptr[:n_cells].copy()
-    for f in range(n_faces):  # first sides, then second sides: the order of a stable sort
+    for f in range(n_faces):  # both sides of each face in turn: each cell's faces in order
         i = face_cells[f, 0]
         idx[fill[i]] = f
         fill[i] += 1
-    for f in range(n_faces):
         j = face_cells[f, 1]
         if j >= 0:
             idx[fill[j]] = f
@@ -1055,7 +1055,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     m2 = h.size if ORDER2 else 0
     f2 = face_cells.shape[0] if ORDER2 else 0
     recon = np.zeros((m2 if STRUCTURED else 0, 4))
-    work = np.zeros((0 if STRUCTURED else m2, N_WORK))
+    velocity = np.zeros((0 if STRUCTURED else m2, 2))  # reconstruct_cells' work
     face_state = np.zeros((0 if STRUCTURED else f2, 2, 3))
     no_emit = np.zeros((0, 7))  # step_faces' emitted values: read at order 1 only
     s_h = np.zeros(m2)
@@ -1220,9 +1220,9 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                         transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new,
                         peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
             else:  # order 2 on faces, each stage on its own active lists
-                reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_area,
-                                  cur_h, cur_hu, cur_hv, h_zero, active_faces, n_active, touched,
-                                  n_touched, work, face_state)
+                reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_area,
+                                  cur_h, cur_hu, cur_hv, h_zero, cell_face_ptr, cell_face_idx,
+                                  touched, n_touched, velocity, face_state)
                 ok, out, lim, moving, film, clamped, kinetic = step_faces(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, curvature,
@@ -1246,9 +1246,9 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     n_active2, n_touched2 = activate(wet2, n_wet2, cell_face_ptr, cell_face_idx,
                                                      face_cells, face_stamp, cell_stamp,
                                                      stamp + 1, active2, touched2)
-                    reconstruct_faces(face_cells, face_frame, face_length, face_offset,
-                                      cell_area, nxt_h, nxt_hu, nxt_hv, h_zero, active2,
-                                      n_active2, touched2, n_touched2, work, face_state)
+                    reconstruct_cells(face_cells, face_frame, face_length, face_offset,
+                                      cell_area, nxt_h, nxt_hu, nxt_hv, h_zero, cell_face_ptr,
+                                      cell_face_idx, touched2, n_touched2, velocity, face_state)
                     ok, out2, lim, moving, film, clamped2, kinetic = step_faces(
                         face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                         gamma_x, gamma_y, gamma_z, curvature,

@@ -87,6 +87,9 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
                       h_zero, active_faces, n_active, touched, n_touched, work, face_state):
     """Face states ``face_state[f, side] = (h, h u1, h u2)`` (side's basis) of the active faces.
 
+    A sweep over the faces, each added to both cells' rows of ``work`` (n, N_WORK): the
+    reference :func:`reconstruct_cells` (which the time loop runs) is held to, bit for bit.
+
     Green-Gauss gradients of h and of the velocity components in each cell's tangent basis
     (a neighbour's velocity turned through the face frame), limited by Barth-Jespersen, then
     evaluated at ``face_offset[f, side]``: half the way to the neighbour's centre, in that
@@ -221,3 +224,141 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
             face_state[f, side, 0] = hf
             face_state[f, side, 1] = hf * u1
             face_state[f, side, 2] = hf * u2
+
+
+@njit(error_model="numpy", cache=True)
+def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_area, h, hu, hv,
+                      h_zero, cell_face_ptr, cell_face_idx, touched, n_touched, velocity,
+                      face_state):
+    """:func:`reconstruct_faces`' face states, cell after cell: the same bits (what the
+    order-2 time loop runs). Measured on a pile spreading over 6.3k of 161k triangle nodes
+    (4.2k of a 400 x 400 grid), one process, interleaved: 1.31x (1.25x) faster.
+
+    Each touched cell sweeps its own faces (``cell_face_idx[cell_face_ptr[c]:
+    cell_face_ptr[c + 1]]``, in index order, as :func:`avflow.numerics.kernels.cell_faces`
+    lists them) three times: its Green-Gauss sums and neighbours' range, its
+    Barth-Jespersen factors, its side of each face's state. Its sums stay in registers,
+    where the sweep over faces added each face to two cells' rows of a work array in turn;
+    each cell adds its faces in the same order, so every sum is the same. ``velocity``
+    (n, 2): work, the touched cells' velocities (``hu / h``, 0 when dry). A dry cell writes
+    ``(h, 0, 0)`` on its side of all its faces, active or not.
+    """
+    for c in range(n_touched):
+        i = touched[c]
+        hi = h[i]
+        u1 = 0.0
+        u2 = 0.0
+        if hi > h_zero:
+            u1 = hu[i] / hi
+            u2 = hv[i] / hi
+        velocity[i, 0] = u1
+        velocity[i, 1] = u2
+    for c in range(n_touched):
+        i = touched[c]
+        hc = h[i]
+        first = cell_face_ptr[i]
+        last = cell_face_ptr[i + 1]
+        if hc <= h_zero:
+            for p in range(first, last):
+                f = cell_face_idx[p]
+                side = 0 if face_cells[f, 0] == i else 1
+                face_state[f, side, 0] = hc
+                face_state[f, side, 1] = 0.0
+                face_state[f, side, 2] = 0.0
+            continue
+        uc1 = velocity[i, 0]
+        uc2 = velocity[i, 1]
+        w_area = cell_area[i]
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        lo0 = hi0 = hc
+        lo1 = hi1 = uc1
+        lo2 = hi2 = uc2
+        front = False
+        # 1: gradients (the mean of both sides on each face), neighbours' range, fronts
+        for p in range(first, last):
+            f = cell_face_idx[p]
+            side = 0 if face_cells[f, 0] == i else 1
+            other = face_cells[f, 1 - side]
+            nx = face_frame[f, side, 0, 0]
+            ny = face_frame[f, side, 0, 1]
+            if side == 1:  # the frame's normal points from i to j: outward for i only
+                nx = -nx
+                ny = -ny
+            w = face_length[f] / w_area
+            if other >= 0:
+                ho = h[other]
+                if ho > h_zero:  # its velocity, turned through the face into this basis
+                    o = 1 - side
+                    v1 = velocity[other, 0]
+                    v2 = velocity[other, 1]
+                    un = v1 * face_frame[f, o, 0, 0] + v2 * face_frame[f, o, 0, 1]
+                    ut = v1 * face_frame[f, o, 1, 0] + v2 * face_frame[f, o, 1, 1]
+                    uo1 = un * face_frame[f, side, 0, 0] + ut * face_frame[f, side, 1, 0]
+                    uo2 = un * face_frame[f, side, 0, 1] + ut * face_frame[f, side, 1, 1]
+                else:
+                    uo1 = uc1
+                    uo2 = uc2
+                    front = True
+            else:  # the map's edge: zero normal gradient
+                ho = hc
+                uo1 = uc1
+                uo2 = uc2
+            wx = w * nx
+            wy = w * ny
+            mid = 0.5 * (hc + ho)
+            g0 += wx * mid
+            g1 += wy * mid
+            lo0 = ho if ho < lo0 else lo0
+            hi0 = ho if ho > hi0 else hi0
+            mid = 0.5 * (uc1 + uo1)
+            g2 += wx * mid
+            g3 += wy * mid
+            lo1 = uo1 if uo1 < lo1 else lo1
+            hi1 = uo1 if uo1 > hi1 else hi1
+            mid = 0.5 * (uc2 + uo2)
+            g4 += wx * mid
+            g5 += wy * mid
+            lo2 = uo2 if uo2 < lo2 else lo2
+            hi2 = uo2 if uo2 > hi2 else hi2
+        # 2: Barth-Jespersen factors over the faces
+        a0 = a1 = a2 = 1.0
+        for p in range(first, last):
+            f = cell_face_idx[p]
+            side = 0 if face_cells[f, 0] == i else 1
+            rx = face_offset[f, side, 0]
+            ry = face_offset[f, side, 1]
+            a0 = _bj_factor(a0, g0 * rx + g1 * ry, hc, lo0, hi0, True)
+            a1 = _bj_factor(a1, g2 * rx + g3 * ry, uc1, lo1, hi1, False)
+            a2 = _bj_factor(a2, g4 * rx + g5 * ry, uc2, lo2, hi2, False)
+        # 3: this cell's side of each face
+        for p in range(first, last):
+            f = cell_face_idx[p]
+            side = 0 if face_cells[f, 0] == i else 1
+            rx = face_offset[f, side, 0]
+            ry = face_offset[f, side, 1]
+            hf = hc + a0 * (g0 * rx + g1 * ry)
+            hf = max(hf, 0.0)
+            u1 = uc1
+            u2 = uc2
+            if not front:  # no velocity slope towards a dry neighbour
+                u1 += a1 * (g2 * rx + g3 * ry)
+                u2 += a2 * (g4 * rx + g5 * ry)
+            face_state[f, side, 0] = hf
+            face_state[f, side, 1] = hf * u1
+            face_state[f, side, 2] = hf * u2
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _bj_factor(alpha, d, centre, lo, hi, thickness):
+    """Barth-Jespersen: ``alpha`` lowered so that ``centre + alpha d`` stays within
+    ``[lo, hi]`` (and, for a thickness, at most twice ``centre``: no face sends more than
+    the cell holds)."""
+    if d > 0.0:
+        ratio = (hi - centre) / d
+        if thickness:
+            ratio = min(ratio, centre / d)
+    elif d < 0.0:
+        ratio = (lo - centre) / d
+    else:
+        return alpha
+    return ratio if ratio < alpha else alpha
