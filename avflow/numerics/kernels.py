@@ -903,6 +903,17 @@ def _mend(old, n_old, fresh, n_fresh, gone, n_gone, out):
     return k + n_old - p
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _agree(cells, count, h, hu, hv, h_to, hu_to, hv_to):
+    """The state of the listed ``cells[:count]`` copied into the other buffers, so both
+    buffers agree on them (the next step does not write them there)."""
+    for c in range(count):
+        i = cells[c]
+        h_to[i] = h[i]
+        hu_to[i] = hu[i]
+        hv_to[i] = hv[i]
+
+
 #: The face kernel's time loop (order 1) mends its active lists (:func:`relist`) while at
 #: most this share of the wet cells became wet or dry in a step, and lists them again from
 #: the wet cells (:func:`activate`) beyond it. Measured on 6,349 wet triangle nodes growing
@@ -1129,17 +1140,9 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                 # listed from the wet cells (order 2, a call's first step, or where much
                 # changed); the buffers first made to agree on the last step's cells
                 if ORDER2:
-                    for c in range(n_previous):
-                        i = previous[c]
-                        nxt_h[i] = cur_h[i]
-                        nxt_hu[i] = cur_hu[i]
-                        nxt_hv[i] = cur_hv[i]
+                    _agree(previous, n_previous, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
                 else:
-                    for c in range(n_touched):
-                        i = touched[c]
-                        nxt_h[i] = cur_h[i]
-                        nxt_hu[i] = cur_hu[i]
-                        nxt_hv[i] = cur_hv[i]
+                    _agree(touched, n_touched, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
                 list_stamp = (STAMPS_PER_STEP if ORDER2 else 1) * (clock[0] + steps)
                 n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx,
                                                face_cells, face_stamp, cell_stamp, list_stamp,
@@ -1158,11 +1161,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     fresh_faces, gone_faces, added, dropped)
                 active_faces, new_faces = new_faces, active_faces
                 touched, new_cells = new_cells, touched
-                for c in range(n_dropped):
-                    i = dropped[c]
-                    nxt_h[i] = cur_h[i]
-                    nxt_hu[i] = cur_hu[i]
-                    nxt_hv[i] = cur_hv[i]
+                _agree(dropped, n_dropped, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
                 fresh = added
             if not ORDER2:
                 # a cell touched for the first time in this call: its state into the work
