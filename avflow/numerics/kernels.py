@@ -774,24 +774,35 @@ def activate(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp, c
     ``stamp`` marks what this step has listed in ``face_stamp`` / ``cell_stamp``.
     Returns ``(n_active, n_touched)``.
     """
+    m, k = _list_faces_of(wet, n_wet, cell_face_ptr, cell_face_idx, face_cells, face_stamp,
+                          cell_stamp, stamp, active_faces, touched)
+    return (_in_index_order(active_faces, m, face_stamp, stamp),
+            _in_index_order(touched, k, cell_stamp, stamp))
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _list_faces_of(cells, n_cells, cell_face_ptr, cell_face_idx, face_cells, face_stamp,
+                   cell_stamp, stamp, faces, sides):
+    """The faces of ``cells[:n_cells]`` not yet marked ``stamp`` into ``faces``, and the
+    cells on their sides not yet marked into ``sides`` (both then marked), in the order
+    met. Returns their counts."""
     m = 0
     k = 0
-    for a in range(n_wet):
-        c = wet[a]
+    for a in range(n_cells):
+        c = cells[a]
         for p in range(cell_face_ptr[c], cell_face_ptr[c + 1]):
             f = cell_face_idx[p]
             if face_stamp[f] != stamp:
                 face_stamp[f] = stamp
-                active_faces[m] = f
+                faces[m] = f
                 m += 1
                 for side in range(2):
                     d = face_cells[f, side]
                     if d >= 0 and cell_stamp[d] != stamp:
                         cell_stamp[d] = stamp
-                        touched[k] = d
+                        sides[k] = d
                         k += 1
-    return (_in_index_order(active_faces, m, face_stamp, stamp),
-            _in_index_order(touched, k, cell_stamp, stamp))
+    return m, k
 
 
 @njit(error_model="numpy", cache=True)
@@ -814,22 +825,8 @@ def relist(gained, n_gained, lost, n_lost, h, h_zero, cell_face_ptr, cell_face_i
     ``dropped[:n_dropped]`` (both sorted).
     """
     # the faces of a cell that became wet are all active, and their sides touched
-    n_fresh = 0
-    n_add = 0
-    for a in range(n_gained):
-        c = gained[a]
-        for p in range(cell_face_ptr[c], cell_face_ptr[c + 1]):
-            f = cell_face_idx[p]
-            if face_stamp[f] != stamp:
-                face_stamp[f] = stamp
-                fresh_faces[n_fresh] = f
-                n_fresh += 1
-                for side in range(2):
-                    d = face_cells[f, side]
-                    if d >= 0 and cell_stamp[d] != stamp:
-                        cell_stamp[d] = stamp
-                        added[n_add] = d
-                        n_add += 1
+    n_fresh, n_add = _list_faces_of(gained, n_gained, cell_face_ptr, cell_face_idx, face_cells,
+                                    face_stamp, cell_stamp, stamp, fresh_faces, added)
     # a face of a cell that became dry leaves with no wet side left; its sides may follow
     # (a face that gained a wet side above kept it: added and gone never meet)
     n_gone = 0
