@@ -1100,20 +1100,20 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     m_faces = 0 if STRUCTURED else n  # the face kernel's lists
     wet = np.empty(n, dtype=np.int64)
     touched = np.empty(n, dtype=np.int64)
-    previous = np.empty(n if ORDER2 else 0, dtype=np.int64)
     active_faces = np.empty(nf, dtype=np.int64)
     # order 1: the last step's wet cells, those that became wet / dry since, and what
     # relist() works in (its new lists swap with the last ones)
     m_re = 0 if STRUCTURED or ORDER2 else n
+    f_re = 0 if STRUCTURED or ORDER2 else nf
     wet_last = np.empty(m_faces, dtype=np.int64)
     gained = np.empty(m_re, dtype=np.int64)
     lost = np.empty(m_re, dtype=np.int64)
-    new_faces = np.empty(0 if STRUCTURED or ORDER2 else nf, dtype=np.int64)
+    new_faces = np.empty(f_re, dtype=np.int64)
     new_cells = np.empty(m_re, dtype=np.int64)
-    fresh_faces = np.empty(0 if STRUCTURED or ORDER2 else nf, dtype=np.int64)
-    gone_faces = np.empty(0 if STRUCTURED or ORDER2 else nf, dtype=np.int64)
+    fresh_faces = np.empty(f_re, dtype=np.int64)
+    gone_faces = np.empty(f_re, dtype=np.int64)
     added = np.empty(m_re, dtype=np.int64)
-    dropped = np.empty(2 * nf if m_re else 0, dtype=np.int64)
+    dropped = np.empty(2 * f_re, dtype=np.int64)
     n_wet = 0
     for i in range(m_faces):
         if h[i] > h_zero:
@@ -1135,11 +1135,11 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             # rewrites all their cells in the work buffers, and they are synced already)
             if ORDER2 or not listed or n_gained + n_lost > RELIST_SHARE * n_wet:
                 # listed from the wet cells (order 2, a call's first step, or where much
-                # changed); the buffers first made to agree on the last step's cells
-                if ORDER2:
-                    _agree(previous, n_previous, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
-                else:
-                    _agree(touched, n_touched, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
+                # changed); the buffers first made to agree on the last step's cells (still
+                # in its list: order 2's union is written again only once this step's
+                # stages ran, order 1's touched list by activate below)
+                _agree(union if ORDER2 else touched, n_previous, cur_h, cur_hu, cur_hv, nxt_h,
+                       nxt_hu, nxt_hv)
                 list_stamp = (STAMPS_PER_STEP if ORDER2 else 1) * (clock[0] + steps)
                 n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx,
                                                face_cells, face_stamp, cell_stamp, list_stamp,
@@ -1287,8 +1287,6 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             n_lost = 0
             for c in range(n_changed):
                 i = changed[c]
-                if ORDER2:
-                    previous[c] = i
                 if nxt_h[i] > h_zero:
                     if not ORDER2:
                         while p < n_wet and wet_last[p] < i:
