@@ -930,11 +930,13 @@ def _in_index_order(items, count, stamps, stamp):
     """Put the ``count`` listed indices (those with ``stamps == stamp``) in increasing order.
 
     Faces and cells are swept in index order: memory order, and the same sums, bit for bit,
-    as a sweep of the whole mesh. A short list is sorted; a long one is rebuilt by a scan of
-    the stamps over the blocks of :data:`SCAN_BLOCK` indices that hold one of its items
-    (sorting k entries costs more than scanning that range once k log2 k exceeds it). Only
-    those blocks: on a grid the range a flow spans is the rows it covers times the map's
-    width, and scanning all of it made a step on a map 4x larger 20% dearer.
+    as a sweep of the whole mesh. The list is rebuilt by a scan of the stamps over the
+    blocks of :data:`SCAN_BLOCK` indices that hold one of its items, or sorted where that
+    costs less (k log2 k against the blocks' indices). Only those blocks: on a grid the range
+    a flow spans is the rows it covers times the map's width (its x faces and, far from
+    them, its y faces), and scanning all of it made a step on a map 4x larger 20% dearer;
+    weighing the sort against that whole range sorted the 12k faces of a flow on a 5 m DEM
+    (0.5 ms) where a scan of their 400-odd blocks takes 30 us.
     """
     if count == 0:
         return 0
@@ -943,10 +945,14 @@ def _in_index_order(items, count, stamps, stamp):
     for c in range(1, count):
         lo = min(lo, items[c])
         hi = max(hi, items[c])
-    if count * math.log2(count + 2.0) > hi - lo + 1:
-        held = np.zeros(((hi - lo) >> SCAN_SHIFT) + 1, dtype=np.bool_)
-        for c in range(count):
-            held[(items[c] - lo) >> SCAN_SHIFT] = True
+    held = np.zeros(((hi - lo) >> SCAN_SHIFT) + 1, dtype=np.bool_)
+    n_held = 0
+    for c in range(count):
+        b = (items[c] - lo) >> SCAN_SHIFT
+        if not held[b]:
+            held[b] = True
+            n_held += 1
+    if count * math.log2(count + 2.0) > n_held * SCAN_BLOCK:
         count = 0
         for b in range(held.size):
             if held[b]:
