@@ -12,7 +12,8 @@ the 1D and all-wet cases the fastest of three windows (``WINDOWS``):
 - square grid, 400 x 400 and 1000 x 1000 cells on a plane (cylinder release on a 1 m layer,
   every cell wet; Coulomb): the square-grid kernel on 1, 2 and all threads, and the face kernel;
 - triangles: the face kernel on the median dual mesh of the same plane (401 x 401 nodes);
-- order 2 on the all-wet 1D, grid and triangle cases (the face kernel runs order 2 on grids);
+- order 2 on the all-wet 1D, grid and triangle cases (the face kernel runs order 2 on grids,
+  on 1 and 2 threads);
 - the cylinder alone (most of the map dry): map cells per second, what the active region buys;
 - the seed's section 6 (880 cells), wall time of its time loop;
 - the yardstick: a plain Numba 2D kinetic kernel (``plain_kernel.py``: flat bed, no frames,
@@ -102,7 +103,8 @@ def _plane(n):
 
 
 def case(name, threads):
-    """One case in this process: ``(cell-updates/s, wall, steps, kernel used)``."""
+    """One case in this process: ``(cell-updates/s, wall, steps, kernel used, threads
+    used)``."""
     from avflow.numerics.rheology import Law
     from avflow.numerics.solver import Solver
 
@@ -122,7 +124,7 @@ def case(name, threads):
                                                                     structured_1d=False))
         solver = Solver(ter, Law.COULOMB, np.zeros(4), order=2 if "order2" in name else 1)
         return (*_rate(solver, h0, 0.5, 30.0, windows=WINDOWS),
-                "profile" if "generic" not in name else "faces")
+                "profile" if "generic" not in name else "faces", 1)
     if name.startswith("grid") or name.startswith("tri"):
         n = 1000 if "1000" in name else 400
         plane, build = _plane(n)
@@ -140,14 +142,15 @@ def case(name, threads):
         solver = Solver(ter, Law.COULOMB, coulomb20, kernel=kernel, order=order,
                         threads=threads)
         if "cylinder" in name:
-            return (*_rate(solver, cyl, 0.5, 10.0), solver.kernel_used)
+            return (*_rate(solver, cyl, 0.5, 10.0), solver.kernel_used, solver.threads_used())
         t_end = 1.5 if n == 1000 else 3.0
-        return (*_rate(solver, cyl + 1.0, 0.5, t_end, MIN_WALL, WINDOWS), solver.kernel_used)
+        return (*_rate(solver, cyl + 1.0, 0.5, t_end, MIN_WALL, WINDOWS), solver.kernel_used,
+                solver.threads_used())
     if name == "plain":
         import plain_kernel
 
         rate, wall, steps, _ = plain_kernel.rate(400, 0.5, 3.0, MIN_WALL, WINDOWS)
-        return rate, wall, steps, "plain"
+        return rate, wall, steps, "plain", 1
     if name == "section6":
         from avflow.scenario.schema import load_scenario
         from avflow.simulation.runner import simulate
@@ -155,7 +158,7 @@ def case(name, threads):
         sc = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
         simulate(sc)
         s = simulate(sc).summary
-        return s["cell_updates_per_second"], s["wall_time"], s["steps"], "profile"
+        return s["cell_updates_per_second"], s["wall_time"], s["steps"], "profile", 1
     raise ValueError(name)
 
 
@@ -171,12 +174,14 @@ CASES = [
     ("grid 400x400, square-grid kernel, all threads", "grid", None, "grid"),
     ("grid 400x400, face kernel", "grid-faces", 1, "faces-grid"),
     ("grid 400x400, order 2 (face kernel)", "grid-order2", 1, None),
+    ("grid 400x400, order 2 (face kernel), 2 threads", "grid-order2", 2, None),
     ("grid 400x400, cylinder only (map cells/s)", "grid-cylinder", 1, None),
     ("grid 1000x1000, square-grid kernel, 1 thread", "grid-1000", 1, "grid"),
     ("grid 1000x1000, square-grid kernel, 2 threads", "grid-1000", 2, "grid"),
     ("grid 1000x1000, square-grid kernel, all threads", "grid-1000", None, "grid"),
     ("triangles 401x401 nodes, face kernel", "tri", 1, "faces-tri"),
     ("triangles, order 2", "tri-order2", 1, None),
+    ("triangles, order 2, 2 threads", "tri-order2", 2, None),
     ("triangles, cylinder only (map cells/s)", "tri-cylinder", 1, None),
     ("section 6, Coulomb 15, 880 cells (loop)", "section6", 1, None),
 ]
@@ -208,11 +213,7 @@ def _peak_resident() -> int:
 
 
 def _child(name, threads):
-    rate, wall, steps, kernel = case(name, threads)
-    import numba
-
-    used = 1 if kernel != "grid" else min(threads or numba.config.NUMBA_NUM_THREADS,
-                                           numba.config.NUMBA_NUM_THREADS)
+    rate, wall, steps, kernel, used = case(name, threads)
     peak = _peak_resident()
     print(json.dumps({"rate": rate, "wall": wall, "steps": steps, "kernel": kernel,
                       "threads": used, "peak": peak}))

@@ -25,7 +25,7 @@ from pathlib import Path
 #: them from the terrain (boundary and face codes).
 _KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/rheology.py", "numerics/kernels.py",
                    "numerics/reconstruction.py", "numerics/square_grid.py", "numerics/vectorize.py",
-                   "numerics/profile.py", "numerics/face_sweep.py",
+                   "numerics/profile.py", "numerics/face_sweep.py", "numerics/face_gather.py",
                    "terrain/mesh.py", "terrain/squaregrid.py")
 
 

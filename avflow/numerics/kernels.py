@@ -1028,7 +1028,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
             stats, order, limiter, face_offset, face_stamp, cell_stamp, cell_sync, synced, clock,
-            sweep_geo, sweep_work):
+            sweep_geo, sweep_work, min_parallel_cells):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -1046,7 +1046,10 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     per metre through its faces in the last step. ``sweep_geo, sweep_work``: what the face
     kernel's order-1 step reads and works in
     (:func:`avflow.numerics.face_sweep.geometry`, :func:`~avflow.numerics.face_sweep.work`;
-    empty elsewhere, :func:`~avflow.numerics.face_sweep.unused`).
+    empty elsewhere, :func:`~avflow.numerics.face_sweep.unused`). ``min_parallel_cells``:
+    in the copy with threads (order 2 on faces), a stage or Heun's merge that sweeps at
+    least that many cells runs in gather form on Numba's threads
+    (:mod:`avflow.numerics.face_gather`: the same bits as step_faces and heun_faces).
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
     Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
@@ -1059,7 +1062,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     changed mends them (:func:`relist`: a spreading flow lists its front, not its area).
 
     A template: :func:`time_loop` gives its copy for the mesh kind and the order, where
-    ``STRUCTURED`` and ``ORDER2`` are constants (``structured`` and ``order`` are not read):
+    ``STRUCTURED``, ``ORDER2`` and ``PARALLEL`` are constants (``structured`` and ``order``
+    are not read):
     Numba drops the branches of the other kinds before it types the function, so a run
     compiles only the sweeps it uses (section 6 at order 1, Coulomb: 27 s -> 7 s cold, this
     machine).
@@ -1071,6 +1075,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     recon = np.zeros((m2 if STRUCTURED else 0, 4))
     velocity = np.zeros((0 if STRUCTURED else m2, 2))  # reconstruct_cells' work
     face_state = np.zeros((0 if STRUCTURED else f2, 2, 3))
+    cell_sums = np.empty((m2 if PARALLEL else 0, N_SUMS))  # the gather form's per-cell sums
     no_emit = np.zeros((0, 7))  # step_faces' emitted values: read at order 1 only
     s_h = np.zeros(m2)
     s_hu = np.zeros(m2)
@@ -1222,16 +1227,28 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                         transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new,
                         peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
             else:  # order 2 on faces, each stage on its own active lists
-                reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_area,
-                                  cur_h, cur_hu, cur_hv, h_zero, cell_face_ptr, cell_face_idx,
-                                  touched, n_touched, velocity, face_state)
-                ok, out, lim, moving, film, clamped, kinetic = step_faces(
-                    face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                    gamma_x, gamma_y, gamma_z, curvature,
-                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
-                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved, active_faces, n_active, touched, n_touched, True,
-                    face_state, False, no_emit)
+                if PARALLEL and n_touched >= min_parallel_cells:  # on threads, same bits
+                    reconstruct_cells_parallel(
+                        face_cells, face_frame, face_length, face_offset, cell_area, cur_h,
+                        cur_hu, cur_hv, h_zero, cell_face_ptr, cell_face_idx, touched,
+                        n_touched, velocity, face_state)
+                    ok, out, lim, moving, film, clamped, kinetic = step_cells_parallel(
+                        face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+                        gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv, nxt_h,
+                        nxt_hu, nxt_hv, flux, transport, flag, law, params, g, dirac, h_zero,
+                        h_dry, dt, dt_decide, active_faces, n_active, touched, n_touched,
+                        cell_face_ptr, cell_face_idx, face_state, cell_sums)
+                else:
+                    reconstruct_cells(face_cells, face_frame, face_length, face_offset,
+                                      cell_area, cur_h, cur_hu, cur_hv, h_zero, cell_face_ptr,
+                                      cell_face_idx, touched, n_touched, velocity, face_state)
+                    ok, out, lim, moving, film, clamped, kinetic = step_faces(
+                        face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+                        gamma_x, gamma_y, gamma_z, curvature,
+                        cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
+                        law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+                        peak_speed, arrival, last_moved, active_faces, n_active, touched,
+                        n_touched, True, face_state, False, no_emit)
                 if ok:
                     n_wet2 = 0
                     for c in range(n_touched):
@@ -1248,25 +1265,46 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     n_active2, n_touched2 = activate(wet2, n_wet2, cell_face_ptr, cell_face_idx,
                                                      face_cells, face_stamp, cell_stamp,
                                                      stamp + 1, active2, touched2)
-                    reconstruct_cells(face_cells, face_frame, face_length, face_offset,
-                                      cell_area, nxt_h, nxt_hu, nxt_hv, h_zero, cell_face_ptr,
-                                      cell_face_idx, touched2, n_touched2, velocity, face_state)
-                    ok, out2, lim, moving, film, clamped2, kinetic = step_faces(
-                        face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                        gamma_x, gamma_y, gamma_z, curvature,
-                        nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag,
-                        law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                        peak_speed, arrival, last_moved, active2, n_active2, touched2,
-                        n_touched2, True, face_state, False, no_emit)
+                    if PARALLEL and n_touched2 >= min_parallel_cells:
+                        reconstruct_cells_parallel(
+                            face_cells, face_frame, face_length, face_offset, cell_area,
+                            nxt_h, nxt_hu, nxt_hv, h_zero, cell_face_ptr, cell_face_idx,
+                            touched2, n_touched2, velocity, face_state)
+                        ok, out2, lim, moving, film, clamped2, kinetic = step_cells_parallel(
+                            face_cells, face_frame, face_length, cell_area, cfl_factor,
+                            density, gamma_x, gamma_y, gamma_z, curvature, nxt_h, nxt_hu,
+                            nxt_hv, s_h, s_hu, s_hv, flux, transport, flag, law, params, g,
+                            dirac, h_zero, h_dry, dt, dt_decide, active2, n_active2, touched2,
+                            n_touched2, cell_face_ptr, cell_face_idx, face_state, cell_sums)
+                    else:
+                        reconstruct_cells(face_cells, face_frame, face_length, face_offset,
+                                          cell_area, nxt_h, nxt_hu, nxt_hv, h_zero,
+                                          cell_face_ptr, cell_face_idx, touched2, n_touched2,
+                                          velocity, face_state)
+                        ok, out2, lim, moving, film, clamped2, kinetic = step_faces(
+                            face_cells, face_frame, face_length, cell_area, cfl_factor,
+                            density, gamma_x, gamma_y, gamma_z, curvature,
+                            nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag,
+                            law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+                            peak_speed, arrival, last_moved, active2, n_active2, touched2,
+                            n_touched2, True, face_state, False, no_emit)
                 if ok:
                     out = 0.5 * (out + out2)
                     clamped += clamped2
                     n_changed = merge_lists(touched, n_touched, touched2, n_touched2, cell_stamp,
                                             stamp + 2, union)
-                    lim, moving, film, kinetic, fallbacks = heun_faces(
-                        union, n_changed, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
-                        transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new,
-                        peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
+                    if PARALLEL and n_changed >= min_parallel_cells:
+                        lim, moving, film, kinetic, fallbacks = heun_cells_parallel(
+                            union, n_changed, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
+                            transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero,
+                            t_new, peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu,
+                            nxt_hv, cell_sums)
+                    else:
+                        lim, moving, film, kinetic, fallbacks = heun_faces(
+                            union, n_changed, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
+                            transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero,
+                            t_new, peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu,
+                            nxt_hv)
                     for c in range(n_changed):
                         flag1[union[c]] = DRY
             if ok:
@@ -1343,6 +1381,10 @@ from avflow.numerics.profile import N_WORK as _PROFILE_WORK  # noqa: E402
 from avflow.numerics.profile import STEP as _PROFILE_STEP  # noqa: E402
 
 from avflow.numerics.face_sweep import STEP as _FACES_STEP  # noqa: E402
+from avflow.numerics.face_gather import N_SUMS  # noqa: E402
+from avflow.numerics.face_gather import heun_cells_parallel as _heun_parallel  # noqa: E402
+from avflow.numerics.face_gather import step_cells_parallel as _step_parallel  # noqa: E402
+from avflow.numerics.reconstruction import reconstruct_cells_parallel as _recon_par  # noqa: E402
 
 #: Placeholders of the order-1 sweeps :func:`_advance`'s copies call (their law's copy):
 #: the profile's and the faces' (:mod:`avflow.numerics.face_sweep`)
@@ -1350,13 +1392,17 @@ profile_step = None
 faces_step = None
 
 
-#: Placeholders of the constants of :func:`_advance`'s copies (see :func:`time_loop`)
-STRUCTURED = ORDER2 = False
+#: Placeholders of the constants of :func:`_advance`'s copies (see :func:`time_loop`), and
+#: of the gather form's functions its copy with threads calls (none in the others)
+STRUCTURED = ORDER2 = PARALLEL = False
+reconstruct_cells_parallel = step_cells_parallel = heun_cells_parallel = None
 
 
-def _advance_for(structured: bool, order2: bool, kind: int | None = None):
+def _advance_for(structured: bool, order2: bool, kind: int | None = None,
+                 parallel: bool = False):
     """:func:`_advance` compiled with the mesh kind and the order constants (and, at order
-    1, calling the sweep of the friction law ``kind``)."""
+    1, calling the sweep of the friction law ``kind``; ``parallel``: order 2 on faces with
+    the gather form's passes on threads, whose functions the other copies never compile)."""
     suffix = f"_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
     names = {}
     if kind is not None:
@@ -1365,21 +1411,30 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None):
             names["profile_step"] = _PROFILE_STEP[kind]
         else:
             names["faces_step"] = _FACES_STEP[kind]
-    return specialize(_advance, suffix, STRUCTURED=structured, ORDER2=order2, **names)
+    if parallel:
+        suffix += "_parallel"
+        names.update(reconstruct_cells_parallel=_recon_par, step_cells_parallel=_step_parallel,
+                     heun_cells_parallel=_heun_parallel)
+    return specialize(_advance, suffix, STRUCTURED=structured, ORDER2=order2,
+                      PARALLEL=parallel, **names)
 
 
-#: The time loop per (structured, order 2, law kind): the law only at order 1, whose
-#: sweeps have a copy per law (:data:`avflow.numerics.profile.STEP`,
-#: :data:`avflow.numerics.face_sweep.STEP`), None at order 2
-ADVANCE = {(s, o, k): _advance_for(s, o, k)
-           for s, o, kinds in ((True, False, tuple(_PROFILE_STEP)), (True, True, (None,)),
-                               (False, False, tuple(_FACES_STEP)), (False, True, (None,)))
-           for k in kinds}
+#: The time loop per (structured, order 2, law kind, threads): the law only at order 1,
+#: whose sweeps have a copy per law (:data:`avflow.numerics.profile.STEP`,
+#: :data:`avflow.numerics.face_sweep.STEP`), None at order 2; threads only at order 2 on
+#: faces
+ADVANCE = {(s, o, k, p): _advance_for(s, o, k, p)
+           for s, o, kinds, threads in (
+               (True, False, tuple(_PROFILE_STEP), (False,)), (True, True, (None,), (False,)),
+               (False, False, tuple(_FACES_STEP), (False,)), (False, True, (None,), (False, True)))
+           for k in kinds for p in threads}
 
 
-def time_loop(structured: bool, order: int, law: int):
+def time_loop(structured: bool, order: int, law: int, parallel: bool = False):
     """The time loop (:func:`_advance`: its arguments, its status codes) compiled for this
     mesh kind (``structured``: a profile) and ``order`` alone (and, at order 1, for the
-    friction ``law``)."""
+    friction ``law``); ``parallel``: with the gather form on threads (order 2 on faces
+    only; elsewhere the serial copy)."""
     structured, order2 = bool(structured), order == 2
-    return ADVANCE[structured, order2, None if order2 else law_kind(law)]
+    parallel = bool(parallel) and order2 and not structured
+    return ADVANCE[structured, order2, None if order2 else law_kind(law), parallel]

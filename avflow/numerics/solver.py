@@ -18,6 +18,7 @@ import numpy as np
 
 from avflow.numerics import kernels as K
 from avflow.numerics import face_sweep  # noqa: I001 (after kernels, which it builds on)
+from avflow.numerics import face_gather
 from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
@@ -104,8 +105,9 @@ class Solver:
     #: stages (:mod:`avflow.numerics.reconstruction`)
     order: int = 1
     limiter: str = "minmod"
-    #: CPU threads of the square-grid kernel (None: Numba's default, every core); the
-    #: answer does not depend on it. 1 runs the serial passes, outside Numba's thread pool.
+    #: CPU threads of the square-grid kernel and of the face kernel at order 2 (None:
+    #: Numba's default, every core); the answer does not depend on it. 1 runs the serial
+    #: passes, outside Numba's thread pool.
     threads: int | None = None
     #: "auto": the square-grid kernel (:mod:`avflow.numerics.square_grid`) on square grids
     #: at order 1, the face kernel elsewhere; "faces": the face kernel everywhere (the
@@ -171,6 +173,8 @@ class Solver:
             self._sweep = face_sweep.unused()
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
                              else np.zeros((0, 2, 2)))
+        #: cells from which an order-2 stage on faces runs on threads (tests lower it)
+        self._gather_from = face_gather.MIN_PARALLEL_CELLS
 
     def _setup_grid(self, layout: SquareGrid) -> None:
         """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
@@ -214,8 +218,10 @@ class Solver:
             self._released = True
 
     def threads_used(self) -> int:
-        """CPU threads the time loop runs on (1 for the face kernel, which is serial)."""
-        if self.kernel_used != "grid":
+        """CPU threads the time loop runs on: the square-grid kernel's, and the face
+        kernel's at order 2 (its gather form, :mod:`avflow.numerics.face_gather`); 1 for
+        profiles and the face kernel at order 1, which are serial."""
+        if self.kernel_used != "grid" and (self.order != 2 or self.terrain.mesh.structured_1d):
             return 1
         import os
 
@@ -330,7 +336,12 @@ class Solver:
         if self._grid is not None:
             return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps)
         m, t = self.terrain.mesh, self.terrain
-        status = K.time_loop(m.structured_1d, self.order, int(self.law))(
+        threads = self.threads_used()
+        if threads > 1:
+            import numba
+
+            numba.set_num_threads(threads)
+        status = K.time_loop(m.structured_1d, self.order, int(self.law), threads > 1)(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
@@ -340,5 +351,5 @@ class Solver:
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
             int(self.order), LIMITERS[self.limiter], self._face_offset,
             self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock,
-            *self._sweep)
+            *self._sweep, self._gather_from)
         return STATUS_NAMES[status]

@@ -625,9 +625,10 @@ class Numerics(_Model):
     """Limited slopes of order 2: minmod (robust at wet/dry fronts; Barth-Jespersen on grids
     and triangles) or mc (monotonized central on profiles, sharper at smooth extrema)."""
     threads: Annotated[int, Field(strict=True, ge=1, le=4096)] | None = None
-    """CPU threads of the time loop (square grids; null: every core of the machine). The
-    answer is the same, bit for bit, whatever the number. Ensemble members run on one
-    thread each unless this is set: members are the better parallelism there."""
+    """CPU threads of the time loop (square grids, and order 2 on grids and triangles;
+    null: every core of the machine). The answer is the same, bit for bit, whatever the
+    number. Ensemble members run on one thread each unless this is set: members are the
+    better parallelism there."""
     kernel: Literal["auto", "grid", "faces"] = "auto"
     """auto: the structured square-grid kernel on square grids at order 1, the face kernel
     elsewhere; faces: the general face kernel everywhere (the reference it is tested

@@ -1,0 +1,296 @@
+"""The face kernel's order-2 step in gather form: each cell sums its own faces, on threads.
+
+The same step as :func:`avflow.numerics.kernels.step_faces` at order 2 (seed eqs. 26-56 on
+the reconstructed face states: rectangular fluxes, trial momentum and Coulomb threshold,
+Dirac faces, projection, curvature and film rules, walls, open sides), bit for bit:
+thickness, discharge, flags, ``transport`` and the step's sums. ``step_faces`` adds each
+face's flux to its two cells as it meets the face (a scatter: two faces of one cell met by
+two threads would write the same place); here each pass writes only its own face or its
+own cell, so the passes run on Numba's threads with no races, and the answer is the same on
+any number of threads:
+
+1. per active face: its fluxes (mass, and the momentum brought to each side) into
+   ``flux[f]``, as step_faces computes them;
+2. per touched cell: the sum of its active faces' fluxes, in index order
+   (:func:`avflow.numerics.kernels.cell_faces` lists a cell's faces that way; step_faces
+   meets them in that order, so every sum is the same), then its trial momentum (eq. 47)
+   and Coulomb flag (eq. 49);
+3. per touched cell: the mass through its faces that are not Dirac (eqs. 51-53, from both
+   sides' flags) and what a dry cell takes back through a Dirac face, again in index order;
+4. per touched cell: the new thickness and the projection of eq. 50; its terms of the
+   step's sums into ``cell_sums``, added afterwards cell after cell in the list's order
+   (step_faces' order), as is the volume that left through open faces (face order).
+
+A face is active (listed by :func:`~avflow.numerics.kernels.activate`) when a side is wet,
+``h > h_zero``: a cell reads that from the state rather than from the lists' stamps, which
+the second stage of a step overwrites.
+
+Written apart from step_faces on purpose, as :mod:`avflow.numerics.face_sweep` is: a helper
+they shared would hide its faults from the test that holds one to the other
+(``tests/test_face_gather.py``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit, prange
+
+from avflow.numerics.kernels import (DRY, OUTFLOW, UNDER_THRESHOLD, WALL, _centripetal,
+                                     _dirac_face, _emitted, _final_momentum, _limit, _moves,
+                                     _observe, _open_mass, _speed, _trial_momentum)
+from avflow.numerics.kinetic import half_flux_in, half_flux_out
+from avflow.numerics.vectorize import specialize
+
+#: A stage (or Heun's merge) that sweeps fewer cells than this runs serially, on step_faces
+#: and heun_faces (the measured break-even; see the README's order-2 figures)
+MIN_PARALLEL_CELLS = 1024
+
+# Columns of the per-cell work array ``cell_sums`` (n, N_SUMS): a cell's terms of the sums
+S_FAIL, S_INV, S_MOVING, S_FILM, S_KINETIC, S_COUNT = range(6)
+N_SUMS = 6
+
+
+def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+               gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flux,
+               transport, flag, law, params, g, dirac, h_zero, h_dry, dt, dt_decide,
+               active_faces, n_active, touched, n_touched, cell_face_ptr, cell_face_idx,
+               face_state, cell_sums):
+    """One order-2 stage on the listed faces and cells (step_faces' arguments at order 2;
+    ``cell_face_ptr, cell_face_idx``: the cells' faces in index order; ``cell_sums``: work,
+    (n, :data:`N_SUMS`)). Returns ``(ok, outflow, dt_limit, moving, film, clamped,
+    kinetic)`` as step_faces does."""
+    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
+    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+
+    # --- 1: each active face's fluxes, each side in its own cell's basis
+    for a in prange(n_active):
+        f = active_faces[a]
+        i = face_cells[f, 0]
+        j = face_cells[f, 1]
+        ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
+        ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
+        length = face_length[f]
+        hi = qi1 = qi2 = 0.0
+        if h[i] > h_zero:
+            hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
+        hi, ui1, ui2, ci, si, khi, k3i = _emitted(hi, qi1, qi2, 0.0, g * gamma_z[i], density[i])
+        uni = ui1 * ni_x + ui2 * ni_y
+        uti = ui1 * ti_x + ui2 * ti_y
+        fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
+        nj_x = nj_y = tj_x = tj_y = 0.0
+        if j >= 0:
+            nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
+            tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
+            hj = qj1 = qj2 = 0.0
+            if h[j] > h_zero:
+                hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
+            hj, uj1, uj2, cj, sj, khj, k3j = _emitted(hj, qj1, qj2, 0.0, g * gamma_z[j],
+                                                      density[j])
+            unj = uj1 * nj_x + uj2 * nj_y
+            utj = uj1 * tj_x + uj2 * tj_y
+            gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
+        elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
+            gm_h = -fp_h
+            gm_q = fp_q
+            utj = uti
+        else:  # open side: transmissive for what leaves, closed to what would enter
+            gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
+            gm_h = _open_mass(fp_h + gm_h) - fp_h
+            utj = uti
+        f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
+        f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
+        flux[f, 0] = (fp_h + gm_h) * length
+        flux[f, 1] = f_n * ni_x + f_t * ti_x
+        flux[f, 2] = f_n * ni_y + f_t * ti_y
+        if j >= 0:
+            flux[f, 3] = f_n * nj_x + f_t * tj_x
+            flux[f, 4] = f_n * nj_y + f_t * tj_y
+
+    # --- 2: each cell's sum of its active faces (index order), trial state and flag
+    for c in prange(n_touched):
+        i = touched[c]
+        wet = h[i] > h_zero
+        rate_h = 0.0
+        rate_x = 0.0
+        rate_y = 0.0
+        for p in range(cell_face_ptr[i], cell_face_ptr[i + 1]):
+            f = cell_face_idx[p]
+            if face_cells[f, 0] == i:
+                j = face_cells[f, 1]
+                if wet or (j >= 0 and h[j] > h_zero):
+                    rate_h -= flux[f, 0]
+                    rate_x -= flux[f, 1]
+                    rate_y -= flux[f, 2]
+            elif wet or h[face_cells[f, 0]] > h_zero:
+                rate_h += flux[f, 0]
+                rate_x += flux[f, 3]
+                rate_y += flux[f, 4]
+        if not wet:  # dry: keep the momentum rate, formed in pass 4 with its mass
+            flag[i] = DRY
+            hu_new[i] = rate_x
+            hv_new[i] = rate_y
+            continue
+        inv_area = 1.0 / cell_area[i]
+        qx, qy, fi = _trial_momentum(h[i], h_zero, _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
+                                     rate_h * inv_area, rate_x * inv_area, rate_y * inv_area,
+                                     dt, dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
+                                     _centripetal(curvature, i, h[i], hu[i], hv[i]),
+                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, True)
+        hu_new[i] = qx
+        hv_new[i] = qy
+        flag[i] = fi
+
+    # --- 3: mass through the faces that keep the rectangular density (index order)
+    for c in prange(n_touched):
+        i = touched[c]
+        wet = h[i] > h_zero
+        dry = flag[i] == DRY
+        mass = 0.0
+        qx = hu_new[i]
+        qy = hv_new[i]
+        unit_max = 0.0
+        for p in range(cell_face_ptr[i], cell_face_ptr[i + 1]):
+            f = cell_face_idx[p]
+            k = face_cells[f, 0]
+            j = face_cells[f, 1]
+            first = k == i
+            if first:
+                if not (wet or (j >= 0 and h[j] > h_zero)):
+                    continue
+            elif not (wet or h[k] > h_zero):
+                continue
+            if _dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
+                # a dry side takes momentum only with mass: the Dirac face (u = 0, eq. 53)
+                # carries neither, not even the resting neighbour's pressure
+                if dry:
+                    if first:
+                        qx += flux[f, 1]
+                        qy += flux[f, 2]
+                    else:
+                        qx -= flux[f, 3]
+                        qy -= flux[f, 4]
+                continue
+            fh = flux[f, 0]
+            if first:
+                mass -= fh
+            else:
+                mass += fh
+            unit_max = max(unit_max, abs(fh) / face_length[f])
+        h_new[i] = mass
+        hu_new[i] = qx
+        hv_new[i] = qy
+        transport[i] = unit_max
+
+    # --- 4: new thickness, projection; each cell's terms of the sums
+    for c in prange(n_touched):
+        i = touched[c]
+        area = cell_area[i]
+        hn = h[i] + dt / area * h_new[i]
+        cell_sums[i, S_FAIL] = 1.0 if hn < 0.0 else 0.0
+        speed_n = _speed(h[i], hu[i], hv[i])
+        qx = hu_new[i]
+        qy = hv_new[i]
+        if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
+            qx = dt * (qx / area + g * hn * gamma_x[i])
+            qy = dt * (qy / area + g * hn * gamma_y[i])
+        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
+                                     _centripetal(curvature, i, h[i], hu[i], hv[i]),
+                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[i], True)
+        h_new[i] = hn
+        hu_new[i] = qx
+        hv_new[i] = qy
+        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        cell_sums[i, S_INV] = inv_i
+        cell_sums[i, S_KINETIC] = hn * area * speed * speed
+        moves = _moves(speed, speed_n, transport[i], hn)
+        cell_sums[i, S_MOVING] = hn * area if moves and hn > h_dry else 0.0
+        cell_sums[i, S_FILM] = hn * area if moves and hn <= h_dry else 0.0
+        cell_sums[i, S_COUNT] = cl
+
+    # the sums, cell after cell in the list's order; the outflow face after face
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    clamped = 0
+    kinetic = 0.0
+    for c in range(n_touched):
+        i = touched[c]
+        if cell_sums[i, S_FAIL] != 0.0:
+            return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
+        inv_lim = max(inv_lim, cell_sums[i, S_INV])
+        clamped += int(cell_sums[i, S_COUNT])
+        kinetic += cell_sums[i, S_KINETIC]
+        moving += cell_sums[i, S_MOVING]
+        film += cell_sums[i, S_FILM]
+    outflow = 0.0
+    for a in range(n_active):
+        f = active_faces[a]
+        if face_cells[f, 1] == OUTFLOW:
+            i = face_cells[f, 0]
+            if not _dirac_face(dirac, flag[i], flag[i]):
+                outflow += max(flux[f, 0], 0.0) * dt
+    return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
+
+
+def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cell_area,
+               cfl_factor, gamma_z, g, h_dry, h_zero, t_new, peak_h, peak_speed, arrival,
+               last_moved, h_new, hu_new, hv_new, cell_sums):
+    """:func:`avflow.numerics.kernels.heun_faces` on threads: Heun's average of the two
+    stages and the observers per cell, each cell's terms of the sums into ``cell_sums``,
+    added afterwards in the list's order (the same bits). Returns ``(dt_limit, moving, film,
+    kinetic, fallbacks)``."""
+    for c in prange(n_cells):
+        i = cells[c]
+        # U^{n+1} = (U^n + U**) / 2, the first-order answer q = 0 where the first stage
+        # put the cell under the Coulomb threshold (see heun_faces)
+        hn = 0.5 * (h0[i] + h2[i])
+        qx = 0.5 * (hu0[i] + hu2[i])
+        qy = 0.5 * (hv0[i] + hv2[i])
+        stopped = flag1[i] == UNDER_THRESHOLD
+        fell_back = 0.0
+        if hn <= h_zero or stopped:
+            if stopped and (qx != 0.0 or qy != 0.0):
+                fell_back = 1.0
+            qx = 0.0
+            qy = 0.0
+        h_new[i] = hn
+        hu_new[i] = qx
+        hv_new[i] = qy
+        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        if hn > peak_h[i]:
+            peak_h[i] = hn
+        if speed > peak_speed[i]:
+            peak_speed[i] = speed
+        if hn > h_dry and math.isnan(arrival[i]):
+            arrival[i] = t_new
+        if speed > 0.0:
+            last_moved[i] = t_new
+        area = cell_area[i]
+        moves = _moves(speed, _speed(h0[i], hu0[i], hv0[i]), transport[i], hn)
+        cell_sums[i, S_INV] = inv_i
+        cell_sums[i, S_KINETIC] = hn * area * speed * speed
+        cell_sums[i, S_MOVING] = hn * area if moves and hn > h_dry else 0.0
+        cell_sums[i, S_FILM] = hn * area if moves and hn <= h_dry else 0.0
+        cell_sums[i, S_COUNT] = fell_back
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    fallbacks = 0
+    for c in range(n_cells):
+        i = cells[c]
+        inv_lim = max(inv_lim, cell_sums[i, S_INV])
+        kinetic += cell_sums[i, S_KINETIC]
+        moving += cell_sums[i, S_MOVING]
+        film += cell_sums[i, S_FILM]
+        fallbacks += int(cell_sums[i, S_COUNT])
+    return _limit(inv_lim), moving, film, kinetic, fallbacks
+
+
+#: Each compiled twice under its own name: on Numba's threads, and serial (``prange`` runs
+#: as ``range`` without ``parallel``), which tests hold to step_faces on one thread
+step_cells_parallel = specialize(step_cells, "_parallel", parallel=True)
+heun_cells_parallel = specialize(heun_cells, "_parallel", parallel=True)
+step_cells_serial = specialize(step_cells, "_serial")
+heun_cells_serial = specialize(heun_cells, "_serial")
