@@ -35,6 +35,23 @@ def coulomb(terrain, delta_deg, **kw):
     return Solver(terrain, Law.COULOMB, params, **kw)
 
 
+def bump_on_a_slope(mesh_kind):
+    """A 25 m bump on a 25 degree slope, 300 x 200 m: triangles refined where it curves (a
+    tangent basis per node) with walls, or its DEM grid (10 m) with a NODATA hole and an
+    open lower side (x_max). Order 2's tests of fronts, dry neighbours and the map's edge."""
+    from avflow.terrain.bed import surface_terrain
+    from avflow.terrain.trimesh import triangle_terrain
+
+    x, y = np.arange(0.0, 301.0, 10.0), np.arange(0.0, 201.0, 10.0)
+    xx, yy = np.meshgrid(x, y)
+    z = -math.tan(math.radians(25.0)) * xx + 25.0 * np.exp(
+        -((xx - 200.0) ** 2 + (yy - 100.0) ** 2) / 50.0**2)
+    if mesh_kind == "triangles":
+        return triangle_terrain(z, x, y, walls(), refine_angle_deg=4.0, refine_levels=1)
+    z[8:11, 15:18] = np.nan
+    return surface_terrain(z, x, y, walls(x_max="outflow"))
+
+
 def cylinder(terrain, centre, radius=80.0, thickness=10.0):
     """Thickness of a cylinder release (horizontal radius) at the cell centres of a 2D mesh."""
     xx, yy = terrain.cell_xy()

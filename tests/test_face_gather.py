@@ -17,9 +17,7 @@ from avflow.numerics import kernels as K
 from avflow.numerics.reconstruction import reconstruct_cells
 from avflow.numerics.rheology import Law
 from avflow.numerics.solver import Solver
-from avflow.terrain.bed import surface_terrain
-from avflow.terrain.trimesh import triangle_terrain
-from conftest import cylinder, walls
+from conftest import bump_on_a_slope, cylinder
 
 OBSERVERS = ("peak_h", "peak_speed", "arrival", "last_moved")
 
@@ -27,19 +25,6 @@ OBSERVERS = ("peak_h", "peak_speed", "arrival", "last_moved")
 def bits(a):
     """The bit patterns of a float array: -0.0 and +0.0 differ, NaN equals NaN."""
     return np.ascontiguousarray(a).view(np.int64)
-
-
-def bumpy(mesh_kind):
-    """A bump on a 25 degree slope: triangles refined where it curves (a tangent basis per
-    node) with walls, or its DEM grid with a NODATA hole and an open lower side."""
-    x, y = np.arange(0.0, 301.0, 10.0), np.arange(0.0, 201.0, 10.0)
-    xx, yy = np.meshgrid(x, y)
-    z = -math.tan(math.radians(25.0)) * xx + 25.0 * np.exp(
-        -((xx - 200.0) ** 2 + (yy - 100.0) ** 2) / 50.0**2)
-    if mesh_kind == "triangles":
-        return triangle_terrain(z, x, y, walls(), refine_angle_deg=4.0, refine_levels=1)
-    z[8:11, 15:18] = np.nan
-    return surface_terrain(z, x, y, walls(x_max="outflow"))
 
 
 def solver_for(terrain, law, params, **kw):
@@ -59,7 +44,7 @@ def test_a_stage_in_gather_form_is_step_faces(mesh_kind, law, params):
     stage, and heun_cells against heun_faces, at six times of an order-2 run with fronts,
     dry neighbours, Dirac faces, an open side and the film rule: state, flags, transport,
     fluxes of the active faces, observers and every returned sum, bit for bit."""
-    terrain = bumpy(mesh_kind)
+    terrain = bump_on_a_slope(mesh_kind)
     solver = solver_for(terrain, law, params, h_zero=1e-6, h_dry=0.01)
     state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
     m = terrain.mesh
@@ -161,7 +146,7 @@ def test_one_and_two_threads_give_the_same_run(mesh_kind):
     those reported."""
     runs = []
     for threads in (1, 2):
-        terrain = bumpy(mesh_kind)
+        terrain = bump_on_a_slope(mesh_kind)
         solver = solver_for(terrain, *LAWS[0], h_zero=1e-6, h_dry=0.01, threads=threads,
                             kernel="faces")
         solver._gather_from = 1

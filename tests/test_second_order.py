@@ -19,7 +19,8 @@ from avflow.scenario import load_scenario, parse_scenario
 from avflow.simulation.runner import simulate
 from avflow.terrain.bed import plane_terrain, profile_terrain, surface_terrain
 from avflow.terrain.trimesh import plane_triangle_terrain
-from conftest import SCENARIOS, centroid, coulomb, cylinder, slope_profile, walls
+from conftest import (SCENARIOS, bump_on_a_slope, centroid, coulomb, cylinder,
+                      slope_profile, walls)
 
 
 def hump_run(dx, order, limiter="minmod", length=3000.0):
@@ -124,17 +125,8 @@ def test_the_cell_reconstruction_is_the_face_reconstruction(mesh):
     dry neighbours and the map's edge: triangles on a refined curved bed (a tangent basis
     per node) and a DEM grid with a NODATA hole and an open side."""
     from avflow.numerics.reconstruction import N_WORK, reconstruct_cells, reconstruct_faces
-    from avflow.terrain.trimesh import triangle_terrain
 
-    x, y = np.arange(0.0, 301.0, 10.0), np.arange(0.0, 201.0, 10.0)
-    xx, yy = np.meshgrid(x, y)
-    z = -math.tan(math.radians(25.0)) * xx + 25.0 * np.exp(
-        -((xx - 200.0) ** 2 + (yy - 100.0) ** 2) / 50.0**2)
-    if mesh == "triangles":
-        terrain = triangle_terrain(z, x, y, walls(), refine_angle_deg=4.0, refine_levels=1)
-    else:
-        z[8:11, 15:18] = np.nan
-        terrain = surface_terrain(z, x, y, walls(x_max="outflow"))
+    terrain = bump_on_a_slope(mesh)
     solver = coulomb(terrain, 20.0, h_zero=1e-6, order=2)
     state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
     m = terrain.mesh

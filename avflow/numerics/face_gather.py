@@ -187,7 +187,6 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         i = touched[c]
         area = cell_area[i]
         hn = h[i] + dt / area * h_new[i]
-        cell_sums[i, S_FAIL] = 1.0 if hn < 0.0 else 0.0
         speed_n = _speed(h[i], hu[i], hv[i])
         qx = hu_new[i]
         qy = hv_new[i]
@@ -201,28 +200,13 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         hu_new[i] = qx
         hv_new[i] = qy
         speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
-        cell_sums[i, S_INV] = inv_i
-        cell_sums[i, S_KINETIC] = hn * area * speed * speed
-        moves = _moves(speed, speed_n, transport[i], hn)
-        cell_sums[i, S_MOVING] = hn * area if moves and hn > h_dry else 0.0
-        cell_sums[i, S_FILM] = hn * area if moves and hn <= h_dry else 0.0
-        cell_sums[i, S_COUNT] = cl
+        _keep_terms(cell_sums, i, hn < 0.0, inv_i, hn, area, speed,
+                    _moves(speed, speed_n, transport[i], hn), h_dry, cl)
 
     # the sums, cell after cell in the list's order; the outflow face after face
-    inv_lim = 0.0
-    moving = 0.0
-    film = 0.0
-    clamped = 0
-    kinetic = 0.0
-    for c in range(n_touched):
-        i = touched[c]
-        if cell_sums[i, S_FAIL] != 0.0:
-            return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
-        inv_lim = max(inv_lim, cell_sums[i, S_INV])
-        clamped += int(cell_sums[i, S_COUNT])
-        kinetic += cell_sums[i, S_KINETIC]
-        moving += cell_sums[i, S_MOVING]
-        film += cell_sums[i, S_FILM]
+    failed, lim, moving, film, kinetic, clamped = _add_terms(touched, n_touched, cell_sums)
+    if failed:
+        return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
     outflow = 0.0
     for a in range(n_active):
         f = active_faces[a]
@@ -230,7 +214,7 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             i = face_cells[f, 0]
             if not _dirac_face(dirac, flag[i], flag[i]):
                 outflow += max(flux[f, 0], 0.0) * dt
-    return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
+    return True, outflow, lim, moving, film, clamped, kinetic
 
 
 def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cell_area,
@@ -248,10 +232,10 @@ def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cel
         qx = 0.5 * (hu0[i] + hu2[i])
         qy = 0.5 * (hv0[i] + hv2[i])
         stopped = flag1[i] == UNDER_THRESHOLD
-        fell_back = 0.0
+        fell_back = 0
         if hn <= h_zero or stopped:
             if stopped and (qx != 0.0 or qy != 0.0):
-                fell_back = 1.0
+                fell_back = 1
             qx = 0.0
             qy = 0.0
         h_new[i] = hn
@@ -266,26 +250,46 @@ def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cel
             arrival[i] = t_new
         if speed > 0.0:
             last_moved[i] = t_new
-        area = cell_area[i]
-        moves = _moves(speed, _speed(h0[i], hu0[i], hv0[i]), transport[i], hn)
-        cell_sums[i, S_INV] = inv_i
-        cell_sums[i, S_KINETIC] = hn * area * speed * speed
-        cell_sums[i, S_MOVING] = hn * area if moves and hn > h_dry else 0.0
-        cell_sums[i, S_FILM] = hn * area if moves and hn <= h_dry else 0.0
-        cell_sums[i, S_COUNT] = fell_back
+        _keep_terms(cell_sums, i, False, inv_i, hn, cell_area[i], speed,
+                    _moves(speed, _speed(h0[i], hu0[i], hv0[i]), transport[i], hn), h_dry,
+                    fell_back)
+    _, lim, moving, film, kinetic, fallbacks = _add_terms(cells, n_cells, cell_sums)
+    return lim, moving, film, kinetic, fallbacks
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _keep_terms(cell_sums, i, failed, inv_lim, hn, area, speed, moves, h_dry, count):
+    """Cell i's terms of a step's sums (as step_faces and heun_faces add them) into its
+    row of ``cell_sums``: whether its thickness turned negative, its inverse CFL limit, its
+    kinetic energy, its moving or film volume (``moves``: it carried mass), a count."""
+    cell_sums[i, S_FAIL] = 1.0 if failed else 0.0
+    cell_sums[i, S_INV] = inv_lim
+    cell_sums[i, S_KINETIC] = hn * area * speed * speed
+    cell_sums[i, S_MOVING] = hn * area if moves and hn > h_dry else 0.0
+    cell_sums[i, S_FILM] = hn * area if moves and hn <= h_dry else 0.0
+    cell_sums[i, S_COUNT] = count
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _add_terms(cells, n_cells, cell_sums):
+    """The sums of the listed cells' terms, cell after cell in the list's order (that of
+    step_faces and heun_faces: the same bits; a volume that does not move adds 0.0, which
+    changes no sum): ``(failed, dt_limit, moving, film, kinetic, count)``."""
+    failed = False
     inv_lim = 0.0
     moving = 0.0
     film = 0.0
     kinetic = 0.0
-    fallbacks = 0
+    count = 0
     for c in range(n_cells):
         i = cells[c]
+        failed = failed or cell_sums[i, S_FAIL] != 0.0
         inv_lim = max(inv_lim, cell_sums[i, S_INV])
         kinetic += cell_sums[i, S_KINETIC]
         moving += cell_sums[i, S_MOVING]
         film += cell_sums[i, S_FILM]
-        fallbacks += int(cell_sums[i, S_COUNT])
-    return _limit(inv_lim), moving, film, kinetic, fallbacks
+        count += int(cell_sums[i, S_COUNT])
+    return failed, _limit(inv_lim), moving, film, kinetic, count
 
 
 #: Each compiled twice under its own name: on Numba's threads, and serial (``prange`` runs
