@@ -303,17 +303,36 @@ def test_bad_ensemble_file_one_clear_error_before_any_member(case, tmp_path, cap
         load_ensemble(path)
 
 
+@pytest.mark.parametrize("port_8787", ["free", "taken"])
 def test_bad_ensemble_file_with_workers_closes_the_cluster_started_meanwhile(tmp_path,
-                                                                            capsys):
+                                                                            capsys, port_8787):
     """--workers N starts the local cluster while the file is checked: a refused file is
-    still one line, exit 2, and the cluster is gone."""
+    still one line, exit 2, and the cluster is gone. So too where another dask cluster on
+    this machine holds port 8787, the default port of a scheduler's HTTP server, which it
+    starts even without a dashboard (dask warned on stderr then: "Port 8787 is already in
+    use")."""
     import multiprocessing
+    import socket
+    import warnings
 
     body, field, message = next(iter(BAD.values()))
     base = coarse_base(tmp_path)
     path = write(tmp_path, f"name: bad\nbase: {base.name}\n{body}", "bad_ensemble.yaml")
     out = tmp_path / "out"
-    assert main(["ensemble", str(path), "-o", str(out), "--workers", "1"]) == 2
+    holder = socket.socket()
+    try:
+        if port_8787 == "taken":
+            try:
+                holder.bind(("", 8787))
+                holder.listen()
+            except OSError:  # held already (another cluster): the case itself
+                pass
+        with warnings.catch_warnings(record=True) as caught:  # (the CLI prints them)
+            warnings.simplefilter("always")
+            assert main(["ensemble", str(path), "-o", str(out), "--workers", "1"]) == 2
+    finally:
+        holder.close()
+    assert not [str(w.message) for w in caught if "already in use" in str(w.message)]
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists() and not multiprocessing.active_children()

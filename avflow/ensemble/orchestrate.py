@@ -846,9 +846,13 @@ class _ClusterStart(threading.Thread):
 
         started = time.perf_counter()
         try:
+            # no dashboard; the scheduler's HTTP server (health, metrics), which it starts
+            # anyway, on a free port: on its default, 8787, a second cluster on the machine
+            # made dask warn on stderr that the port was taken
             self.cluster = LocalCluster(
                 n_workers=self.n, threads_per_worker=1, processes=True,
-                dashboard_address=None, silence_logs=logging.ERROR, env=self.env,
+                dashboard_address=None, scheduler_kwargs={"dashboard_address": ":0"},
+                silence_logs=logging.ERROR, env=self.env,
                 preload=["avflow.ensemble.orchestrate"])  # dask_setup, in each worker
         except BaseException as err:  # noqa: BLE001 - raised in the caller's thread
             self.error = err
