@@ -1227,28 +1227,14 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                         transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new,
                         peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
             else:  # order 2 on faces, each stage on its own active lists
-                if PARALLEL and n_touched >= min_parallel_cells:  # on threads, same bits
-                    reconstruct_cells_parallel(
-                        face_cells, face_frame, face_length, face_offset, cell_area, cur_h,
-                        cur_hu, cur_hv, h_zero, cell_face_ptr, cell_face_idx, touched,
-                        n_touched, velocity, face_state)
-                    ok, out, lim, moving, film, clamped, kinetic = step_cells_parallel(
-                        face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                        gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv, nxt_h,
-                        nxt_hu, nxt_hv, flux, transport, flag, law, params, g, dirac, h_zero,
-                        h_dry, dt, dt_decide, active_faces, n_active, touched, n_touched,
-                        cell_face_ptr, cell_face_idx, face_state, cell_sums)
-                else:
-                    reconstruct_cells(face_cells, face_frame, face_length, face_offset,
-                                      cell_area, cur_h, cur_hu, cur_hv, h_zero, cell_face_ptr,
-                                      cell_face_idx, touched, n_touched, velocity, face_state)
-                    ok, out, lim, moving, film, clamped, kinetic = step_faces(
-                        face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                        gamma_x, gamma_y, gamma_z, curvature,
-                        cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, transport, flag,
-                        law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                        peak_speed, arrival, last_moved, active_faces, n_active, touched,
-                        n_touched, True, face_state, False, no_emit)
+                ok, out, lim, moving, film, clamped, kinetic = order2_stage(
+                    face_cells, face_frame, face_length, face_offset, cell_area, cfl_factor,
+                    density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv,
+                    nxt_h, nxt_hu, nxt_hv, flux, transport, flag, law, params, g, dirac,
+                    h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival,
+                    last_moved, active_faces, n_active, touched, n_touched, cell_face_ptr,
+                    cell_face_idx, velocity, face_state, no_emit, cell_sums,
+                    min_parallel_cells)
                 if ok:
                     n_wet2 = 0
                     for c in range(n_touched):
@@ -1265,29 +1251,14 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     n_active2, n_touched2 = activate(wet2, n_wet2, cell_face_ptr, cell_face_idx,
                                                      face_cells, face_stamp, cell_stamp,
                                                      stamp + 1, active2, touched2)
-                    if PARALLEL and n_touched2 >= min_parallel_cells:
-                        reconstruct_cells_parallel(
-                            face_cells, face_frame, face_length, face_offset, cell_area,
-                            nxt_h, nxt_hu, nxt_hv, h_zero, cell_face_ptr, cell_face_idx,
-                            touched2, n_touched2, velocity, face_state)
-                        ok, out2, lim, moving, film, clamped2, kinetic = step_cells_parallel(
-                            face_cells, face_frame, face_length, cell_area, cfl_factor,
-                            density, gamma_x, gamma_y, gamma_z, curvature, nxt_h, nxt_hu,
-                            nxt_hv, s_h, s_hu, s_hv, flux, transport, flag, law, params, g,
-                            dirac, h_zero, h_dry, dt, dt_decide, active2, n_active2, touched2,
-                            n_touched2, cell_face_ptr, cell_face_idx, face_state, cell_sums)
-                    else:
-                        reconstruct_cells(face_cells, face_frame, face_length, face_offset,
-                                          cell_area, nxt_h, nxt_hu, nxt_hv, h_zero,
-                                          cell_face_ptr, cell_face_idx, touched2, n_touched2,
-                                          velocity, face_state)
-                        ok, out2, lim, moving, film, clamped2, kinetic = step_faces(
-                            face_cells, face_frame, face_length, cell_area, cfl_factor,
-                            density, gamma_x, gamma_y, gamma_z, curvature,
-                            nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag,
-                            law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                            peak_speed, arrival, last_moved, active2, n_active2, touched2,
-                            n_touched2, True, face_state, False, no_emit)
+                    ok, out2, lim, moving, film, clamped2, kinetic = order2_stage(
+                        face_cells, face_frame, face_length, face_offset, cell_area,
+                        cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, nxt_h,
+                        nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag, law, params, g,
+                        dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
+                        arrival, last_moved, active2, n_active2, touched2, n_touched2,
+                        cell_face_ptr, cell_face_idx, velocity, face_state, no_emit, cell_sums,
+                        min_parallel_cells)
                 if ok:
                     out = 0.5 * (out + out2)
                     clamped += clamped2
@@ -1392,10 +1363,47 @@ profile_step = None
 faces_step = None
 
 
-#: Placeholders of the constants of :func:`_advance`'s copies (see :func:`time_loop`), and
-#: of the gather form's functions its copy with threads calls (none in the others)
+def _stage_faces(face_cells, face_frame, face_length, face_offset, cell_area, cfl_factor,
+                 density, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new,
+                 hv_new, flux, transport, flag, law, params, g, dirac, h_dry, h_zero, dt,
+                 dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, active_faces,
+                 n_active, touched, n_touched, cell_face_ptr, cell_face_idx, velocity,
+                 face_state, no_emit, cell_sums, min_parallel_cells):
+    """One stage of order 2 on faces, from ``(h, hu, hv)`` into ``(h_new, hu_new, hv_new)``
+    on the listed faces and cells: the reconstruction (``face_state``), then the step.
+    In the copy with threads (``PARALLEL``) a stage of at least ``min_parallel_cells``
+    cells runs both in gather form on Numba's threads (:mod:`avflow.numerics.face_gather`,
+    the same bits), any other on :func:`reconstruct_cells` and :func:`step_faces`.
+    Returns step_faces' ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
+    if PARALLEL and n_touched >= min_parallel_cells:
+        reconstruct_cells_parallel(face_cells, face_frame, face_length, face_offset,
+                                   cell_area, h, hu, hv, h_zero, cell_face_ptr, cell_face_idx,
+                                   touched, n_touched, velocity, face_state)
+        return step_cells_parallel(
+            face_cells, face_frame, face_length, cell_area, cfl_factor, density, gamma_x,
+            gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flux, transport,
+            flag, law, params, g, dirac, h_zero, h_dry, dt, dt_decide, active_faces, n_active,
+            touched, n_touched, cell_face_ptr, cell_face_idx, face_state, cell_sums)
+    reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_area, h, hu, hv,
+                      h_zero, cell_face_ptr, cell_face_idx, touched, n_touched, velocity,
+                      face_state)
+    return step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+                      gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new,
+                      flux, transport, flag, law, params, g, dirac, h_dry, h_zero, dt,
+                      dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, active_faces,
+                      n_active, touched, n_touched, True, face_state, False, no_emit)
+
+
+#: Placeholders of the constants of :func:`_advance`'s and :func:`_stage_faces`' copies (see
+#: :func:`time_loop`), and of what their copies with threads call (none in the others)
 STRUCTURED = ORDER2 = PARALLEL = False
-reconstruct_cells_parallel = step_cells_parallel = heun_cells_parallel = None
+reconstruct_cells_parallel = step_cells_parallel = heun_cells_parallel = order2_stage = None
+
+#: :func:`_stage_faces` serial and with threads, each under its own name
+ORDER2_STAGE = {
+    False: specialize(_stage_faces, "_serial", PARALLEL=False),
+    True: specialize(_stage_faces, "_parallel", PARALLEL=True,
+                     reconstruct_cells_parallel=_recon_par, step_cells_parallel=_step_parallel)}
 
 
 def _advance_for(structured: bool, order2: bool, kind: int | None = None,
@@ -1413,10 +1421,9 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
             names["faces_step"] = _FACES_STEP[kind]
     if parallel:
         suffix += "_parallel"
-        names.update(reconstruct_cells_parallel=_recon_par, step_cells_parallel=_step_parallel,
-                     heun_cells_parallel=_heun_parallel)
+        names["heun_cells_parallel"] = _heun_parallel
     return specialize(_advance, suffix, STRUCTURED=structured, ORDER2=order2,
-                      PARALLEL=parallel, **names)
+                      PARALLEL=parallel, order2_stage=ORDER2_STAGE[parallel], **names)
 
 
 #: The time loop per (structured, order 2, law kind, threads): the law only at order 1,
