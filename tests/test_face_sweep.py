@@ -1,6 +1,9 @@
 """The face kernel's order-1 step with vectorised cell passes (avflow.numerics.face_sweep)
 against its reference, kernels.step_faces, step after step on triangles and on a DEM: the
-same bits everywhere (state, flags, observers, and every value the step returns).
+same bits everywhere (state, flags, observers, and every value the step returns). So is its
+gather form (face_sweep._step_threads: each pass writes only its own faces or cells), run
+serially and on 2 threads, its lists cut into pieces of a few cells (pieces_of) so that
+every case spans several pieces, and runs are cut mid-way.
 
 Each step lists the active faces and touched cells as the time loop does, runs both kernels
 on copies of the same state, compares, and goes on from the new kernel's state: a flow
@@ -11,6 +14,7 @@ that sets off, spreads over dry cells, leaves through an open side, and stops in
 import math
 from types import SimpleNamespace as NS
 
+import numba
 import numpy as np
 import pytest
 
@@ -41,7 +45,16 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
     state = solver.new_state(h0)
     mesh = terrain.mesh
     n, n_faces = mesh.n_cells, mesh.n_faces
-    step_new = face_sweep.STEP[law_kind(int(law))]
+    kind = law_kind(int(law))
+    step_new = face_sweep.STEP[kind]
+    # the gather form's geometry and work arrays, its lists cut into pieces of 8 or more
+    gather = (face_sweep.geometry(terrain.mesh, 1.0 / terrain.mesh.cell_area,
+                                  terrain.curvature, solver._cell_face_ptr,
+                                  solver._cell_face_idx, True),
+              face_sweep.work(terrain.mesh.n_cells, terrain.mesh.n_faces, True, min_piece=8,
+                              max_pieces=32))
+    threads = numba.get_num_threads()
+    pieces_seen = 0
     active = np.empty(n_faces, dtype=np.int64)
     touched = np.empty(n, dtype=np.int64)
     face_stamp = np.full(n_faces, -1, dtype=np.int64)
@@ -61,7 +74,7 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
         dt = 0.5 * limit if np.isfinite(limit) else 0.1
         t_new = t + dt
         results, outputs = [], []
-        for kernel in ("reference", "vectorised"):
+        for kernel in ("reference", "vectorised", "gather", "threads"):
             new = [h.copy(), hu.copy(), hv.copy()]  # the buffers agree where nothing is touched
             fl = flag.copy()
             ob = {name: obs[name].copy() for name in OBSERVERS}
@@ -77,27 +90,44 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                                  ob["last_moved"], active, n_active, touched, n_touched,
                                  False, np.zeros((0, 2, 3)), True, emit)
             else:
-                r = step_new(mesh.face_cells, mesh.face_frame, mesh.face_length,
+                step, sweep = step_new, solver._sweep
+                if kernel == "gather":
+                    step, sweep = face_sweep.STEP_GATHER_SERIAL[kind], gather
+                elif kernel == "threads":
+                    step, sweep = face_sweep.STEP_THREADS[kind], gather
+                    numba.set_num_threads(2)
+                try:
+                    r = step(mesh.face_cells, mesh.face_frame, mesh.face_length,
                              mesh.cell_area, solver._cfl_factor, solver._density,
                              terrain.gamma_x, terrain.gamma_y, terrain.gamma_z, h, hu, hv, *new,
                              transport, fl, *law_args, ob["peak_h"], ob["peak_speed"],
                              ob["arrival"], ob["last_moved"], active, n_active, touched,
-                             n_touched, *solver._sweep)
+                             n_touched, *sweep)
+                finally:
+                    numba.set_num_threads(threads)
             results.append(r)
             outputs.append((new, fl, ob))
-        (ref_new, ref_fl, ref_ob), (vec_new, vec_fl, vec_ob) = outputs
+        (ref_new, ref_fl, ref_ob) = outputs[0]
         assert results[0][0], f"step {k} failed"
-        assert results[0] == results[1], f"step {k}: {results[0]} != {results[1]}"
-        for name, a, b in zip(("h", "hu", "hv"), ref_new, vec_new):
-            np.testing.assert_array_equal(bits(a), bits(b), err_msg=f"{name}, step {k}")
-        np.testing.assert_array_equal(ref_fl, vec_fl, err_msg=f"flags, step {k}")
-        for name in OBSERVERS:
-            np.testing.assert_array_equal(bits(ref_ob[name]), bits(vec_ob[name]),
-                                          err_msg=f"{name}, step {k}")
+        for kernel, r, (vec_new, vec_fl, vec_ob) in zip(("vectorised", "gather", "threads"),
+                                                        results[1:], outputs[1:]):
+            where = f"{kernel}, step {k}"
+            assert results[0] == r, f"{where}: {results[0]} != {r}"
+            for name, a, b in zip(("h", "hu", "hv"), ref_new, vec_new):
+                np.testing.assert_array_equal(bits(a), bits(b), err_msg=f"{name}, {where}")
+            np.testing.assert_array_equal(ref_fl, vec_fl, err_msg=f"flags, {where}")
+            for name in OBSERVERS:
+                np.testing.assert_array_equal(bits(ref_ob[name]), bits(vec_ob[name]),
+                                              err_msg=f"{name}, {where}")
+        runs = np.empty(2 * (n + n_faces) + 4, dtype=np.int64)
+        pieces_seen = max(pieces_seen, face_sweep.pieces_of(
+            runs, face_sweep.runs_of(touched, n_touched, runs), n_touched, 8, 32,
+            np.empty(2 * (n_touched + 32), dtype=np.int64), np.empty(33, dtype=np.int64)))
         h, hu, hv = vec_new
         flag, obs, t = vec_fl, vec_ob, t_new
         outflow += results[1][1]
         flags_seen.update(np.unique(flag[touched[:n_touched]]).tolist())
+    assert pieces_seen >= 4  # the gather form's passes ran on several pieces
     return h, flags_seen, outflow
 
 
@@ -316,3 +346,74 @@ def test_the_time_loop_lists_again_only_when_the_wet_cells_change():
                                           bits(getattr(runs[1], name).astype(float)),
                                           err_msg=name)
         np.testing.assert_array_equal(runs[0].stats, runs[1].stats)
+
+
+@pytest.mark.parametrize("mesh_kind, law, params", [
+    ("triangles", Law.COULOMB, (math.tan(math.radians(20.0)),)),
+    ("grid", Law.COULOMB, (math.tan(math.radians(20.0)),)),
+    ("triangles", Law.POULIQUEN, (math.tan(math.radians(20.0)), math.tan(math.radians(32.0)),
+                                  1.0, 0.136))], ids=["triangles", "grid", "pouliquen"])
+def test_one_and_two_threads_give_the_same_run(mesh_kind, law, params):
+    """The order-1 time loop on the face kernel, 1 thread (face_sweep._step) against 2
+    (every step in gather form on the threads: the threshold lowered to 1 cell, the lists
+    cut into pieces of 8 cells or more), in calls of a few output times, with fronts, cells
+    stopping, the film rule and (grid) a NODATA hole and an open side: every state
+    variable, flag, observer and statistic bit for bit; and the threads are those
+    reported."""
+    from conftest import bump_on_a_slope
+
+    runs = []
+    for threads in (1, 2):
+        terrain = bump_on_a_slope(mesh_kind)
+        solver = Solver(terrain, law, np.array(params, dtype=float), kernel="faces",
+                        h_zero=1e-6, h_dry=0.01, threads=threads)
+        assert solver.threads_used() == min(threads, numba.config.NUMBA_NUM_THREADS)
+        if threads > 1:
+            m = terrain.mesh
+            solver._gather_from = 1
+            solver._sweep = (solver._sweep[0], face_sweep.work(m.n_cells, m.n_faces, True,
+                                                                min_piece=8, max_pieces=32))
+        state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
+        snapshots = []
+        for t in (0.5, 3.0, 7.0, 12.0, 20.0, 30.0):
+            solver.advance(state, t)
+            snapshots.append(state.h.copy())
+        runs.append((state, snapshots))
+    (a, sa), (b, sb) = runs
+    for k, (x, y) in enumerate(zip(sa, sb)):
+        np.testing.assert_array_equal(bits(x), bits(y), err_msg=f"h at output {k}")
+    for name in ("h", "hu", "hv", *OBSERVERS, "stats"):
+        np.testing.assert_array_equal(bits(getattr(a, name)), bits(getattr(b, name)),
+                                      err_msg=name)
+    np.testing.assert_array_equal(a.flag, b.flag)
+    assert a.stats[K.ST_STEPS] > 50
+    assert K.UNDER_THRESHOLD in a.flag
+    if mesh_kind == "grid":
+        assert a.stats[K.ST_OUTFLOW] > 0.0
+
+
+def test_a_solver_reused_for_another_release_on_threads_gives_its_own_run():
+    """A solver's work buffers hold the cells of its last run where this one has not touched
+    them yet (they take a cell's state when a step first touches it): the gather form must
+    not read them. A big release, then a small one on the same solver, on 2 threads (every
+    step in gather form), against the small one on a fresh solver on 1 thread."""
+    ter = plane_triangle_terrain(tri_block(25.0, 90.0, x=(0.0, 800.0), y=(0.0, 400.0)), 10.0,
+                                 None, walls())
+    big = cylinder(ter, (400.0, 200.0), radius=150.0, thickness=15.0)
+    small = cylinder(ter, (500.0, 200.0), radius=60.0, thickness=8.0)
+    params = np.array([math.tan(math.radians(22.0))])
+
+    def run(solver, h0):
+        state = solver.new_state(h0)
+        for t in (1.0, 3.0, 6.0):
+            solver.advance(state, t, max_steps=1000)  # (a run gone wrong takes 1e5 steps)
+        return state
+
+    reused = Solver(ter, Law.COULOMB, params, kernel="faces", threads=2)
+    reused._gather_from = 1
+    run(reused, big)
+    a = run(reused, small)
+    b = run(Solver(ter, Law.COULOMB, params, kernel="faces", threads=1), small)
+    for name in ("h", "hu", "hv", *OBSERVERS, "stats"):
+        np.testing.assert_array_equal(bits(getattr(a, name)), bits(getattr(b, name)),
+                                      err_msg=name)

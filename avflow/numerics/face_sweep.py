@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from avflow.numerics.kernels import (DRY, FLOWING, OUTFLOW, TRANSPORT_EPS, WALL, _dirac_face,
                                      _final_momentum, _limit, _observe, _open_mass,
@@ -43,35 +43,65 @@ from avflow.numerics.kernels import (DRY, FLOWING, OUTFLOW, TRANSPORT_EPS, WALL,
 from avflow.numerics.kinetic import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
-from avflow.numerics.vectorize import (friction_law, law_copies, law_label, noalias,
-                                       specialize)
+from avflow.numerics.vectorize import (friction_law, in_select, law_copies, law_label, noalias,
+                                       out_select, specialize)
 
 # Lines of the per-cell work array (N_CELL_LINES, n): what the step's sums need
 C_INV, C_KIN, C_MOV, C_FILM = range(4)
 N_CELL_LINES = 4
 
 
-def geometry(mesh, inv_area, curvature):
+def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=False):
     """What the sweep reads of a mesh besides its frames and lengths, built once (a tuple,
     as the time loop takes it): the faces' cells as int32 (half the bytes a face reads),
-    ``1 / A`` and the curvature as three lines."""
-    return (mesh.face_cells.astype(np.int32), np.ascontiguousarray(inv_area),
-            np.ascontiguousarray(np.asarray(curvature).T))
+    ``1 / A`` and the curvature as three lines; for the gather form on threads
+    (``threads``; empty otherwise), each cell's faces in index order
+    (:func:`~avflow.numerics.kernels.cell_faces`, the solver's), the open faces in index
+    order, and what its vector face pass reads (:func:`_face_lines`): each face's first
+    cell, its second (the first beyond a boundary), its kind (0 between two cells, 1 a
+    wall, 2 an open side) and the frames of both sides as eight lines."""
+    fc = mesh.face_cells
+    pairs = fc.astype(np.int32)
+    empty = (np.empty(0, dtype=np.int64), np.empty(0, dtype=np.uint32),
+             np.empty(0, dtype=np.uint32), np.empty(0, dtype=np.int8), np.empty((8, 0)))
+    gather = empty if not threads else (
+        np.flatnonzero(fc[:, 1] == OUTFLOW).astype(np.int64), fc[:, 0].astype(np.uint32),
+        np.where(fc[:, 1] >= 0, fc[:, 1], fc[:, 0]).astype(np.uint32),
+        np.where(fc[:, 1] >= 0, 0, np.where(fc[:, 1] == WALL, 1, 2)).astype(np.int8),
+        np.ascontiguousarray(mesh.face_frame.reshape(-1, 8).T))
+    return (pairs, np.ascontiguousarray(inv_area),
+            np.ascontiguousarray(np.asarray(curvature).T), cell_face_ptr, cell_face_idx,
+            *gather)
 
 
-def work(n_cells: int, n_faces: int):
+def work(n_cells: int, n_faces: int, threads: bool = False, min_piece: int | None = None,
+         max_pieces: int | None = None):
     """The sweep's work arrays (a tuple), allocated once per solver: the emitted lines, the
-    mass flux of each face, the per-cell lines, the runs of both lists."""
+    mass flux of each face, the per-cell lines, the runs of both lists; for the gather form
+    on threads (``threads``; empty otherwise), the momentum each face brings to its sides
+    (four lines: x, y to its first cell, x, y to its second), the pieces of both lists
+    (:func:`pieces_of`), how they are cut and the steps so far: ``[min_piece, max_pieces,
+    steps]`` (default :data:`MIN_PIECE`, :data:`MAX_PIECES`; tests cut small meshes finer),
+    and per face the step that listed it last."""
+    m, f = (n_cells, n_faces) if threads else (0, 0)
+    cut = np.array([min_piece or MIN_PIECE, max_pieces or MAX_PIECES, 0], dtype=np.int64)
+    n_pieces = int(cut[1])
     return (np.zeros((N_EMIT, n_cells)), np.zeros(n_faces), np.zeros((N_CELL_LINES, n_cells)),
-            np.empty(2 * (n_cells + n_faces) + 4, dtype=np.int64))
+            np.empty(2 * (n_cells + n_faces) + 4, dtype=np.int64), np.zeros((4, f)),
+            np.empty(2 * (m + f) + 6 * n_pieces + 8 if threads else 0, dtype=np.int64), cut,
+            np.full(f, -1, dtype=np.int64))
 
 
 def unused():
     """The same tuples, empty: for the time loops that do not run this sweep (same types,
     so one compiled loop serves both)."""
-    return ((np.empty((0, 2), dtype=np.int32), np.empty(0), np.empty((3, 0))),
+    return ((np.empty((0, 2), dtype=np.int32), np.empty(0), np.empty((3, 0)),
+             np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
+             np.empty(0, dtype=np.int64), np.empty(0, dtype=np.uint32),
+             np.empty(0, dtype=np.uint32), np.empty(0, dtype=np.int8), np.empty((8, 0))),
             (np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
-             np.empty(0, dtype=np.int64)))
+             np.empty(0, dtype=np.int64), np.empty((4, 0)), np.empty(0, dtype=np.int64),
+             np.zeros(3, dtype=np.int64), np.empty(0, dtype=np.int64)))
 
 
 @njit(error_model="numpy", cache=True)
@@ -311,8 +341,8 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             t_kin[i] = hn * area * speed * speed
             t_mov[i] = hn * area if moves & (hn > h_dry) else 0.0
             t_film[i] = hn * area if moves & (hn <= h_dry) else 0.0
-        if n_bad > 0:  # the step is redone: the later runs keep their observers
-            break
+    # (a step with a cell below 0 is redone; every run was updated all the same, so the
+    # observers it leaves do not depend on how the runs were cut for the threads)
     return n_bad, clamped
 
 
@@ -335,8 +365,8 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
     pass is one call over all the runs of its list (a call per run cost a flow on a map 4x
     larger, cut into more runs, a fifth more). Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
-    pairs, inv_area, curv = geo
-    emit, mass, per_cell, runs = wk
+    pairs, inv_area, curv = geo[0], geo[1], geo[2]
+    emit, mass, per_cell, runs = wk[0], wk[1], wk[2], wk[3]
     e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
     t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
     t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
@@ -386,3 +416,280 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
 STEP = {kind: specialize(_step, "_" + law_label(kind), trial_cells=TRIAL[kind],
                          final_cells=FINAL[kind])
         for kind in TRIAL}
+
+
+# --- The same step on threads: its face passes in gather form --------------------------
+#
+# The two face passes above add each face to both its cells as they meet it (a scatter: two
+# threads meeting two faces of one cell would write the same place). On threads each pass
+# writes only its own face or its own cell instead, as numerics.face_gather does at order
+# 2: the fluxes per face into lines, then per cell the sum of its active faces in index
+# order (kernels.cell_faces), the order in which the scatter meets them, so every sum is
+# the same; the cell passes are the vector loops above, each thread on its own pieces of
+# the runs. The same bits as _step (and step_faces) on any number of threads.
+
+#: The lists are cut into at most this many pieces (the threads share them out) ...
+MAX_PIECES = 256
+#: ... of at least this many cells or faces (a piece's vector loops have a scalar end);
+#: the solver's work arrays carry both (:func:`work`)
+MIN_PIECE = 256
+#: A step of fewer touched cells than this runs serially (:func:`_step`) in the copy of
+#: the time loop with threads: waking the pool for its six passes costs more below it
+#: (the measured break-even; see the README's order-1 figures under Kernels and threads)
+MIN_PARALLEL_CELLS = 4096
+
+
+@njit(error_model="numpy", cache=True)
+def pieces_of(runs, n_runs, count, min_piece, max_pieces, segments, bounds):
+    """The runs ``runs[:2 n_runs]`` of a list of ``count`` items (:func:`runs_of`) cut into
+    segments of consecutive indices (``segments[2s], segments[2s + 1]``: first and last),
+    grouped into pieces of about the same number of items: piece p is the segments
+    ``bounds[p] .. bounds[p + 1] - 1``. At most ``max_pieces`` pieces of at least
+    ``min_piece`` items (but the last), so at most ``n_runs + max_pieces`` segments.
+    Returns the number of pieces."""
+    size = max(min_piece, (count + max_pieces - 1) // max_pieces)
+    n_seg = 0
+    n_pieces = 0
+    held = 0
+    bounds[0] = 0
+    for r in range(n_runs):
+        a = runs[2 * r]
+        b = runs[2 * r + 1]
+        while a <= b:
+            e = min(b, a + size - held - 1)
+            segments[2 * n_seg] = a
+            segments[2 * n_seg + 1] = e
+            n_seg += 1
+            held += e - a + 1
+            a = e + 1
+            if held >= size:
+                n_pieces += 1
+                bounds[n_pieces] = n_seg
+                held = 0
+    if held > 0:
+        n_pieces += 1
+        bounds[n_pieces] = n_seg
+    return n_pieces
+
+
+@noalias
+@njit(error_model="numpy", cache=True)
+def _face_lines(f0, f1, first, second, kind, n0x, n0y, t0x, t0y, n1x, n1y, t1x, t1y,
+                face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3, mass, q_ix, q_iy, q_jx,
+                q_jy, marks, mark):
+    """The faces ``f0 .. f1``: :func:`_face_flux`'s numbers into lines (mass, the momentum
+    to each side), in a loop without jumps that LLVM vectorises (the cells' values gathered,
+    every case computed and the one that applies selected: the same operations on the
+    value kept, so the same bits). ``first``, ``second``: the faces' cells (the second is
+    the first beyond a boundary), ``kind``: 0 between two cells, 1 a wall, 2 an open side;
+    the frames of both sides as eight lines. Each face's ``marks[f]`` becomes ``mark``: it
+    is listed in this step."""
+    f0 = max(f0, 0)
+    for k in range(f1 + 1 - f0):
+        f = f0 + k
+        i = first[f]
+        j = second[f]
+        kd = kind[f]
+        ni_x, ni_y, ti_x, ti_y = n0x[f], n0y[f], t0x[f], t0y[f]
+        nj_x, nj_y, tj_x, tj_y = n1x[f], n1y[f], t1x[f], t1y[f]
+        length = face_length[f]
+        hi, ui1, ui2, ci = e_h[i], e_u1[i], e_u2[i], e_c[i]
+        si, khi, k3i = e_s[i], e_kh[i], e_k3[i]
+        uni = ui1 * ni_x + ui2 * ni_y
+        uti = ui1 * ti_x + ui2 * ti_y
+        fp_h, fp_q = out_select(hi, uni, ci, si, khi, k3i)
+        unj = e_u1[j] * nj_x + e_u2[j] * nj_y
+        utj_cell = e_u1[j] * tj_x + e_u2[j] * tj_y
+        in_h, in_q = in_select(e_h[j], unj, e_c[j], e_s[j], e_kh[j], e_k3[j])
+        open_h, open_q = in_select(hi, max(uni, 0.0), ci, si, khi, k3i)
+        open_h = _open_mass(fp_h + open_h) - fp_h
+        inner = kd == 0
+        wall = kd == 1
+        gm_h = in_h if inner else (-fp_h if wall else open_h)
+        gm_q = in_q if inner else (fp_q if wall else open_q)
+        utj = utj_cell if inner else uti
+        f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
+        f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
+        mass[f] = (fp_h + gm_h) * length
+        q_ix[f] = f_n * ni_x + f_t * ti_x
+        q_iy[f] = f_n * ni_y + f_t * ti_y
+        q_jx[f] = f_n * nj_x + f_t * tj_x
+        q_jy[f] = f_n * nj_y + f_t * tj_y
+        marks[f] = mark
+
+
+def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+                  gamma_x, gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport,
+                  flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
+                  peak_speed, arrival, last_moved, active_faces, n_active, touched, n_touched,
+                  geo, wk):
+    """:func:`_step` on Numba's threads (its arguments, its returns, its bits; ``geo`` and
+    ``wk`` from :func:`geometry` and :func:`work` with ``threads``). Each pass writes only
+    its own cells or faces:
+
+    1. per piece of the touched cells, what they emit (:func:`_emit_cells`);
+    2. per piece of the active faces, each face's fluxes: its mass into ``mass[f]``, the
+       momentum to each side into the four lines ``side[:, f]``;
+    3. per touched cell, the sums of its active faces in index order (the scatter's order:
+       the same sums) and the largest ``|F_h| / L``; then the trial and the flags per piece;
+    4. per touched cell at zero temperature, the mass through its faces that are not Dirac
+       and what a dry cell takes back through a Dirac face, in index order (the scatter of
+       :func:`_add_masses`);
+    5. per piece, the new state and the observers (:func:`_final_cells`); then, serially,
+       the volume through the open faces (face order) and the step's sums (list order).
+    """
+    pairs, inv_area, curv = geo[0], geo[1], geo[2]
+    face_ptr, face_idx, open_faces = geo[3], geo[4], geo[5]
+    emit, mass, per_cell, runs, side, pieces = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5]
+    cut, marks = wk[6], wk[7]
+    min_piece, max_pieces = cut[0], cut[1]
+    # A face is active when this step lists it: marked by the face pass with the step's
+    # number (the work buffers hold the state of a cell only once a step touched it in
+    # this call of the time loop: whether a neighbour beyond a touched dry cell is wet
+    # cannot be read from them)
+    cut[2] += 1
+    mark = cut[2]
+    e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
+    e_s, e_kh, e_k3, e_speed = emit[E_S], emit[E_KH], emit[E_K3], emit[E_SPEED]
+    t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
+    t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
+    k11, k12, k22 = curv[0], curv[1], curv[2]
+    n_runs = runs_of(touched, n_touched, runs)  # runs of cells, then of faces
+    face_runs = runs[2 * n_runs:]
+    n_face_runs = runs_of(active_faces, n_active, face_runs)
+    # pieces: the cells' segments and bounds, then the faces'
+    m_seg = 2 * (n_touched + max_pieces)
+    cell_seg = pieces[:m_seg]
+    cell_bounds = pieces[m_seg:m_seg + max_pieces + 1]
+    rest = pieces[m_seg + max_pieces + 1:]
+    f_seg = 2 * (n_active + max_pieces)
+    face_seg = rest[:f_seg]
+    face_bounds = rest[f_seg:f_seg + max_pieces + 1]
+    n_cp = pieces_of(runs, n_runs, n_touched, min_piece, max_pieces, cell_seg, cell_bounds)
+    n_fp = pieces_of(face_runs, n_face_runs, n_active, min_piece, max_pieces, face_seg,
+                     face_bounds)
+    side_ix, side_iy, side_jx, side_jy = side[0], side[1], side[2], side[3]
+
+    # 1. what each touched cell emits
+    for p in prange(n_cp):
+        s0 = cell_bounds[p]
+        _emit_cells(cell_seg[2 * s0:], cell_bounds[p + 1] - s0, h, hu, hv, gamma_z, density,
+                    h_zero, g, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3, e_speed, h_new, hu_new,
+                    hv_new, transport)
+    # 2. each active face's fluxes
+    first, second, kind, fr = geo[6], geo[7], geo[8], geo[9]
+    for p in prange(n_fp):
+        for s in range(face_bounds[p], face_bounds[p + 1]):
+            _face_lines(face_seg[2 * s], face_seg[2 * s + 1], first, second, kind, fr[0],
+                        fr[1], fr[2], fr[3], fr[4], fr[5], fr[6], fr[7], face_length, e_h,
+                        e_u1, e_u2, e_c, e_s, e_kh, e_k3, mass, side_ix, side_iy, side_jx,
+                        side_jy, marks, mark)
+    # 3. each cell's sums over its active faces, in index order; the trial and the flags
+    for p in prange(n_cp):
+        for s in range(cell_bounds[p], cell_bounds[p + 1]):
+            for i in range(cell_seg[2 * s], cell_seg[2 * s + 1] + 1):
+                mh = 0.0
+                mx = 0.0
+                my = 0.0
+                unit_max = 0.0
+                for q in range(face_ptr[i], face_ptr[i + 1]):
+                    # without jumps (the side a cell is on is a coin toss on triangles):
+                    # a - b is a + (-b), bit for bit, so the scatter's sums
+                    f = face_idx[q]
+                    first = pairs[f, 0] == i
+                    active = marks[f] == mark
+                    fh = mass[f]
+                    vh = -fh if first else fh
+                    vx = -side_ix[f] if first else side_jx[f]
+                    vy = -side_iy[f] if first else side_jy[f]
+                    unit = abs(fh) / face_length[f]
+                    mh = mh + vh if active else mh
+                    mx = mx + vx if active else mx
+                    my = my + vy if active else my
+                    unit_max = max(unit_max, unit) if active else unit_max
+                h_new[i] = mh
+                hu_new[i] = mx
+                hv_new[i] = my
+                transport[i] = unit_max
+    for p in prange(n_cp):
+        s0 = cell_bounds[p]
+        trial_cells(cell_seg[2 * s0:], cell_bounds[p + 1] - s0, inv_area, e_u1, e_u2, e_speed,
+                    k11, k12, k22, h, hu, hv, gamma_x, gamma_y, gamma_z, law, params, g,
+                    h_zero, dt, dt_decide, flag, h_new, hu_new, hv_new)
+    # 4. the cells at zero temperature: the mass of their faces that are not Dirac
+    for p in prange(n_cp):
+        for s in range(cell_bounds[p], cell_bounds[p + 1]):
+            for i in range(cell_seg[2 * s], cell_seg[2 * s + 1] + 1):
+                fl = flag[i]
+                if fl == FLOWING:
+                    continue  # no Dirac face: its sum of pass 3 stands
+                mh = h_new[i]  # 0.0 from the trial
+                mx = hu_new[i]
+                my = hv_new[i]
+                for q in range(face_ptr[i], face_ptr[i + 1]):
+                    f = face_idx[q]
+                    if marks[f] != mark:
+                        continue
+                    k = pairs[f, 0]
+                    j = pairs[f, 1]
+                    first = k == i
+                    if _dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
+                        if fl == DRY:  # takes back the momentum it brought to the trial
+                            if first:
+                                mx += side_ix[f]
+                                my += side_iy[f]
+                            else:
+                                mx -= side_jx[f]
+                                my -= side_jy[f]
+                        continue
+                    if first:
+                        mh -= mass[f]
+                    else:
+                        mh += mass[f]
+                h_new[i] = mh
+                hu_new[i] = mx
+                hv_new[i] = my
+    # 5. the new state, the observers
+    n_bad = 0
+    clamped = 0
+    for p in prange(n_cp):
+        s0 = cell_bounds[p]
+        bad, cl = final_cells(
+            cell_seg[2 * s0:], cell_bounds[p + 1] - s0, cell_area, cfl_factor, e_u1, e_u2,
+            e_speed, k11, k12, k22, h, gamma_x, gamma_y, gamma_z, flag, law, params, g, h_dry,
+            h_zero, dt, t_new, h_new, hu_new, hv_new, transport, peak_h, peak_speed, arrival,
+            last_moved, t_inv, t_kin, t_mov, t_film)
+        n_bad += bad
+        clamped += cl
+    if n_bad > 0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
+    # what left through the open faces that are listed, face after face
+    outflow = 0.0
+    for o in range(open_faces.size):
+        f = open_faces[o]
+        i = pairs[f, 0]
+        if marks[f] == mark and not _dirac_face(dirac, flag[i], flag[i]):
+            outflow += max(mass[f], 0.0) * dt
+    # the step's sums, cell after cell in the list's order (step_faces' order)
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    for r in range(n_runs):
+        for i in range(runs[2 * r], runs[2 * r + 1] + 1):
+            inv_lim = max(inv_lim, t_inv[i])
+            kinetic += t_kin[i]
+            moving += t_mov[i]
+            film += t_film[i]
+    return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
+
+
+#: :func:`_step_threads` per law kind, compiled with threads, and serially (``prange``
+#: runs as ``range``: what the tests hold to :func:`_step` on one thread)
+STEP_THREADS = {kind: specialize(_step_threads, "_" + law_label(kind) + "_parallel",
+                                 parallel=True, trial_cells=TRIAL[kind],
+                                 final_cells=FINAL[kind])
+                for kind in TRIAL}
+STEP_GATHER_SERIAL = {kind: specialize(_step_threads, "_" + law_label(kind) + "_serial",
+                                       trial_cells=TRIAL[kind], final_cells=FINAL[kind])
+                      for kind in TRIAL}

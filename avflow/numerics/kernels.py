@@ -1047,9 +1047,10 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     kernel's order-1 step reads and works in
     (:func:`avflow.numerics.face_sweep.geometry`, :func:`~avflow.numerics.face_sweep.work`;
     empty elsewhere, :func:`~avflow.numerics.face_sweep.unused`). ``min_parallel_cells``:
-    in the copy with threads (order 2 on faces), a stage or Heun's merge that sweeps at
-    least that many cells runs in gather form on Numba's threads
-    (:mod:`avflow.numerics.face_gather`: the same bits as step_faces and heun_faces).
+    in the copy with threads, an order-1 step, an order-2 stage or Heun's merge that sweeps
+    at least that many cells runs in gather form on Numba's threads (order 1:
+    :func:`avflow.numerics.face_sweep._step_threads`; order 2:
+    :mod:`avflow.numerics.face_gather`; the same bits as the serial sweeps).
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
     Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
@@ -1194,6 +1195,14 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     gamma_x, gamma_z, p_kappa, cur_h, cur_hu, nxt_h, nxt_hu, nxt_hv, flag, law,
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved, True, p_work, p_flag)
+            elif not ORDER2 and PARALLEL and n_touched >= min_parallel_cells:
+                # the same on threads, its face passes in gather form (the same bits)
+                ok, out, lim, moving, film, clamped, kinetic = faces_step_threads(
+                    face_cells, face_frame, face_length, cell_area, cfl_factor, density,
+                    gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
+                    transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
+                    t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
+                    touched, n_touched, sweep_geo, sweep_work)
             elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
                 ok, out, lim, moving, film, clamped, kinetic = faces_step(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
@@ -1352,15 +1361,18 @@ from avflow.numerics.profile import N_WORK as _PROFILE_WORK  # noqa: E402
 from avflow.numerics.profile import STEP as _PROFILE_STEP  # noqa: E402
 
 from avflow.numerics.face_sweep import STEP as _FACES_STEP  # noqa: E402
+from avflow.numerics.face_sweep import STEP_THREADS as _FACES_THREADS  # noqa: E402
 from avflow.numerics.face_gather import N_SUMS  # noqa: E402
 from avflow.numerics.face_gather import heun_cells_parallel as _heun_parallel  # noqa: E402
 from avflow.numerics.face_gather import step_cells_parallel as _step_parallel  # noqa: E402
 from avflow.numerics.reconstruction import reconstruct_cells_parallel as _recon_par  # noqa: E402
 
 #: Placeholders of the order-1 sweeps :func:`_advance`'s copies call (their law's copy):
-#: the profile's and the faces' (:mod:`avflow.numerics.face_sweep`)
+#: the profile's and the faces' (:mod:`avflow.numerics.face_sweep`; on threads, in the
+#: copy with threads, its gather form)
 profile_step = None
 faces_step = None
+faces_step_threads = None
 
 
 def _stage_faces(face_cells, face_frame, face_length, face_offset, cell_area, cfl_factor,
@@ -1409,7 +1421,7 @@ ORDER2_STAGE = {
 def _advance_for(structured: bool, order2: bool, kind: int | None = None,
                  parallel: bool = False):
     """:func:`_advance` compiled with the mesh kind and the order constants (and, at order
-    1, calling the sweep of the friction law ``kind``; ``parallel``: order 2 on faces with
+    1, calling the sweep of the friction law ``kind``; ``parallel``: the face kernel with
     the gather form's passes on threads, whose functions the other copies never compile)."""
     suffix = f"_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
     names = {}
@@ -1419,6 +1431,8 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
             names["profile_step"] = _PROFILE_STEP[kind]
         else:
             names["faces_step"] = _FACES_STEP[kind]
+            if parallel:
+                names["faces_step_threads"] = _FACES_THREADS[kind]
     if parallel:
         suffix += "_parallel"
         names["heun_cells_parallel"] = _heun_parallel
@@ -1428,20 +1442,20 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
 
 #: The time loop per (structured, order 2, law kind, threads): the law only at order 1,
 #: whose sweeps have a copy per law (:data:`avflow.numerics.profile.STEP`,
-#: :data:`avflow.numerics.face_sweep.STEP`), None at order 2; threads only at order 2 on
-#: faces
+#: :data:`avflow.numerics.face_sweep.STEP`), None at order 2; threads only on faces
 ADVANCE = {(s, o, k, p): _advance_for(s, o, k, p)
            for s, o, kinds, threads in (
                (True, False, tuple(_PROFILE_STEP), (False,)), (True, True, (None,), (False,)),
-               (False, False, tuple(_FACES_STEP), (False,)), (False, True, (None,), (False, True)))
+               (False, False, tuple(_FACES_STEP), (False, True)),
+               (False, True, (None,), (False, True)))
            for k in kinds for p in threads}
 
 
 def time_loop(structured: bool, order: int, law: int, parallel: bool = False):
     """The time loop (:func:`_advance`: its arguments, its status codes) compiled for this
     mesh kind (``structured``: a profile) and ``order`` alone (and, at order 1, for the
-    friction ``law``); ``parallel``: with the gather form on threads (order 2 on faces
-    only; elsewhere the serial copy)."""
+    friction ``law``); ``parallel``: with the gather form on threads (on faces only;
+    profiles run the serial copy)."""
     structured, order2 = bool(structured), order == 2
-    parallel = bool(parallel) and order2 and not structured
+    parallel = bool(parallel) and not structured
     return ADVANCE[structured, order2, None if order2 else law_kind(law), parallel]

@@ -105,9 +105,9 @@ class Solver:
     #: stages (:mod:`avflow.numerics.reconstruction`)
     order: int = 1
     limiter: str = "minmod"
-    #: CPU threads of the square-grid kernel and of the face kernel at order 2 (None:
-    #: Numba's default, every core); the answer does not depend on it. 1 runs the serial
-    #: passes, outside Numba's thread pool.
+    #: CPU threads of the square-grid kernel and of the face kernel (None: Numba's default,
+    #: every core); the answer does not depend on it. 1 runs the serial passes, outside
+    #: Numba's thread pool. Profiles run on one.
     threads: int | None = None
     #: "auto": the square-grid kernel (:mod:`avflow.numerics.square_grid`) on square grids
     #: at order 1, the face kernel elsewhere; "faces": the face kernel everywhere (the
@@ -166,15 +166,21 @@ class Solver:
         self._clock = np.zeros(2, dtype=np.int64)
         self._transport = np.zeros(n)
         # the face kernel at order 1 (numerics.face_sweep): its geometry and work arrays
+        # (with the gather form's lines where it runs on threads)
         if self.order == 1 and not m.structured_1d:
-            self._sweep = (face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature),
-                           face_sweep.work(n, m.n_faces))
+            threads = self.threads_used() > 1
+            self._sweep = (face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature,
+                                               self._cell_face_ptr, self._cell_face_idx,
+                                               threads),
+                           face_sweep.work(n, m.n_faces, threads))
         else:
             self._sweep = face_sweep.unused()
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
                              else np.zeros((0, 2, 2)))
-        #: cells from which an order-2 stage on faces runs on threads (tests lower it)
-        self._gather_from = face_gather.MIN_PARALLEL_CELLS
+        #: cells from which an order-1 step or an order-2 stage on faces runs on threads
+        #: (tests lower it)
+        self._gather_from = (face_gather.MIN_PARALLEL_CELLS if self.order == 2
+                             else face_sweep.MIN_PARALLEL_CELLS)
 
     def _setup_grid(self, layout: SquareGrid) -> None:
         """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
@@ -219,9 +225,9 @@ class Solver:
 
     def threads_used(self) -> int:
         """CPU threads the time loop runs on: the square-grid kernel's, and the face
-        kernel's at order 2 (its gather form, :mod:`avflow.numerics.face_gather`); 1 for
-        profiles and the face kernel at order 1, which are serial."""
-        if self.kernel_used != "grid" and (self.order != 2 or self.terrain.mesh.structured_1d):
+        kernel's (its gather form: :mod:`avflow.numerics.face_sweep` at order 1,
+        :mod:`avflow.numerics.face_gather` at order 2); 1 for profiles, which are serial."""
+        if self.kernel_used != "grid" and self.terrain.mesh.structured_1d:
             return 1
         import os
 
