@@ -11,7 +11,8 @@ the 1D and all-wet cases the fastest of three windows (``WINDOWS``):
   frictionless dam break on 200 000 cells, half dry, and the same with every cell wet);
 - square grid, 400 x 400 and 1000 x 1000 cells on a plane (cylinder release on a 1 m layer,
   every cell wet; Coulomb): the square-grid kernel on 1, 2 and all threads, and the face kernel;
-- triangles: the face kernel on the median dual mesh of the same plane (401 x 401 nodes);
+- triangles: the face kernel on the median dual mesh of the same plane (401 x 401 nodes),
+  on 1, 2 and all threads (its step in gather form on threads);
 - order 2 on the all-wet 1D, grid and triangle cases (the face kernel runs order 2 on grids,
   on 1 and 2 threads);
 - the cylinder alone (most of the map dry): map cells per second, what the active region buys;
@@ -180,9 +181,12 @@ CASES = [
     ("grid 1000x1000, square-grid kernel, 2 threads", "grid-1000", 2, "grid"),
     ("grid 1000x1000, square-grid kernel, all threads", "grid-1000", None, "grid"),
     ("triangles 401x401 nodes, face kernel", "tri", 1, "faces-tri"),
+    ("triangles 401x401 nodes, face kernel, 2 threads", "tri", 2, "faces-tri"),
+    ("triangles 401x401 nodes, face kernel, all threads", "tri", None, "faces-tri"),
     ("triangles, order 2", "tri-order2", 1, None),
     ("triangles, order 2, 2 threads", "tri-order2", 2, None),
     ("triangles, cylinder only (map cells/s)", "tri-cylinder", 1, None),
+    ("triangles, cylinder only (map cells/s), 2 threads", "tri-cylinder", 2, None),
     ("section 6, Coulomb 15, 880 cells (loop)", "section6", 1, None),
 ]
 QUICK = {"1d-wet", "plain", "grid", "grid-faces", "tri", "section6"}
@@ -259,7 +263,7 @@ def main():
         frac = f"{r['rate'] * BYTES_PER_CELL[traffic] / bw:6.2f}" if traffic else "     -"
         print(f"{label:50s} {r['kernel']:>8s} {r['threads']:3d} {r['rate']:11.3g} {frac} "
               f"{r['wall']:9.3f} {r['steps']:6d} {r['peak'] / 2**20:8.0f}", flush=True)
-    for n in ("grid", "grid-1000"):
+    for n in ("grid", "grid-1000", "tri", "tri-cylinder"):
         one = rates.get((n, 1))
         many = max((k[1] for k in rates if k[0] == n), default=1)
         if one and many > 1:

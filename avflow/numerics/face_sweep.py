@@ -28,6 +28,11 @@ cost 10, 4 and 19 ns a node (emit, trial, final with the sums) against 12, 10 an
 pass 4, 7 ns against 23 (it passes over the faces between flowing cells). The face pass,
 21 ns a face, scalar and bound by its arithmetic, is step_faces' own, and is now two thirds
 of the step.
+
+On threads (:func:`_step_threads`, below) the same step runs in gather form: the two face
+passes, scatters, become a vector pass over the active faces that writes each face's fluxes
+into lines, then per cell the sum of its listed faces in index order (the order in which
+the scatter meets them: the same bits); the cell passes above run on pieces of the runs.
 """
 
 from __future__ import annotations
@@ -346,6 +351,25 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
     return n_bad, clamped
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _step_sums(runs, n_runs, per_cell):
+    """The step's sums from the per-cell lines of the final update, cell after cell in the
+    lists' order (step_faces' order): ``(dt_limit, moving, film, kinetic)``."""
+    t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
+    t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    for r in range(n_runs):
+        for i in range(runs[2 * r], runs[2 * r + 1] + 1):
+            inv_lim = max(inv_lim, t_inv[i])
+            kinetic += t_kin[i]
+            moving += t_mov[i]
+            film += t_film[i]
+    return _limit(inv_lim), moving, film, kinetic
+
+
 #: The cell passes per law kind (:func:`~avflow.numerics.vectorize.law_copies`)
 TRIAL = law_copies(_trial_cells)
 FINAL = law_copies(_final_cells)
@@ -397,18 +421,8 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
         t_film)
     if n_bad > 0:
         return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
-    # the step's sums, cell after cell in the list's order (step_faces' order)
-    inv_lim = 0.0
-    moving = 0.0
-    film = 0.0
-    kinetic = 0.0
-    for r in range(n_runs):
-        for i in range(runs[2 * r], runs[2 * r + 1] + 1):
-            inv_lim = max(inv_lim, t_inv[i])
-            kinetic += t_kin[i]
-            moving += t_mov[i]
-            film += t_film[i]
-    return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
+    lim, moving, film, kinetic = _step_sums(runs, n_runs, per_cell)
+    return True, outflow, lim, moving, film, clamped, kinetic
 
 
 #: :func:`_step` per law kind (:func:`~avflow.numerics.vectorize.law_kind`), each calling
@@ -434,9 +448,11 @@ MAX_PIECES = 256
 #: the solver's work arrays carry both (:func:`work`)
 MIN_PIECE = 256
 #: A step of fewer touched cells than this runs serially (:func:`_step`) in the copy of
-#: the time loop with threads: waking the pool for its six passes costs more below it
-#: (the measured break-even; see the README's order-1 figures under Kernels and threads)
-MIN_PARALLEL_CELLS = 4096
+#: the time loop with threads: below it, on 2 threads here, the gather form's extra
+#: traffic and waking the pool for its six passes cost what the second core saves (the
+#: time loop on spreading piles: 0.99x at 3.3k wet nodes, 1.04x at 5.2k, 1.27x at 8.2k;
+#: README, Kernels and threads)
+MIN_PARALLEL_CELLS = 8192
 
 
 @njit(error_model="numpy", cache=True)
@@ -670,18 +686,8 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
         i = pairs[f, 0]
         if marks[f] == mark and not _dirac_face(dirac, flag[i], flag[i]):
             outflow += max(mass[f], 0.0) * dt
-    # the step's sums, cell after cell in the list's order (step_faces' order)
-    inv_lim = 0.0
-    moving = 0.0
-    film = 0.0
-    kinetic = 0.0
-    for r in range(n_runs):
-        for i in range(runs[2 * r], runs[2 * r + 1] + 1):
-            inv_lim = max(inv_lim, t_inv[i])
-            kinetic += t_kin[i]
-            moving += t_mov[i]
-            film += t_film[i]
-    return True, outflow, _limit(inv_lim), moving, film, clamped, kinetic
+    lim, moving, film, kinetic = _step_sums(runs, n_runs, per_cell)
+    return True, outflow, lim, moving, film, clamped, kinetic
 
 
 #: :func:`_step_threads` per law kind, compiled with threads, and serially (``prange``

@@ -625,8 +625,8 @@ class Numerics(_Model):
     """Limited slopes of order 2: minmod (robust at wet/dry fronts; Barth-Jespersen on grids
     and triangles) or mc (monotonized central on profiles, sharper at smooth extrema)."""
     threads: Annotated[int, Field(strict=True, ge=1, le=4096)] | None = None
-    """CPU threads of the time loop (square grids, and order 2 on grids and triangles;
-    null: every core of the machine). The answer is the same, bit for bit, whatever the
+    """CPU threads of the time loop (grids and triangles; profiles run on one; null: every
+    core of the machine). The answer is the same, bit for bit, whatever the
     number. Ensemble members run on one thread each unless this is set: members are the
     better parallelism there."""
     kernel: Literal["auto", "grid", "faces"] = "auto"
