@@ -127,6 +127,19 @@ def runs_of(items, count, runs):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
+def _face_sums(fp_h, fp_q, gm_h, gm_q, uti, utj, length, ni_x, ni_y, ti_x, ti_y, nj_x, nj_y,
+               tj_x, tj_y):
+    """A face's fluxes from its two half fluxes (outward from i, inward from j or the ghost
+    beyond a boundary) and the tangential velocities they carry: ``(L F_h, momentum to i
+    (x, y), momentum to j (x, y))`` in each side's basis. One piece for the scalar
+    :func:`_face_flux` and the vector :func:`_face_lines` (inlined: the same bits)."""
+    f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
+    f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
+    return ((fp_h + gm_h) * length, f_n * ni_x + f_t * ti_x, f_n * ni_y + f_t * ti_y,
+            f_n * nj_x + f_t * tj_x, f_n * nj_y + f_t * tj_y)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
 def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3):
     """The rectangular flux of face f between cells i and j (a wall or an open side when
     ``j < 0``), step_faces sweep 1a's arithmetic: ``(L F_h, momentum to i (x, y), momentum
@@ -156,11 +169,8 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
         gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
         gm_h = _open_mass(fp_h + gm_h) - fp_h
         utj = uti
-    f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
-    f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
-    fh = (fp_h + gm_h) * length
-    return (fh, f_n * ni_x + f_t * ti_x, f_n * ni_y + f_t * ti_y,
-            f_n * nj_x + f_t * tj_x, f_n * nj_y + f_t * tj_y)
+    return _face_sums(fp_h, fp_q, gm_h, gm_q, uti, utj, length, ni_x, ni_y, ti_x, ti_y, nj_x,
+                      nj_y, tj_x, tj_y)
 
 
 @njit(error_model="numpy", cache=True)
@@ -524,13 +534,9 @@ def _face_lines(f0, f1, first, second, kind, n0x, n0y, t0x, t0y, n1x, n1y, t1x, 
         gm_h = in_h if inner else (-fp_h if wall else open_h)
         gm_q = in_q if inner else (fp_q if wall else open_q)
         utj = utj_cell if inner else uti
-        f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
-        f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
-        mass[f] = (fp_h + gm_h) * length
-        q_ix[f] = f_n * ni_x + f_t * ti_x
-        q_iy[f] = f_n * ni_y + f_t * ti_y
-        q_jx[f] = f_n * nj_x + f_t * tj_x
-        q_jy[f] = f_n * nj_y + f_t * tj_y
+        mass[f], q_ix[f], q_iy[f], q_jx[f], q_jy[f] = _face_sums(
+            fp_h, fp_q, gm_h, gm_q, uti, utj, length, ni_x, ni_y, ti_x, ti_y, nj_x, nj_y,
+            tj_x, tj_y)
         marks[f] = mark
 
 
