@@ -1,9 +1,11 @@
 """The face kernel's order-1 step with vectorised cell passes (avflow.numerics.face_sweep)
 against its reference, kernels.step_faces, step after step on triangles and on a DEM: the
 same bits everywhere (state, flags, observers, and every value the step returns). So is its
-gather form (face_sweep._step_threads: each pass writes only its own faces or cells), run
+step on threads (face_sweep._step_threads: each thread scatters into the cells of its own
+piece of the faces, the cells shared by two pieces sum their faces afterwards), run
 serially and on 2 threads, its lists cut into pieces of a few cells (pieces_of) so that
-every case spans several pieces, and runs are cut mid-way.
+every case spans several pieces, runs are cut mid-way, and most cells are shared (32 pieces
+of the faces) or a few (2 pieces).
 
 Each step lists the active faces and touched cells as the time loop does, runs both kernels
 on copies of the same state, compares, and goes on from the new kernel's state: a flow
@@ -30,6 +32,9 @@ from conftest import assert_same_runs, bump_on_a_slope, cylinder, walls
 
 G = 9.81
 OBSERVERS = ("peak_h", "peak_speed", "arrival", "last_moved")
+#: The kernels compare_steps runs at every step: step_faces, face_sweep._step, and its step
+#: on threads compiled serially and with threads (32 pieces of the faces), and with 2
+KERNELS = ("reference", "vectorised", "pieces serially", "2 threads", "2 threads, 2 pieces")
 
 
 def bits(a):
@@ -47,12 +52,13 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
     n, n_faces = mesh.n_cells, mesh.n_faces
     kind = law_kind(int(law))
     step_new = face_sweep.STEP[kind]
-    # the gather form's geometry and work arrays, its lists cut into pieces of 8 or more
-    gather = (face_sweep.geometry(terrain.mesh, 1.0 / terrain.mesh.cell_area,
-                                  terrain.curvature, solver._cell_face_ptr,
-                                  solver._cell_face_idx, True),
-              face_sweep.work(terrain.mesh.n_cells, terrain.mesh.n_faces, True, min_piece=8,
-                              max_pieces=32))
+    # the step on threads: its geometry and work arrays, its lists cut into pieces of 8 or
+    # more, the faces into 32 pieces (most cells shared) or 2 (a band at one cut)
+    geo = face_sweep.geometry(terrain.mesh, 1.0 / terrain.mesh.cell_area, terrain.curvature,
+                              solver._cell_face_ptr, solver._cell_face_idx, True)
+    fine, coarse = (face_sweep.work(n, n_faces, 2, min_piece=8, max_pieces=32,
+                                    face_pieces=k) for k in (32, 2))
+    shares = set()  # (kernel, some cell shared, some not)
     threads = numba.get_num_threads()
     pieces_seen = 0
     active = np.empty(n_faces, dtype=np.int64)
@@ -74,7 +80,7 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
         dt = 0.5 * limit if np.isfinite(limit) else 0.1
         t_new = t + dt
         results, outputs = [], []
-        for kernel in ("reference", "vectorised", "gather", "threads"):
+        for kernel in KERNELS:
             new = [h.copy(), hu.copy(), hv.copy()]  # the buffers agree where nothing is touched
             fl = flag.copy()
             ob = {name: obs[name].copy() for name in OBSERVERS}
@@ -91,11 +97,11 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                                  False, np.zeros((0, 2, 3)), True, emit)
             else:
                 step, sweep = step_new, solver._sweep
-                if kernel == "gather":
-                    step, sweep = face_sweep.STEP_GATHER_SERIAL[kind], gather
-                elif kernel == "threads":
-                    step, sweep = face_sweep.STEP_THREADS[kind], gather
-                    numba.set_num_threads(2)
+                if kernel != "vectorised":
+                    step = (face_sweep.STEP_PIECES_SERIAL[kind] if kernel == "pieces serially"
+                            else face_sweep.STEP_THREADS[kind])
+                    sweep = (geo, coarse if kernel == "2 threads, 2 pieces" else fine)
+                    numba.set_num_threads(1 if kernel == "pieces serially" else 2)
                 try:
                     r = step(mesh.face_cells, mesh.face_frame, mesh.face_length,
                              mesh.cell_area, solver._cfl_factor, solver._density,
@@ -107,10 +113,14 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                     numba.set_num_threads(threads)
             results.append(r)
             outputs.append((new, fl, ob))
+            if kernel not in ("reference", "vectorised"):
+                wk = sweep[1]  # a cell shared in this step carries its number
+                shared = wk[8][touched[:n_touched]] == wk[6][2]
+                shares.add((kernel, bool(shared.any()), not shared.all()))
         (ref_new, ref_fl, ref_ob) = outputs[0]
         assert results[0][0], f"step {k} failed"
-        for kernel, r, (vec_new, vec_fl, vec_ob) in zip(("vectorised", "gather", "threads"),
-                                                        results[1:], outputs[1:]):
+        for kernel, r, (vec_new, vec_fl, vec_ob) in zip(KERNELS[1:], results[1:],
+                                                        outputs[1:]):
             where = f"{kernel}, step {k}"
             assert results[0] == r, f"{where}: {results[0]} != {r}"
             for name, a, b in zip(("h", "hu", "hv"), ref_new, vec_new):
@@ -127,7 +137,10 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
         flag, obs, t = vec_fl, vec_ob, t_new
         outflow += results[1][1]
         flags_seen.update(np.unique(flag[touched[:n_touched]]).tolist())
-    assert pieces_seen >= 4  # the gather form's passes ran on several pieces
+    assert pieces_seen >= 4  # the cell passes on threads ran on several pieces
+    # every cell shared at times with 32 pieces of the faces, some and not all with 2
+    assert {k for k, some, _ in shares if some} == set(KERNELS[2:]), shares
+    assert ("2 threads, 2 pieces", True, True) in shares, shares
     return h, flags_seen, outflow
 
 
@@ -355,8 +368,8 @@ def test_the_time_loop_lists_again_only_when_the_wet_cells_change():
                                   1.0, 0.136))], ids=["triangles", "grid", "pouliquen"])
 def test_one_and_two_threads_give_the_same_run(mesh_kind, law, params):
     """The order-1 time loop on the face kernel, 1 thread (face_sweep._step) against 2
-    (every step in gather form on the threads: the threshold lowered to 1 cell, the lists
-    cut into pieces of 8 cells or more), in calls of a few output times, with fronts, cells
+    (every step on the threads: the threshold lowered to 1 cell, the lists cut into pieces
+    of 8 cells or more, the faces into 8), in calls of a few output times, with fronts, cells
     stopping, the film rule and (grid) a NODATA hole and an open side: every state
     variable, flag, observer and statistic bit for bit; and the threads are those
     reported."""
@@ -369,8 +382,9 @@ def test_one_and_two_threads_give_the_same_run(mesh_kind, law, params):
         if threads > 1:
             m = terrain.mesh
             solver._gather_from = 1
-            solver._sweep = (solver._sweep[0], face_sweep.work(m.n_cells, m.n_faces, True,
-                                                                min_piece=8, max_pieces=32))
+            solver._sweep = (solver._sweep[0], face_sweep.work(m.n_cells, m.n_faces, 2,
+                                                                min_piece=8, max_pieces=32,
+                                                                face_pieces=8))
         state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
         snapshots = []
         for t in (0.5, 3.0, 7.0, 12.0, 20.0, 30.0):
@@ -387,9 +401,9 @@ def test_one_and_two_threads_give_the_same_run(mesh_kind, law, params):
 
 def test_a_solver_reused_for_another_release_on_threads_gives_its_own_run():
     """A solver's work buffers hold the cells of its last run where this one has not touched
-    them yet (they take a cell's state when a step first touches it): the gather form must
-    not read them. A big release, then a small one on the same solver, on 2 threads (every
-    step in gather form), against the small one on a fresh solver on 1 thread."""
+    them yet (they take a cell's state when a step first touches it): the step on threads
+    must not read them. A big release, then a small one on the same solver, on 2 threads
+    (every step on the threads), against the small one on a fresh solver on 1 thread."""
     ter = plane_triangle_terrain(tri_block(25.0, 90.0, x=(0.0, 800.0), y=(0.0, 400.0)), 10.0,
                                  None, walls())
     big = cylinder(ter, (400.0, 200.0), radius=150.0, thickness=15.0)

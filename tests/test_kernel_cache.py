@@ -34,7 +34,7 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     sweeps = [loop.py_func.__globals__[name] for loop in loops
               for name in ("sweep_serial", "sweep_parallel")]
     for dispatcher in (*kernels.ADVANCE.values(), *face_sweep.STEP.values(),
-                       *face_sweep.STEP_THREADS.values(), *face_sweep.STEP_GATHER_SERIAL.values(),
+                       *face_sweep.STEP_THREADS.values(), *face_sweep.STEP_PIECES_SERIAL.values(),
                        kernels.step_faces,
                        kernels.step_profile,
                        kinetic.half_fluxes, rheology.friction, reconstruction.reconstruct_faces,

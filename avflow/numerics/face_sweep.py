@@ -29,10 +29,12 @@ pass 4, 7 ns against 23 (it passes over the faces between flowing cells). The fa
 21 ns a face, scalar and bound by its arithmetic, is step_faces' own, and is now two thirds
 of the step.
 
-On threads (:func:`_step_threads`, below) the same step runs in gather form: the two face
-passes, scatters, become a vector pass over the active faces that writes each face's fluxes
-into lines, then per cell the sum of its listed faces in index order (the order in which
-the scatter meets them: the same bits); the cell passes above run on pieces of the runs.
+On threads (:func:`_step_threads`, below) the same passes run on pieces: the cell passes
+on pieces of the runs, the two face passes on one piece of the active faces a thread, each
+scattering into the cells of its own piece. The few cells whose faces lie in two pieces
+(near a cut, or along a boundary, whose faces a mesh numbers last) take nothing from the
+face passes and sum their listed faces afterwards, in index order: the order in which the
+scatter meets them, so the same bits on any number of threads.
 """
 
 from __future__ import annotations
@@ -48,8 +50,7 @@ from avflow.numerics.kernels import (DRY, FLOWING, OUTFLOW, TRANSPORT_EPS, WALL,
 from avflow.numerics.kinetic import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
-from avflow.numerics.vectorize import (friction_law, in_select, law_copies, law_label, noalias,
-                                       out_select, specialize)
+from avflow.numerics.vectorize import friction_law, law_copies, law_label, noalias, specialize
 
 # Lines of the per-cell work array (N_CELL_LINES, n): what the step's sums need
 C_INV, C_KIN, C_MOV, C_FILM = range(4)
@@ -59,42 +60,53 @@ N_CELL_LINES = 4
 def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=False):
     """What the sweep reads of a mesh besides its frames and lengths, built once (a tuple,
     as the time loop takes it): the faces' cells as int32 (half the bytes a face reads),
-    ``1 / A`` and the curvature as three lines; for the gather form on threads
-    (``threads``; empty otherwise), each cell's faces in index order
-    (:func:`~avflow.numerics.kernels.cell_faces`, the solver's), the open faces in index
-    order, and what its vector face pass reads (:func:`_face_lines`): each face's first
-    cell, its second (the first beyond a boundary), its kind (0 between two cells, 1 a
-    wall, 2 an open side) and the frames of both sides as eight lines."""
+    ``1 / A`` and the curvature as three lines, each cell's faces in index order
+    (:func:`~avflow.numerics.kernels.cell_faces`, the solver's), for the step on threads
+    (``threads``; empty otherwise) the open faces in index order, the largest span of the
+    face indices of a cell without a boundary face (one number in an array: 3 rows of
+    nodes on triangles made from a raster, half the faces on a square grid, whose x faces
+    come before its y faces), per face whether it touches a cell with a boundary face, and
+    those cells."""
     fc = mesh.face_cells
-    pairs = fc.astype(np.int32)
-    empty = (np.empty(0, dtype=np.int64), np.empty(0, dtype=np.uint32),
-             np.empty(0, dtype=np.uint32), np.empty(0, dtype=np.int8), np.empty((8, 0)))
-    gather = empty if not threads else (
-        np.flatnonzero(fc[:, 1] == OUTFLOW).astype(np.int64), fc[:, 0].astype(np.uint32),
-        np.where(fc[:, 1] >= 0, fc[:, 1], fc[:, 0]).astype(np.uint32),
-        np.where(fc[:, 1] >= 0, 0, np.where(fc[:, 1] == WALL, 1, 2)).astype(np.int8),
-        np.ascontiguousarray(mesh.face_frame.reshape(-1, 8).T))
-    return (pairs, np.ascontiguousarray(inv_area),
+    open_faces = (np.flatnonzero(fc[:, 1] == OUTFLOW).astype(np.int64) if threads
+                  else np.empty(0, dtype=np.int64))
+    # the cells with a boundary face (a mesh numbers those faces last, far from the cell's
+    # others), the faces that touch one, and the largest span of the face indices of the
+    # other cells (a cell's faces are in index order)
+    edge = np.zeros(mesh.n_cells, dtype=bool)
+    edge[fc[fc[:, 1] < 0, 0]] = True
+    spans = cell_face_idx[cell_face_ptr[1:] - 1] - cell_face_idx[cell_face_ptr[:-1]]
+    span = int(np.max(spans[~edge], initial=0))
+    near_edge = edge[fc[:, 0]] | (fc[:, 1] >= 0) & edge[np.maximum(fc[:, 1], 0)]
+    if not threads:
+        near_edge, edge = near_edge[:0], edge[:0]
+    return (fc.astype(np.int32), np.ascontiguousarray(inv_area),
             np.ascontiguousarray(np.asarray(curvature).T), cell_face_ptr, cell_face_idx,
-            *gather)
+            open_faces, np.array([span], dtype=np.int64), near_edge.astype(np.uint8),
+            np.flatnonzero(edge).astype(np.int64))
 
 
-def work(n_cells: int, n_faces: int, threads: bool = False, min_piece: int | None = None,
-         max_pieces: int | None = None):
+def work(n_cells: int, n_faces: int, threads: int = 1, min_piece: int | None = None,
+         max_pieces: int | None = None, face_pieces: int | None = None):
     """The sweep's work arrays (a tuple), allocated once per solver: the emitted lines, the
-    mass flux of each face, the per-cell lines, the runs of both lists; for the gather form
-    on threads (``threads``; empty otherwise), the momentum each face brings to its sides
-    (four lines: x, y to its first cell, x, y to its second), the pieces of both lists
-    (:func:`pieces_of`), how they are cut and the steps so far: ``[min_piece, max_pieces,
-    steps]`` (default :data:`MIN_PIECE`, :data:`MAX_PIECES`; tests cut small meshes finer),
-    and per face the step that listed it last."""
-    m, f = (n_cells, n_faces) if threads else (0, 0)
-    cut = np.array([min_piece or MIN_PIECE, max_pieces or MAX_PIECES, 0], dtype=np.int64)
+    mass flux of each face, the per-cell lines, the runs of both lists; for the step on
+    ``threads`` > 1 threads (empty otherwise), the momentum each face brings to its sides
+    (four lines: x, y to its first cell, x, y to its second; written where a side is
+    shared), the pieces of both lists (:func:`pieces_of`), how they are cut and the steps
+    so far: ``[min_piece, max_pieces, steps, face_pieces]`` (default :data:`MIN_PIECE`,
+    :data:`MAX_PIECES`, and as many pieces of the faces as threads; tests cut small meshes
+    finer), per face the step that listed it last, per cell the step that found it shared
+    last, and the list of the shared cells."""
+    on_threads = threads > 1
+    m, f = (n_cells, n_faces) if on_threads else (0, 0)
+    cut = np.array([min_piece or MIN_PIECE, max_pieces or MAX_PIECES, 0,
+                    face_pieces or threads], dtype=np.int64)
     n_pieces = int(cut[1])
     return (np.zeros((N_EMIT, n_cells)), np.zeros(n_faces), np.zeros((N_CELL_LINES, n_cells)),
             np.empty(2 * (n_cells + n_faces) + 4, dtype=np.int64), np.zeros((4, f)),
-            np.empty(2 * (m + f) + 6 * n_pieces + 8 if threads else 0, dtype=np.int64), cut,
-            np.full(f, -1, dtype=np.int64))
+            np.empty(2 * (m + f) + 8 * n_pieces + 8 if on_threads else 0, dtype=np.int64),
+            cut, np.full(f, -1, dtype=np.int64), np.full(m, -1, dtype=np.int64),
+            np.empty(m, dtype=np.int64))
 
 
 def unused():
@@ -102,11 +114,12 @@ def unused():
     so one compiled loop serves both)."""
     return ((np.empty((0, 2), dtype=np.int32), np.empty(0), np.empty((3, 0)),
              np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
-             np.empty(0, dtype=np.int64), np.empty(0, dtype=np.uint32),
-             np.empty(0, dtype=np.uint32), np.empty(0, dtype=np.int8), np.empty((8, 0))),
+             np.empty(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
+             np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64)),
             (np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
              np.empty(0, dtype=np.int64), np.empty((4, 0)), np.empty(0, dtype=np.int64),
-             np.zeros(3, dtype=np.int64), np.empty(0, dtype=np.int64)))
+             np.zeros(4, dtype=np.int64), np.empty(0, dtype=np.int64),
+             np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)))
 
 
 @njit(error_model="numpy", cache=True)
@@ -131,8 +144,7 @@ def _face_sums(fp_h, fp_q, gm_h, gm_q, uti, utj, length, ni_x, ni_y, ti_x, ti_y,
                tj_x, tj_y):
     """A face's fluxes from its two half fluxes (outward from i, inward from j or the ghost
     beyond a boundary) and the tangential velocities they carry: ``(L F_h, momentum to i
-    (x, y), momentum to j (x, y))`` in each side's basis. One piece for the scalar
-    :func:`_face_flux` and the vector :func:`_face_lines` (inlined: the same bits)."""
+    (x, y), momentum to j (x, y))`` in each side's basis."""
     f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
     f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
     return ((fp_h + gm_h) * length, f_n * ni_x + f_t * ti_x, f_n * ni_y + f_t * ti_y,
@@ -173,18 +185,30 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
                       nj_y, tj_x, tj_y)
 
 
-@njit(error_model="numpy", cache=True)
 def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h_sum, x_sum,
-                 y_sum, transport):
+                 y_sum, transport, shared, mark, safe_lo, safe_hi, near_edge, side, marks):
     """The faces of runs ``r0 .. r0 + n_runs - 1`` (:func:`runs_of`): the flux of each
     added to its cells' sums in face order (the scatter of step_faces sweep 1a: the same
     sums, bit for bit), and the largest ``|F_h| / L`` through each cell's faces. Only the
     mass flux is kept (``mass[f]``): the few Dirac faces with a dry side recompute their
-    momentum in :func:`_add_masses`. Scalar, about 20 ns a face here, bound by its arithmetic (reading the frames alone costs 3): a vector loop over
-    lines of the cells' values copied per block of faces took 31 ns, the copies 8 of them
-    (LLVM keeps a loop that gathers the cells' values itself scalar)."""
+    momentum in :func:`_add_masses`. Scalar, about 14-20 ns a face here, bound by its
+    arithmetic (reading the frames alone costs 3): a vector loop over lines of the cells'
+    values copied per block of faces took 31 ns, the copies 8 of them (LLVM keeps a loop
+    that gathers the cells' values itself scalar); a vector loop that writes each face's
+    fluxes into lines, the sums then taken per cell, 18 ns.
+
+    On threads (:func:`_step_threads`, each thread on its own piece of the faces; the copy
+    ``FACE_FLUXES[True]``): the cells whose faces lie in more than one piece have
+    ``shared[i] == mark``, the step's number. Nothing is added to those here: a face with
+    a shared side keeps the momentum it brings to each side in ``side`` (four lines: x, y
+    to its first cell, x, y to its second) and gets ``marks[f] = mark`` (it is listed in
+    this step; a boundary face too, for the outflow), and :func:`_shared_sums` adds them
+    up in face order afterwards. Only the faces outside ``safe_lo .. safe_hi`` (those
+    within a cell's span of a cut) and those ``near_edge`` (touching a cell with a
+    boundary face) can touch a shared cell: the others are not tested."""
     e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
     e_s, e_kh, e_k3 = emit[E_S], emit[E_KH], emit[E_K3]
+    some = SHARED  # a constant in each copy (FACE_FLUXES): the serial one does not test
     for r in range(r0, r0 + n_runs):
         for f in range(runs[2 * r], runs[2 * r + 1] + 1):
             i = pairs[f, 0]
@@ -193,20 +217,34 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
                                                 e_c, e_s, e_kh, e_k3)
             mass[f] = fh
             unit = abs(fh) / face_length[f]
-            h_sum[i] -= fh
-            x_sum[i] -= qix
-            y_sum[i] -= qiy
-            transport[i] = max(transport[i], unit)
-            if j >= 0:
+            own_i = True
+            own_j = j >= 0
+            if some:
+                if j < 0:
+                    marks[f] = mark  # the outflow reads it
+                if f < safe_lo or f > safe_hi or near_edge[f] != 0:  # a side may be shared
+                    own_i = shared[i] != mark
+                    own_j = own_j and shared[j] != mark
+                if not own_i or (j >= 0 and not own_j):
+                    marks[f] = mark
+                    side[0, f] = qix
+                    side[1, f] = qiy
+                    side[2, f] = qjx
+                    side[3, f] = qjy
+            if own_i:
+                h_sum[i] -= fh
+                x_sum[i] -= qix
+                y_sum[i] -= qiy
+                transport[i] = max(transport[i], unit)
+            if own_j:
                 h_sum[j] += fh
                 x_sum[j] += qjx
                 y_sum[j] += qjy
                 transport[j] = max(transport[j], unit)
 
 
-@njit(error_model="numpy", cache=True)
 def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, flag, dirac, dt,
-                h_sum, x_sum, y_sum):
+                h_sum, x_sum, y_sum, shared, mark, safe_lo, safe_hi, near_edge):
     """The faces of runs ``r0 ..`` once the flags are known, in face order (step_faces
     sweep 2a), for the cells at zero temperature (under the threshold or dry): the mass of
     the faces that keep the rectangular density; a Dirac face (both cells at zero
@@ -217,9 +255,13 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
     is passed over. The transport is left as it is: it decides whether a cell that moves
     counts as moving, and a cell at zero temperature either ends at rest (q = 0 under the
     threshold, eq. 56) or just set off (dry at time n: it counts whatever its faces
-    carried). Returns the volume that left through the open faces."""
+    carried). Returns the volume that left through the open faces. ``shared``: as
+    :func:`_face_fluxes` (``ADD_MASSES[True]``, on threads: nothing is added to those
+    cells here, and the outflow returned is not the step's, which is summed in face order
+    afterwards)."""
     e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
     e_s, e_kh, e_k3 = emit[E_S], emit[E_KH], emit[E_K3]
+    some = SHARED
     outflow = 0.0
     for r in range(r0, r0 + n_runs):
         for f in range(runs[2 * r], runs[2 * r + 1] + 1):
@@ -230,22 +272,27 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
             open_side = j == OUTFLOW
             if fl_i == FLOWING and fl_j == FLOWING and not open_side:
                 continue
+            own_i = True
+            own_j = j >= 0
+            if some and (f < safe_lo or f > safe_hi or near_edge[f] != 0):
+                own_i = shared[i] != mark
+                own_j = own_j and shared[j] != mark
             if _dirac_face(dirac, fl_i, fl_j):
-                if fl_i == DRY or (j >= 0 and fl_j == DRY):
+                if (fl_i == DRY and own_i) or (own_j and fl_j == DRY):
                     _, qix, qiy, qjx, qjy = _face_flux(f, i, j, face_frame, face_length, e_h,
                                                        e_u1, e_u2, e_c, e_s, e_kh, e_k3)
-                    if fl_i == DRY:
+                    if fl_i == DRY and own_i:
                         x_sum[i] += qix
                         y_sum[i] += qiy
-                    if j >= 0 and fl_j == DRY:
+                    if own_j and fl_j == DRY:
                         x_sum[j] -= qjx
                         y_sum[j] -= qjy
                 continue
             fh = mass[f]
-            if fl_i != FLOWING:
+            if fl_i != FLOWING and own_i:
                 h_sum[i] -= fh
             if j >= 0:
-                if fl_j != FLOWING:
+                if fl_j != FLOWING and own_j:
                     h_sum[j] += fh
             elif open_side:
                 outflow += max(fh, 0.0) * dt
@@ -270,6 +317,16 @@ def _emit_cells(runs, n_runs, h, hu, hv, gamma_z, density, h_zero, g, o_h, o_u1,
             x_sum[i] = 0.0
             y_sum[i] = 0.0
             transport[i] = 0.0
+
+
+#: Placeholder of the copies' constant: True in the copies for the step on threads
+SHARED = False
+#: :func:`_face_fluxes` and :func:`_add_masses` serially (False) and for the step on
+#: threads (True, where cells are shared)
+FACE_FLUXES = {shared: specialize(_face_fluxes, "_shared" if shared else "_serial",
+                                  SHARED=shared) for shared in (False, True)}
+ADD_MASSES = {shared: specialize(_add_masses, "_shared" if shared else "_serial",
+                                 SHARED=shared) for shared in (False, True)}
 
 
 def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu, hv,
@@ -384,8 +441,9 @@ def _step_sums(runs, n_runs, per_cell):
 TRIAL = law_copies(_trial_cells)
 FINAL = law_copies(_final_cells)
 
-#: Placeholders of :func:`_step`'s copies (:data:`STEP`): their law's cell passes
-trial_cells = final_cells = None
+#: Placeholders of :func:`_step`'s copies (:data:`STEP`): their law's cell passes, and the
+#: face passes (:data:`FACE_FLUXES`, :data:`ADD_MASSES`)
+trial_cells = final_cells = face_fluxes = add_masses = None
 
 
 def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, gamma_x,
@@ -413,16 +471,18 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
                 emit[E_C], emit[E_S], emit[E_KH], emit[E_K3], e_speed, h_new, hu_new, hv_new,
                 transport)
     # 2. the active faces' fluxes and the cells' sums, in face order
-    _face_fluxes(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit, mass, h_new,
-                 hu_new, hv_new, transport)
+    none = wk[8][:0]  # no cell shared by threads here
+    face_fluxes(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit, mass, h_new,
+                hu_new, hv_new, transport, none, 0, 0, 0, geo[7], wk[4], wk[7])
     # 3. the trial and the flags
     trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu, hv,
                 gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide, flag, h_new,
                 hu_new, hv_new)
     # 4. the mass through the faces that are not Dirac, in face order; what left through
     # the open ones
-    outflow = _add_masses(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
-                          mass, flag, dirac, dt, h_new, hu_new, hv_new)
+    outflow = add_masses(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
+                          mass, flag, dirac, dt, h_new, hu_new, hv_new, none, 0, 0, 0,
+                          geo[7])
     # 5. the new state, the observers
     n_bad, clamped = final_cells(
         runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h, gamma_x,
@@ -438,30 +498,34 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
 #: :func:`_step` per law kind (:func:`~avflow.numerics.vectorize.law_kind`), each calling
 #: its law's cell passes, so Numba compiles only those
 STEP = {kind: specialize(_step, "_" + law_label(kind), trial_cells=TRIAL[kind],
-                         final_cells=FINAL[kind])
+                         final_cells=FINAL[kind], face_fluxes=FACE_FLUXES[False],
+                         add_masses=ADD_MASSES[False])
         for kind in TRIAL}
 
 
-# --- The same step on threads: its face passes in gather form --------------------------
+# --- The same step on threads: each thread scatters into the cells of its own faces ------
 #
-# The two face passes above add each face to both its cells as they meet it (a scatter: two
-# threads meeting two faces of one cell would write the same place). On threads each pass
-# writes only its own face or its own cell instead, as numerics.face_gather does at order
-# 2: the fluxes per face into lines, then per cell the sum of its active faces in index
-# order (kernels.cell_faces), the order in which the scatter meets them, so every sum is
-# the same; the cell passes are the vector loops above, each thread on its own pieces of
-# the runs. The same bits as _step (and step_faces) on any number of threads.
+# The face passes above add each face to both its cells as they meet it (a scatter: two
+# threads meeting two faces of one cell would write the same place). On threads the active
+# faces are cut into as many pieces as there are threads (consecutive indices), and each
+# thread runs those passes over its piece. A cell whose faces all lie in one piece is
+# written by that piece's thread only, in face order: the same sums. The few cells whose
+# faces lie in two pieces ("shared": on 401 x 401 triangle nodes, a band of about two rows
+# at each cut) get nothing from the face passes: the faces keep what they bring to each
+# side in lines, and each shared cell then sums its listed faces in index order
+# (kernels.cell_faces), the order in which the scatter meets them, so every sum is again
+# the same. The cell passes are the vector loops above on pieces of the runs. The same bits
+# as _step (and step_faces) on any number of threads, however the lists are cut.
 
-#: The lists are cut into at most this many pieces (the threads share them out) ...
+#: The touched cells are cut into at most this many pieces for the cell passes ...
 MAX_PIECES = 256
 #: ... of at least this many cells or faces (a piece's vector loops have a scalar end);
-#: the solver's work arrays carry both (:func:`work`)
+#: the solver's work arrays carry both (:func:`work`), and the number of pieces of the
+#: active faces (by default the threads: each cut between two pieces makes shared cells)
 MIN_PIECE = 256
 #: A step of fewer touched cells than this runs serially (:func:`_step`) in the copy of
-#: the time loop with threads: below it, on 2 threads here, the gather form's extra
-#: traffic and waking the pool for its six passes cost what the second core saves (the
-#: time loop on spreading piles: 0.99x at 3.3k wet nodes, 1.04x at 5.2k, 1.27x at 8.2k;
-#: README, Kernels and threads)
+#: the time loop with threads: below it, on 2 threads here, waking the pool for the
+#: step's passes costs what the second core saves (README, Kernels and threads)
 MIN_PARALLEL_CELLS = 8192
 
 
@@ -498,46 +562,143 @@ def pieces_of(runs, n_runs, count, min_piece, max_pieces, segments, bounds):
     return n_pieces
 
 
-@noalias
+@njit(error_model="numpy", cache=True, inline="always")
+def _piece_of(first_faces, n_pieces, f):
+    """The piece of the faces that index ``f`` falls in: the last p with
+    ``first_faces[p] <= f`` (0 below the first)."""
+    lo = 0
+    hi = n_pieces - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if first_faces[mid] <= f:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _in_runs(runs, n_runs, i):
+    """Whether cell ``i`` is in the runs ``runs[:2 n_runs]`` (sorted: a binary search)."""
+    lo = 0
+    hi = n_runs - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if runs[2 * mid] <= i:
+            lo = mid
+        else:
+            hi = mid - 1
+    return n_runs > 0 and runs[2 * lo] <= i <= runs[2 * lo + 1]
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _share(i, runs, n_runs, face_ptr, face_idx, first_faces, n_pieces, shared, mark, cells, n):
+    """Cell ``i`` (< 0: none) listed as shared if it is touched, not listed yet, and its
+    first and last faces lie in different pieces; returns the cells listed."""
+    if i < 0 or shared[i] == mark or not _in_runs(runs, n_runs, i):
+        return n
+    a = _piece_of(first_faces, n_pieces, face_idx[face_ptr[i]])
+    b = _piece_of(first_faces, n_pieces, face_idx[face_ptr[i + 1] - 1])
+    if a == b:
+        return n
+    shared[i] = mark
+    cells[n] = i
+    return n + 1
+
+
 @njit(error_model="numpy", cache=True)
-def _face_lines(f0, f1, first, second, kind, n0x, n0y, t0x, t0y, n1x, n1y, t1x, t1y,
-                face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3, mass, q_ix, q_iy, q_jx,
-                q_jy, marks, mark):
-    """The faces ``f0 .. f1``: :func:`_face_flux`'s numbers into lines (mass, the momentum
-    to each side), in a loop without jumps that LLVM vectorises (the cells' values gathered,
-    every case computed and the one that applies selected: the same operations on the
-    value kept, so the same bits). ``first``, ``second``: the faces' cells (the second is
-    the first beyond a boundary), ``kind``: 0 between two cells, 1 a wall, 2 an open side;
-    the frames of both sides as eight lines. Each face's ``marks[f]`` becomes ``mark``: it
-    is listed in this step."""
-    f0 = max(f0, 0)
-    for k in range(f1 + 1 - f0):
-        f = f0 + k
-        i = first[f]
-        j = second[f]
-        kd = kind[f]
-        ni_x, ni_y, ti_x, ti_y = n0x[f], n0y[f], t0x[f], t0y[f]
-        nj_x, nj_y, tj_x, tj_y = n1x[f], n1y[f], t1x[f], t1y[f]
-        length = face_length[f]
-        hi, ui1, ui2, ci = e_h[i], e_u1[i], e_u2[i], e_c[i]
-        si, khi, k3i = e_s[i], e_kh[i], e_k3[i]
-        uni = ui1 * ni_x + ui2 * ni_y
-        uti = ui1 * ti_x + ui2 * ti_y
-        fp_h, fp_q = out_select(hi, uni, ci, si, khi, k3i)
-        unj = e_u1[j] * nj_x + e_u2[j] * nj_y
-        utj_cell = e_u1[j] * tj_x + e_u2[j] * tj_y
-        in_h, in_q = in_select(e_h[j], unj, e_c[j], e_s[j], e_kh[j], e_k3[j])
-        open_h, open_q = in_select(hi, max(uni, 0.0), ci, si, khi, k3i)
-        open_h = _open_mass(fp_h + open_h) - fp_h
-        inner = kd == 0
-        wall = kd == 1
-        gm_h = in_h if inner else (-fp_h if wall else open_h)
-        gm_q = in_q if inner else (fp_q if wall else open_q)
-        utj = utj_cell if inner else uti
-        mass[f], q_ix[f], q_iy[f], q_jx[f], q_jy[f] = _face_sums(
-            fp_h, fp_q, gm_h, gm_q, uti, utj, length, ni_x, ni_y, ti_x, ti_y, nj_x, nj_y,
-            tj_x, tj_y)
-        marks[f] = mark
+def _find_shared(runs, n_runs, pairs, face_ptr, face_idx, span, edge_cells, first_faces,
+                 n_pieces, shared, mark, cells):
+    """The touched cells (in the runs) whose faces lie in more than one piece of the faces:
+    ``shared[i] = mark`` and listed in ``cells``; returns how many. The faces of a cell are
+    in index order and span at most ``span`` indices, but for the ``edge_cells`` (with a
+    boundary face, numbered far away), so such a cell is one of those or has its first face
+    within ``span`` below a cut, where only it is looked for (on 401 x 401 triangle nodes,
+    about 2,400 faces a cut and the 1,600 cells along the walls)."""
+    n = 0
+    for e in range(edge_cells.size):
+        n = _share(edge_cells[e], runs, n_runs, face_ptr, face_idx, first_faces, n_pieces,
+                   shared, mark, cells, n)
+    for p in range(1, n_pieces):
+        cut = first_faces[p]
+        for f in range(max(cut - span - 1, 0), min(cut, pairs.shape[0] - 1) + 1):
+            for k in range(2):
+                n = _share(pairs[f, k], runs, n_runs, face_ptr, face_idx, first_faces,
+                           n_pieces, shared, mark, cells, n)
+    return n
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _shared_sums(i, face_ptr, face_idx, pairs, face_length, mass, side, marks, mark, h_sum,
+                 x_sum, y_sum, transport):
+    """A shared cell: the sums of its listed faces (``marks[f] == mark``) in index order,
+    the scatter's order, and the largest ``|F_h| / L``. A cell's side of a face is a
+    select: a - b is a + (-b), bit for bit."""
+    mh = 0.0
+    mx = 0.0
+    my = 0.0
+    unit_max = 0.0
+    for q in range(face_ptr[i], face_ptr[i + 1]):
+        f = face_idx[q]
+        if marks[f] != mark:
+            continue
+        first = pairs[f, 0] == i
+        fh = mass[f]
+        mh += -fh if first else fh
+        mx += -side[0, f] if first else side[2, f]
+        my += -side[1, f] if first else side[3, f]
+        unit_max = max(unit_max, abs(fh) / face_length[f])
+    h_sum[i] = mh
+    x_sum[i] = mx
+    y_sum[i] = my
+    transport[i] = unit_max
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _shared_masses(i, face_ptr, face_idx, pairs, mass, side, marks, mark, flag, dirac, h_sum,
+                   x_sum, y_sum):
+    """A shared cell at zero temperature: :func:`_add_masses` for it, over its listed faces
+    in index order (the mass of the faces that are not Dirac; what a dry cell takes back
+    through a Dirac face, from the lines: the same values as :func:`_add_masses` computes
+    again)."""
+    fl = flag[i]
+    if fl == FLOWING:
+        return  # a flowing cell has no Dirac face: its sum stands
+    mh = h_sum[i]  # 0.0 from the trial
+    mx = x_sum[i]
+    my = y_sum[i]
+    for q in range(face_ptr[i], face_ptr[i + 1]):
+        f = face_idx[q]
+        if marks[f] != mark:
+            continue
+        k = pairs[f, 0]
+        j = pairs[f, 1]
+        first = k == i
+        if _dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
+            if fl == DRY:  # takes back the momentum it brought to the trial
+                if first:
+                    mx += side[0, f]
+                    my += side[1, f]
+                else:
+                    mx -= side[2, f]
+                    my -= side[3, f]
+            continue
+        if first:
+            mh -= mass[f]
+        else:
+            mh += mass[f]
+    h_sum[i] = mh
+    x_sum[i] = mx
+    y_sum[i] = my
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _safe_faces(first_faces, n_pieces, last_face, span, p):
+    """The faces of piece p that touch no shared cell: ``(lo, hi)``, those more than a
+    cell's span from both its cuts (none below ``lo`` or above ``hi`` is sure)."""
+    lo = first_faces[p] + span if p > 0 else -1
+    hi = (first_faces[p + 1] - 1 - span) if p < n_pieces - 1 else last_face + 1
+    return lo, hi
 
 
 def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
@@ -546,40 +707,39 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
                   peak_speed, arrival, last_moved, active_faces, n_active, touched, n_touched,
                   geo, wk):
     """:func:`_step` on Numba's threads (its arguments, its returns, its bits; ``geo`` and
-    ``wk`` from :func:`geometry` and :func:`work` with ``threads``). Each pass writes only
-    its own cells or faces:
+    ``wk`` from :func:`geometry` and :func:`work` with ``threads``):
 
-    1. per piece of the touched cells, what they emit (:func:`_emit_cells`);
-    2. per piece of the active faces, each face's fluxes: its mass into ``mass[f]``, the
-       momentum to each side into the four lines ``side[:, f]``;
-    3. per touched cell, the sums of its active faces in index order (the scatter's order:
-       the same sums) and the largest ``|F_h| / L``; then the trial and the flags per piece;
-    4. per touched cell at zero temperature, the mass through its faces that are not Dirac
-       and what a dry cell takes back through a Dirac face, in index order (the scatter of
-       :func:`_add_masses`);
-    5. per piece, the new state and the observers (:func:`_final_cells`); then, serially,
-       the volume through the open faces (face order) and the step's sums (list order).
+    1. the active faces cut into pieces (one a thread by default), the touched cells whose
+       faces lie in two pieces found near the cuts (:func:`_find_shared`); per piece of the
+       touched cells, what they emit (:func:`_emit_cells`);
+    2. per piece of the faces, :func:`_face_fluxes` (a shared cell's sides into lines);
+       per shared cell its sums (:func:`_shared_sums`); per piece of the cells, the trial
+       and the flags;
+    3. per piece of the faces, :func:`_add_masses`; per shared cell its
+       (:func:`_shared_masses`);
+    4. per piece of the cells, the new state and the observers (:func:`_final_cells`);
+       then, serially, the volume through the open faces (in face order) and the step's
+       sums (in the lists' order).
     """
     pairs, inv_area, curv = geo[0], geo[1], geo[2]
-    face_ptr, face_idx, open_faces = geo[3], geo[4], geo[5]
+    face_ptr, face_idx, open_faces, span = geo[3], geo[4], geo[5], geo[6][0]
+    near_edge, edge_cells = geo[7], geo[8]
     emit, mass, per_cell, runs, side, pieces = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5]
-    cut, marks = wk[6], wk[7]
-    min_piece, max_pieces = cut[0], cut[1]
-    # A face is active when this step lists it: marked by the face pass with the step's
-    # number (the work buffers hold the state of a cell only once a step touched it in
-    # this call of the time loop: whether a neighbour beyond a touched dry cell is wet
-    # cannot be read from them)
+    cut, marks, shared, shared_cells = wk[6], wk[7], wk[8], wk[9]
+    min_piece, max_pieces, face_pieces = cut[0], cut[1], cut[3]
+    # The step's number: a face listed in this step and a cell shared in it carry it (the
+    # work buffers hold the state of a cell only once a step touched it in this call of the
+    # time loop: whether a neighbour beyond a touched dry cell is wet cannot be read there)
     cut[2] += 1
     mark = cut[2]
-    e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
-    e_s, e_kh, e_k3, e_speed = emit[E_S], emit[E_KH], emit[E_K3], emit[E_SPEED]
+    e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
     t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
     t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
     k11, k12, k22 = curv[0], curv[1], curv[2]
     n_runs = runs_of(touched, n_touched, runs)  # runs of cells, then of faces
     face_runs = runs[2 * n_runs:]
     n_face_runs = runs_of(active_faces, n_active, face_runs)
-    # pieces: the cells' segments and bounds, then the faces'
+    # pieces: the cells' segments and bounds, then the faces', and each face piece's first
     m_seg = 2 * (n_touched + max_pieces)
     cell_seg = pieces[:m_seg]
     cell_bounds = pieces[m_seg:m_seg + max_pieces + 1]
@@ -587,91 +747,47 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
     f_seg = 2 * (n_active + max_pieces)
     face_seg = rest[:f_seg]
     face_bounds = rest[f_seg:f_seg + max_pieces + 1]
+    first_faces = rest[f_seg + max_pieces + 1:f_seg + 2 * max_pieces + 1]
     n_cp = pieces_of(runs, n_runs, n_touched, min_piece, max_pieces, cell_seg, cell_bounds)
-    n_fp = pieces_of(face_runs, n_face_runs, n_active, min_piece, max_pieces, face_seg,
-                     face_bounds)
-    side_ix, side_iy, side_jx, side_jy = side[0], side[1], side[2], side[3]
+    n_fp = pieces_of(face_runs, n_face_runs, n_active, min_piece,
+                     max(1, min(max_pieces, face_pieces)), face_seg, face_bounds)
+    for p in range(n_fp):
+        first_faces[p] = face_seg[2 * face_bounds[p]]
+    last_face = active_faces[n_active - 1] if n_active > 0 else 0
+    n_shared = _find_shared(runs, n_runs, pairs, face_ptr, face_idx, span, edge_cells,
+                            first_faces, n_fp, shared, mark, shared_cells)
 
     # 1. what each touched cell emits
     for p in prange(n_cp):
         s0 = cell_bounds[p]
         _emit_cells(cell_seg[2 * s0:], cell_bounds[p + 1] - s0, h, hu, hv, gamma_z, density,
-                    h_zero, g, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3, e_speed, h_new, hu_new,
-                    hv_new, transport)
-    # 2. each active face's fluxes
-    first, second, kind, fr = geo[6], geo[7], geo[8], geo[9]
+                    h_zero, g, emit[E_H], e_u1, e_u2, emit[E_C], emit[E_S], emit[E_KH],
+                    emit[E_K3], e_speed, h_new, hu_new, hv_new, transport)
+    # 2. the faces' fluxes, each thread into the cells of its own piece; the shared cells'
+    # sums; the trial and the flags
     for p in prange(n_fp):
-        for s in range(face_bounds[p], face_bounds[p + 1]):
-            _face_lines(face_seg[2 * s], face_seg[2 * s + 1], first, second, kind, fr[0],
-                        fr[1], fr[2], fr[3], fr[4], fr[5], fr[6], fr[7], face_length, e_h,
-                        e_u1, e_u2, e_c, e_s, e_kh, e_k3, mass, side_ix, side_iy, side_jx,
-                        side_jy, marks, mark)
-    # 3. each cell's sums over its active faces, in index order; the trial and the flags
-    for p in prange(n_cp):
-        for s in range(cell_bounds[p], cell_bounds[p + 1]):
-            for i in range(cell_seg[2 * s], cell_seg[2 * s + 1] + 1):
-                mh = 0.0
-                mx = 0.0
-                my = 0.0
-                unit_max = 0.0
-                for q in range(face_ptr[i], face_ptr[i + 1]):
-                    # without jumps (the side a cell is on is a coin toss on triangles):
-                    # a - b is a + (-b), bit for bit, so the scatter's sums
-                    f = face_idx[q]
-                    first = pairs[f, 0] == i
-                    active = marks[f] == mark
-                    fh = mass[f]
-                    vh = -fh if first else fh
-                    vx = -side_ix[f] if first else side_jx[f]
-                    vy = -side_iy[f] if first else side_jy[f]
-                    unit = abs(fh) / face_length[f]
-                    mh = mh + vh if active else mh
-                    mx = mx + vx if active else mx
-                    my = my + vy if active else my
-                    unit_max = max(unit_max, unit) if active else unit_max
-                h_new[i] = mh
-                hu_new[i] = mx
-                hv_new[i] = my
-                transport[i] = unit_max
+        lo, hi = _safe_faces(first_faces, n_fp, last_face, span, p)
+        face_fluxes(face_seg, face_bounds[p], face_bounds[p + 1] - face_bounds[p], pairs,
+                    face_frame, face_length, emit, mass, h_new, hu_new, hv_new, transport,
+                    shared, mark, lo, hi, near_edge, side, marks)
+    for c in prange(n_shared):
+        _shared_sums(shared_cells[c], face_ptr, face_idx, pairs, face_length, mass, side,
+                     marks, mark, h_new, hu_new, hv_new, transport)
     for p in prange(n_cp):
         s0 = cell_bounds[p]
         trial_cells(cell_seg[2 * s0:], cell_bounds[p + 1] - s0, inv_area, e_u1, e_u2, e_speed,
                     k11, k12, k22, h, hu, hv, gamma_x, gamma_y, gamma_z, law, params, g,
                     h_zero, dt, dt_decide, flag, h_new, hu_new, hv_new)
-    # 4. the cells at zero temperature: the mass of their faces that are not Dirac
-    for p in prange(n_cp):
-        for s in range(cell_bounds[p], cell_bounds[p + 1]):
-            for i in range(cell_seg[2 * s], cell_seg[2 * s + 1] + 1):
-                fl = flag[i]
-                if fl == FLOWING:
-                    continue  # no Dirac face: its sum of pass 3 stands
-                mh = h_new[i]  # 0.0 from the trial
-                mx = hu_new[i]
-                my = hv_new[i]
-                for q in range(face_ptr[i], face_ptr[i + 1]):
-                    f = face_idx[q]
-                    if marks[f] != mark:
-                        continue
-                    k = pairs[f, 0]
-                    j = pairs[f, 1]
-                    first = k == i
-                    if _dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
-                        if fl == DRY:  # takes back the momentum it brought to the trial
-                            if first:
-                                mx += side_ix[f]
-                                my += side_iy[f]
-                            else:
-                                mx -= side_jx[f]
-                                my -= side_jy[f]
-                        continue
-                    if first:
-                        mh -= mass[f]
-                    else:
-                        mh += mass[f]
-                h_new[i] = mh
-                hu_new[i] = mx
-                hv_new[i] = my
-    # 5. the new state, the observers
+    # 3. the cells at zero temperature: the mass of their faces that are not Dirac
+    for p in prange(n_fp):
+        lo, hi = _safe_faces(first_faces, n_fp, last_face, span, p)
+        add_masses(face_seg, face_bounds[p], face_bounds[p + 1] - face_bounds[p], pairs,
+                   face_frame, face_length, emit, mass, flag, dirac, dt, h_new, hu_new,
+                   hv_new, shared, mark, lo, hi, near_edge)
+    for c in prange(n_shared):
+        _shared_masses(shared_cells[c], face_ptr, face_idx, pairs, mass, side, marks, mark,
+                       flag, dirac, h_new, hu_new, hv_new)
+    # 4. the new state, the observers
     n_bad = 0
     clamped = 0
     for p in prange(n_cp):
@@ -698,10 +814,12 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
 
 #: :func:`_step_threads` per law kind, compiled with threads, and serially (``prange``
 #: runs as ``range``: what the tests hold to :func:`_step` on one thread)
+_SHARED_PASSES = dict(face_fluxes=FACE_FLUXES[True], add_masses=ADD_MASSES[True])
 STEP_THREADS = {kind: specialize(_step_threads, "_" + law_label(kind) + "_parallel",
                                  parallel=True, trial_cells=TRIAL[kind],
-                                 final_cells=FINAL[kind])
+                                 final_cells=FINAL[kind], **_SHARED_PASSES)
                 for kind in TRIAL}
-STEP_GATHER_SERIAL = {kind: specialize(_step_threads, "_" + law_label(kind) + "_serial",
-                                       trial_cells=TRIAL[kind], final_cells=FINAL[kind])
+STEP_PIECES_SERIAL = {kind: specialize(_step_threads, "_" + law_label(kind) + "_serial",
+                                       trial_cells=TRIAL[kind], final_cells=FINAL[kind],
+                                       **_SHARED_PASSES)
                       for kind in TRIAL}

@@ -1048,9 +1048,10 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     (:func:`avflow.numerics.face_sweep.geometry`, :func:`~avflow.numerics.face_sweep.work`;
     empty elsewhere, :func:`~avflow.numerics.face_sweep.unused`). ``min_parallel_cells``:
     in the copy with threads, an order-1 step, an order-2 stage or Heun's merge that sweeps
-    at least that many cells runs in gather form on Numba's threads (order 1:
-    :func:`avflow.numerics.face_sweep._step_threads`; order 2:
-    :mod:`avflow.numerics.face_gather`; the same bits as the serial sweeps).
+    at least that many cells runs on Numba's threads (order 1:
+    :func:`avflow.numerics.face_sweep._step_threads`, each thread scattering into the cells
+    of its own piece of the faces; order 2: :mod:`avflow.numerics.face_gather`, in gather
+    form; the same bits as the serial sweeps).
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
     Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
@@ -1196,7 +1197,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                     arrival, last_moved, True, p_work, p_flag)
             elif not ORDER2 and PARALLEL and n_touched >= min_parallel_cells:
-                # the same on threads, its face passes in gather form (the same bits)
+                # the same on threads, each on its piece of the faces (the same bits)
                 ok, out, lim, moving, film, clamped, kinetic = faces_step_threads(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
@@ -1369,7 +1370,7 @@ from avflow.numerics.reconstruction import reconstruct_cells_parallel as _recon_
 
 #: Placeholders of the order-1 sweeps :func:`_advance`'s copies call (their law's copy):
 #: the profile's and the faces' (:mod:`avflow.numerics.face_sweep`; on threads, in the
-#: copy with threads, its gather form)
+#: copy with threads, its step on threads)
 profile_step = None
 faces_step = None
 faces_step_threads = None
@@ -1422,7 +1423,7 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
                  parallel: bool = False):
     """:func:`_advance` compiled with the mesh kind and the order constants (and, at order
     1, calling the sweep of the friction law ``kind``; ``parallel``: the face kernel with
-    the gather form's passes on threads, whose functions the other copies never compile)."""
+    its passes on threads, whose functions the other copies never compile)."""
     suffix = f"_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
     names = {}
     if kind is not None:
@@ -1454,7 +1455,7 @@ ADVANCE = {(s, o, k, p): _advance_for(s, o, k, p)
 def time_loop(structured: bool, order: int, law: int, parallel: bool = False):
     """The time loop (:func:`_advance`: its arguments, its status codes) compiled for this
     mesh kind (``structured``: a profile) and ``order`` alone (and, at order 1, for the
-    friction ``law``); ``parallel``: with the gather form on threads (on faces only;
+    friction ``law``); ``parallel``: with the passes on threads (on faces only;
     profiles run the serial copy)."""
     structured, order2 = bool(structured), order == 2
     parallel = bool(parallel) and not structured

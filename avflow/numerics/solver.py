@@ -166,12 +166,12 @@ class Solver:
         self._clock = np.zeros(2, dtype=np.int64)
         self._transport = np.zeros(n)
         # the face kernel at order 1 (numerics.face_sweep): its geometry and work arrays
-        # (with the gather form's lines where it runs on threads)
+        # (with what its step on threads needs where it runs on threads)
         if self.order == 1 and not m.structured_1d:
-            threads = self.threads_used() > 1
+            threads = self.threads_used()
             self._sweep = (face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature,
                                                self._cell_face_ptr, self._cell_face_idx,
-                                               threads),
+                                               threads > 1),
                            face_sweep.work(n, m.n_faces, threads))
         else:
             self._sweep = face_sweep.unused()
@@ -225,7 +225,7 @@ class Solver:
 
     def threads_used(self) -> int:
         """CPU threads the time loop runs on: the square-grid kernel's, and the face
-        kernel's (its gather form: :mod:`avflow.numerics.face_sweep` at order 1,
+        kernel's (:mod:`avflow.numerics.face_sweep` at order 1,
         :mod:`avflow.numerics.face_gather` at order 2); 1 for profiles, which are serial."""
         if self.kernel_used != "grid" and self.terrain.mesh.structured_1d:
             return 1
