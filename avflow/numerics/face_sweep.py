@@ -75,8 +75,10 @@ def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=Fa
     # other cells (a cell's faces are in index order)
     edge = np.zeros(mesh.n_cells, dtype=bool)
     edge[fc[fc[:, 1] < 0, 0]] = True
-    spans = cell_face_idx[cell_face_ptr[1:] - 1] - cell_face_idx[cell_face_ptr[:-1]]
-    span = int(np.max(spans[~edge], initial=0))
+    inner = ~edge & (cell_face_ptr[1:] > cell_face_ptr[:-1])  # (a cell without faces: none)
+    spans = (cell_face_idx[cell_face_ptr[1:][inner] - 1]
+             - cell_face_idx[cell_face_ptr[:-1][inner]])
+    span = int(np.max(spans, initial=0))
     near_edge = edge[fc[:, 0]] | (fc[:, 1] >= 0) & edge[np.maximum(fc[:, 1], 0)]
     if not threads:
         near_edge, edge = near_edge[:0], edge[:0]
