@@ -42,9 +42,11 @@ def bits(a):
     return np.ascontiguousarray(a).view(np.int64)
 
 
-def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, dirac=True):
-    """Run ``n_steps`` order-1 steps with both kernels; returns the last state's h and the
-    flags seen (to check that the case reached what it is meant to test)."""
+def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, dirac=True,
+                  same_lists=0):
+    """Run ``n_steps`` order-1 steps with every kernel; returns the last state's h, the
+    flags seen (to check that the case reached what it is meant to test) and the volume
+    out. Checks that at least ``same_lists`` steps ran on the last step's lists."""
     solver = Solver(terrain, law, np.array(params, dtype=float), kernel="faces", h_zero=h_zero,
                     h_dry=h_dry, dirac=dirac)
     state = solver.new_state(h0)
@@ -52,12 +54,18 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
     n, n_faces = mesh.n_cells, mesh.n_faces
     kind = law_kind(int(law))
     step_new = face_sweep.STEP[kind]
-    # the step on threads: its geometry and work arrays, its lists cut into pieces of 8 or
-    # more, the faces into 32 pieces (most cells shared) or 2 (a band at one cut)
+    # the step on threads: its geometry and work arrays (one a kernel: each keeps what it
+    # made of the last step's lists), its lists cut into pieces of 8 or more, the faces into
+    # 32 pieces (most cells shared) or 2 (a band at one cut)
     geo = face_sweep.geometry(terrain.mesh, 1.0 / terrain.mesh.cell_area, terrain.curvature,
                               solver._cell_face_ptr, solver._cell_face_idx, True)
-    fine, coarse = (face_sweep.work(n, n_faces, 2, min_piece=8, max_pieces=32,
-                                    face_pieces=k) for k in (32, 2))
+    works = {kernel: face_sweep.work(n, n_faces, 2, min_piece=8, max_pieces=32,
+                                     face_pieces=2 if kernel.endswith("2 pieces") else 32)
+             for kernel in KERNELS[2:]}
+    works["vectorised"] = face_sweep.work(n, n_faces)
+    last_wet = None
+    steps_on_the_same_lists = 0
+    wet_changes_seen = False
     shares = set()  # (kernel, some cell shared, some not)
     threads = numba.get_num_threads()
     pieces_seen = 0
@@ -73,6 +81,11 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
     outflow = 0.0
     for k in range(n_steps):
         wet = np.flatnonzero(h > h_zero).astype(np.int64)
+        # the lists are the last step's (activate lists the same wet cells alike): the
+        # kernels run on what they kept of them, as in the time loop
+        same = last_wet is not None and np.array_equal(wet, last_wet)
+        steps_on_the_same_lists += same
+        last_wet = wet
         n_active, n_touched = K.activate(wet, wet.size, solver._cell_face_ptr,
                                          solver._cell_face_idx, mesh.face_cells, face_stamp,
                                          cell_stamp, k, active, touched)
@@ -96,11 +109,11 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                                  ob["last_moved"], active, n_active, touched, n_touched,
                                  False, np.zeros((0, 2, 3)), True, emit)
             else:
-                step, sweep = step_new, solver._sweep
+                step, sweep = step_new, (solver._sweep[0], works[kernel])
                 if kernel != "vectorised":
                     step = (face_sweep.STEP_PIECES_SERIAL[kind] if kernel == "pieces serially"
                             else face_sweep.STEP_THREADS[kind])
-                    sweep = (geo, coarse if kernel == "2 threads, 2 pieces" else fine)
+                    sweep = (geo, works[kernel])
                     numba.set_num_threads(1 if kernel == "pieces serially" else 2)
                 try:
                     r = step(mesh.face_cells, mesh.face_frame, mesh.face_length,
@@ -108,21 +121,25 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                              terrain.gamma_x, terrain.gamma_y, terrain.gamma_z, h, hu, hv, *new,
                              transport, fl, *law_args, ob["peak_h"], ob["peak_speed"],
                              ob["arrival"], ob["last_moved"], active, n_active, touched,
-                             n_touched, *sweep)
+                             n_touched, same, *sweep)
                 finally:
                     numba.set_num_threads(threads)
             results.append(r)
             outputs.append((new, fl, ob))
             if kernel not in ("reference", "vectorised"):
                 wk = sweep[1]  # a cell shared in this step carries its number
-                shared = wk[8][touched[:n_touched]] == wk[6][2]
+                shared = wk[8][touched[:n_touched]] == wk[6][face_sweep.CUT_MARK]
                 shares.add((kernel, bool(shared.any()), not shared.all()))
         (ref_new, ref_fl, ref_ob) = outputs[0]
         assert results[0][0], f"step {k} failed"
         for kernel, r, (vec_new, vec_fl, vec_ob) in zip(KERNELS[1:], results[1:],
                                                         outputs[1:]):
             where = f"{kernel}, step {k}"
-            assert results[0] == r, f"{where}: {results[0]} != {r}"
+            assert results[0] == r[:7], f"{where}: {results[0]} != {r}"
+            # and the touched cells that became wet or dry
+            was, now = h[touched[:n_touched]] > h_zero, vec_new[0][touched[:n_touched]] > h_zero
+            assert r[7] == np.count_nonzero(was != now), where
+            wet_changes_seen |= r[7] > 0
             for name, a, b in zip(("h", "hu", "hv"), ref_new, vec_new):
                 np.testing.assert_array_equal(bits(a), bits(b), err_msg=f"{name}, {where}")
             np.testing.assert_array_equal(ref_fl, vec_fl, err_msg=f"flags, {where}")
@@ -141,6 +158,8 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
     # every cell shared at times with 32 pieces of the faces, some and not all with 2
     assert {k for k, some, _ in shares if some} == set(KERNELS[2:]), shares
     assert ("2 threads, 2 pieces", True, True) in shares, shares
+    assert steps_on_the_same_lists >= same_lists
+    assert wet_changes_seen or same_lists == n_steps - 1
     return h, flags_seen, outflow
 
 
@@ -200,6 +219,17 @@ def test_square_grid_dem_on_the_face_kernel():
     _, _, outflow = compare_steps(ter, Law.COULOMB, (math.tan(math.radians(18.0)),), h0, 80,
                                   h_zero=1e-6, h_dry=0.01)
     assert outflow > 0.0
+
+
+def test_triangles_covering_their_mesh():
+    """A layer over the whole mesh, a pile on it, an open side: every step after the first
+    runs on the last step's lists (the time loop's same wet cells), on what the kernels
+    kept of them (their runs, pieces and shared cells)."""
+    ter = plane_triangle_terrain(tri_block(25.0, 70.0), 10.0, None, walls(x_max="outflow"))
+    h0 = 0.5 + cylinder(ter, (300.0, 150.0), radius=60.0, thickness=6.0)
+    _, flags, outflow = compare_steps(ter, Law.COULOMB, (math.tan(math.radians(20.0)),), h0,
+                                      30, same_lists=29)
+    assert outflow > 0.0 and K.FLOWING in flags
 
 
 def test_classical_scheme_without_dirac_faces():

@@ -88,22 +88,35 @@ def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=Fa
             np.flatnonzero(edge).astype(np.int64))
 
 
+# How a step's lists are cut (the work arrays' ``cut``, :func:`work`): the pieces' least
+# size and most number, the steps that listed anew so far (a listed face and a shared cell
+# carry the last one's number), the pieces of the faces; then what the last step made of
+# its lists, kept for a next step on the same lists (the time loop's ``same_wet``): the
+# runs of cells and of faces, the pieces of each, the shared cells, and whether the pieces
+# and the shared cells were made (by the step on threads) since the lists last changed
+(CUT_MIN_PIECE, CUT_MAX_PIECES, CUT_MARK, CUT_FACE_PIECES, CUT_RUNS, CUT_FACE_RUNS,
+ CUT_CELL_PIECES, CUT_FACE_PIECES_MADE, CUT_SHARED, CUT_PIECES_KEPT, N_CUT) = range(11)
+
+
 def work(n_cells: int, n_faces: int, threads: int = 1, min_piece: int | None = None,
          max_pieces: int | None = None, face_pieces: int | None = None):
     """The sweep's work arrays (a tuple), allocated once per solver: the emitted lines, the
     mass flux of each face, the per-cell lines, the runs of both lists; for the step on
     ``threads`` > 1 threads (empty otherwise), the momentum each face brings to its sides
     (four lines: x, y to its first cell, x, y to its second; written where a side is
-    shared), the pieces of both lists (:func:`pieces_of`), how they are cut and the steps
-    so far: ``[min_piece, max_pieces, steps, face_pieces]`` (default :data:`MIN_PIECE`,
-    :data:`MAX_PIECES`, and as many pieces of the faces as threads; tests cut small meshes
-    finer), per face the step that listed it last, per cell the step that found it shared
-    last, and the list of the shared cells."""
+    shared), the pieces of both lists (:func:`pieces_of`), how they are cut and what the
+    last step made of its lists (:data:`CUT_MIN_PIECE` ... :data:`CUT_PIECES_KEPT`; by
+    default pieces of :data:`MIN_PIECE` or more, at most :data:`MAX_PIECES`, and as many
+    pieces of the faces as threads; tests cut small meshes finer), per face the step that
+    listed it last, per cell the step that found it shared last, and the list of the
+    shared cells."""
     on_threads = threads > 1
     m, f = (n_cells, n_faces) if on_threads else (0, 0)
-    cut = np.array([min_piece or MIN_PIECE, max_pieces or MAX_PIECES, 0,
-                    face_pieces or threads], dtype=np.int64)
-    n_pieces = int(cut[1])
+    cut = np.zeros(N_CUT, dtype=np.int64)
+    cut[CUT_MIN_PIECE] = min_piece or MIN_PIECE
+    cut[CUT_MAX_PIECES] = max_pieces or MAX_PIECES
+    cut[CUT_FACE_PIECES] = face_pieces or threads
+    n_pieces = int(cut[CUT_MAX_PIECES])
     return (np.zeros((N_EMIT, n_cells)), np.zeros(n_faces), np.zeros((N_CELL_LINES, n_cells)),
             np.empty(2 * (n_cells + n_faces) + 4, dtype=np.int64), np.zeros((4, f)),
             np.empty(2 * (m + f) + 8 * n_pieces + 8 if on_threads else 0, dtype=np.int64),
@@ -120,7 +133,7 @@ def unused():
              np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64)),
             (np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
              np.empty(0, dtype=np.int64), np.empty((4, 0)), np.empty(0, dtype=np.int64),
-             np.zeros(4, dtype=np.int64), np.empty(0, dtype=np.int64),
+             np.zeros(N_CUT, dtype=np.int64), np.empty(0, dtype=np.int64),
              np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)))
 
 
@@ -139,18 +152,6 @@ def runs_of(items, count, runs):
             runs[2 * r] = items[c]
     runs[2 * r + 1] = items[count - 1]
     return r + 1
-
-
-@njit(error_model="numpy", cache=True, inline="always")
-def _face_sums(fp_h, fp_q, gm_h, gm_q, uti, utj, length, ni_x, ni_y, ti_x, ti_y, nj_x, nj_y,
-               tj_x, tj_y):
-    """A face's fluxes from its two half fluxes (outward from i, inward from j or the ghost
-    beyond a boundary) and the tangential velocities they carry: ``(L F_h, momentum to i
-    (x, y), momentum to j (x, y))`` in each side's basis."""
-    f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
-    f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
-    return ((fp_h + gm_h) * length, f_n * ni_x + f_t * ti_x, f_n * ni_y + f_t * ti_y,
-            f_n * nj_x + f_t * tj_x, f_n * nj_y + f_t * tj_y)
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -183,8 +184,10 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
         gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
         gm_h = _open_mass(fp_h + gm_h) - fp_h
         utj = uti
-    return _face_sums(fp_h, fp_q, gm_h, gm_q, uti, utj, length, ni_x, ni_y, ti_x, ti_y, nj_x,
-                      nj_y, tj_x, tj_y)
+    f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
+    f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
+    return ((fp_h + gm_h) * length, f_n * ni_x + f_t * ti_x, f_n * ni_y + f_t * ti_y,
+            f_n * nj_x + f_t * tj_x, f_n * nj_y + f_t * tj_y)
 
 
 def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h_sum, x_sum,
@@ -368,12 +371,14 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
     """The cells of the runs: the new thickness from the mass sum in ``h_new``, eq. 50's
     projection of the trial discharge in ``hu_new, hv_new``, the observers and what the
     step's sums need (step_faces sweep 2b), every write a select. Returns ``(cells below
-    0, clamped)``: a cell below 0 makes the step be redone, whatever it wrote."""
+    0, clamped, cells that became wet or dry)``: a cell below 0 makes the step be redone,
+    whatever it wrote; with none wet or dry anew, the wet cells and the lists hold."""
     lw = friction_law(law)
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
     n_bad = 0
     clamped = 0
+    flips = 0
     for r in range(n_runs):
         a = max(runs[2 * r], 0)  # (no wraparound of a negative index: the loop vectorises)
         for k in range(runs[2 * r + 1] + 1 - a):
@@ -385,6 +390,7 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             bad = hn < 0.0  # (as step_faces: a NaN goes on)
             good = not bad
             n_bad += 1 if bad else 0
+            flips += 1 if (h_old > h_zero) != (hn > h_zero) else 0
             qx = hu_new[i]
             qy = hv_new[i]
             dry = fi == DRY  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
@@ -417,7 +423,7 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             t_film[i] = hn * area if moves & (hn <= h_dry) else 0.0
     # (a step with a cell below 0 is redone; every run was updated all the same, so the
     # observers it leaves do not depend on how the runs were cut for the threads)
-    return n_bad, clamped
+    return n_bad, clamped, flips
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -448,25 +454,41 @@ FINAL = law_copies(_final_cells)
 trial_cells = final_cells = face_fluxes = add_masses = None
 
 
+@njit(error_model="numpy", cache=True)
+def _runs(active_faces, n_active, touched, n_touched, same, wk):
+    """The runs of both lists (:func:`runs_of`; cells, then faces, in ``wk``'s runs):
+    those the last step left when the lists are its own (``same``), else made and kept.
+    Returns how many of each."""
+    runs, cut = wk[3], wk[6]
+    if same:
+        return cut[CUT_RUNS], cut[CUT_FACE_RUNS]
+    n_runs = runs_of(touched, n_touched, runs)
+    cut[CUT_RUNS] = n_runs
+    cut[CUT_FACE_RUNS] = runs_of(active_faces, n_active, runs[2 * n_runs:])
+    cut[CUT_PIECES_KEPT] = 0  # the pieces are the last lists' now
+    return n_runs, cut[CUT_FACE_RUNS]
+
+
 def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, gamma_x,
           gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport, flag, law, params, g,
           dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
-          active_faces, n_active, touched, n_touched, geo, wk):
+          active_faces, n_active, touched, n_touched, same, geo, wk):
     """One order-1 step over the active lists (sorted): the numbers of
     :func:`~avflow.numerics.kernels.step_faces`, with ``geo`` from :func:`geometry` and
-    ``wk`` from :func:`work`. ``h_new, hu_new, hv_new`` first hold the cells' sums;
+    ``wk`` from :func:`work`; ``same``: the lists are those of the last step with ``wk``,
+    whose runs it holds. ``h_new, hu_new, hv_new`` first hold the cells' sums;
     ``transport`` (per cell): the largest ``|F_h| / L`` through its faces. Each
     pass is one call over all the runs of its list (a call per run cost a flow on a map 4x
     larger, cut into more runs, a fifth more). Returns
-    ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
+    ``(ok, outflow, dt_limit, moving, film, clamped, kinetic, wet_changes)``, the last the
+    touched cells that became wet or dry (none: the next step's lists are these)."""
     pairs, inv_area, curv = geo[0], geo[1], geo[2]
     emit, mass, per_cell, runs = wk[0], wk[1], wk[2], wk[3]
     e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
     t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
     t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
     k11, k12, k22 = curv[0], curv[1], curv[2]
-    n_runs = runs_of(touched, n_touched, runs)  # runs of cells, then of faces
-    n_face_runs = runs_of(active_faces, n_active, runs[2 * n_runs:])
+    n_runs, n_face_runs = _runs(active_faces, n_active, touched, n_touched, same, wk)
 
     # 1. what each touched cell emits; its sums start at 0
     _emit_cells(runs, n_runs, h, hu, hv, gamma_z, density, h_zero, g, emit[E_H], e_u1, e_u2,
@@ -486,15 +508,15 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
                           mass, flag, dirac, dt, h_new, hu_new, hv_new, none, 0, 0, 0,
                           geo[7])
     # 5. the new state, the observers
-    n_bad, clamped = final_cells(
+    n_bad, clamped, flips = final_cells(
         runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h, gamma_x,
         gamma_y, gamma_z, flag, law, params, g, h_dry, h_zero, dt, t_new, h_new, hu_new,
         hv_new, transport, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov,
         t_film)
     if n_bad > 0:
-        return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0
     lim, moving, film, kinetic = _step_sums(runs, n_runs, per_cell)
-    return True, outflow, lim, moving, film, clamped, kinetic
+    return True, outflow, lim, moving, film, clamped, kinetic, flips
 
 
 #: :func:`_step` per law kind (:func:`~avflow.numerics.vectorize.law_kind`), each calling
@@ -565,14 +587,14 @@ def pieces_of(runs, n_runs, count, min_piece, max_pieces, segments, bounds):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _piece_of(first_faces, n_pieces, f):
-    """The piece of the faces that index ``f`` falls in: the last p with
-    ``first_faces[p] <= f`` (0 below the first)."""
+def _last_at_most(a, stride, n, x):
+    """The last k < n with ``a[stride * k] <= x`` in a sorted strided array (0 when there
+    is none): a binary search."""
     lo = 0
-    hi = n_pieces - 1
+    hi = n - 1
     while lo < hi:
         mid = (lo + hi + 1) // 2
-        if first_faces[mid] <= f:
+        if a[stride * mid] <= x:
             lo = mid
         else:
             hi = mid - 1
@@ -580,17 +602,17 @@ def _piece_of(first_faces, n_pieces, f):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
+def _piece_of(first_faces, n_pieces, f):
+    """The piece of the faces that index ``f`` falls in: the last p with
+    ``first_faces[p] <= f`` (0 below the first)."""
+    return _last_at_most(first_faces, 1, n_pieces, f)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
 def _in_runs(runs, n_runs, i):
     """Whether cell ``i`` is in the runs ``runs[:2 n_runs]`` (sorted: a binary search)."""
-    lo = 0
-    hi = n_runs - 1
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if runs[2 * mid] <= i:
-            lo = mid
-        else:
-            hi = mid - 1
-    return n_runs > 0 and runs[2 * lo] <= i <= runs[2 * lo + 1]
+    r = _last_at_most(runs, 2, n_runs, i)
+    return n_runs > 0 and runs[2 * r] <= i <= runs[2 * r + 1]
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -703,17 +725,66 @@ def _safe_faces(first_faces, n_pieces, last_face, span, p):
     return lo, hi
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def _piece_lines(pieces, n_touched, n_active, max_pieces):
+    """The pieces of both lists in the work arrays' ``pieces`` (:func:`pieces_of`): the
+    cells' segments and bounds, then the faces', then each face piece's first face."""
+    m_seg = 2 * (n_touched + max_pieces)
+    rest = pieces[m_seg + max_pieces + 1:]
+    f_seg = 2 * (n_active + max_pieces)
+    return (pieces[:m_seg], pieces[m_seg:m_seg + max_pieces + 1], rest[:f_seg],
+            rest[f_seg:f_seg + max_pieces + 1],
+            rest[f_seg + max_pieces + 1:f_seg + 2 * max_pieces + 1])
+
+
+@njit(error_model="numpy", cache=True)
+def _cut_lists(active_faces, n_active, touched, n_touched, same, pairs, face_ptr, face_idx,
+               span, edge_cells, wk):
+    """The lists of the step on threads cut into pieces (the layout of ``wk``'s pieces: the
+    cells' segments and bounds, then the faces', then each face piece's first face), and
+    the shared cells found (:func:`_find_shared`). On the lists of the last step
+    (``same``) what it made is used again, if it was made on threads (a flow covering its
+    whole mesh, 0.5 ms a step on 484k faces). Returns the numbers of runs of cells and of
+    faces, of pieces of each, and of shared cells."""
+    runs, pieces, cut, shared, shared_cells = wk[3], wk[5], wk[6], wk[8], wk[9]
+    if same and cut[CUT_PIECES_KEPT] == 1:
+        return (cut[CUT_RUNS], cut[CUT_FACE_RUNS], cut[CUT_CELL_PIECES],
+                cut[CUT_FACE_PIECES_MADE], cut[CUT_SHARED])
+    n_runs, n_face_runs = _runs(active_faces, n_active, touched, n_touched, same, wk)
+    # A new number for these lists: a face listed in them and a cell shared in them carry
+    # it (the work buffers hold the state of a cell only once a step touched it in this
+    # call of the time loop: whether a neighbour beyond a touched dry cell is wet cannot be
+    # read there)
+    cut[CUT_MARK] += 1
+    min_piece, max_pieces = cut[CUT_MIN_PIECE], cut[CUT_MAX_PIECES]
+    cell_seg, cell_bounds, face_seg, face_bounds, first_faces = _piece_lines(
+        pieces, n_touched, n_active, max_pieces)
+    n_cp = pieces_of(runs, n_runs, n_touched, min_piece, max_pieces, cell_seg, cell_bounds)
+    n_fp = pieces_of(runs[2 * n_runs:], n_face_runs, n_active, min_piece,
+                     max(1, min(max_pieces, cut[CUT_FACE_PIECES])), face_seg, face_bounds)
+    for p in range(n_fp):
+        first_faces[p] = face_seg[2 * face_bounds[p]]
+    n_shared = _find_shared(runs, n_runs, pairs, face_ptr, face_idx, span, edge_cells,
+                            first_faces, n_fp, shared, cut[CUT_MARK], shared_cells)
+    cut[CUT_CELL_PIECES] = n_cp
+    cut[CUT_FACE_PIECES_MADE] = n_fp
+    cut[CUT_SHARED] = n_shared
+    cut[CUT_PIECES_KEPT] = 1
+    return n_runs, n_face_runs, n_cp, n_fp, n_shared
+
+
 def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                   gamma_x, gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport,
                   flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                   peak_speed, arrival, last_moved, active_faces, n_active, touched, n_touched,
-                  geo, wk):
+                  same, geo, wk):
     """:func:`_step` on Numba's threads (its arguments, its returns, its bits; ``geo`` and
     ``wk`` from :func:`geometry` and :func:`work` with ``threads``):
 
     1. the active faces cut into pieces (one a thread by default), the touched cells whose
-       faces lie in two pieces found near the cuts (:func:`_find_shared`); per piece of the
-       touched cells, what they emit (:func:`_emit_cells`);
+       faces lie in two pieces found near the cuts (:func:`_cut_lists`; kept from the last
+       step on the same lists, ``same``); per piece of the touched cells, what they emit
+       (:func:`_emit_cells`);
     2. per piece of the faces, :func:`_face_fluxes` (a shared cell's sides into lines);
        per shared cell its sums (:func:`_shared_sums`); per piece of the cells, the trial
        and the flags;
@@ -728,36 +799,18 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
     near_edge, edge_cells = geo[7], geo[8]
     emit, mass, per_cell, runs, side, pieces = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5]
     cut, marks, shared, shared_cells = wk[6], wk[7], wk[8], wk[9]
-    min_piece, max_pieces, face_pieces = cut[0], cut[1], cut[3]
-    # The step's number: a face listed in this step and a cell shared in it carry it (the
-    # work buffers hold the state of a cell only once a step touched it in this call of the
-    # time loop: whether a neighbour beyond a touched dry cell is wet cannot be read there)
-    cut[2] += 1
-    mark = cut[2]
+    max_pieces = cut[CUT_MAX_PIECES]
     e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
     t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
     t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
     k11, k12, k22 = curv[0], curv[1], curv[2]
-    n_runs = runs_of(touched, n_touched, runs)  # runs of cells, then of faces
-    face_runs = runs[2 * n_runs:]
-    n_face_runs = runs_of(active_faces, n_active, face_runs)
-    # pieces: the cells' segments and bounds, then the faces', and each face piece's first
-    m_seg = 2 * (n_touched + max_pieces)
-    cell_seg = pieces[:m_seg]
-    cell_bounds = pieces[m_seg:m_seg + max_pieces + 1]
-    rest = pieces[m_seg + max_pieces + 1:]
-    f_seg = 2 * (n_active + max_pieces)
-    face_seg = rest[:f_seg]
-    face_bounds = rest[f_seg:f_seg + max_pieces + 1]
-    first_faces = rest[f_seg + max_pieces + 1:f_seg + 2 * max_pieces + 1]
-    n_cp = pieces_of(runs, n_runs, n_touched, min_piece, max_pieces, cell_seg, cell_bounds)
-    n_fp = pieces_of(face_runs, n_face_runs, n_active, min_piece,
-                     max(1, min(max_pieces, face_pieces)), face_seg, face_bounds)
-    for p in range(n_fp):
-        first_faces[p] = face_seg[2 * face_bounds[p]]
+    n_runs, _, n_cp, n_fp, n_shared = _cut_lists(
+        active_faces, n_active, touched, n_touched, same, pairs, face_ptr, face_idx, span,
+        edge_cells, wk)
+    mark = cut[CUT_MARK]
+    cell_seg, cell_bounds, face_seg, face_bounds, first_faces = _piece_lines(
+        pieces, n_touched, n_active, max_pieces)
     last_face = active_faces[n_active - 1] if n_active > 0 else 0
-    n_shared = _find_shared(runs, n_runs, pairs, face_ptr, face_idx, span, edge_cells,
-                            first_faces, n_fp, shared, mark, shared_cells)
 
     # 1. what each touched cell emits
     for p in prange(n_cp):
@@ -792,17 +845,19 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
     # 4. the new state, the observers
     n_bad = 0
     clamped = 0
+    flips = 0
     for p in prange(n_cp):
         s0 = cell_bounds[p]
-        bad, cl = final_cells(
+        bad, cl, fl = final_cells(
             cell_seg[2 * s0:], cell_bounds[p + 1] - s0, cell_area, cfl_factor, e_u1, e_u2,
             e_speed, k11, k12, k22, h, gamma_x, gamma_y, gamma_z, flag, law, params, g, h_dry,
             h_zero, dt, t_new, h_new, hu_new, hv_new, transport, peak_h, peak_speed, arrival,
             last_moved, t_inv, t_kin, t_mov, t_film)
         n_bad += bad
         clamped += cl
+        flips += fl
     if n_bad > 0:
-        return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0
     # what left through the open faces that are listed, face after face
     outflow = 0.0
     for o in range(open_faces.size):
@@ -811,7 +866,7 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
         if marks[f] == mark and not _dirac_face(dirac, flag[i], flag[i]):
             outflow += max(mass[f], 0.0) * dt
     lim, moving, film, kinetic = _step_sums(runs, n_runs, per_cell)
-    return True, outflow, lim, moving, film, clamped, kinetic
+    return True, outflow, lim, moving, film, clamped, kinetic, flips
 
 
 #: :func:`_step_threads` per law kind, compiled with threads, and serially (``prange``

@@ -1189,6 +1189,10 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
         n_changed = n_touched if not STRUCTURED else 0
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
+            # the lists are the last step's (or this step's last attempt's): the order-1
+            # face step keeps what it made of them (their runs and pieces)
+            same_lists = same_wet or attempt > 0
+            wet_changes = -1  # (the order-1 face steps count the cells wet or dry anew)
             fallbacks = 0
             if STRUCTURED and not ORDER2:
                 ok, out, lim, moving, film, clamped, kinetic = profile_step(
@@ -1198,19 +1202,19 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     arrival, last_moved, True, p_work, p_flag)
             elif not ORDER2 and PARALLEL and n_touched >= min_parallel_cells:
                 # the same on threads, each on its piece of the faces (the same bits)
-                ok, out, lim, moving, film, clamped, kinetic = faces_step_threads(
+                ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step_threads(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
                     transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
                     t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
-                    touched, n_touched, sweep_geo, sweep_work)
+                    touched, n_touched, same_lists, sweep_geo, sweep_work)
             elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
-                ok, out, lim, moving, film, clamped, kinetic = faces_step(
+                ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
                     transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
                     t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
-                    touched, n_touched, sweep_geo, sweep_work)
+                    touched, n_touched, same_lists, sweep_geo, sweep_work)
             elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
                 reconstruct_profile(cur_h, cur_hu, h_zero, limiter, recon)
                 ok, out, lim, moving, film, clamped, kinetic = step_profile(
@@ -1304,34 +1308,37 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             # wet or dry, from both sorted lists: a next step on the same wet cells keeps this
             # step's active lists (a flow at rest or covering its whole mesh lists nothing
             # again), and on a few changes they are mended (order 2 lists with stamps of its
-            # own in each stage)
-            wet, wet_last = wet_last, wet
-            n_new = 0
-            p = 0
+            # own in each stage). An order-1 face step counts the touched cells that became
+            # wet or dry: with none, the wet cells are the last step's, and are not looked
+            # for again (a scan of every touched cell, 0.4 ms a step on 161k)
             n_gained = 0
             n_lost = 0
-            for c in range(n_changed):
-                i = changed[c]
-                if nxt_h[i] > h_zero:
-                    if not ORDER2:
-                        while p < n_wet and wet_last[p] < i:
-                            lost[n_lost] = wet_last[p]
-                            n_lost += 1
-                            p += 1
-                        if p < n_wet and wet_last[p] == i:
-                            p += 1
-                        else:
-                            gained[n_gained] = i
-                            n_gained += 1
-                    wet[n_new] = i
-                    n_new += 1
-            if not ORDER2:
-                while p < n_wet:
-                    lost[n_lost] = wet_last[p]
-                    n_lost += 1
-                    p += 1
+            if wet_changes != 0:  # (none: the wet cells are the last step's, so is wet)
+                wet, wet_last = wet_last, wet
+                n_new = 0
+                p = 0
+                for c in range(n_changed):
+                    i = changed[c]
+                    if nxt_h[i] > h_zero:
+                        if not ORDER2:
+                            while p < n_wet and wet_last[p] < i:
+                                lost[n_lost] = wet_last[p]
+                                n_lost += 1
+                                p += 1
+                            if p < n_wet and wet_last[p] == i:
+                                p += 1
+                            else:
+                                gained[n_gained] = i
+                                n_gained += 1
+                        wet[n_new] = i
+                        n_new += 1
+                if not ORDER2:
+                    while p < n_wet:
+                        lost[n_lost] = wet_last[p]
+                        n_lost += 1
+                        p += 1
+                n_wet = n_new
             same_wet = not ORDER2 and n_gained == 0 and n_lost == 0
-            n_wet = n_new
             n_previous = n_changed
         stats[ST_FALLBACK] += fallbacks
         cur_h, nxt_h = nxt_h, cur_h
