@@ -16,7 +16,8 @@ one run). Each pass over cells is one loop without jumps over a run, which LLVM 
 3. per touched cell, the trial momentum (eq. 47) and the Coulomb flag (eq. 49);
 4. per active face with a side at zero temperature, in face order, the mass of the faces
    that are not Dirac (eqs. 51-53) and what a dry side takes back through a Dirac face
-   (:func:`_add_masses`; a flowing cell has no Dirac face, so its sum of pass 2 stands);
+   (:func:`_add_masses`; a flowing cell has no Dirac face, so its sum of pass 2 stands,
+   and a step whose touched cells all flow skips this pass: pass 2 summed its outflow);
 5. per touched cell, the new thickness, the projection of eq. 50, the observers, and the
    step's sums, added cell after cell in the lists' order (step_faces' order).
 
@@ -61,15 +62,14 @@ def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=Fa
     """What the sweep reads of a mesh besides its frames and lengths, built once (a tuple,
     as the time loop takes it): the faces' cells as int32 (half the bytes a face reads),
     ``1 / A`` and the curvature as three lines, each cell's faces in index order
-    (:func:`~avflow.numerics.kernels.cell_faces`, the solver's), for the step on threads
-    (``threads``; empty otherwise) the open faces in index order, the largest span of the
+    (:func:`~avflow.numerics.kernels.cell_faces`, the solver's), the open faces in index
+    order, for the step on threads (``threads``; empty otherwise) the largest span of the
     face indices of a cell without a boundary face (one number in an array: 3 rows of
     nodes on triangles made from a raster, half the faces on a square grid, whose x faces
     come before its y faces), per face whether it touches a cell with a boundary face, and
     those cells."""
     fc = mesh.face_cells
-    open_faces = (np.flatnonzero(fc[:, 1] == OUTFLOW).astype(np.int64) if threads
-                  else np.empty(0, dtype=np.int64))
+    open_faces = np.flatnonzero(fc[:, 1] == OUTFLOW).astype(np.int64)
     # the cells with a boundary face (a mesh numbers those faces last, far from the cell's
     # others), the faces that touch one, and the largest span of the face indices of the
     # other cells (a cell's faces are in index order)
@@ -95,11 +95,19 @@ def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=Fa
 # runs of cells and of faces, the pieces of each, the shared cells, and whether the pieces
 # and the shared cells were made (by the step on threads) since the lists last changed
 (CUT_MIN_PIECE, CUT_MAX_PIECES, CUT_MARK, CUT_FACE_PIECES, CUT_RUNS, CUT_FACE_RUNS,
- CUT_CELL_PIECES, CUT_FACE_PIECES_MADE, CUT_SHARED, CUT_PIECES_KEPT, N_CUT) = range(11)
+ CUT_CELL_PIECES, CUT_FACE_PIECES_MADE, CUT_SHARED, CUT_PIECES_KEPT, CUT_COLD_GATHER,
+ N_CUT) = range(12)
+
+#: The Dirac pass gathers over the faces of each cell at zero temperature (under the
+#: threshold or dry) while there are fewer than one such cell for this many active faces;
+#: with more, it sweeps every active face (2 ns a face; a cell's gather costs some 6 faces
+#: of 4-5 ns)
+COLD_GATHER = 32
 
 
 def work(n_cells: int, n_faces: int, threads: int = 1, min_piece: int | None = None,
-         max_pieces: int | None = None, face_pieces: int | None = None):
+         max_pieces: int | None = None, face_pieces: int | None = None,
+         cold_gather: int | None = None):
     """The sweep's work arrays (a tuple), allocated once per solver: the emitted lines, the
     mass flux of each face, the per-cell lines, the runs of both lists; for the step on
     ``threads`` > 1 threads (empty otherwise), the momentum each face brings to its sides
@@ -108,20 +116,22 @@ def work(n_cells: int, n_faces: int, threads: int = 1, min_piece: int | None = N
     last step made of its lists (:data:`CUT_MIN_PIECE` ... :data:`CUT_PIECES_KEPT`; by
     default pieces of :data:`MIN_PIECE` or more, at most :data:`MAX_PIECES`, and as many
     pieces of the faces as threads; tests cut small meshes finer), per face the step that
-    listed it last, per cell the step that found it shared last, and the list of the
-    shared cells."""
+    listed it last, per cell the step that found it shared last, the list of the shared
+    cells, and that of the cells at zero temperature (the Dirac pass in gather form, with
+    ``cold_gather``, default :data:`COLD_GATHER`; 0: always, a huge number: never)."""
     on_threads = threads > 1
     m, f = (n_cells, n_faces) if on_threads else (0, 0)
     cut = np.zeros(N_CUT, dtype=np.int64)
     cut[CUT_MIN_PIECE] = min_piece or MIN_PIECE
     cut[CUT_MAX_PIECES] = max_pieces or MAX_PIECES
     cut[CUT_FACE_PIECES] = face_pieces or threads
+    cut[CUT_COLD_GATHER] = COLD_GATHER if cold_gather is None else cold_gather
     n_pieces = int(cut[CUT_MAX_PIECES])
     return (np.zeros((N_EMIT, n_cells)), np.zeros(n_faces), np.zeros((N_CELL_LINES, n_cells)),
             np.empty(2 * (n_cells + n_faces) + 4, dtype=np.int64), np.zeros((4, f)),
             np.empty(2 * (m + f) + 8 * n_pieces + 8 if on_threads else 0, dtype=np.int64),
             cut, np.full(f, -1, dtype=np.int64), np.full(m, -1, dtype=np.int64),
-            np.empty(m, dtype=np.int64))
+            np.empty(m, dtype=np.int64), np.empty(n_cells, dtype=np.int64))
 
 
 def unused():
@@ -134,7 +144,8 @@ def unused():
             (np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
              np.empty(0, dtype=np.int64), np.empty((4, 0)), np.empty(0, dtype=np.int64),
              np.zeros(N_CUT, dtype=np.int64), np.empty(0, dtype=np.int64),
-             np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)))
+             np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64),
+             np.empty(0, dtype=np.int64)))
 
 
 @njit(error_model="numpy", cache=True)
@@ -191,12 +202,14 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
 
 
 def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h_sum, x_sum,
-                 y_sum, transport, shared, mark, safe_lo, safe_hi, near_edge, side, marks):
+                 y_sum, transport, shared, mark, safe_lo, safe_hi, near_edge, side, marks, dt):
     """The faces of runs ``r0 .. r0 + n_runs - 1`` (:func:`runs_of`): the flux of each
     added to its cells' sums in face order (the scatter of step_faces sweep 1a: the same
     sums, bit for bit), and the largest ``|F_h| / L`` through each cell's faces. Only the
     mass flux is kept (``mass[f]``): the few Dirac faces with a dry side recompute their
-    momentum in :func:`_add_masses`. Scalar, about 14-20 ns a face here, bound by its
+    momentum in :func:`_add_masses`. Returns the volume that leaves through the open faces
+    if every cell flows (:func:`_add_masses`' sum, in its order: a step whose cells all flow
+    has no Dirac face, and skips that pass). Scalar, about 14-20 ns a face here, bound by its
     arithmetic (reading the frames alone costs 3): a vector loop over lines of the cells'
     values copied per block of faces took 31 ns, the copies 8 of them (LLVM keeps a loop
     that gathers the cells' values itself scalar); a vector loop that writes each face's
@@ -214,6 +227,7 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
     e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
     e_s, e_kh, e_k3 = emit[E_S], emit[E_KH], emit[E_K3]
     some = SHARED  # a constant in each copy (FACE_FLUXES): the serial one does not test
+    outflow = 0.0
     for r in range(r0, r0 + n_runs):
         for f in range(runs[2 * r], runs[2 * r + 1] + 1):
             i = pairs[f, 0]
@@ -224,9 +238,11 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
             unit = abs(fh) / face_length[f]
             own_i = True
             own_j = j >= 0
+            if j == OUTFLOW:
+                outflow += max(fh, 0.0) * dt
             if some:
                 if j < 0:
-                    marks[f] = mark  # the outflow reads it
+                    marks[f] = mark  # (a shared cell's sums read it)
                 if f < safe_lo or f > safe_hi or near_edge[f] != 0:  # a side may be shared
                     own_i = shared[i] != mark
                     own_j = own_j and shared[j] != mark
@@ -246,6 +262,7 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
                 x_sum[j] += qjx
                 y_sum[j] += qjy
                 transport[j] = max(transport[j], unit)
+    return outflow
 
 
 def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, flag, dirac, dt,
@@ -338,11 +355,14 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
                  gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide, flag,
                  h_sum, x_sum, y_sum):
     """The cells of the runs (:func:`runs_of`): the trial momentum of eq. 47 and the flag of
-    eq. 49 from their sums (step_faces sweep 1b), into ``x_sum, y_sum`` (a dry cell keeps its momentum sum); the
-    mass sum of a cell at zero temperature starts again at 0 for :func:`_add_masses`."""
+    eq. 49 from their sums (step_faces sweep 1b), into ``x_sum, y_sum`` (a dry cell keeps
+    its momentum sum); the mass sum of a cell at zero temperature starts again at 0 for
+    :func:`_add_masses`. Returns how many are at zero temperature (under the threshold or
+    dry): with none, no face is Dirac and that pass has nothing to do."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    n_cold = 0
     for r in range(n_runs):
         a = max(runs[2 * r], 0)  # (no wraparound of a negative index: the loop vectorises)
         for k in range(runs[2 * r + 1] + 1 - a):
@@ -362,6 +382,8 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
             y_sum[i] = my if dry else qy
             flag[i] = DRY if dry else fi
             h_sum[i] = mh if flowing else 0.0  # summed again without its Dirac faces
+            n_cold += 0 if flowing else 1
+    return n_cold
 
 
 def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h,
@@ -469,14 +491,80 @@ def _runs(active_faces, n_active, touched, n_touched, same, wk):
     return n_runs, cut[CUT_FACE_RUNS]
 
 
+@njit(error_model="numpy", cache=True)
+def _cold_cells(runs, n_runs, flag, cold):
+    """The cells of the runs at zero temperature (not flowing) into ``cold``; their count."""
+    n = 0
+    for r in range(n_runs):
+        for i in range(runs[2 * r], runs[2 * r + 1] + 1):
+            if flag[i] != FLOWING:
+                cold[n] = i
+                n += 1
+    return n
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _cold_masses(i, face_ptr, face_idx, face_stamp, stamp, pairs, face_frame, face_length,
+                 emit, mass, flag, dirac, h_sum, x_sum, y_sum):
+    """:func:`_add_masses` for one cell at zero temperature, over its listed faces
+    (``face_stamp[f] == stamp``) in index order: the order in which that pass meets them,
+    so the same sums, bit for bit (a - b is a + (-b)). What a dry cell takes back through a
+    Dirac face is computed again, as there; only the cell's own sums are written."""
+    e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
+    e_s, e_kh, e_k3 = emit[E_S], emit[E_KH], emit[E_K3]
+    fl = flag[i]
+    mh = h_sum[i]  # 0.0 from the trial
+    mx = x_sum[i]
+    my = y_sum[i]
+    for q in range(face_ptr[i], face_ptr[i + 1]):
+        f = face_idx[q]
+        if face_stamp[f] != stamp:
+            continue
+        k = pairs[f, 0]
+        j = pairs[f, 1]
+        first = k == i
+        fl_k = flag[k]
+        if _dirac_face(dirac, fl_k, flag[j] if j >= 0 else fl_k):
+            if fl == DRY:  # takes back the momentum it brought to the trial
+                _, qix, qiy, qjx, qjy = _face_flux(f, k, j, face_frame, face_length, e_h,
+                                                   e_u1, e_u2, e_c, e_s, e_kh, e_k3)
+                if first:
+                    mx += qix
+                    my += qiy
+                else:
+                    mx -= qjx
+                    my -= qjy
+            continue
+        if first:
+            mh -= mass[f]
+        else:
+            mh += mass[f]
+    h_sum[i] = mh
+    x_sum[i] = mx
+    y_sum[i] = my
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _open_outflow(open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt):
+    """What left through the listed open faces that are not Dirac, face after face (the
+    sum :func:`_add_masses` makes)."""
+    outflow = 0.0
+    for o in range(open_faces.size):
+        f = open_faces[o]
+        i = pairs[f, 0]
+        if face_stamp[f] == stamp and not _dirac_face(dirac, flag[i], flag[i]):
+            outflow += max(mass[f], 0.0) * dt
+    return outflow
+
+
 def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, gamma_x,
           gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport, flag, law, params, g,
           dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
-          active_faces, n_active, touched, n_touched, same, geo, wk):
+          active_faces, n_active, touched, n_touched, same, face_stamp, stamp, geo, wk):
     """One order-1 step over the active lists (sorted): the numbers of
     :func:`~avflow.numerics.kernels.step_faces`, with ``geo`` from :func:`geometry` and
     ``wk`` from :func:`work`; ``same``: the lists are those of the last step with ``wk``,
-    whose runs it holds. ``h_new, hu_new, hv_new`` first hold the cells' sums;
+    whose runs it holds; a face is listed when ``face_stamp[f] == stamp``. ``h_new, hu_new, hv_new`` first hold the cells' sums;
     ``transport`` (per cell): the largest ``|F_h| / L`` through its faces. Each
     pass is one call over all the runs of its list (a call per run cost a flow on a map 4x
     larger, cut into more runs, a fifth more). Returns
@@ -496,17 +584,28 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
                 transport)
     # 2. the active faces' fluxes and the cells' sums, in face order
     none = wk[8][:0]  # no cell shared by threads here
-    face_fluxes(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit, mass, h_new,
-                hu_new, hv_new, transport, none, 0, 0, 0, geo[7], wk[4], wk[7])
+    outflow = face_fluxes(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
+                          mass, h_new, hu_new, hv_new, transport, none, 0, 0, 0, geo[7],
+                          wk[4], wk[7], dt)
     # 3. the trial and the flags
-    trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu, hv,
-                gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide, flag, h_new,
-                hu_new, hv_new)
+    n_cold = trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu,
+                         hv, gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide,
+                         flag, h_new, hu_new, hv_new)
     # 4. the mass through the faces that are not Dirac, in face order; what left through
-    # the open ones
-    outflow = add_masses(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
-                          mass, flag, dirac, dt, h_new, hu_new, hv_new, none, 0, 0, 0,
-                          geo[7])
+    # the open ones (where every touched cell flows, no face is Dirac and pass 2's sums
+    # and outflow stand: a scan of every active face, a tenth of an all-wet step, saved;
+    # where a few are cold, each sums its own faces)
+    if n_cold > 0 and n_cold * wk[6][CUT_COLD_GATHER] < n_active:
+        cold = wk[10]
+        n_cold = _cold_cells(runs, n_runs, flag, cold)
+        for c in range(n_cold):
+            _cold_masses(cold[c], geo[3], geo[4], face_stamp, stamp, pairs, face_frame,
+                         face_length, emit, mass, flag, dirac, h_new, hu_new, hv_new)
+        outflow = _open_outflow(geo[5], face_stamp, stamp, pairs, mass, flag, dirac, dt)
+    elif n_cold > 0:
+        outflow = add_masses(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
+                             mass, flag, dirac, dt, h_new, hu_new, hv_new, none, 0, 0, 0,
+                             geo[7])
     # 5. the new state, the observers
     n_bad, clamped, flips = final_cells(
         runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h, gamma_x,
@@ -777,7 +876,7 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
                   gamma_x, gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport,
                   flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
                   peak_speed, arrival, last_moved, active_faces, n_active, touched, n_touched,
-                  same, geo, wk):
+                  same, face_stamp, stamp, geo, wk):
     """:func:`_step` on Numba's threads (its arguments, its returns, its bits; ``geo`` and
     ``wk`` from :func:`geometry` and :func:`work` with ``threads``):
 
@@ -789,7 +888,8 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
        per shared cell its sums (:func:`_shared_sums`); per piece of the cells, the trial
        and the flags;
     3. per piece of the faces, :func:`_add_masses`; per shared cell its
-       (:func:`_shared_masses`);
+       (:func:`_shared_masses`); where few cells are at zero temperature, each of those
+       sums its own faces instead (:func:`_cold_masses`), and where none, nothing;
     4. per piece of the cells, the new state and the observers (:func:`_final_cells`);
        then, serially, the volume through the open faces (in face order) and the step's
        sums (in the lists' order).
@@ -824,24 +924,35 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
         lo, hi = _safe_faces(first_faces, n_fp, last_face, span, p)
         face_fluxes(face_seg, face_bounds[p], face_bounds[p + 1] - face_bounds[p], pairs,
                     face_frame, face_length, emit, mass, h_new, hu_new, hv_new, transport,
-                    shared, mark, lo, hi, near_edge, side, marks)
+                    shared, mark, lo, hi, near_edge, side, marks, dt)
     for c in prange(n_shared):
         _shared_sums(shared_cells[c], face_ptr, face_idx, pairs, face_length, mass, side,
                      marks, mark, h_new, hu_new, hv_new, transport)
+    n_cold = 0
     for p in prange(n_cp):
         s0 = cell_bounds[p]
-        trial_cells(cell_seg[2 * s0:], cell_bounds[p + 1] - s0, inv_area, e_u1, e_u2, e_speed,
-                    k11, k12, k22, h, hu, hv, gamma_x, gamma_y, gamma_z, law, params, g,
-                    h_zero, dt, dt_decide, flag, h_new, hu_new, hv_new)
-    # 3. the cells at zero temperature: the mass of their faces that are not Dirac
-    for p in prange(n_fp):
-        lo, hi = _safe_faces(first_faces, n_fp, last_face, span, p)
-        add_masses(face_seg, face_bounds[p], face_bounds[p + 1] - face_bounds[p], pairs,
-                   face_frame, face_length, emit, mass, flag, dirac, dt, h_new, hu_new,
-                   hv_new, shared, mark, lo, hi, near_edge)
-    for c in prange(n_shared):
-        _shared_masses(shared_cells[c], face_ptr, face_idx, pairs, mass, side, marks, mark,
-                       flag, dirac, h_new, hu_new, hv_new)
+        n_cold += trial_cells(cell_seg[2 * s0:], cell_bounds[p + 1] - s0, inv_area, e_u1,
+                              e_u2, e_speed, k11, k12, k22, h, hu, hv, gamma_x, gamma_y,
+                              gamma_z, law, params, g, h_zero, dt, dt_decide, flag, h_new,
+                              hu_new, hv_new)
+    # 3. the cells at zero temperature: the mass of their faces that are not Dirac (none
+    # where every touched cell flows: the sums of 2 stand; where a few are cold, each sums
+    # its own faces, shared or not)
+    if n_cold > 0 and n_cold * cut[CUT_COLD_GATHER] < n_active:
+        cold = wk[10]
+        n_cold = _cold_cells(runs, n_runs, flag, cold)
+        for c in prange(n_cold):
+            _cold_masses(cold[c], face_ptr, face_idx, face_stamp, stamp, pairs, face_frame,
+                         face_length, emit, mass, flag, dirac, h_new, hu_new, hv_new)
+    elif n_cold > 0:
+        for p in prange(n_fp):
+            lo, hi = _safe_faces(first_faces, n_fp, last_face, span, p)
+            add_masses(face_seg, face_bounds[p], face_bounds[p + 1] - face_bounds[p], pairs,
+                       face_frame, face_length, emit, mass, flag, dirac, dt, h_new, hu_new,
+                       hv_new, shared, mark, lo, hi, near_edge)
+        for c in prange(n_shared):
+            _shared_masses(shared_cells[c], face_ptr, face_idx, pairs, mass, side, marks,
+                           mark, flag, dirac, h_new, hu_new, hv_new)
     # 4. the new state, the observers
     n_bad = 0
     clamped = 0
@@ -859,12 +970,7 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
     if n_bad > 0:
         return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0
     # what left through the open faces that are listed, face after face
-    outflow = 0.0
-    for o in range(open_faces.size):
-        f = open_faces[o]
-        i = pairs[f, 0]
-        if marks[f] == mark and not _dirac_face(dirac, flag[i], flag[i]):
-            outflow += max(mass[f], 0.0) * dt
+    outflow = _open_outflow(open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt)
     lim, moving, film, kinetic = _step_sums(runs, n_runs, per_cell)
     return True, outflow, lim, moving, film, clamped, kinetic, flips
 

@@ -1207,14 +1207,16 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
                     transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
                     t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
-                    touched, n_touched, same_lists, sweep_geo, sweep_work)
+                    touched, n_touched, same_lists, face_stamp, list_stamp, sweep_geo,
+                    sweep_work)
             elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
                 ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
                     transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
                     t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
-                    touched, n_touched, same_lists, sweep_geo, sweep_work)
+                    touched, n_touched, same_lists, face_stamp, list_stamp, sweep_geo,
+                    sweep_work)
             elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
                 reconstruct_profile(cur_h, cur_hu, h_zero, limiter, recon)
                 ok, out, lim, moving, film, clamped, kinetic = step_profile(
