@@ -482,3 +482,31 @@ def test_a_solver_reused_for_another_release_on_threads_gives_its_own_run():
     for name in ("h", "hu", "hv", *OBSERVERS, "stats"):
         np.testing.assert_array_equal(bits(getattr(a, name)), bits(getattr(b, name)),
                                       err_msg=name)
+
+
+def test_the_step_on_threads_runs_where_its_pieces_stay_local():
+    """On 2 threads, the order-1 face step runs on them from MIN_PARALLEL_CELLS touched
+    cells on triangles over a raster, whose cells' faces span a few rows of faces; on a
+    square grid, whose x faces come before its y faces (a cell's faces span half of them,
+    so two pieces would share nearly every cell), and on a small refined mesh, whose new
+    nodes come last, it stays on one thread, its work arrays without the lines for
+    threads."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("Numba has one thread here")
+    params = np.array([math.tan(math.radians(20.0))])
+    raster = plane_triangle_terrain(tri_block(25.0, 70.0), 10.0, None, walls())
+    for name, terrain, local in (("raster triangles", raster, True),
+                                 ("grid", bump_on_a_slope("grid"), False),
+                                 ("refined triangles", bump_on_a_slope("triangles"), False)):
+        solver = Solver(terrain, Law.COULOMB, params, kernel="faces", threads=2)
+        geo, wk = solver._sweep
+        span, n_faces = int(geo[6][0]), terrain.mesh.n_faces
+        assert face_sweep.pieces_stay_local(geo, n_faces, 2) is local, (name, span, n_faces)
+        if local:
+            assert 4 * span <= n_faces
+            assert solver._gather_from == face_sweep.MIN_PARALLEL_CELLS
+            assert wk[4].shape == (4, n_faces)
+        else:
+            assert 4 * span > n_faces
+            assert solver._gather_from > terrain.mesh.n_cells
+            assert wk[4].shape == (4, 0)

@@ -166,21 +166,28 @@ class Solver:
         self._clock = np.zeros(2, dtype=np.int64)
         self._transport = np.zeros(n)
         # the face kernel at order 1 (numerics.face_sweep): its geometry and work arrays
-        # (with what its step on threads needs where it runs on threads)
+        # (with what its step on threads needs where it runs on threads); on a mesh whose
+        # cells' faces lie far apart in index order (a square grid's) that step stays on
+        # one thread (face_sweep.pieces_stay_local)
+        on_threads = False
         if self.order == 1 and not m.structured_1d:
             threads = self.threads_used()
-            self._sweep = (face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature,
-                                               self._cell_face_ptr, self._cell_face_idx,
-                                               threads > 1),
-                           face_sweep.work(n, m.n_faces, threads))
+            geo = face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature,
+                                      self._cell_face_ptr, self._cell_face_idx, threads > 1)
+            on_threads = threads > 1 and face_sweep.pieces_stay_local(geo, m.n_faces, threads)
+            self._sweep = (geo, face_sweep.work(n, m.n_faces, threads if on_threads else 1))
         else:
             self._sweep = face_sweep.unused()
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
                              else np.zeros((0, 2, 2)))
         #: cells from which an order-1 step or an order-2 stage on faces runs on threads
-        #: (tests lower it)
-        self._gather_from = (face_gather.MIN_PARALLEL_CELLS if self.order == 2
-                             else face_sweep.MIN_PARALLEL_CELLS)
+        #: (tests lower it); an order-1 step on a mesh whose cells' faces lie far apart in
+        #: index order (a square grid's) never does (face_sweep.pieces_stay_local)
+        if self.order == 2:
+            self._gather_from = face_gather.MIN_PARALLEL_CELLS
+        else:
+            self._gather_from = (face_sweep.MIN_PARALLEL_CELLS if on_threads
+                                 else np.iinfo(np.int64).max)
 
     def _setup_grid(self, layout: SquareGrid) -> None:
         """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
@@ -226,7 +233,9 @@ class Solver:
     def threads_used(self) -> int:
         """CPU threads the time loop runs on: the square-grid kernel's, and the face
         kernel's (:mod:`avflow.numerics.face_sweep` at order 1,
-        :mod:`avflow.numerics.face_gather` at order 2); 1 for profiles, which are serial."""
+        :mod:`avflow.numerics.face_gather` at order 2); 1 for profiles, which are serial.
+        (The face kernel's order-1 step on a square grid, ``numerics.kernel: faces``,
+        stays on one of them: :func:`~avflow.numerics.face_sweep.pieces_stay_local`.)"""
         if self.kernel_used != "grid" and self.terrain.mesh.structured_1d:
             return 1
         import os
