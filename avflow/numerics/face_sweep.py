@@ -804,44 +804,6 @@ def _shared_sums(i, face_ptr, face_idx, pairs, face_length, mass, side, marks, m
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _shared_masses(i, face_ptr, face_idx, pairs, mass, side, marks, mark, flag, dirac, h_sum,
-                   x_sum, y_sum):
-    """A shared cell at zero temperature: :func:`_add_masses` for it, over its listed faces
-    in index order (the mass of the faces that are not Dirac; what a dry cell takes back
-    through a Dirac face, from the lines: the same values as :func:`_add_masses` computes
-    again)."""
-    fl = flag[i]
-    if fl == FLOWING:
-        return  # a flowing cell has no Dirac face: its sum stands
-    mh = h_sum[i]  # 0.0 from the trial
-    mx = x_sum[i]
-    my = y_sum[i]
-    for q in range(face_ptr[i], face_ptr[i + 1]):
-        f = face_idx[q]
-        if marks[f] != mark:
-            continue
-        k = pairs[f, 0]
-        j = pairs[f, 1]
-        first = k == i
-        if _dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
-            if fl == DRY:  # takes back the momentum it brought to the trial
-                if first:
-                    mx += side[0, f]
-                    my += side[1, f]
-                else:
-                    mx -= side[2, f]
-                    my -= side[3, f]
-            continue
-        if first:
-            mh -= mass[f]
-        else:
-            mh += mass[f]
-    h_sum[i] = mh
-    x_sum[i] = mx
-    y_sum[i] = my
-
-
-@njit(error_model="numpy", cache=True, inline="always")
 def _safe_faces(first_faces, n_pieces, last_face, span, p):
     """The faces of piece p that touch no shared cell: ``(lo, hi)``, those more than a
     cell's span from both its cuts (none below ``lo`` or above ``hi`` is sure)."""
@@ -914,9 +876,9 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
     2. per piece of the faces, :func:`_face_fluxes` (a shared cell's sides into lines);
        per shared cell its sums (:func:`_shared_sums`); per piece of the cells, the trial
        and the flags;
-    3. per piece of the faces, :func:`_add_masses`; per shared cell its
-       (:func:`_shared_masses`); where few cells are at zero temperature, each of those
-       sums its own faces instead (:func:`_cold_masses`), and where none, nothing;
+    3. per piece of the faces, :func:`_add_masses`; per shared cell at zero temperature
+       its own faces (:func:`_cold_masses`); where few cells are at zero temperature, each
+       of those sums its own faces instead, and where none, nothing;
     4. per piece of the cells, the new state and the observers (:func:`_final_cells`);
        then, serially, the volume through the open faces (in face order) and the step's
        sums (in the lists' order).
@@ -977,9 +939,11 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
             add_masses(face_seg, face_bounds[p], face_bounds[p + 1] - face_bounds[p], pairs,
                        face_frame, face_length, emit, mass, flag, dirac, dt, h_new, hu_new,
                        hv_new, shared, mark, lo, hi, near_edge)
-        for c in prange(n_shared):
-            _shared_masses(shared_cells[c], face_ptr, face_idx, pairs, mass, side, marks,
-                           mark, flag, dirac, h_new, hu_new, hv_new)
+        for c in prange(n_shared):  # (the faces of a shared cell at zero temperature)
+            i = shared_cells[c]
+            if flag[i] != FLOWING:
+                _cold_masses(i, face_ptr, face_idx, face_stamp, stamp, pairs, face_frame,
+                             face_length, emit, mass, flag, dirac, h_new, hu_new, hv_new)
     # 4. the new state, the observers
     n_bad = 0
     clamped = 0
