@@ -648,7 +648,8 @@ MAX_PIECES = 256
 MIN_PIECE = 256
 #: A step of fewer touched cells than this runs serially (:func:`_step`) in the copy of
 #: the time loop with threads: below it, on 2 threads here, waking the pool for the
-#: step's passes costs what the second core saves (README, Kernels and threads)
+#: step's passes costs what the second core saves (README, Kernels and threads); a step
+#: whose lists changed, below twice this (cutting them again costs it)
 MIN_PARALLEL_CELLS = 8192
 
 
