@@ -220,7 +220,7 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
     ``shared[i] == mark``, the step's number. Nothing is added to those here: a face with
     a shared side keeps the momentum it brings to each side in ``side`` (four lines: x, y
     to its first cell, x, y to its second) and gets ``marks[f] = mark`` (it is listed in
-    this step; a boundary face too, for the outflow), and :func:`_shared_sums` adds them
+    this step), and :func:`_shared_sums` adds them
     up in face order afterwards. Only the faces outside ``safe_lo .. safe_hi`` (those
     within a cell's span of a cut) and those ``near_edge`` (touching a cell with a
     boundary face) can touch a shared cell: the others are not tested."""
@@ -241,8 +241,6 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
             if j == OUTFLOW:
                 outflow += max(fh, 0.0) * dt
             if some:
-                if j < 0:
-                    marks[f] = mark  # (a shared cell's sums read it)
                 if f < safe_lo or f > safe_hi or near_edge[f] != 0:  # a side may be shared
                     own_i = shared[i] != mark
                     own_j = own_j and shared[j] != mark
@@ -564,8 +562,9 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
     """One order-1 step over the active lists (sorted): the numbers of
     :func:`~avflow.numerics.kernels.step_faces`, with ``geo`` from :func:`geometry` and
     ``wk`` from :func:`work`; ``same``: the lists are those of the last step with ``wk``,
-    whose runs it holds; a face is listed when ``face_stamp[f] == stamp``. ``h_new, hu_new, hv_new`` first hold the cells' sums;
-    ``transport`` (per cell): the largest ``|F_h| / L`` through its faces. Each
+    whose runs it holds; a face is listed when ``face_stamp[f] == stamp``. ``h_new,
+    hu_new, hv_new`` first hold the cells' sums; ``transport`` (per cell): the largest
+    ``|F_h| / L`` through its faces. Each
     pass is one call over all the runs of its list (a call per run cost a flow on a map 4x
     larger, cut into more runs, a fifth more). Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic, wet_changes)``, the last the
