@@ -55,9 +55,16 @@ def summary_line(ds) -> str:
         status += f" ({ended_by}: not a deposit at rest)"
     if int(ds.attrs.get("runout_truncated", 0)):
         status += ", RUNOUT TRUNCATED by the map's edge (a lower bound: enlarge the map)"
+    runout = f"runout {f('runout', '.1f')} m"
+    if math.isnan(float(ds["runout"])):  # no cell above the runout threshold: say why
+        left = float(ds["outflow_volume"]) if "outflow_volume" in ds else 0.0
+        released = max(float(ds["release_volume"]), 1e-300)
+        runout = ("runout: none on the map (all the mass flowed out over its edge)"
+                  if left >= 0.999 * released else
+                  "runout: none (no cell above the runout threshold)")
     return (f"{ds.attrs['scenario_name']}: {status}"
             f", time_to_stop {f('time_to_stop', '.2f')} s"
-            f", runout {f('runout', '.1f')} m"
+            f", {runout}"
             f", deposit max {f('deposit_max_thickness', '.2f')} m"
             f", length {f('deposit_length', '.1f')} m"
             f", mass error {f('mass_balance_error', '.1e')}"
@@ -87,6 +94,7 @@ def _load_with_sets(args):
 
 
 def _cmd_run(args) -> int:
+    from avflow.files import output_lock, protected
     from avflow.output.netcdf import (OutputWriteError, check_output_path,
                                       remove_stale_temporaries)
     from avflow.output.stream import SnapshotStream
@@ -94,41 +102,44 @@ def _cmd_run(args) -> int:
 
     scenario = _load_with_sets(args)
     out = Path(args.output) if args.output else Path(Path(args.scenario).stem + ".nc")
-    # The output is checked before the run (exit 2): not an input, not a folder, writable.
-    inputs = [args.scenario] + [getattr(block, name, None)
-                                for block in (scenario.terrain, scenario.release)
-                                for name in ("path", "domain")]
+    # Checked before the run (exit 2): not an input nor one of their sidecars, not a folder
+    # nor a device, writable; likewise the path analysis' files beside it.
+    inputs = protected([args.scenario, *scenario.input_files()])
     check_output_path(out, inputs)
-    if scenario.output.path is not None and scenario.output.path.line:
-        from avflow.output.path import read_line
+    if scenario.output.path is not None:
+        from avflow.output.path import check_path_outputs, read_line
 
-        read_line(scenario.output.path.line)  # a bad path line: exit 2 before the run
-    remove_stale_temporaries(out)  # left by a write that was killed
-    progress = Progress(quiet=args.quiet)
-    try:
-        # Each snapshot goes to .OUT.XXXXXXXX.tmp as it is taken; renamed to OUT at the end.
-        # A failed or interrupted run, or a failed write, leaves no file (an old OUT intact).
-        with SnapshotStream(out) as stream:
-            try:
-                result = simulate(scenario, progress=progress, max_memory=args.max_memory,
-                                  snapshots=stream)
-            finally:
-                progress.close()
-            rest = stream.finish(result)
-    except OutputWriteError as err:  # full disk: exit 1, nothing left behind
-        print(f"avflow: error: {err}", file=sys.stderr)
-        return 1
-    import xarray as xr
+        check_path_outputs(out.with_name(out.stem + "_path"), inputs)
+        if scenario.output.path.line:
+            read_line(scenario.output.path.line)  # a bad path line: exit 2 before the run
+    with output_lock(out):  # a second run to the same OUT says so, and leaves this one be
+        remove_stale_temporaries(out)  # left by a write that was killed
+        progress = Progress(quiet=args.quiet)
+        try:
+            # Each snapshot goes to .OUT.XXXXXXXX.tmp as it is taken; renamed to OUT at the
+            # end. A failed or interrupted run, or a failed write, leaves no file (an old OUT
+            # intact).
+            with SnapshotStream(out) as stream:
+                try:
+                    result = simulate(scenario, progress=progress,
+                                      max_memory=args.max_memory, snapshots=stream)
+                finally:
+                    progress.close()
+                rest = stream.finish(result)
+        except OutputWriteError as err:  # full disk: exit 1, nothing left behind
+            print(f"avflow: error: {err}", file=sys.stderr)
+            return 1
+        import xarray as xr
 
-    with xr.open_dataset(out, decode_times=False) as on_disk:
-        # the run as avflow.run returns it: the fields on (time, space) read from the file
-        # when asked for (the path analysis reads h at t = 0), the rest from memory
-        ds = rest.assign({name: on_disk[name].variable for name in on_disk.data_vars
-                          if name not in rest.variables})
-        return _after_run(args, scenario, out, ds, result.status)
+        with xr.open_dataset(out, decode_times=False) as on_disk:
+            # the run as avflow.run returns it: the fields on (time, space) read from the
+            # file when asked for (the path analysis reads h at t = 0), the rest from memory
+            ds = rest.assign({name: on_disk[name].variable for name in on_disk.data_vars
+                              if name not in rest.variables})
+            return _after_run(args, scenario, out, ds, result.status, inputs)
 
 
-def _after_run(args, scenario, out: Path, ds, status: str) -> int:
+def _after_run(args, scenario, out: Path, ds, status: str, inputs=None) -> int:
     """The warnings, the summary line and the path analysis of a written run."""
     if int(ds.attrs.get("runout_truncated", 0)):
         print(f"avflow: warning: {args.scenario}: material reached the edge of the map; the "
@@ -137,17 +148,17 @@ def _after_run(args, scenario, out: Path, ds, status: str) -> int:
         print(summary_line(ds))
         print(f"wrote {out}")
     if scenario.output.path is not None:
-        _run_path(ds, scenario.output.path, out, args.quiet)
+        _run_path(ds, scenario.output.path, out, args.quiet, inputs)
     return 0 if status in ("stopped", "completed") else 1
 
 
-def _run_path(ds, block, out: Path, quiet: bool = False) -> None:
+def _run_path(ds, block, out: Path, quiet: bool = False, inputs=None) -> None:
     """output.path of a run: OUT_path.csv/.md/.png and one line; a warning if impossible."""
     from avflow.output.path import PathSettings, summary_line as path_line, write_run_path
 
     try:
         result, written = write_run_path(ds, PathSettings.from_scenario(block),
-                                         out.with_name(out.stem + "_path"))
+                                         out.with_name(out.stem + "_path"), inputs)
     except AvflowError as err:
         print(f"avflow: warning: path analysis: {err}", file=sys.stderr)
         return
@@ -206,6 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--batch", type=int, help="members per dask task (default: automatic)")
     e.add_argument("--max-memory", metavar="SIZE", help="refuse a member estimated to need "
                    "more (as for `avflow run`; passed to local workers as $AVFLOW_MAX_MEMORY)")
+    e.add_argument("--max-members", type=int, metavar="N", help="refuse an ensemble of more "
+                   "members (default: $AVFLOW_MAX_MEMBERS, else 10000)")
     e.add_argument("--report", action="store_true", help="write OUTDIR/report.md at the end")
     e.set_defaults(func=_cmd_ensemble)
     rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble",
@@ -257,6 +270,8 @@ def _cmd_ensemble(args) -> int:
 
     if args.workers is not None and args.workers < 0:
         raise AvflowError(f"--workers must be >= 0, got {args.workers}")
+    if args.max_members is not None and args.max_members < 1:
+        raise AvflowError(f"--max-members must be >= 1, got {args.max_members}")
     if args.batch is not None and args.batch < 1:
         raise AvflowError(f"--batch must be >= 1, got {args.batch}")
     if not args.connect_timeout > 0:
@@ -273,8 +288,12 @@ def _cmd_ensemble(args) -> int:
         else None
     try:
         # every check before any member starts
-        ensemble = load_ensemble(args.ensemble, overrides=overrides)
+        ensemble = load_ensemble(args.ensemble, overrides=overrides,
+                                 max_members=args.max_members)
         _check_members_fit(ensemble, args.max_memory)
+        from avflow.files import check_folder
+
+        check_folder(Path(args.output), "ensemble folder")
     except BaseException:
         close_started(starting)
         raise
@@ -358,13 +377,56 @@ def _cmd_plot(args) -> int:
     return 0
 
 
+def _one_line_warnings() -> None:
+    """avflow's own warnings as ``avflow: warning: ...`` lines on stderr, once each."""
+    import warnings
+
+    from avflow.errors import AvflowWarning
+
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, AvflowWarning):
+            print(f"avflow: warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    warnings.simplefilter("default", AvflowWarning)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that every write in progress removes its temporary."""
+
+
+def _terminate(signum, frame):
+    raise Terminated
+
+
 def main(argv=None) -> int:
+    import logging
+    import signal
+    import threading
+
+    # GDAL's messages reach Python's logging (rasterio); avflow reports the failure itself,
+    # in one line, and a full disk would otherwise print each message of libtiff first
+    logging.getLogger("rasterio").addHandler(logging.NullHandler())
     args = build_parser().parse_args(argv)
+    _one_line_warnings()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
     try:
         return args.func(args)
     except AvflowError as err:  # bad input: 2; a run that failed numerically: 1
         print(f"avflow: error: {err}", file=sys.stderr)
         return err.exit_code
+    except MemoryError:  # past the estimate (--max-memory none, or a bigger need than it)
+        print("avflow: error: out of memory; give the run fewer cells (a larger grid.dx), "
+              "or leave --max-memory on to be told before it starts", file=sys.stderr)
+        return 1
+    except Terminated:
+        print("avflow: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("avflow: interrupted", file=sys.stderr)
         return 130

@@ -20,6 +20,11 @@ class AvflowError(Exception):
     exit_code = 2  #: of the command line: 2 bad input
 
 
+class AvflowWarning(UserWarning):
+    """Something a user should know that does not stop the command (the command line prints
+    it as one ``avflow: warning:`` line)."""
+
+
 class RunFailed(AvflowError):
     """A run that failed numerically: a non-finite state (h, hu, hv or the mass balance),
     or no time step that keeps h >= 0. Never a result: the command line writes no output

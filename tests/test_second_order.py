@@ -249,7 +249,11 @@ def test_numerics_block_is_validated():
         parse_scenario(text + "numerics: {order: 3}\n")
     with pytest.raises(ScenarioError, match="numerics.limiter"):
         parse_scenario(text + "numerics: {order: 2, limiter: superbee}\n")
-    result = simulate(parse_scenario(text + "numerics: {order: 2, limiter: mc}\n")
+    # mc on a 2D terrain would be the same Barth-Jespersen limiter as minmod: refused there
+    with pytest.raises(ScenarioError, match="numerics.limiter: 'mc' applies to profiles only"):
+        parse_scenario(text + "numerics: {order: 2, limiter: mc}\n")
+    profile = (SCENARIOS / "seed_dambreak_flat_dx20.yaml").read_text()
+    result = simulate(parse_scenario(profile + "numerics: {order: 2, limiter: mc}\n")
                       .with_updates({"time.end": 5.0}))
     from avflow.output.dataset import to_dataset
     ds = to_dataset(result)

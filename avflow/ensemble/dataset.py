@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,7 @@ import xarray as xr
 from avflow import __version__
 from avflow.ensemble.spec import Ensemble
 from avflow.output.cf import SEED_REFERENCE, SUMMARIES, per_width
-from avflow.output.netcdf import publish
+from avflow.files import atomic_write
 from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, THRESHOLD_UNITS
 
 #: Units of scenario fields by their last name (varied-parameter coordinates).
@@ -333,12 +332,5 @@ def write_ensemble_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> Path:
                               "_FillValue": np.float32(np.nan)}
         elif var.dtype.kind == "f":
             encoding[name] = {"_FillValue": np.nan}
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        ds.to_netcdf(tmp, encoding=encoding, engine="netcdf4")
-        publish(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write(path, lambda tmp: ds.to_netcdf(tmp, encoding=encoding,
+                                                       engine="netcdf4"))

@@ -22,6 +22,7 @@ into its slot). Any other file is run again, with one line on stderr saying why.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import math
@@ -37,6 +38,7 @@ from typing import Callable
 
 from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, Ensemble, Member
 from avflow.errors import AvflowError
+from avflow.files import atomic_text, atomic_write
 
 CONNECT_TIMEOUT = 10.0  #: s, to reach a given ``--scheduler``
 WORKER_TIMEOUT = 120.0  #: s, for its first worker
@@ -85,7 +87,7 @@ def write_checksum(path: str | os.PathLike) -> Path:
     target = checksum_path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     line = f"{file_sha256(path)}  {path.name}\n"
-    _atomic(target, lambda tmp: Path(tmp).write_text(line))
+    atomic_text(target, line)
     return target
 
 
@@ -449,11 +451,50 @@ def auto_batch(n_members: int, n_workers: int) -> int:
     return max(1, n_members // max(1, 16 * n_workers))
 
 
-def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, *, scheduler: str | None = None,
-                 workers: int | None = None, batch: int | None = None,
-                 progress: ProgressLine | None = None, write_outputs: bool = True,
-                 client=None, connect_timeout: float = CONNECT_TIMEOUT,
-                 starting: _ClusterStart | None = None) -> Outcome:
+#: The files an ensemble writes in its folder besides members/ and checksums/.
+FOLDER_FILES = ("summary.csv", "summary.parquet", "failures.csv", "ensemble.nc", "report.md")
+
+
+def ensemble_inputs(ensemble: Ensemble) -> dict:
+    """:func:`avflow.files.protected` of every file the ensemble reads: its file, and the
+    scenario and data files of its base and of every member (a member may vary a DEM)."""
+    from avflow.files import protected
+
+    paths = {ensemble.path, *ensemble.base.input_files()}
+    for member in ensemble.members:
+        paths.update(member.scenario.input_files())
+    return protected(sorted(p for p in paths if p))
+
+
+def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, **options) -> Outcome:
+    """Run every member not already done, then write summary.csv and ensemble.nc (the
+    options: :func:`_run_locked`). The folder is checked first (a folder, writable; none of
+    its files an input of the ensemble) and locked while the ensemble runs: a second
+    ensemble on it is refused with one line naming the holder. A members/ folder made by a
+    run that failed before any member (a scheduler that cannot be reached) is removed."""
+    from avflow.files import check_folder, check_target, output_lock
+
+    outdir = check_folder(Path(outdir), "ensemble folder")
+    inputs = ensemble_inputs(ensemble)
+    for name in FOLDER_FILES:
+        check_target(outdir / name, inputs, what="ensemble output")
+    members = outdir / "members"
+    fresh = not members.exists()
+    with output_lock(outdir, folder=True, what="ensemble folder"):
+        try:
+            return _run_locked(ensemble, outdir, **options)
+        except BaseException:
+            if fresh:
+                with contextlib.suppress(OSError):
+                    members.rmdir()  # only when empty
+            raise
+
+
+def _run_locked(ensemble: Ensemble, outdir: Path, *, scheduler: str | None = None,
+                workers: int | None = None, batch: int | None = None,
+                progress: ProgressLine | None = None, write_outputs: bool = True,
+                client=None, connect_timeout: float = CONNECT_TIMEOUT,
+                starting: _ClusterStart | None = None) -> Outcome:
     """Run every member not already done, then write summary.csv and ensemble.nc.
 
     ``scheduler``: address (``tcp://host:port``) or scheduler file of a running cluster,
@@ -930,20 +971,69 @@ def _children(multiprocessing) -> list:
     return []
 
 
+def _scheduler_address(scheduler: str) -> str:
+    """The address of ``--scheduler``: itself, or the ``address`` of a scheduler file; one
+    line (:class:`ClusterError`) for a file that is no scheduler file or an unknown scheme."""
+    import json
+
+    from distributed.comm import parse_address, registry
+
+    address = scheduler
+    if os.path.isfile(scheduler):
+        try:
+            with open(scheduler, encoding="utf-8") as f:
+                info = json.loads(f.read(1 << 20))
+            address = info["address"]
+            if not isinstance(address, str):
+                raise TypeError
+        except (OSError, ValueError, KeyError, TypeError):
+            raise ClusterError(f"--scheduler {scheduler}: not a dask scheduler file (JSON with "
+                               "the scheduler's 'address', as `dask scheduler "
+                               "--scheduler-file` writes)") from None
+    elif "://" not in scheduler and (scheduler.endswith(".json") or os.sep in scheduler):
+        raise ClusterError(f"--scheduler {scheduler}: no such scheduler file")
+    try:
+        registry.get_backend(parse_address(address)[0])
+    except ValueError as err:
+        raise ClusterError(f"--scheduler {scheduler}: {err}") from None
+    return address
+
+
+def _probe(address: str, timeout: float) -> None:
+    """Ask the scheduler at ``address`` who it is, all within ``timeout`` s: a port that
+    answers in another protocol (HTTP) kept distributed's Client waiting past its own
+    timeout (150 s and more), and a Client that failed to start logs tracebacks on its
+    way out."""
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def ask() -> None:
+        comm = await connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            reply = await comm.read()
+        finally:
+            comm.abort()
+        if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+            raise OSError("it answers, but not as a dask scheduler")
+
+    async def bounded() -> None:
+        await asyncio.wait_for(ask(), timeout)
+
+    asyncio.run(bounded())
+
+
 def _connect(scheduler: str, timeout: float):
     """A Client on a scheduler address or scheduler file, or one line saying why not."""
     from distributed import Client
 
-    is_file = os.path.isfile(scheduler)
-    if not is_file and "://" not in scheduler and (scheduler.endswith(".json")
-                                                   or os.sep in scheduler):
-        raise ClusterError(f"--scheduler {scheduler}: no such scheduler file")
+    address = _scheduler_address(scheduler)
     try:
+        _probe(address, timeout)
         # not the default scheduler, as for the local cluster (see _client.__enter__)
-        if is_file:
-            return Client(scheduler_file=scheduler, timeout=f"{timeout}s", set_as_default=False)
-        return Client(scheduler, timeout=f"{timeout}s", set_as_default=False)
-    except (OSError, TimeoutError, ValueError) as err:
+        return Client(address, timeout=f"{timeout}s", set_as_default=False)
+    except (OSError, TimeoutError, ValueError, EOFError) as err:
         detail = " ".join(str(err).split()) or type(err).__name__
         raise ClusterError(f"--scheduler {scheduler}: cannot connect within {timeout:g} s "
                            f"({detail}); is the dask scheduler running there?") from None
@@ -1133,35 +1223,22 @@ def member_table(ensemble: Ensemble, rows: dict[int, dict], outdir: Path):
     return pd.DataFrame.from_records(records)
 
 
-def _atomic(path: Path, write: Callable[[str], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        from avflow.output.netcdf import publish
-
-        publish(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_tables(table, outdir: Path) -> None:
     """summary.csv (+ summary.parquet when pyarrow is importable) and failures.csv."""
     outdir = Path(outdir)
-    _atomic(outdir / "summary.csv", lambda tmp: table.to_csv(tmp, index=False))
+    atomic_write(outdir / "summary.csv", lambda tmp: table.to_csv(tmp, index=False))
     try:
         import pyarrow  # noqa: F401
     except ImportError:
         pass
     else:
-        _atomic(outdir / "summary.parquet", lambda tmp: table.to_parquet(tmp, index=False))
+        atomic_write(outdir / "summary.parquet", lambda tmp: table.to_parquet(tmp, index=False))
     failed = table[~table["status"].isin(OK_STATUSES)]
     failures = outdir / "failures.csv"
     if len(failed):
         columns = [c for c in table.columns if c not in SUMMARY_FIELDS
                    and c not in ("member_time", "steps", "file") and not c.startswith("path_")]
-        _atomic(failures, lambda tmp: failed[columns].to_csv(tmp, index=False))
+        atomic_write(failures, lambda tmp: failed[columns].to_csv(tmp, index=False))
     else:
         failures.unlink(missing_ok=True)
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from avflow.ensemble.spec import OK_STATUSES
+from avflow.files import atomic_text, atomic_write
 
 __all__ = ["write_report"]
 
@@ -57,14 +58,25 @@ def write_report(outdir: str | os.PathLike) -> Path:
 
     from avflow.errors import AvflowError
 
+    from avflow.files import check_folder, check_target, protected
+
     outdir = Path(outdir)
+    if outdir.name == "ensemble.nc" and outdir.is_file():  # the file named, not its folder
+        outdir = outdir.parent
     path = outdir / "ensemble.nc"
     if not path.is_file():
-        raise AvflowError(f"{path}: not found (run `avflow ensemble ... -o {outdir}` first)")
-    with xr.open_dataset(path, decode_times=False) as ds:
-        ds = ds.load()
-    figdir = outdir / "report"
-    figdir.mkdir(exist_ok=True)
+        raise AvflowError(f"{path}: not found (give the folder of `avflow ensemble ... -o "
+                          "OUTDIR`)")
+    try:
+        with xr.open_dataset(path, decode_times=False) as ds:
+            ds = ds.load()
+        ds["realization"], ds["status"], ds["law"]  # noqa: B018 - what the report reads
+    except Exception as err:  # noqa: BLE001 - truncated, foreign
+        raise AvflowError(f"{path}: cannot be read as an avflow ensemble file "
+                          f"({type(err).__name__}); run the ensemble again to write it"
+                          ) from None
+    figdir = check_folder(outdir / "report", "report folder")
+    check_target(outdir / "report.md", protected([path], with_sidecars=False), what="report")
     plt = _plt()
 
     n = ds.sizes["realization"]
@@ -120,7 +132,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
             axes[0].legend(title="law")
         fname = f"vs_{param}.png"
         fig.suptitle(f"runout and time to stop against {param}")
-        fig.savefig(figdir / fname, dpi=110)
+        _savefig(fig, figdir / fname)
         plt.close(fig)
         figures.append((f"Runout and time to stop against {param}", fname))
 
@@ -137,7 +149,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
         ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
         ax.grid(alpha=0.3)
     fig.suptitle("runout and time to stop per friction law")
-    fig.savefig(figdir / "by_law.png", dpi=110)
+    _savefig(fig, figdir / "by_law.png")
     plt.close(fig)
     figures.append(("Runout and time to stop per friction law", "by_law.png"))
 
@@ -155,7 +167,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
         ax.set_ylabel("deposit thickness (m, normal to the bed)")
         ax.grid(alpha=0.3)
         ax.set_title(f"deposit profiles of the {int(ok.sum())} successful members")
-        fig.savefig(figdir / "deposit_profiles.png", dpi=110)
+        _savefig(fig, figdir / "deposit_profiles.png")
         plt.close(fig)
         figures.append(("Deposit profiles, all members overlaid", "deposit_profiles.png"))
     else:
@@ -200,11 +212,11 @@ def write_report(outdir: str | os.PathLike) -> Path:
                          [[int(i), laws[i], *[float(ds[p].values[i]) for p in params],
                            status[i], *[float(ds[m].values[i]) for m in names]]
                           for i in range(n)]), ""]
-    report = outdir / "report.md"
-    tmp = report.with_name(".report.md.tmp")
-    tmp.write_text("\n".join(md))
-    os.replace(tmp, report)
-    return report
+    return atomic_text(outdir / "report.md", "\n".join(md))
+
+
+def _savefig(fig, target: Path) -> None:
+    atomic_write(target, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
 
 
 #: Probability maps of ensemble.nc: figure file, title and how a threshold is written.
@@ -256,7 +268,7 @@ def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
             ax.set_xlabel("x (m)" + (f"\n{crs}" if crs else ""), fontsize=8)
             ax.set_ylabel("y (m)", fontsize=8)
         fig.colorbar(im, ax=list(axes), label="probability (blank: 0)", shrink=0.9)
-        fig.savefig(figdir / fname, dpi=110)
+        _savefig(fig, figdir / fname)
         plt.close(fig)
         figures.append((title, fname))
     return figures

@@ -39,7 +39,7 @@ from typing import Any, Mapping
 
 from avflow.errors import AvflowError, ScenarioError
 from avflow.scenario.schema import Scenario, load_scenario
-from avflow.scenario.yamlio import did_you_mean, position, read_yaml
+from avflow.scenario.yamlio import did_you_mean, position, read_text_file, read_yaml
 
 __all__ = ["EnsembleError", "Ensemble", "Member", "load_ensemble", "parse_ensemble",
            "ensemble_from", "from_scenarios", "apply_overrides", "parse_overrides",
@@ -55,6 +55,30 @@ THRESHOLD_UNITS = {"peak_thickness": "m", "peak_speed": "m s-1", "peak_pressure"
 
 _TOP_KEYS = ("name", "description", "base", "vary", "sample", "thresholds")
 _SAMPLE_KEYS = ("n", "seed", "ranges")
+
+#: Most members an ensemble may have unless told otherwise (``--max-members``,
+#: ``$AVFLOW_MAX_MEMBERS``). A member costs some 30 kB and 7 ms to build before any runs
+#: (a validated scenario; docs/performance.md), and a file when it runs: 10,000 is 0.3 GB and
+#: 70 s of building. ``sample: {n: 1000000000}`` reached 20.8 GB in 40 s before this bound.
+MAX_MEMBERS = 10_000
+ENV_MAX_MEMBERS = "AVFLOW_MAX_MEMBERS"
+
+
+def member_limit(max_members: int | None = None) -> int:
+    """The bound on the members of an ensemble: given, else $AVFLOW_MAX_MEMBERS, else
+    :data:`MAX_MEMBERS`."""
+    if max_members is not None:
+        return max_members
+    text = os.environ.get(ENV_MAX_MEMBERS, "").strip()
+    if not text:
+        return MAX_MEMBERS
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise EnsembleError(f"${ENV_MAX_MEMBERS}: must be a positive integer, got {text!r}")
+    return value
 
 #: Summaries copied into every member row (and into ensemble.nc).
 SUMMARY_FIELDS = ("runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
@@ -203,25 +227,21 @@ def apply_overrides(scenario: Scenario, overrides: Mapping[str, Any]) -> Scenari
                             scenario.source_path or scenario.name) from None
 
 
-def load_ensemble(path: str | os.PathLike, overrides: Mapping[str, Any] | None = None
-                  ) -> Ensemble:
+def load_ensemble(path: str | os.PathLike, overrides: Mapping[str, Any] | None = None,
+                  max_members: int | None = None) -> Ensemble:
     """Read, validate and expand an ensemble file; any problem is one :class:`EnsembleError`.
 
     ``overrides`` (``--set``: dotted field -> value) change the base scenario before the
     variations apply (:func:`apply_overrides`); a field the ensemble varies cannot be set.
     """
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise EnsembleError("ensemble file not found", path) from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise EnsembleError(f"cannot read the ensemble file: {err}", path) from None
-    return parse_ensemble(text, source_path=path, overrides=overrides)
+    text = read_text_file(path, "ensemble", EnsembleError)
+    return parse_ensemble(text, source_path=path, overrides=overrides,
+                          max_members=max_members)
 
 
 def parse_ensemble(text: str, source_path: str | os.PathLike | None = None,
                    overrides: Mapping[str, Any] | None = None,
-                   base: Scenario | None = None) -> Ensemble:
+                   base: Scenario | None = None, max_members: int | None = None) -> Ensemble:
     """Validate ensemble YAML given as text; ``base`` is relative to ``source_path``'s folder
     (the working folder without one), or given as a loaded :class:`Scenario`."""
     path = os.path.abspath(source_path) if source_path is not None else None
@@ -279,8 +299,19 @@ def parse_ensemble(text: str, source_path: str | os.PathLike | None = None,
         if not _shadowed(key, vary):
             _check_path(base, key, values[0], fail, ("vary", key))
 
-    # --- sample ---------------------------------------------------------------------------
+    # --- how many: counted before any member is built ---------------------------------------
     sample = data.get("sample")
+    n = sample.get("n") if isinstance(sample, dict) else None
+    n = n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else 1
+    count = math.prod(len(v) for v in vary.values()) * n
+    limit = member_limit(max_members)
+    if count > limit:
+        where = ("sample", "n") if n > 1 else ("vary",)
+        raise fail(where, f"{count:,} members, more than the limit of {limit:,} (each is "
+                          "built and validated before any runs); give fewer, or raise the "
+                          f"limit with --max-members or ${ENV_MAX_MEMBERS}")
+
+    # --- sample ---------------------------------------------------------------------------
     points: list[dict] = [{}]
     sample_info: dict = {}
     if sample is not None:

@@ -23,7 +23,6 @@ Problems with the input file are :class:`MapsError` (one line naming the file).
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +71,16 @@ def open_run(path) -> "xarray.Dataset":  # noqa: F821
             raise MapsError(f"{path}: an ensemble file; `avflow export` writes its "
                             "probability maps, `avflow report OUTDIR` draws them")
         raise MapsError(f"{path}: not an avflow run file (written by `avflow run`)")
+    try:
+        for name, var in ds.data_vars.items():  # the maps and summaries, not the snapshots
+            if "time" not in var.dims and var.dtype.kind == "f":
+                _refuse_infinite(path, name, var.values)
+    except MapsError:
+        ds.close()
+        raise
+    except Exception as err:  # noqa: BLE001 - truncated inside: HDF5 errors on reading
+        ds.close()
+        raise MapsError(f"{path}: cannot be read ({type(err).__name__}: truncated?)") from None
     return ds
 
 
@@ -200,6 +209,8 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
     """
     from avflow.terrain.raster import RasterError, write_asc, write_tif
 
+    from avflow.files import check_folder, check_target, protected
+
     path = Path(path)
     if fmt not in FORMATS:
         raise MapsError(f"unknown format {fmt!r} (use one of {', '.join(FORMATS)})")
@@ -207,17 +218,22 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
     with ds:
         rasters = (_ensemble_rasters if ensemble else _run_rasters)(ds, path, variables)
         wkt = crs_wkt(ds)
-        if wkt is None and warn is not None:
-            warn(f"{path}: no CRS in the file; rasters written without one")
         x = np.asarray(ds["x"].values, dtype=float)
         y = np.asarray(ds["y"].values, dtype=float)
     if x.size < 2 or y.size < 2:
         raise MapsError(f"{path}: the grid needs at least 2 x 2 cells to be exported")
-    outdir = path.parent if outdir is None else Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
+    for name, values, _ in rasters:
+        _refuse_infinite(path, name, values)
+    outdir = check_folder(path.parent if outdir is None else Path(outdir))
+    targets = [outdir / f"{path.stem}_{name}.{fmt}" for name, _, _ in rasters]
+    inputs = protected([path], with_sidecars=False)
+    for target in targets + ([t.with_suffix(".prj") for t in targets] if fmt == "asc" and wkt
+                             else []):
+        check_target(target, inputs, what="raster")  # every one before the first is written
+    if wkt is None and warn is not None:
+        warn(f"{path}: no CRS in the file; rasters written without one")
     written = []
-    for name, values, options in rasters:
-        target = outdir / f"{path.stem}_{name}.{fmt}"
+    for target, (name, values, options) in zip(targets, rasters):
         try:
             if fmt == "tif":
                 write_tif(target, values, x, y, wkt, **options)
@@ -226,10 +242,17 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
         except RasterError as err:
             hint = "; use --format tif" if fmt == "asc" else ""
             raise MapsError(f"{err}{hint}") from None
-        except OSError as err:
-            raise MapsError(f"{target}: cannot write ({err.strerror or err})") from None
         written.append(target)
     return written
+
+
+def _refuse_infinite(path: Path, name: str, values) -> None:
+    """An infinite value in a map is an edited or broken file, never a result: refused
+    (NaN is a cell outside the mesh or never reached)."""
+    values = np.asarray(values)
+    if values.dtype.kind == "f" and np.isinf(values).any():
+        raise MapsError(f"{path}: {name} holds infinite values ({int(np.isinf(values).sum())} "
+                        "cells); not an avflow result")
 
 
 def _need_grid(ds, path: Path, what: str) -> None:
@@ -260,7 +283,9 @@ def _run_rasters(ds, path: Path, variables):
     rasters = []
     for name in names:
         if name != PRESSURE_CLASS:
-            rasters.append((name, np.asarray(ds[name].values, dtype=float), {}))
+            attrs = ds[name].attrs  # the band says what it holds, in the file's units
+            rasters.append((name, np.asarray(ds[name].values, dtype=float), {
+                "description": attrs.get("long_name", name), "units": attrs.get("units")}))
             continue
         classes = pressure_classes(ds)
         labels = pressure_class_labels(classes)
@@ -435,26 +460,20 @@ def _thickness_style(peak: np.ndarray, ds):
 
 
 def _save(fig, target: Path) -> Path:
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
-    try:
-        fig.savefig(tmp, dpi=120, format="png")
-        os.replace(tmp, target)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise MapsError(f"{target}: cannot write ({err.strerror or err})") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return target
+    from avflow.files import atomic_write
+
+    return atomic_write(target, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
 
 
 def plot_run(path, output=None) -> Path:
     """Draw the run file ``path`` to a PNG (default: next to it, same stem); returns its path."""
+    from avflow.files import check_target, protected
+
     path = Path(path)
     target = path.with_suffix(".png") if output is None else Path(output)
     plt = _plt()
     with open_run(path) as ds:
+        check_target(target, protected([path], with_sidecars=False), what="plot")
         kind = scene_kind(ds)
         draw = {"grid": _plot_grid, "profile": _plot_profile,
                 "triangles": _plot_triangles}.get(kind)

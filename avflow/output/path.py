@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from avflow.errors import AvflowError
+from avflow.files import atomic_write, protected
 
 __all__ = ["FIELDS", "LINE_SUFFIXES", "PathError", "PathLine", "PathResult", "PathSettings",
            "RunPoints", "analyse", "analyse_run", "analyse_target", "com_path",
@@ -81,10 +82,16 @@ class PathLine:
                                                      and np.isfinite(y).all()):
             raise PathError(f"{self.source}: a path needs finite x, y vertices")
         keep = np.ones(x.size, bool)
-        keep[1:] = np.hypot(np.diff(x), np.diff(y)) > 0.0  # drop repeated vertices
+        with np.errstate(over="ignore", invalid="ignore"):  # huge coordinates: refused below
+            keep[1:] = ~(np.hypot(np.diff(x), np.diff(y)) == 0.0)  # drop repeated vertices
         x, y = x[keep], y[keep]
         if x.size < 2:
             raise PathError(f"{self.source}: a path needs at least 2 distinct vertices")
+        with np.errstate(over="ignore"):
+            length = np.hypot(np.diff(x), np.diff(y)).sum()
+        if not np.isfinite(length):
+            raise PathError(f"{self.source}: vertices so far apart that their distance "
+                            "overflows (coordinates near 1e308?)")
         object.__setattr__(self, "x", x)
         object.__setattr__(self, "y", y)
 
@@ -372,6 +379,7 @@ def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
     settings = PathSettings(None, field, threshold, width)
     threshold = settings.threshold_for(points)
     variable, factor, units = FIELDS[field]
+    _near_the_map(points, line)
     s, l = line.project(points.x, points.y)
     inside = np.ones(s.size, bool) if width is None else np.abs(l) <= 0.5 * width
     values = np.asarray(points.fields[variable], dtype=float) * factor
@@ -405,6 +413,20 @@ def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
     result = PathResult(line, field, threshold, units, width, s, l, run, top, sc)
     result.profile = cross_sections(points, result, inside, bin_size or points.spacing)
     return result
+
+
+def _near_the_map(points: RunPoints, line: PathLine) -> None:
+    """A line that passes nowhere near the cells is in another CRS or mistyped: refused, not
+    answered with "no cell reaches the threshold"."""
+    x0, x1 = float(np.nanmin(points.x)), float(np.nanmax(points.x))
+    y0, y1 = float(np.nanmin(points.y)), float(np.nanmax(points.y))
+    pad = max(x1 - x0, y1 - y0, points.spacing)  # a line may start or end off the map
+    if (line.x.max() < x0 - pad or line.x.min() > x1 + pad
+            or line.y.max() < y0 - pad or line.y.min() > y1 + pad):
+        raise PathError(f"{line.source}: the path line (x {line.x.min():.6g} to "
+                        f"{line.x.max():.6g}, y {line.y.min():.6g} to {line.y.max():.6g}) lies "
+                        f"outside the map (x {x0:.6g} to {x1:.6g}, y {y0:.6g} to {y1:.6g}); "
+                        "is it in the DEM's CRS?")
 
 
 def cross_sections(points: RunPoints, result: PathResult, inside: np.ndarray,
@@ -543,7 +565,7 @@ def _write_tables(rows: list[dict], stem: Path) -> list[Path]:
 
     table = pd.DataFrame.from_records(rows)
     csv_path, md_path = stem.with_suffix(".csv"), stem.with_suffix(".md")
-    _atomic_write(csv_path, lambda tmp: table.to_csv(tmp, index=False))
+    atomic_write(csv_path, lambda tmp: table.to_csv(tmp, index=False))
     shown = [c for c in table.columns if c not in ("path_source", "path_threshold_units",
                                                    "path_width", "path_field",
                                                    "path_threshold", "file")]
@@ -561,7 +583,7 @@ def _write_tables(rows: list[dict], stem: Path) -> list[Path]:
              "|" + "---|" * len(shown)]
     for r in rows:
         lines.append("| " + " | ".join(_fmt(r.get(c, "")) for c in shown) + " |")
-    _atomic_write(md_path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
+    atomic_write(md_path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
     return [csv_path, md_path]
 
 
@@ -579,27 +601,19 @@ def _write_profiles(profiles: list[tuple[object, dict]], target: Path) -> Path:
             frame.insert(0, "realization", key)
         frames.append(frame)
     table = pd.concat(frames, ignore_index=True)
-    _atomic_write(target, lambda tmp: table.to_csv(tmp, index=False))
+    atomic_write(target, lambda tmp: table.to_csv(tmp, index=False))
     return target
 
 
-def _atomic_write(path: Path, write) -> None:
-    import tempfile
+def check_path_outputs(stem, inputs=()) -> None:
+    """Refuse, before anything runs, files of the analysis (``stem``.csv, .md, .png,
+    _profile.csv) that would replace one of ``inputs`` or are not regular files."""
+    from avflow.files import check_target
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        from avflow.output.netcdf import publish
-
-        publish(tmp, path)
-    except OSError as err:
-        Path(tmp).unlink(missing_ok=True)
-        raise PathError(f"{path}: cannot write ({err.strerror or err})") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    stem = Path(stem)
+    for target in (stem.with_suffix(".csv"), stem.with_suffix(".md"), stem.with_suffix(".png"),
+                   stem.with_name(stem.name + "_profile.csv")):
+        check_target(target, inputs, what="path analysis output")
 
 
 def _plt():
@@ -751,7 +765,7 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
     plt.setp(ax.get_xticklabels(), visible=True)
     fig.suptitle(title, fontsize=11)
     try:
-        _atomic_write(target, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+        atomic_write(target, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
     finally:
         plt.close(fig)
     return target
@@ -843,9 +857,12 @@ def summary_line(result: PathResult, farthest: float = math.nan,
 # =========================================================================================
 
 
-def write_run_path(ds, settings: PathSettings, stem) -> tuple[PathResult, list[Path]]:
-    """The analysis of one run Dataset: ``stem``.csv, .md, .png and ``stem``_profile.csv."""
+def write_run_path(ds, settings: PathSettings, stem, inputs=None
+                   ) -> tuple[PathResult, list[Path]]:
+    """The analysis of one run Dataset: ``stem``.csv, .md, .png and ``stem``_profile.csv;
+    none of them may replace one of ``inputs`` (:func:`avflow.files.protected`)."""
     stem = Path(stem)
+    check_path_outputs(stem, inputs if inputs is not None else {})
     points, result = analyse_run(ds, settings)
     row = {"run": points.name, **_settings_columns(result), **result.row(),
            "farthest_cell_runout": points.farthest_runout,
@@ -913,7 +930,8 @@ def analyse_target(target, line=None, field=None, threshold=None, width=None, ou
             ds.attrs.get("scenario", ""), target.parent, need_line=line is None)
         settings = merge_settings(base, line, field, threshold, width)
         stem = Path(output) if output else target.with_name(target.stem + "_path")
-        result, written = write_run_path(ds, settings, stem)
+        inputs = protected([target, settings.line])
+        result, written = write_run_path(ds, settings, stem, inputs)
         farthest = float(ds["runout"]) if "runout" in ds else math.nan
         truncated = bool(int(ds.attrs.get("runout_truncated", 0)))
     return summary_line(result, farthest, truncated), written
@@ -926,12 +944,22 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
     summary = outdir / "summary.csv"
     if not summary.is_file():
         raise PathError(f"{outdir}: not a run file nor an ensemble folder (no summary.csv)")
-    table = pd.read_csv(summary, keep_default_na=False, na_values=[""])
+    try:
+        table = pd.read_csv(summary, keep_default_na=False, na_values=[""])
+        table["realization"], table["file"]  # noqa: B018 - the columns the analysis needs
+    except Exception as err:  # noqa: BLE001 - truncated, edited, not a table
+        raise PathError(f"{summary}: cannot be read as an avflow summary table "
+                        f"({type(err).__name__})") from None
     # The ensemble's own analysis (ensemble.nc) gives the defaults: its path and settings.
     recorded, base = None, PathSettings()
     ens_nc = outdir / "ensemble.nc"
     if ens_nc.is_file():
-        with xr.open_dataset(ens_nc) as ens:
+        try:
+            ens = xr.open_dataset(ens_nc)
+        except Exception as err:  # noqa: BLE001 - truncated or foreign
+            raise PathError(f"{ens_nc}: cannot be read as NetCDF ({type(err).__name__}); "
+                            "run the ensemble again to write it") from None
+        with ens:
             a = ens.attrs
             if "path_x" in ens and "path_field" in a:
                 threshold_set = a.get("path_threshold_setting", "default")
@@ -943,8 +971,10 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
                     recorded = PathLine(ens["path_x"].values, ens["path_y"].values,
                                         source=str(a.get("path_source", "ensemble.nc")))
     settings = merge_settings(base, line, field, threshold, width)
-    _, results, rows, points = _ensemble_results(table, outdir, settings, recorded)
     stem = Path(output) if output else outdir / "path"
+    members = [outdir / str(f) for f in table.get("file", ()) if isinstance(f, str) and f]
+    check_path_outputs(stem, protected([summary, ens_nc, settings.line, *members]))
+    _, results, rows, points = _ensemble_results(table, outdir, settings, recorded)
     written = _write_tables(rows, stem)
     written.append(_write_profiles([(k, r.profile) for k, r in results],
                                    stem.with_name(stem.name + "_profile.csv")))
@@ -1004,8 +1034,16 @@ def member_points(path) -> RunPoints:
     """:func:`run_points` of a run file (what the ensemble path analysis needs of a member)."""
     import xarray as xr
 
-    with xr.open_dataset(path, decode_times=False) as ds:
-        return run_points(ds)
+    try:
+        with xr.open_dataset(path, decode_times=False) as ds:
+            return run_points(ds)
+    except FileNotFoundError:
+        raise PathError(f"{path}: member file missing (run the ensemble again to redo "
+                        "it)") from None
+    except (OSError, ValueError, KeyError, RuntimeError) as err:
+        raise PathError(f"{path}: member file cannot be read ({type(err).__name__}: "
+                        "truncated or not a run file?); run the ensemble again to redo "
+                        "it") from None
 
 
 def ensemble_path(table, outdir, settings: PathSettings, points: dict | None = None):

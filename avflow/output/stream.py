@@ -48,6 +48,7 @@ from types import SimpleNamespace
 import numpy as np
 import xarray as xr
 
+from avflow.errors import RunFailed
 from avflow.output.dataset import TIME_FIELDS, WindowedFields, to_dataset
 from avflow.output.netcdf import encoding_for, make_temporary, publish, write_error
 from avflow.simulation.runner import RunResult, Snapshots, cell_flags, wet_cells
@@ -172,6 +173,10 @@ class SnapshotStream(Snapshots):
         (:class:`_Tiles`)."""
         for name, values in fields.items():
             values = np.asarray(values)
+            if values.dtype.kind == "f" and np.isinf(values).any():
+                raise RunFailed(f"{self.path}: {name} is infinite in {int(np.isinf(values).sum())}"
+                                " cells at a snapshot (parameters beyond the float range?); "
+                                "no file written")
             tiles = self._tiles.get(name)
             with _NETCDF_LOCK:
                 var = self._nc.variables[name]
@@ -209,6 +214,7 @@ class SnapshotStream(Snapshots):
             raise RuntimeError(f"{self.path}: no snapshot was recorded")
         try:
             rest = to_dataset(result, part="rest")
+            refuse_infinite(rest, self.path)
             if rest.sizes.get("time") != self.records:
                 raise RuntimeError(f"{self.path}: {self.records} snapshots written, "
                                    f"{rest.sizes.get('time')} times")
@@ -248,6 +254,17 @@ class SnapshotStream(Snapshots):
         if error is not None:
             raise error from err
         raise err
+
+
+def refuse_infinite(ds: xr.Dataset, path) -> None:
+    """:class:`~avflow.errors.RunFailed` when a variable of ``ds`` holds an infinite value:
+    never a result (NaN is a cell outside the mesh, a time never reached, a runout of no
+    cell). Checked before the rename, so the file is never published."""
+    for name, var in ds.variables.items():
+        values = var.values
+        if values.dtype.kind == "f" and np.isinf(values).any():
+            raise RunFailed(f"{path}: {name} is infinite in {int(np.isinf(values).sum())} "
+                            "values (parameters beyond the float range?); no file written")
 
 
 def _dry_fill(dtype):

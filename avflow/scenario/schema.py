@@ -35,7 +35,8 @@ from pydantic.fields import FieldInfo
 from pydantic_core import PydanticCustomError
 
 from avflow.errors import Problem, ScenarioError
-from avflow.scenario.yamlio import did_you_mean, dotted, dotted_parts, position, read_yaml, show
+from avflow.scenario.yamlio import (did_you_mean, dotted, dotted_parts, position, read_text_file,
+                                    read_yaml, show)
 
 __all__ = ["Scenario", "load_scenario", "parse_scenario", "write_json_schema"]
 
@@ -623,7 +624,8 @@ class Numerics(_Model):
     Runge-Kutta, each stage keeping the threshold, Dirac faces and projection (README)."""
     limiter: Literal["minmod", "mc"] = "minmod"
     """Limited slopes of order 2: minmod (robust at wet/dry fronts; Barth-Jespersen on grids
-    and triangles) or mc (monotonized central on profiles, sharper at smooth extrema)."""
+    and triangles) or mc (monotonized central, sharper at smooth extrema: profiles only, as
+    grids and triangles have the one Barth-Jespersen limiter)."""
     threads: Annotated[int, Field(strict=True, ge=1, le=4096)] | None = None
     """CPU threads of the time loop (grids and triangles; profiles run on one; null: every
     core of the machine). The answer is the same, bit for bit, whatever the
@@ -638,11 +640,13 @@ class Numerics(_Model):
 class Physics(_Model):
     """Physical constants."""
 
-    gravity: Positive = 9.81
+    gravity: _interval(0.0, 1000.0, lo_open=True, unit=" m/s^2",
+                       why=" (100 g: a geotechnical centrifuge)") = 9.81
     """m/s^2."""
     dirac: Flag = True
     """The seed's zero-temperature (Dirac) flux; false only for studies."""
-    density: Positive = 2000.0
+    density: _interval(0.0, 1e5, lo_open=True, unit=" kg/m^3",
+                       why=" (4x the densest element)") = 2000.0
     """Bulk density of the flowing material (kg/m^3)."""
     min_flow_thickness: NonNegative | None = None
     """Material thinner than this (m) does not flow: it keeps its mass where it lies (in the
@@ -724,6 +728,11 @@ class Scenario(_Model):
                            "output.path.line")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
+        if terrain != "profile" and self.numerics.limiter == "mc":
+            # the 2D reconstruction has one limiter, Barth-Jespersen's: mc would be a no-op
+            raise _problem("'mc' applies to profiles only; on grids and triangles order 2 "
+                           "uses the Barth-Jespersen limiter (minmod's multidimensional "
+                           "form): leave limiter out or write minmod", "numerics.limiter")
         return self
 
     @model_validator(mode="after")
@@ -771,6 +780,17 @@ class Scenario(_Model):
         return self
 
     # --- provenance -------------------------------------------------------------------------
+
+    def input_files(self) -> list[str]:
+        """Every file a run of this scenario reads: the scenario file and its data files
+        (DEM, domain, release, path line; their sidecars are found by
+        :func:`avflow.files.protected`). What no command may write over."""
+        files = [self._source_path]
+        for block in (self.terrain, self.release):
+            files += [getattr(block, name, None) for name in ("path", "domain")]
+        if self.output.path is not None:
+            files.append(self.output.path.line)
+        return [f for f in files if f]
 
     @property
     def source_path(self) -> str | None:
@@ -1052,14 +1072,7 @@ def parse_scenario(text: str, source_path: str | os.PathLike | None = None,
 
 def load_scenario(path: str | os.PathLike) -> Scenario:
     """Read and validate a scenario YAML file; any problem is a :class:`ScenarioError`."""
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise ScenarioError("scenario file not found", path) from None
-    except UnicodeDecodeError as err:
-        raise ScenarioError(f"not a UTF-8 text file ({err.reason})", path) from None
-    except OSError as err:
-        raise ScenarioError(f"cannot read the scenario file: {err.strerror}", path) from None
+    text = read_text_file(path, "scenario")
     return parse_scenario(text, source_path=path)
 
 

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import difflib
 import json
+import os
 import re
+import stat
 from typing import Any, Mapping
 
 import yaml
@@ -54,6 +56,35 @@ _MERGE = "tag:yaml.org,2002:merge"
 #: values); a "billion laughs" file of 300 bytes would expand to 1e9 values and 9 GB. Values
 #: written out in full are not counted: their number is bounded by the file's size.
 MAX_ALIAS_VALUES = 10_000
+
+
+#: Largest scenario or ensemble file read (bytes). The longest shipped is under 3 KB; a
+#: megabyte is some 20,000 lines of YAML. ``avflow run /dev/zero`` read until memory ran out.
+MAX_FILE_BYTES = 1 << 20
+
+
+def read_text_file(path, what: str, error=ScenarioError) -> str:
+    """The UTF-8 text of a scenario or ensemble file, or one ``error`` line saying why not:
+    missing, not a regular file (a device, a pipe, a folder), over :data:`MAX_FILE_BYTES`,
+    not UTF-8."""
+    try:
+        mode = os.stat(path).st_mode  # before opening: a pipe would block the open
+        if not stat.S_ISREG(mode):
+            raise error(f"not a {what} file: "
+                        f"{'a folder' if stat.S_ISDIR(mode) else 'not a regular file'}", path)
+        with open(path, "rb") as f:
+            data = f.read(MAX_FILE_BYTES + 1)
+    except FileNotFoundError:
+        raise error(f"{what} file not found", path) from None
+    except OSError as err:
+        raise error(f"cannot read the {what} file: {err.strerror or err}", path) from None
+    if len(data) > MAX_FILE_BYTES:
+        raise error(f"the {what} file is over {MAX_FILE_BYTES >> 20} MiB: not a {what} "
+                    "file?", path)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise error(f"not a UTF-8 text file ({err.reason})", path) from None
 
 
 def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, int]]]:
@@ -124,8 +155,9 @@ def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, 
                 items.append(build(item, keys + (i,)))
             return items
 
-    loader = YamlLoader(text)
+    loader = None
     try:
+        loader = YamlLoader(text)  # a control character is refused here already
         root = loader.get_single_node()
         if root is not None:
             positions[()] = where(root)
@@ -136,9 +168,10 @@ def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, 
         raise ScenarioError(f"YAML syntax error: {err.problem}{detail}", path, None,
                             *((mark.line + 1, mark.column + 1) if mark else ())) from None
     except yaml.YAMLError as err:
-        raise ScenarioError(f"YAML error: {err}", path) from None
+        raise ScenarioError(f"YAML error: {' '.join(str(err).split())}", path) from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
     if data is None:
         raise ScenarioError("empty scenario: expected a mapping of fields (name: ..., "
                             "terrain: ..., ...)", path, None, 1, 1)

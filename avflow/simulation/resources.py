@@ -24,6 +24,7 @@ bounds it (uncompressed; zlib shrinks the dry cells to almost nothing).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -95,9 +96,23 @@ def human(n: float) -> str:
     """Bytes in binary units: ``12.3 GiB``."""
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
         if abs(n) < 1024 or unit == "PiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+            if unit == "B":
+                return f"{n:.0f} {unit}"
+            return f"{n:.1f} {unit}" if abs(n) < 1e6 else f"{n:.2g} {unit}"
         n /= 1024
     return f"{n:.1f} EiB"
+
+
+#: Cells along one axis counted at most (1e15: a 1000 km map at 1 nm cells). Beyond, the
+#: count is this, which is refused by any memory limit, instead of an OverflowError.
+MAX_AXIS_CELLS = 10**15
+
+
+def _cells_along(span: float, d: float, floor: bool = False) -> int:
+    n = span / d
+    if not math.isfinite(n) or n > MAX_AXIS_CELLS:
+        return MAX_AXIS_CELLS
+    return int(math.floor(n + 1e-9)) + 1 if floor else max(int(round(n)), 1)
 
 
 @dataclass(frozen=True)
@@ -112,6 +127,7 @@ class Estimate:
     snapshot_bytes: float  #: those held in memory: all of them, or one when streamed
     what: str  #: the mesh in words, for messages
     streamed: bool = False  #: snapshots written to the file as they are taken
+    max_cells: float | None = None  #: the most cells (nodes) the limit allows: refinement's
 
     @property
     def bytes(self) -> float:
@@ -140,7 +156,7 @@ def estimate(scenario, streamed: bool = False) -> Estimate:
     dx = g.dx
     dy = g.dy if getattr(g, "dy", None) is not None else dx
     if t.kind == "profile":
-        n = max(int(round(t.length / dx)), 1)
+        n = _cells_along(t.length, dx)
         kind, shape, what = "profile", (n,), f"{t.length:g} m at dx = {dx:g} m"
     else:
         if t.kind == "dem":
@@ -155,12 +171,11 @@ def estimate(scenario, streamed: bool = False) -> Estimate:
                     and abs(raster.dy - dy) <= NATIVE_TOLERANCE * dy):
                 nx, ny = raster.x.size, raster.y.size
             else:  # as avflow.terrain.raster.resample will
-                nx = int(math.floor(span_x / dx + 1e-9)) + 1
-                ny = int(math.floor(span_y / dy + 1e-9)) + 1
+                nx, ny = _cells_along(span_x, dx, True), _cells_along(span_y, dy, True)
             what = f"the DEM's {span_x:g} x {span_y:g} m"
         else:
             (x0, x1), (y0, y1) = t.extent.x, t.extent.y
-            nx, ny = max(int(round((x1 - x0) / dx)), 1), max(int(round((y1 - y0) / dy)), 1)
+            nx, ny = _cells_along(x1 - x0, dx), _cells_along(y1 - y0, dy)
             what = f"{x1 - x0:g} x {y1 - y0:g} m"
         what += f" at dx = {dx:g} m" + (f", dy = {dy:g} m" if dy != dx else "")
         if getattr(g, "mesh", "square") == "triangles":
@@ -190,12 +205,15 @@ def check_resources(scenario, max_memory: int | str | None = None, *,
         except AvflowError as err:
             raise AvflowError(f"--max-memory: {err}") from None
     est = estimate(scenario, streamed)
+    if limit is not None:  # the bound a mesh that grows as it is built (refinement) must keep
+        per_cell = est.bytes / max(est.cells, 1)
+        est = dataclasses.replace(est, max_cells=limit / per_cell)
     if limit is None or est.bytes <= limit:
         return est
     unit = "nodes" if est.kind == "triangles" else "cells"
     count = f"{est.cells:.3g} {unit}"
     if len(est.shape) > 1:
-        count = " x ".join(str(n) for n in est.shape) + " = " + count
+        count = " x ".join(str(n) if n < 1e6 else f"{n:.3g}" for n in est.shape) + " = " + count
     held = "one snapshot, the others streamed to the file" if est.streamed else "snapshots"
     need = (f"{est.what} makes {count}; with {est.snapshots} "
             f"snapshots a run needs about {human(est.bytes)} ({human(est.mesh_bytes)} mesh "

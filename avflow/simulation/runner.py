@@ -10,6 +10,7 @@ import dataclasses
 import functools
 import math
 import time as _time
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -17,7 +18,7 @@ import numpy as np
 
 from avflow.numerics import kernels as K
 from avflow.terrain.raster import RasterError
-from avflow.errors import Problem, RunFailed, ScenarioError
+from avflow.errors import AvflowWarning, Problem, RunFailed, ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
 from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
@@ -25,6 +26,7 @@ from avflow.simulation.resources import check_resources, release_freed_memory
 from avflow.simulation.summary import deposit_extent, runout_truncated, travel_angle
 from avflow.terrain.bed import Terrain
 from avflow.terrain.build import build_terrain
+from avflow.terrain.trimesh import MeshTooLarge
 
 #: Default dry threshold and runout threshold, relative to the largest released thickness.
 DEFAULT_THRESHOLD_FRACTION = 1e-3
@@ -253,11 +255,13 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
     ``streamed``: the snapshots go to a file as they are taken (one in memory at a time).
     """
     try:
-        check_resources(scenario, max_memory, streamed=streamed)
-        terrain = build_terrain(scenario)
+        estimate = check_resources(scenario, max_memory, streamed=streamed)
+        terrain = build_terrain(scenario, estimate.max_cells)
         release_freed_memory()  # the mesh's temporaries, before the solver's arrays
     except RasterError as err:
         raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
+    except MeshTooLarge as err:
+        raise ScenarioError.at(scenario, "grid.refine.levels", str(err)) from None
     except ValueError as err:
         raise ScenarioError.at(scenario, "grid.dx", str(err)) from None
     if terrain.crs_wkt is None and terrain.kind != "profile":
@@ -301,10 +305,25 @@ def _solver(scenario, terrain, law, params, thresholds, h_max) -> Solver:
                     h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]))
 
 
+#: Bed area over map area of a release past which a warning says so: 2 is a mean slope of
+#: 60 degrees, where a thickness normal to the bed makes twice the volume of one vertical.
+RELEASE_AREA_RATIO = 2.0
+
+
 def _check_release_size(scenario, terrain: Terrain, h0: np.ndarray) -> None:
     """A release thicker than the map is wide is no shallow flow (DEMs, rasters, polygons:
     the YAML thicknesses on profiles and planes are checked when the scenario is loaded)."""
     h_max = float(h0.max()) if h0.size else 0.0
+    released = h0 > 0.0
+    if terrain.kind != "profile" and released.any():
+        bed = terrain.mesh.cell_area[released]
+        ratio = float(bed.sum() / (bed * terrain.gamma_z[released]).sum())
+        if ratio > RELEASE_AREA_RATIO:  # a thickness normal to a near-vertical bed
+            volume = float((h0 * terrain.mesh.cell_area).sum())
+            warnings.warn(f"{scenario.source_path or scenario.name}: release: its bed area is "
+                          f"{ratio:.1f} times its map area (slopes near vertical), so its "
+                          f"{volume:.3g} m^3 are {ratio:.1f} times thickness x map area; "
+                          "check the release area and the DEM", AvflowWarning, stacklevel=2)
     xs = [terrain.x] if terrain.kind == "profile" else list(terrain.cell_xy())
     span = max(float(np.ptp(v)) for v in xs) + max(terrain.dx, terrain.dy)
     if not h_max <= span:

@@ -48,11 +48,12 @@ def _clip_to_domain(z, x, y, path):
     return np.where(inside, z, np.nan)
 
 
-def build_terrain(scenario) -> Terrain:
-    """The terrain of a validated scenario."""
+def build_terrain(scenario, max_cells: float | None = None) -> Terrain:
+    """The terrain of a validated scenario; a triangle mesh refined past ``max_cells``
+    nodes is refused (``trimesh.MeshTooLarge``) before it is built."""
     t = scenario.terrain
     if getattr(scenario.grid, "mesh", "square") == "triangles":  # median dual cells
-        return scenario_triangle_terrain(scenario)
+        return scenario_triangle_terrain(scenario, max_cells)
     if t.kind == "profile":
         return profile_terrain(t, scenario.grid.dx, scenario.boundary)
     if t.kind == "plane" and not getattr(t, "domain", None):
@@ -65,11 +66,11 @@ def build_terrain(scenario) -> Terrain:
     raise ValueError(f"terrain kind {t.kind!r} is not available")
 
 
-def scenario_triangle_terrain(scenario) -> Terrain:
+def scenario_triangle_terrain(scenario, max_cells: float | None = None) -> Terrain:
     """The triangle terrain of a validated scenario with ``grid.mesh: triangles``."""
     t, g = scenario.terrain, scenario.grid
     ref = getattr(g, "refine", None)
-    options = {"pattern": getattr(g, "pattern", None) or "alternate"}
+    options = {"pattern": getattr(g, "pattern", None) or "alternate", "max_nodes": max_cells}
     if ref is not None:
         options.update(refine_angle_deg=ref.angle_deg, refine_slope_deg=ref.slope_deg,
                        refine_levels=ref.levels)

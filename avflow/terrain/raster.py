@@ -11,12 +11,15 @@ CRS into the attributes of a CF ``grid_mapping`` variable (CF-1.11 section 5.6).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from avflow.files import atomic_text, atomic_write
 
 SUFFIXES = (".asc", ".tif", ".tiff", ".nc")
 
@@ -82,7 +85,9 @@ def read_raster(path) -> Raster:
     except RasterError:
         raise
     except Exception as err:  # a reader library's own error: say which file
-        raise RasterError(f"{path}: cannot be read as a raster ({type(err).__name__}: {err})")
+        detail = " ".join(str(err).split())[:120]  # one line, never the file's content
+        raise RasterError(f"{path}: cannot be read as a raster ({type(err).__name__}: "
+                          f"{detail})") from None
     raise RasterError(f"{path}: unknown raster format (use one of {', '.join(SUFFIXES)})")
 
 
@@ -92,6 +97,9 @@ def _cached(path: str, mtime_ns: int, size: int, kind: str) -> Raster:
     raster = {"asc": _read_asc, "tif": _read_tif, "nc": _read_nc}[kind](Path(path))
     values = raster.values
     values.setflags(write=False)
+    if values.ndim != 2 or min(values.shape) < 2:
+        raise RasterError(f"{path}: {' x '.join(map(str, values.shape[::-1]))} cells; a DEM or "
+                          "raster needs at least 2 x 2 (its cell size comes from them)")
     if not np.isfinite(values).any():
         raise RasterError(f"{path}: every cell is NODATA")
     return raster
@@ -283,19 +291,22 @@ def write_asc(path, values: np.ndarray, x: np.ndarray, y: np.ndarray, wkt: str |
               f"xllcorner {x[0] - 0.5 * dx:.6f}\nyllcorner {y[0] - 0.5 * dx:.6f}\n"
               f"cellsize {dx:.6f}\nNODATA_value {nodata:g}\n")
     # %.9g round-trips float32 exactly
-    _atomic_text(path, header + "\n".join(" ".join(f"{a:.9g}" for a in row) for row in v) + "\n")
+    atomic_text(path, header + "\n".join(" ".join(f"{a:.9g}" for a in row) for row in v) + "\n")
     if wkt:
-        _atomic_text(path.with_suffix(".prj"), _esri_wkt(wkt))
+        atomic_text(path.with_suffix(".prj"), _esri_wkt(wkt))
     return path
 
 
 def write_tif(path, values: np.ndarray, x: np.ndarray, y: np.ndarray,
               wkt: str | None = None, *, dtype: str = "float32", nodata=np.nan,
               colormap: dict | None = None, description: str | None = None,
-              tags: dict | None = None) -> Path:
+              tags: dict | None = None, units: str | None = None) -> Path:
     """Single-band GeoTIFF (north up), written atomically: float32 with NaN as nodata, or
     ``dtype`` with ``nodata`` for NaN; ``colormap`` (value -> RGBA) makes a byte raster
-    paletted; ``description`` and ``tags`` name the band in GIS programs."""
+    paletted; ``description``, ``units`` and ``tags`` name the band in GIS programs.
+
+    The file is read back before it is renamed into place: GDAL reports a full disk as a
+    logged error, not an exception, and left 0-byte rasters that said "wrote"."""
     import rasterio
     from rasterio.transform import from_origin
 
@@ -305,24 +316,58 @@ def write_tif(path, values: np.ndarray, x: np.ndarray, y: np.ndarray,
     values = np.asarray(values, dtype=float)[::-1]
     if np.dtype(dtype).kind != "f":
         values = np.where(np.isfinite(values), values, nodata)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with rasterio.open(tmp, "w", driver="GTiff", width=values.shape[1],
-                           height=values.shape[0], count=1, dtype=dtype,
+    band = values.astype(dtype)
+
+    def write(tmp: Path) -> None:
+        with _c_stderr_kept(said), rasterio.open(tmp, "w", driver="GTiff", width=band.shape[1],
+                           height=band.shape[0], count=1, dtype=dtype,
                            crs=wkt, transform=transform, nodata=nodata,
                            compress="deflate") as dst:
-            dst.write(values.astype(dtype), 1)
+            dst.write(band, 1)
             if colormap:
                 dst.write_colormap(1, colormap)
             if description:
                 dst.set_band_description(1, description)
+            if units:
+                dst.set_band_unit(1, units)
             if tags:
                 dst.update_tags(1, **tags)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+
+    def verify(tmp: Path) -> None:
+        why = said[0] if said else "is the disk full?"
+        try:
+            with _c_stderr_kept(said), rasterio.open(tmp) as src:
+                back = src.read(1)
+        except Exception as err:  # noqa: BLE001 - a truncated file: GDAL's own error
+            raise OSError(f"the GeoTIFF reads back broken ({type(err).__name__}; {why})"
+                          ) from None
+        if not np.array_equal(back, band, equal_nan=band.dtype.kind == "f"):
+            raise OSError(f"the GeoTIFF reads back different ({why})")
+
+    said: list[str] = []  # what libtiff printed while writing: a full disk's "No space..."
+
+    return atomic_write(path, write, verify)
+
+
+@contextlib.contextmanager
+def _c_stderr_kept(said: list):
+    """libtiff prints a failed write on the process's stderr (fd 2, not Python's logging),
+    once per block: kept here, so that the command says it once, in its own error line."""
+    import sys
+    import tempfile
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            caught.seek(0)
+            lines = caught.read(4096).decode(errors="replace").splitlines()
+            said.extend(" ".join(line.split()) for line in lines if line.strip())
 
 
 def _esri_wkt(wkt: str) -> str:
@@ -333,13 +378,3 @@ def _esri_wkt(wkt: str) -> str:
         return CRS.from_user_input(wkt).to_wkt("WKT1_ESRI")
     except Exception:
         return wkt
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise

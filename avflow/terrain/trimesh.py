@@ -362,19 +362,40 @@ def _terrain(xy, z, tris, boundary_code, dx, dy, crs_wkt=None, extras=None,
     )
 
 
-def _refined(xy, z, tris, elevation, refine_angle_deg, refine_slope_deg, refine_levels):
-    for _ in range(int(refine_levels)):
+class MeshTooLarge(ValueError):
+    """Refinement that would pass the memory limit's number of nodes."""
+
+
+def _refined(xy, z, tris, elevation, refine_angle_deg, refine_slope_deg, refine_levels,
+             max_nodes=None):
+    """Up to ``refine_levels`` rounds of :func:`refine`; before each, its nodes are counted
+    against ``max_nodes`` (a marked triangle adds 1.5-1.7 nodes with the closure, its edge
+    midpoints being shared: 2 is counted), so a mesh too large is refused before it is
+    built, not by numpy's MemoryError a minute later; the mesh made is counted again."""
+    for level in range(int(refine_levels)):
         marks = curvature_marks(np.column_stack([xy, z]), tris, refine_angle_deg,
                                 refine_slope_deg)
         if not marks.any():
             break
+        expected = len(xy) + 2 * int(marks.sum())
+        if max_nodes is not None and expected > max_nodes:
+            raise MeshTooLarge(f"refinement round {level + 1} of {int(refine_levels)} would "
+                               f"make about {expected:,} nodes ({len(xy):,} now), more than "
+                               f"the {int(max_nodes):,} the memory limit allows: fewer "
+                               "levels, a larger angle_deg or grid.dx, or raise --max-memory")
         xy, z, tris = refine(xy, z, tris, marks, elevation)
+        if max_nodes is not None and len(xy) > max_nodes:
+            raise MeshTooLarge(f"refinement round {level + 1} of {int(refine_levels)} made "
+                               f"{len(xy):,} nodes, more than the {int(max_nodes):,} the "
+                               "memory limit allows: fewer levels, a larger angle_deg or "
+                               "grid.dx, or raise --max-memory")
     return xy, z, tris
 
 
 def triangle_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=None, *,
                      pattern: str = "alternate", refine_angle_deg=None, refine_slope_deg=None,
-                     refine_levels: int = 0, curvature: bool = True) -> Terrain:
+                     refine_levels: int = 0, curvature: bool = True,
+                     max_nodes: float | None = None) -> Terrain:
     """The median-dual terrain of a raster ``z = b(x, y)`` (the inputs of surface_terrain).
 
     Vertices on the raster nodes with a finite elevation; faces on the outer box are the
@@ -392,7 +413,7 @@ def triangle_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=No
         hessian = lambda px, py: tuple(bilinear(p, x, y, px, py) for p in parts)  # noqa: E731
     xy, zv, tris = raster_triangles(z, x, y, pattern)
     xy, zv, tris = _refined(xy, zv, tris, lambda px, py: bilinear(z, x, y, px, py),
-                            refine_angle_deg, refine_slope_deg, refine_levels)
+                            refine_angle_deg, refine_slope_deg, refine_levels, max_nodes)
     sides = {k: BOUNDARY_CODES[getattr(boundary, k)] for k in ("x_min", "x_max", "y_min",
                                                                  "y_max")}
     box = (x[0], x[-1], y[0], y[-1])

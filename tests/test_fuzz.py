@@ -1,0 +1,303 @@
+"""Property-based fuzzing of the command line (issue 33): mutated scenario and ensemble files
+and ``--set`` values generated from the pydantic schema, hostile output paths, and truncated
+or foreign NetCDF and GeoTIFF inputs to ``export``, ``plot``, ``path`` and ``report``.
+
+Four invariants, whatever the input:
+- never a Python traceback (``main`` returns 0, 1, 2 or 130; nothing escapes it);
+- never a non-finite number (inf) in a file reported as a success;
+- never a file left at a temporary name (``*.tmp``, ``*.lock``);
+- never an existing file changed by a failed command.
+
+Profiles (``AVFLOW_FUZZ``): ``ci`` (default, a few hundred examples in all, about two
+minutes here) and ``long`` (thousands: ``AVFLOW_FUZZ=long pytest tests/test_fuzz.py``).
+Scenes stay on the 1D profile kernel at order 1 with Coulomb friction (structural choices
+such as the terrain kind or the law are fuzzed with wrong values, not with other valid
+ones, whose first compilation would take a minute each), ``time.max_steps`` is capped and
+``--max-memory`` is small, so that an example costs a fraction of a second.
+"""
+
+import hashlib
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from avflow.cli import main
+from avflow.scenario.schema import Scenario
+from conftest import SCENARIOS
+
+settings.register_profile("ci", max_examples=80, deadline=None, derandomize=True,
+                          suppress_health_check=list(HealthCheck))
+settings.register_profile("long", max_examples=1500, deadline=None,
+                          suppress_health_check=list(HealthCheck))
+PROFILE = os.environ.get("AVFLOW_FUZZ", "ci")
+FUZZ = settings.get_profile(PROFILE)
+
+BASE = yaml.safe_load((SCENARIOS / "seed_dambreak_flat_dx20.yaml").read_text())
+BASE["time"] = {"end": 4.0, "cfl": 0.5}
+BASE["output"] = {"every": 1.0}
+#: Always added: a run stays short whatever the mutation.
+BOUNDS = ["--set", "time.max_steps=400", "--max-memory", "64M", "-q"]
+#: Fields whose other valid values would switch kernels (a minute of compiling each).
+STRUCTURAL = {"terrain.kind", "release.kind", "rheology.law", "grid.mesh", "numerics.order",
+              "numerics.kernel", "terrain.slope.kind", "physics.dirac"}
+
+
+def _leaves(schema: dict, defs: dict, prefix: str = "") -> dict[str, dict]:
+    """Dotted path -> JSON Schema of every leaf field reachable from the profile scene's
+    blocks (the discriminated unions: every branch's fields, as a mutation may name any)."""
+    out = {}
+    if "$ref" in schema:
+        schema = defs[schema["$ref"].split("/")[-1]]
+    branches = schema.get("anyOf") or schema.get("oneOf")
+    if branches:
+        for b in branches:
+            out.update(_leaves(b, defs, prefix))
+        return out
+    if schema.get("type") == "object" and "properties" in schema:
+        for name, sub in schema["properties"].items():
+            out.update(_leaves(sub, defs, f"{prefix}.{name}" if prefix else name))
+        return out
+    if prefix:
+        out[prefix] = schema
+    return out
+
+
+SCHEMA = Scenario.model_json_schema()
+LEAVES = {k: v for k, v in _leaves(SCHEMA, SCHEMA["$defs"]).items()
+          if not k.startswith("output.path")}
+
+HOSTILE_NUMBERS = st.sampled_from([0, -1, 1e-300, 1e-200, 5e-324, 1e300, 1e308, -1e308,
+                                   float("nan"), float("inf"), float("-inf"), 2**63, -2**63,
+                                   10**400, 0.0, -0.0, 1e-9, 1e9, 3.5, 100])
+WRONG_TYPES = st.one_of(st.text(max_size=20), st.booleans(), st.none(),
+                        st.lists(st.integers(), max_size=3),
+                        st.dictionaries(st.text(max_size=5), st.integers(), max_size=2),
+                        st.sampled_from(["\u00e9\u00e8\u2013\U0001f600", "1e3", ".inf", "",
+                                         "null", "~", "[1, 2]", "{a: 1}"]))
+
+
+def _value_for(schema: dict):
+    """Values for a field: in-range ones from its schema, its edges, and hostile ones."""
+    kinds = []
+    if "enum" in schema or "const" in schema:
+        kinds.append(st.text(max_size=8))
+    lo = schema.get("minimum", schema.get("exclusiveMinimum"))
+    hi = schema.get("maximum", schema.get("exclusiveMaximum"))
+    if schema.get("type") in ("number", "integer") or lo is not None or hi is not None:
+        a = float(lo) if lo is not None else -1e6
+        b = float(hi) if hi is not None else 1e6
+        kinds.append(st.floats(min_value=a, max_value=b, allow_nan=False))
+        kinds.append(st.sampled_from([a, b, np.nextafter(a, -np.inf), np.nextafter(b, np.inf)]))
+    kinds += [HOSTILE_NUMBERS, WRONG_TYPES]
+    return st.one_of(*kinds)
+
+
+def _set(data: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        if not isinstance(data.get(k), dict):
+            data[k] = {}
+        data = data[k]
+    data[keys[-1]] = value
+
+
+def _delete(data: dict, dotted: str) -> None:
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        data = data.get(k)
+        if not isinstance(data, dict):
+            return
+    data.pop(keys[-1], None)
+
+
+@st.composite
+def mutated_scenarios(draw):
+    data = yaml.safe_load(yaml.safe_dump(BASE))
+    for _ in range(draw(st.integers(1, 4))):
+        what = draw(st.sampled_from(["value", "value", "value", "missing", "extra", "junk"]))
+        key = draw(st.sampled_from(sorted(LEAVES)))
+        if what == "value":
+            if key in STRUCTURAL:
+                _set(data, key, draw(WRONG_TYPES))
+            else:
+                _set(data, key, draw(_value_for(LEAVES[key])))
+        elif what == "missing":
+            _delete(data, key if draw(st.booleans()) else key.split(".")[0])
+        elif what == "extra":
+            _set(data, key.rsplit(".", 1)[0] + "." + draw(st.text(min_size=1, max_size=8)),
+                 draw(HOSTILE_NUMBERS))
+        else:
+            _set(data, key.split(".")[0], draw(WRONG_TYPES))
+    return data
+
+
+def _dump(data) -> str:
+    try:
+        return yaml.safe_dump(data, allow_unicode=True)
+    except (yaml.YAMLError, ValueError):  # 10**400 and the like: as text
+        return str(data)
+
+
+# --- the invariants ---------------------------------------------------------------------------
+
+
+def _digests(folder: Path) -> dict:
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in folder.rglob("*") if p.is_file()}
+
+
+def _check(argv, folder: Path, outputs=()) -> int:
+    """Run ``avflow argv``; assert the four invariants; return the exit code."""
+    before = _digests(folder)
+    code = main([str(a) for a in argv])  # any exception escaping main fails the example
+    assert code in (0, 1, 2, 130)
+    left = [p for p in folder.rglob("*") if p.name.endswith((".tmp", ".lock"))]
+    assert not left, left
+    if code != 0:
+        after = _digests(folder)
+        changed = [p for p, d in before.items() if after.get(p) != d]
+        assert not changed, changed
+    else:
+        for out in outputs:
+            if Path(out).suffix == ".nc" and Path(out).is_file():
+                with xr.open_dataset(out, decode_times=False) as ds:
+                    for name, var in ds.variables.items():
+                        if var.dtype.kind == "f":
+                            assert not np.isinf(var.values).any(), name
+    return code
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """A folder with a finished run file (the profile), its plot, and a grid run file."""
+    folder = tmp_path_factory.mktemp("fuzz")
+    (folder / "base.yaml").write_text(_dump(BASE))
+    assert main(["run", str(folder / "base.yaml"), "-o", str(folder / "run.nc"), "-q"]) == 0
+    assert main(["run", str(SCENARIOS / "plane_box_2d.yaml"), "--set", "time.end=5", "-q",
+                 "-o", str(folder / "grid.nc")]) == 0
+    return folder
+
+
+def _fresh(tmp_path_factory, work) -> Path:
+    case = tmp_path_factory.mktemp("case")
+    shutil.copy(work / "run.nc", case / "old.nc")  # an existing file a failure must keep
+    return case
+
+
+@FUZZ
+@given(data=mutated_scenarios())
+def test_mutated_scenario_files(tmp_path_factory, work, capsys, data):
+    case = _fresh(tmp_path_factory, work)
+    (case / "s.yaml").write_text(_dump(data))
+    _check(["run", case / "s.yaml", "-o", case / "old.nc", *BOUNDS], case, [case / "old.nc"])
+    capsys.readouterr()
+
+
+@FUZZ
+@given(sets=st.lists(st.tuples(st.sampled_from(sorted(LEAVES) + ["grid", "x.y.z", "", "time."]),
+                               st.one_of(st.text(max_size=12), HOSTILE_NUMBERS.map(repr))),
+                     min_size=1, max_size=3))
+def test_set_values(tmp_path_factory, work, capsys, sets):
+    case = _fresh(tmp_path_factory, work)
+    argv = ["run", work / "base.yaml", "-o", case / "old.nc"]
+    for key, value in sets:
+        if key in STRUCTURAL:
+            value = "'" + value.replace("'", "") + "'"
+        argv += ["--set", f"{key}={value}"]
+    _check(argv + BOUNDS, case, [case / "old.nc"])
+    capsys.readouterr()
+
+
+@st.composite
+def ensemble_files(draw):
+    spec = {"base": "base.yaml"}
+    if draw(st.booleans()):
+        spec["vary"] = {draw(st.sampled_from(["rheology.delta_deg", "time.end", "grid.dx",
+                                              "nope.field", "release.thickness"])):
+                        draw(st.one_of(st.lists(HOSTILE_NUMBERS, max_size=3), WRONG_TYPES))}
+    if draw(st.booleans()) or "vary" not in spec:
+        spec["sample"] = {"n": draw(st.one_of(st.integers(-2, 4), st.just(10**12),
+                                              WRONG_TYPES)),
+                          "seed": draw(st.one_of(st.integers(-1, 5), WRONG_TYPES)),
+                          "ranges": {"rheology.delta_deg": draw(st.one_of(
+                              st.lists(HOSTILE_NUMBERS, min_size=2, max_size=2), WRONG_TYPES))}}
+    for key in draw(st.lists(st.sampled_from(["name", "thresholds", "description", "extra"]),
+                             max_size=2)):
+        spec[key] = draw(st.one_of(WRONG_TYPES, HOSTILE_NUMBERS))
+    return spec
+
+
+@FUZZ
+@given(spec=ensemble_files())
+def test_mutated_ensemble_files(tmp_path_factory, work, capsys, spec):
+    case = _fresh(tmp_path_factory, work)
+    shutil.copy(work / "base.yaml", case / "base.yaml")
+    (case / "e.yaml").write_text(_dump(spec))
+    _check(["ensemble", case / "e.yaml", "-o", case / "ens", "--workers", "0",
+            "--max-members", "3", "-q", "--set", "time.max_steps=400", "--max-memory", "64M"],
+           case, list((case / "ens").glob("*.nc")))
+    capsys.readouterr()
+
+
+def _hostile_targets(case: Path) -> list:
+    (case / "dir").mkdir(exist_ok=True)
+    link = case / "link.nc"
+    if not link.exists():
+        link.symlink_to(case / "old.nc")
+    return [case / "old.nc", link, case / "base.yaml", case / "dir", "/dev/null",
+            case / "missing" / ".." / "old.nc", case / ("n" * 300), case / "old.nc" / "x"]
+
+
+@FUZZ
+@given(command=st.sampled_from(["run", "plot", "export", "path"]), pick=st.integers(0, 7))
+def test_hostile_output_paths(tmp_path_factory, work, capsys, command, pick):
+    case = _fresh(tmp_path_factory, work)
+    shutil.copy(work / "base.yaml", case / "base.yaml")
+    target = _hostile_targets(case)[pick]
+    source = {"run": case / "base.yaml"}.get(command, case / "old.nc")
+    argv = [command, source, "-o", target] + (BOUNDS if command == "run" else [])
+    code = _check(argv, case)
+    refused = {"run": (2, 3, 4), "plot": (0, 1, 3, 4, 5)}  # an input (or a link to one,
+    if pick in refused.get(command, ()):                 # or a/missing/../it), a folder, a
+        assert code == 2                                 # device: refused
+    capsys.readouterr()
+
+
+@FUZZ
+@given(source=st.sampled_from(["run.nc", "grid.nc"]), cut=st.floats(0.0, 1.0),
+       flips=st.lists(st.integers(0, 10**6), max_size=4),
+       command=st.sampled_from(["export", "plot", "path", "report", "tif"]))
+def test_truncated_and_foreign_inputs(tmp_path_factory, work, capsys, source, cut, flips,
+                                      command):
+    case = tmp_path_factory.mktemp("bad")
+    data = bytearray((work / source).read_bytes())
+    if command == "tif":  # a damaged GeoTIFF given as the DEM
+        assert main(["export", str(work / "grid.nc"), "-o", str(case), "--variables",
+                     "peak_thickness", "-q"]) == 0
+        data = bytearray((case / "grid_peak_thickness.tif").read_bytes())
+    for f in flips:
+        data[f % len(data)] ^= 0xFF
+    data = bytes(data[:int(cut * len(data))])
+    if command == "tif":
+        (case / "dem.tif").write_bytes(data)
+        (case / "s.yaml").write_text(
+            "name: t\nterrain: {kind: dem, path: dem.tif}\ngrid: {dx: 10}\nrelease: {kind: "
+            "cylinder, center: [100, 100], radius: 30, thickness: 2}\nrheology: {law: "
+            "coulomb, delta_deg: 20}\ntime: {end: 1}\n")
+        argv = ["run", case / "s.yaml", "-o", case / "x.nc", *BOUNDS]
+    elif command == "report":
+        (case / "ens").mkdir()
+        (case / "ens" / "ensemble.nc").write_bytes(data)
+        argv = ["report", case / "ens"]
+    else:
+        (case / "in.nc").write_bytes(data)
+        argv = [command, case / "in.nc"]
+    _check(argv, case)
+    capsys.readouterr()
