@@ -179,16 +179,21 @@ def publish(tmp, path) -> None:
     os.replace(tmp, path)
 
 
+def _missing_folders(folder: Path) -> list[Path]:
+    """The folders of ``folder`` a mkdir would make, outermost first."""
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.insert(0, folder)
+        folder = folder.parent
+    return missing
+
+
 def make_temporary(path) -> tuple[Path, list[Path]]:
     """An empty temporary file ``.{name}.XXXXXXXX.tmp`` next to ``path``, its folder made if
     missing; returns it and the folders made (deepest last). :class:`OutputWriteError` if
     the file cannot be made."""
     path = Path(path)
-    created = []
-    folder = path.parent
-    while not folder.exists() and folder != folder.parent:
-        created.insert(0, folder)
-        folder = folder.parent
+    created = _missing_folders(path.parent)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path), suffix=".tmp",
@@ -303,11 +308,7 @@ def output_lock(path, folder: bool = False, what: str = "output"):
 
     path = Path(path)
     lock = lock_path(path, folder)
-    created = []
-    parent = lock.parent
-    while not parent.exists() and parent != parent.parent:
-        created.insert(0, parent)
-        parent = parent.parent
+    created = _missing_folders(lock.parent)
     try:
         lock.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:

@@ -25,18 +25,12 @@ import pytest
 import xarray as xr
 
 from avflow.cli import main, summary_line
-from avflow.files import output_lock
 from conftest import REPO, SCENARIOS
+from test_cli_habits import run_cli as cli
 
 KOT = REPO / "data" / "avaframe" / "avaKot"
 DAMBREAK = SCENARIOS / "seed_dambreak_flat_dx20.yaml"
 PLANE = SCENARIOS / "plane_box_2d.yaml"
-
-
-def cli(argv, capsys):
-    code = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def one_line(err: str) -> str:
@@ -227,6 +221,8 @@ def test_a_full_disk_is_said_as_such_and_leaves_nothing(box_run, tmp_path):
 
 
 def test_a_held_output_is_refused_with_its_holder(tmp_path, capsys):
+    from avflow.files import output_lock
+
     out = tmp_path / "x.nc"
     with output_lock(out):
         code, _, err = cli(["run", DAMBREAK, "-o", out], capsys)
