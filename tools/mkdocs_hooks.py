@@ -121,6 +121,8 @@ def _rst(text: str) -> str:
     text = re.sub(r":(?:func|class|meth|mod|data|attr):`~?(?:[\w.]*\.)?([^`]+)`", r"`\1`",
                   str(text))
     text = text.replace("``", "`")
+    # the docstrings' "(README)" pointed at prose that now lives in the user guide
+    text = text.replace("(README)", "(user guide, what is solved)")
     return re.sub(r"::$", ":", text, flags=re.M)
 
 
