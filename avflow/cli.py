@@ -1,4 +1,4 @@
-"""Command line: ``avflow run SCENARIO.yaml -o OUT.nc``; ensemble; report; export; plot.
+"""avflow: debris-avalanche runs from scenario files (run, ensemble, report, export, plot, path).
 
 Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
 Errors in the input are one line naming the file and the field; no output file is left
@@ -48,10 +48,11 @@ def summary_line(ds) -> str:
 
     status = ds.attrs["status"]
     ended_by = ds.attrs.get("ended_by", "")
-    if status == "stopped" and ended_by == "kinetic_energy":
+    if status == "ended_by_rule":
         moving = float(ds["moving_volume_end"]) / max(float(ds["release_volume"]), 1e-300)
-        status += f" (kinetic-energy rule, {100 * moving:.0f}% of the volume still moving)"
-    elif status != "stopped" and ended_by:
+        status += (f" (kinetic-energy rule, {100 * moving:.0f}% of the volume still moving: "
+                   "not a deposit at rest)")
+    elif status not in ("at_rest", "stopped") and ended_by:
         status += f" ({ended_by}: not a deposit at rest)"
     if int(ds.attrs.get("runout_truncated", 0)):
         status += ", RUNOUT TRUNCATED by the map's edge (a lower bound: enlarge the map)"
@@ -149,7 +150,9 @@ def _after_run(args, scenario, out: Path, ds, status: str, inputs=None) -> int:
         print(f"wrote {out}")
     if scenario.output.path is not None:
         _run_path(ds, scenario.output.path, out, args.quiet, inputs)
-    return 0 if status in ("stopped", "completed") else 1
+    from avflow.simulation.runner import SUCCESS_STATUSES
+
+    return 0 if status in SUCCESS_STATUSES else 1
 
 
 def _run_path(ds, block, out: Path, quiet: bool = False, inputs=None) -> None:
@@ -216,19 +219,19 @@ def build_parser() -> argparse.ArgumentParser:
                    "stderr: a few short members run here, others on one worker per core)")
     e.add_argument("--batch", type=int, help="members per dask task (default: automatic)")
     e.add_argument("--max-memory", metavar="SIZE", help="refuse a member estimated to need "
-                   "more (as for `avflow run`; passed to local workers as $AVFLOW_MAX_MEMORY)")
+                   "more (as for avflow run; passed to local workers as $AVFLOW_MAX_MEMORY)")
     e.add_argument("--max-members", type=int, metavar="N", help="refuse an ensemble of more "
                    "members (default: $AVFLOW_MAX_MEMBERS, else 10000)")
     e.add_argument("--report", action="store_true", help="write OUTDIR/report.md at the end")
     e.set_defaults(func=_cmd_ensemble)
     rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble",
                         parents=[quiet])
-    rp.add_argument("outdir", help="output folder of `avflow ensemble`")
+    rp.add_argument("outdir", help="output folder of avflow ensemble")
     rp.set_defaults(func=_cmd_report)
     x = sub.add_parser("export", help="write the maps of a grid run, or the probability maps "
                                       "of an ensemble.nc, as GeoTIFF or ESRI ASCII rasters "
                                       "(<stem>_<variable>.<ext>)", parents=[quiet])
-    x.add_argument("run_file", help="NetCDF written by `avflow run`, or OUTDIR/ensemble.nc")
+    x.add_argument("run_file", help="NetCDF written by avflow run, or OUTDIR/ensemble.nc")
     x.add_argument("--format", choices=("tif", "asc"), default="tif",
                    help="GeoTIFF (default) or ESRI ASCII grid + .prj")
     x.add_argument("-o", "--output", help="output folder (default: next to RUN_FILE)")
@@ -241,13 +244,13 @@ def build_parser() -> argparse.ArgumentParser:
     pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness and peak-pressure "
                                      "classes over a hillshade; bed and snapshots on "
                                      "profiles)", parents=[quiet])
-    pl.add_argument("run_file", help="NetCDF written by `avflow run`")
+    pl.add_argument("run_file", help="NetCDF written by avflow run")
     pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
     pl.set_defaults(func=_cmd_plot)
     pa = sub.add_parser("path", help="runout along the avalanche path (AvaFrame's AIMEC): "
                                      "table and PNG of a run file or an ensemble folder",
                         parents=[quiet])
-    pa.add_argument("target", help="NetCDF written by `avflow run`, or an `avflow ensemble` "
+    pa.add_argument("target", help="NetCDF written by avflow run, or an avflow ensemble "
                                    "folder")
     pa.add_argument("--line", help="path line (.shp, .geojson, .json, .csv of x, y; 'com': "
                                    "the flow's centre-of-mass track; default: the "

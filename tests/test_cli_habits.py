@@ -241,7 +241,7 @@ def test_the_2d_demo_ensemble_shows_a_real_spread(tmp_path):
     outcome = run_ensemble(ens, tmp_path / "out", workers=0,
                            progress=ProgressLine(len(ens.members), quiet=True))
     table = outcome.table
-    assert set(table["status"]) == {"stopped"} and (table["runout_truncated"] == 0).all()
+    assert set(table["status"]) == {"at_rest"} and (table["runout_truncated"] == 0).all()
     runout = table["runout"].to_numpy()
     assert len(np.unique(np.round(runout))) == 9
     assert runout.max() > 2.5 * runout.min()

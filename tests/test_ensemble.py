@@ -67,7 +67,7 @@ def test_section6_ensemble_runs_on_two_workers(section6_run):
     assert files == sorted(f"{m.scenario_hash}.nc" for m in ens.members)
     table = pd.read_csv(out / "summary.csv")
     assert list(table["realization"]) == list(range(21))
-    assert set(table["status"]) == {"stopped"}
+    assert set(table["status"]) == {"at_rest"}
     assert not (out / "failures.csv").exists()
     with xr.open_dataset(out / "ensemble.nc", decode_times=False) as ds:
         assert ds["realization"].attrs["standard_name"] == "realization"
@@ -78,7 +78,7 @@ def test_section6_ensemble_runs_on_two_workers(section6_run):
         for name in SUMMARIES + ("wall_time",):
             assert ds[name].dims == ("realization",) and "units" in ds[name].attrs
             np.testing.assert_array_equal(ds[name].values, table[name].values)
-        assert list(ds["status"].values) == ["stopped"] * 21
+        assert list(ds["status"].values) == ["at_rest"] * 21
         # Twice the volume goes farther, for every law.
         runout = ds["runout"].values.reshape(7, 3)
         assert (np.diff(runout, axis=1) > 0).all()
@@ -163,7 +163,7 @@ def test_contract_ensemble_runs_unchanged(contract_dir, section6_run, tmp_path):
                  str(out), "--workers", "0"]) == 0
     table = pd.read_csv(out / "summary.csv")
     expected = pd.read_csv(section6_run[1] / "summary.csv")
-    assert set(table["status"]) == {"stopped"} and len(table) == 21
+    assert set(table["status"]) == {"at_rest"} and len(table) == 21
     for name in SUMMARIES:
         np.testing.assert_array_equal(table[name].values, expected[name].values)
 
@@ -244,14 +244,14 @@ vary:
     assert len(failed_lines) == 2 and all("release" in line for line in failed_lines)
     assert "member 2 " in err and "member 3 " in err
     table = pd.read_csv(out / "summary.csv")
-    assert list(table["status"]) == ["stopped", "stopped", "failed", "failed"]
+    assert list(table["status"]) == ["at_rest", "at_rest", "failed", "failed"]
     assert table["error"].fillna("").str.contains("no mass").tolist() == [False, False, True,
                                                                           True]
     failures = pd.read_csv(out / "failures.csv")
     assert list(failures["realization"]) == [2, 3]
     assert len(list((out / "members").iterdir())) == 2
     with xr.open_dataset(out / "ensemble.nc", decode_times=False) as ds:
-        assert list(ds["status"].values) == ["stopped", "stopped", "failed", "failed"]
+        assert list(ds["status"].values) == ["at_rest", "at_rest", "failed", "failed"]
         assert np.isnan(ds["runout"].values[2:]).all() and np.isfinite(ds["runout"][:2]).all()
         assert ds.attrs["failed_members"] == 2
     write_report(out)
@@ -507,7 +507,7 @@ vary:
     assert ("cluster" in outcome.timings) == (where != "here")
     assert not multiprocessing.active_children()  # the cluster is closed either way
     table = pd.read_csv(tmp_path / "out" / "summary.csv")
-    assert list(table["status"]) == ["stopped"] * 4
+    assert list(table["status"]) == ["at_rest"] * 4
 
 
 # =========================================================================================
@@ -629,7 +629,7 @@ vary:
         assert files == sorted(f"{m.scenario_hash}.nc" for m in ens.members)  # once each
         table = pd.read_csv(out / "summary.csv")
         assert table["realization"].is_unique and table["scenario_hash"].is_unique
-        assert len(table) == 24 and set(table["status"]) == {"stopped"}
+        assert len(table) == 24 and set(table["status"]) == {"at_rest"}
         assert workers[0].poll() is not None and workers[1].poll() is None
     finally:
         for p in reversed(procs):  # only the processes this test started

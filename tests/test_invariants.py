@@ -79,7 +79,7 @@ def test_a_mass_that_never_moves_stops_at_time_zero(order):
 
     for text in (REST_PROFILE, REST_PLANE):
         result = simulate(parse_scenario(text).with_updates({"numerics.order": order}))
-        assert result.status == "stopped"
+        assert result.status == "at_rest"
         assert np.array_equal(result.state.h, result.h0)
         assert result.time_to_stop == 0.0 and result.summary["time_to_stop"] == 0.0
 

@@ -207,7 +207,7 @@ def test_section6_with_order_2_still_stops():
     base = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
     first = simulate(base)
     second = simulate(base.with_updates({"numerics.order": 2}))
-    assert second.status == "stopped"
+    assert second.status == "at_rest"
     assert abs(second.time_to_stop - first.time_to_stop) < 5.0
     assert second.summary["mass_balance_error"] < 1e-14
     assert second.summary["order2_fallbacks"] > 0  # cells that stopped took order 1's q = 0

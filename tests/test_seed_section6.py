@@ -25,7 +25,7 @@ def summary(name):
 
 def test_coulomb_15_stops_at_86_s_with_68_m_maximum_near_4500_m():
     s = summary("seed_exponential_coulomb15")
-    assert s["status"] == "stopped"
+    assert s["status"] == "at_rest"
     assert abs(s["time_to_stop"] - 86.0) <= 2.0
     assert abs(s["deposit_max_thickness"] - 68.0) <= 2.0
     assert abs(s["runout"] - 4500.0) <= 150.0
@@ -54,7 +54,7 @@ def test_deposit_length_and_maximum(delta, length, hmax):
 
 def test_pouliquen_stops_near_97_6_s_and_4500_m():
     s = summary("seed_exponential_pouliquen_d1.5")
-    assert s["status"] == "stopped"
+    assert s["status"] == "at_rest"
     assert abs(s["time_to_stop"] - 97.6) <= 2.0
     assert abs(s["runout"] - 4500.0) <= 150.0
 
@@ -62,7 +62,7 @@ def test_pouliquen_stops_near_97_6_s_and_4500_m():
 def test_pouliquen_plane_keeps_h_stop():
     """Section 5: the deposit left on the plane is h_stop(25 deg) within 5%."""
     result = simulate(load_scenario(SCENARIOS / "pouliquen_plane.yaml"))
-    assert result.status == "stopped"
+    assert result.status == "at_rest"
     h = result.state.h
     inner = h[len(h) // 4: 3 * len(h) // 4]
     expected = h_stop(25.0, 20.7, 32.8, 0.98e-3)
@@ -81,7 +81,7 @@ def test_coulomb_24_leaves_a_fluid_like_zone_at_the_rear_at_70_s():
     from avflow.simulation.runner import FLAG_FLOWING
 
     result = simulate(load_scenario(SCENARIOS / "seed_exponential_coulomb24.yaml"))
-    assert result.status == "stopped"
+    assert result.status == "at_rest"
     snaps, x = result.snapshots, result.terrain.x
     k70 = snaps.time.index(70.0)
     k55 = snaps.time.index(55.0)

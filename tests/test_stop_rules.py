@@ -29,7 +29,8 @@ def test_kinetic_energy_rule_ends_earlier_with_mass_still_moving():
         {"output.stop_rule": "kinetic_energy"}))
     sv, se = by_volume.summary, by_energy.summary
     assert by_energy.scenario.output.stop_fraction == 0.01
-    assert by_volume.status == by_energy.status == "stopped"
+    # the kinetic-energy rule ends it with mass still moving: not called at rest
+    assert by_volume.status == "at_rest" and by_energy.status == "ended_by_rule"
     assert sv["ended_by"] == "moving_volume" and se["ended_by"] == "kinetic_energy"
     assert se["kinetic_energy_end"] <= 0.01 * se["kinetic_energy_peak"]
     assert se["time_to_stop"] < sv["time_to_stop"] - 5.0
@@ -38,6 +39,7 @@ def test_kinetic_energy_rule_ends_earlier_with_mass_still_moving():
     assert sv["kinetic_energy_peak"] == pytest.approx(se["kinetic_energy_peak"], rel=1e-9)
     ds = to_dataset(by_energy)
     assert ds.attrs["stop_rule"] == "kinetic_energy" and ds.attrs["ended_by"] == "kinetic_energy"
+    assert ds.attrs["status"] == "ended_by_rule" and to_dataset(by_volume).attrs["status"] == "at_rest"
     assert ds["kinetic_energy_peak"].attrs["units"] == "J m-1"  # per metre of width
 
 

@@ -97,7 +97,8 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike,
     data: dict = {
         "status": ("realization", table["status"].astype(str).to_numpy(object), {
             "long_name": "end state of the member run",
-            "comment": "stopped or completed: success; failed: raised (see error); "
+            "comment": "at_rest, ended_by_rule (stop rule, mass still moving) or completed "
+                       "(time.end, still moving): success; failed: raised (see error); "
                        "max_steps: step bound reached"}),
         "error": ("realization", table["error"].fillna("").astype(str).to_numpy(object), {
             "long_name": "error message of a failed member (empty when it succeeded)"}),

@@ -57,7 +57,6 @@ def write_report(outdir: str | os.PathLike) -> Path:
     import xarray as xr
 
     from avflow.errors import AvflowError
-
     from avflow.files import check_folder, check_target, protected
 
     outdir = Path(outdir)
@@ -99,15 +98,29 @@ def write_report(outdir: str | os.PathLike) -> Path:
         cut = int((ds["runout_truncated"].values == 1).sum())
         md += [f"- deposit reaching the domain's edge (runout is a lower bound): {cut} "
                "member(s)" + (": enlarge the domain" if cut else "")]
+    # A member ended by its rule with mass still moving has no deposit at rest; its
+    # time_to_stop is when the rule ended it. A panel of time_to_stop needs a finite one.
+    rest = np.isin(status, ("at_rest", "stopped"))
+    if ok.any() and not rest.any():
+        md += ["- **no member came to rest**: every final thickness is a snapshot of a flow "
+               "still moving (statuses: " + ", ".join(sorted(set(status[ok]))) + "); peak "
+               "maps and exceedance probabilities are unaffected"]
+    panels = ["runout"]
+    if np.isfinite(ds["time_to_stop"].values[ok]).any():
+        panels.append("time_to_stop")
+    x_units["time_to_stop"] = "s" if rest.any() else "s, when the stop rule ended the run"
+    what = "runout and time to stop" if len(panels) == 2 else "runout"
     md += [""]
     figures: list[tuple[str, str]] = []
 
     # --- runout and time to stop against each varied parameter ---------------------------
     for param in params:
         values = ds[param].values
-        fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+        fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4),
+                                 constrained_layout=True, squeeze=False)
+        axes = axes[0]
         others = [p for p in params if p != param]
-        for ax, name in zip(axes, ("runout", "time_to_stop")):
+        for ax, name in zip(axes, panels):
             y = ds[name].values
             sel = ok & np.isfinite(values)
             # Members that differ only by this parameter are joined by a line, labelled by
@@ -131,15 +144,17 @@ def write_report(outdir: str | os.PathLike) -> Path:
                 axes[0].plot([], [], "-o", color=c, label=law)
             axes[0].legend(title="law")
         fname = f"vs_{param}.png"
-        fig.suptitle(f"runout and time to stop against {param}")
+        fig.suptitle(f"{what} against {param}")
         _savefig(fig, figdir / fname)
         plt.close(fig)
-        figures.append((f"Runout and time to stop against {param}", fname))
+        figures.append((f"{what.capitalize()} against {param}", fname))
 
     # --- per law ---------------------------------------------------------------------------
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4),
+                             constrained_layout=True, squeeze=False)
+    axes = axes[0]
     rng = np.random.default_rng(0)
-    for ax, name in zip(axes, ("runout", "time_to_stop")):
+    for ax, name in zip(axes, panels):
         y = ds[name].values
         for k, law in enumerate(colors):
             sel = ok & (laws == law)
@@ -148,10 +163,10 @@ def write_report(outdir: str | os.PathLike) -> Path:
         ax.set_xticks(range(len(colors)), list(colors))
         ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
         ax.grid(alpha=0.3)
-    fig.suptitle("runout and time to stop per friction law")
+    fig.suptitle(f"{what} per friction law")
     _savefig(fig, figdir / "by_law.png")
     plt.close(fig)
-    figures.append(("Runout and time to stop per friction law", "by_law.png"))
+    figures.append((f"{what.capitalize()} per friction law", "by_law.png"))
 
     # --- deposits ---------------------------------------------------------------------------
     if profile:
@@ -228,6 +243,18 @@ _EXCEEDANCE = (("peak_thickness", "exceedance.png", "Peak-thickness exceedance p
                 "Peak-pressure exceedance probability", "peak pressure > {:g} kPa"))
 
 
+def probability_style(n: int):
+    """Colormap, norm and tick values of an exceedance map over ``n`` members: the map can
+    only hold k / n, so one colour per value (k >= 1; 0 is left blank)."""
+    import matplotlib
+    import matplotlib.colors as mcolors
+
+    levels = np.arange(1, n + 1) / n
+    cmap = matplotlib.colormaps["viridis"].resampled(n)
+    norm = mcolors.BoundaryNorm(np.concatenate([[0.5 / n], levels + 0.5 / n]), n)
+    return cmap, norm, levels
+
+
 def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
     """One figure per peak map: its probability at each threshold over the hillshade of the
     bed, axes in the CRS (as `avflow plot`); P = 0 is left transparent."""
@@ -237,6 +264,8 @@ def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
     xs, ys = ds["x"].values, ds["y"].values
     bed = ds["bed_elevation"].values if "bed_elevation" in ds.variables else None
     crs = crs_name(ds)
+    n_ok = max(int(np.isin(ds["status"].values.astype(str), OK_STATUSES).sum()), 1)
+    cmap, norm, levels = probability_style(n_ok)
     for name, fname, title, label in _EXCEEDANCE:
         var = f"{name}_exceedance_probability"
         if var not in ds:
@@ -257,8 +286,8 @@ def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
             if bed is not None:
                 draw_terrain(ax, xs, ys, np.asarray(bed, dtype=float))
             p = prob.sel({dim: t}).values
-            im = ax.pcolormesh(xs, ys, np.ma.masked_where(~(p > 0), p), vmin=0.0, vmax=1.0,
-                               cmap="viridis", shading="nearest", alpha=0.85)
+            im = ax.pcolormesh(xs, ys, np.ma.masked_where(~(p > 0), p), norm=norm,
+                               cmap=cmap, shading="nearest", alpha=0.85)
             ax.set_aspect("equal")
             ax.ticklabel_format(useOffset=False, style="plain")
             ax.tick_params(labelsize=7)
@@ -267,7 +296,10 @@ def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
             ax.set_title(f"P({label.format(float(t))})", fontsize=10)
             ax.set_xlabel("x (m)" + (f"\n{crs}" if crs else ""), fontsize=8)
             ax.set_ylabel("y (m)", fontsize=8)
-        fig.colorbar(im, ax=list(axes), label="probability (blank: 0)", shrink=0.9)
+        bar = fig.colorbar(im, ax=list(axes), shrink=0.9, ticks=levels,
+                           label=f"probability over {n_ok} members (blank: 0)")
+        bar.ax.set_yticklabels([f"{k}/{n_ok}" for k in range(1, n_ok + 1)] if n_ok <= 12
+                               else [f"{v:.2f}" for v in levels])
         _savefig(fig, figdir / fname)
         plt.close(fig)
         figures.append((title, fname))

@@ -84,7 +84,7 @@ def member_limit(max_members: int | None = None) -> int:
 SUMMARY_FIELDS = ("runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
                   "deposit_volume", "release_volume", "outflow_volume", "mass_balance_error",
                   "travel_angle", "wall_time")
-OK_STATUSES = ("stopped", "completed")
+OK_STATUSES = ("at_rest", "ended_by_rule", "completed", "stopped")  # runner.SUCCESS_STATUSES
 
 
 class EnsembleError(ScenarioError):

@@ -160,6 +160,18 @@ class WindowedFields:
                 self.values[name][block][inside] = v
 
 
+def _grid_mapping(wkt):
+    """CF grid-mapping attributes of a CRS, without pyproj's UserWarning that a parameter CF
+    cannot name (Swiss LV95's rectified-to-skew angle) was dropped: ``crs_wkt`` and
+    ``spatial_ref`` carry the whole CRS, which GDAL, rioxarray and pyproj read first."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*lost in conversion to CF",
+                                category=UserWarning)
+        return cf_grid_mapping(wkt)
+
+
 def _union(a, b):
     """The box bounding boxes a and b (None: empty)."""
     if a is None or b is None:
@@ -242,7 +254,7 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                                  {**attrs("moving_volume"),
                                   "units": per_width("m3", profile)})
-    crs_attrs = None if profile else cf_grid_mapping(terrain.crs_wkt)
+    crs_attrs = None if profile else _grid_mapping(terrain.crs_wkt)
     if crs_attrs:  # CF 5.6: every map names the CRS; GDAL reads crs_wkt / spatial_ref
         coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
                                             **crs_attrs})  # a coordinate: link_coordinates

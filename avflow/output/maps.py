@@ -406,10 +406,13 @@ def _nice_levels(lo: float, hi: float, most: int = 9) -> list[float]:
 
 
 def at_rest(ds) -> bool:
-    """Whether the run ended with its mass at rest (the moving-volume rule), so that its
-    final thickness is a deposit. Files older than the stop rules: when it stopped."""
-    ended_by = ds.attrs.get("ended_by", "moving_volume" if ds.attrs.get("status") == "stopped"
-                            else "time.end")
+    """Whether the run ended with its mass at rest, so that its final thickness is a deposit.
+    Files that say "stopped" (before at_rest and ended_by_rule): by the moving-volume rule;
+    files older than the stop rules: when it stopped."""
+    status = ds.attrs.get("status")
+    if status in ("at_rest", "ended_by_rule"):
+        return status == "at_rest"
+    ended_by = ds.attrs.get("ended_by", "moving_volume" if status == "stopped" else "time.end")
     return ended_by == "moving_volume"
 
 
@@ -427,12 +430,13 @@ def _title(ds) -> str:
         + _fmt(ds, "travel_angle", ".1f", "°"),
         _fmt(ds, "deposit_max_thickness", ".2g", " m") and "deposit max "
         + _fmt(ds, "deposit_max_thickness", ".3g", " m"),
-        _fmt(ds, "time_to_stop", ".1f", " s") and "stops at "
+        _fmt(ds, "time_to_stop", ".1f", " s") and ("stops at " if at_rest(ds) else
+                                                    "the stop rule ended it at ")
         + _fmt(ds, "time_to_stop", ".1f", " s"),
     ) if p]
     name = ds.attrs.get("scenario_name", "?")
     status = ds.attrs.get("status")
-    if status and not at_rest(ds):
+    if status and not at_rest(ds) and status != "failed":
         status += ", still moving"
     if int(ds.attrs.get("runout_truncated", 0)):
         parts.append("runout truncated by the map's edge (a lower bound)")
@@ -470,6 +474,12 @@ def plot_run(path, output=None) -> Path:
     from avflow.files import check_target, protected
 
     path = Path(path)
+    if path.is_dir():  # an ensemble's folder: say what plot and report each take
+        what = ("an ensemble folder" if (path / "ensemble.nc").is_file()
+                or (path / "summary.csv").is_file() else "a folder")
+        raise MapsError(f"{path}: {what}; avflow plot draws one run file (e.g. "
+                        f"{path / 'members'}/<hash>.nc), avflow report {path} draws the "
+                        "ensemble")
     target = path.with_suffix(".png") if output is None else Path(output)
     plt = _plt()
     with open_run(path) as ds:

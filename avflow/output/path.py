@@ -635,8 +635,9 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
 
     label0, first = results[0]
     many = len(results) > 1
-    fig = plt.figure(figsize=(13, 9.5))
-    gs = GridSpec(4, 2, figure=fig, width_ratios=[1, 1.35], hspace=0.35, wspace=0.22)
+    # constrained layout keeps the map's x label clear of the panel below and its title
+    fig = plt.figure(figsize=(13, 9.5), layout="constrained")
+    gs = GridSpec(4, 2, figure=fig, width_ratios=[1, 1.35])
     ax_map = fig.add_subplot(gs[:2, 0])
     ax_sl = fig.add_subplot(gs[2:, 0])
     axes = [fig.add_subplot(gs[0, 1])]
@@ -937,6 +938,18 @@ def analyse_target(target, line=None, field=None, threshold=None, width=None, ou
     return summary_line(result, farthest, truncated), written
 
 
+def member_labels(table) -> dict[int, str]:
+    """realization -> what sets the member apart: its varied parameters (``delta_deg 18``),
+    from the dotted columns of summary.csv whose values differ; ``member k`` without any."""
+    varied = [c for c in table.columns if "." in c and table[c].nunique(dropna=False) > 1]
+
+    def short(value):
+        return f"{value:g}" if isinstance(value, float) else str(value)
+
+    return {int(k): ", ".join(f"{c.rsplit('.', 1)[-1]} {short(row[c])}" for c in varied)
+            or f"member {int(k)}" for k, (_, row) in zip(table["realization"], table.iterrows())}
+
+
 def _analyse_folder(outdir: Path, line, field, threshold, width, output):
     import pandas as pd
     import xarray as xr
@@ -979,7 +992,8 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
     written.append(_write_profiles([(k, r.profile) for k, r in results],
                                    stem.with_name(stem.name + "_profile.csv")))
     first = results[0][1]
-    written.append(plot_path(points, [(f"member {k}", r) for k, r in results],
+    labels = member_labels(table)
+    written.append(plot_path(points, [(labels.get(k, f"member {k}"), r) for k, r in results],
                              stem.with_suffix(".png"),
                              f"{outdir.name}: {len(results)} members along "
                              f"{first.line.source}, {first.field} >= {first.threshold:g} "

@@ -43,6 +43,14 @@ DEFAULT_MIN_FLOW = 1e-3
 #: What ended a run that did not stop by its stop rule (summary ``ended_by``).
 ENDED_BY = {"completed": "time.end, still moving", "max_steps": "time.max_steps, still moving"}
 
+#: Statuses of a run ended by its stop rule: at rest (less than this fraction of the release
+#: still moving, the moving-volume rule's default) or ended by the rule with mass still moving
+#: (AvaFrame's kinetic-energy rule ends runs with a third of the volume sliding slowly).
+AT_REST, ENDED_BY_RULE = "at_rest", "ended_by_rule"
+REST_FRACTION = 1e-3
+#: Statuses of a run that did not fail; files before avflow said "stopped" for both of the first.
+SUCCESS_STATUSES = (AT_REST, ENDED_BY_RULE, "completed", "stopped")
+
 # Cell states written to the output flag variable.
 FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED = 0, 1, 2
 
@@ -223,7 +231,7 @@ class RunResult:
     state: State
     h0: np.ndarray
     snapshots: Snapshots
-    status: str  #: "stopped", "completed" (end time reached), "max_steps" or "failed"
+    status: str  #: "at_rest", "ended_by_rule", "completed" (time.end), "max_steps" or "failed"
     time_to_stop: float
     wall_time: float  #: s, the time loop only
     thresholds: dict
@@ -397,6 +405,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
         if status == "stopped":
             # A mass that never moved (no cell ever had a speed) was at rest from the release.
             time_to_stop = state.t if state.peak_speed.any() else 0.0
+            still = float(state.stats[K.ST_MOVING])
+            status = AT_REST if by_volume or still <= REST_FRACTION * v0 else ENDED_BY_RULE
             break
         if status != "running" or target >= t_end:
             status = "completed" if status == "running" else status
@@ -444,8 +454,9 @@ def summarize(result: RunResult, v0: float) -> dict:
         "moving_volume_end": float(state.stats[K.ST_MOVING]),
         "kinetic_energy_end": rho * float(state.stats[K.ST_KINETIC]),
         "kinetic_energy_peak": rho * float(state.stats[K.ST_KINETIC_PEAK]),
-        "ended_by": ENDED_BY.get(result.status, result.status) if result.status != "stopped"
-        else result.thresholds["stop_rule"],
+        "ended_by": result.thresholds["stop_rule"]
+        if result.status in (AT_REST, ENDED_BY_RULE, "stopped")
+        else ENDED_BY.get(result.status, result.status),
         "mass_balance_error": abs(v_end + v_out - v0) / v0,
         "runout_truncated": truncated,
         "status": result.status,

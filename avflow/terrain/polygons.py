@@ -120,6 +120,31 @@ def _thickness(value, k: int, path: Path) -> float | None:
     return thickness
 
 
+#: Files already warned about (one line per file and process, not one per ensemble member).
+_WARNED_NO_CRS: set[str] = set()
+
+
+def warn_no_crs(path, wkt: str | None, target_wkt: str | None, what: str = "the DEM's",
+                stream=None) -> bool:
+    """One line on stderr when a polygon file names no CRS but the DEM does: its coordinates
+    are then taken as being in the DEM's CRS (a shapefile without .prj, a GeoJSON whose
+    coordinates cannot be degrees). Returns whether it warned."""
+    import sys
+
+    if wkt or not target_wkt or str(path) in _WARNED_NO_CRS:
+        return False
+    _WARNED_NO_CRS.add(str(path))
+    try:
+        from pyproj import CRS
+
+        name = CRS.from_user_input(target_wkt).name
+    except Exception:
+        name = "as written"
+    print(f"avflow: warning: {path}: no CRS; its coordinates are taken as {what} CRS "
+          f"({name})", file=stream or sys.stderr)
+    return True
+
+
 def _crs_wkt(crs, path: Path, areas) -> str | None:
     """The layer's CRS as WKT. GDAL gives a GeoJSON without a ``crs`` member WGS 84
     (RFC 7946); coordinates that cannot be degrees show the file is in a projected CRS it

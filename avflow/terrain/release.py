@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from avflow.terrain.raster import RasterError, read_raster, same_crs
-from avflow.terrain.polygons import PolygonError, rasterize, read_polygons
+from avflow.terrain.polygons import PolygonError, rasterize, read_polygons, warn_no_crs
 from avflow.terrain.bed import Terrain
 
 
@@ -76,6 +76,7 @@ def initial_thickness(release, terrain: Terrain) -> np.ndarray:
 
 
 def _check_crs(path, wkt, terrain: Terrain) -> None:
+    warn_no_crs(path, wkt, terrain.crs_wkt)
     if not same_crs(wkt, terrain.crs_wkt):
         raise ReleaseError(f"{path}: its CRS differs from the DEM's; reproject it first")
 
