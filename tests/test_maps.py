@@ -120,9 +120,18 @@ def test_export_round_trip(grid_run, tmp_path, fmt, capsys):
             assert set(np.unique(k)) == {0, 1, 2, 3}
         else:
             expected = ds[name].values.astype(float)
+        if name == "peak_pressure":  # in kPa, as the classes, plots and path tables
+            expected = expected / 1000.0
+        if fmt == "tif":  # each band names its units and what it holds
+            with rasterio.open(tmp_path / f"run_{name}.{fmt}") as src:
+                units = ("kPa" if name == "peak_pressure" else None
+                         if name == "peak_pressure_class" else ds[name].attrs.get("units"))
+                assert (src.units[0] or None) == units, name
+                assert src.descriptions[0], name
         assert np.array_equal(np.isnan(values), np.isnan(expected)), name
-        # GeoTIFF: float32 as stored; ESRI ASCII: the 6 significant digits of dem.write_asc
-        rtol = 0.0 if fmt == "tif" else 1e-5
+        # GeoTIFF: float32 as stored (kPa: float32 of the Pa / 1000); ESRI ASCII: the 6
+        # significant digits of dem.write_asc
+        rtol = (1e-7 if name == "peak_pressure" else 0.0) if fmt == "tif" else 1e-5
         np.testing.assert_allclose(values, expected, rtol=rtol, atol=1e-6, equal_nan=True,
                                    err_msg=name)
     # avflow reads its own exports back as DEMs / thickness rasters

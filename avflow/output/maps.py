@@ -283,9 +283,12 @@ def _run_rasters(ds, path: Path, variables):
     rasters = []
     for name in names:
         if name != PRESSURE_CLASS:
-            attrs = ds[name].attrs  # the band says what it holds, in the file's units
-            rasters.append((name, np.asarray(ds[name].values, dtype=float), {
-                "description": attrs.get("long_name", name), "units": attrs.get("units")}))
+            attrs = ds[name].attrs  # the band says what it holds, and in which units
+            values, units = np.asarray(ds[name].values, dtype=float), attrs.get("units")
+            if name == "peak_pressure" and units == "Pa":  # kPa, as the classes, plots and
+                values, units = values / 1000.0, "kPa"   # path tables say
+            rasters.append((name, values, {"description": attrs.get("long_name", name),
+                                           "units": units}))
             continue
         classes = pressure_classes(ds)
         labels = pressure_class_labels(classes)
