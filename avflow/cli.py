@@ -99,7 +99,7 @@ def _cmd_run(args) -> int:
     from avflow.output.netcdf import (OutputWriteError, check_output_path,
                                       remove_stale_temporaries)
     from avflow.output.stream import SnapshotStream
-    from avflow.simulation.runner import simulate
+    from avflow.simulation.runner import SUCCESS_STATUSES, simulate
 
     scenario = _load_with_sets(args)
     out = Path(args.output) if args.output else Path(Path(args.scenario).stem + ".nc")
@@ -126,6 +126,13 @@ def _cmd_run(args) -> int:
                                       max_memory=args.max_memory, snapshots=stream)
                 finally:
                     progress.close()
+                if result.status not in SUCCESS_STATUSES:  # exit 1 writes nothing
+                    state = result.state
+                    print(f"avflow: error: {args.scenario}: time.max_steps "
+                          f"({scenario.time.max_steps}) reached at t = {state.t:.6g} s of "
+                          f"{scenario.time.end:g} s, the flow still moving; no file written "
+                          "(raise time.max_steps, or use a larger grid.dx)", file=sys.stderr)
+                    return 1
                 rest = stream.finish(result)
         except OutputWriteError as err:  # full disk: exit 1, nothing left behind
             print(f"avflow: error: {err}", file=sys.stderr)

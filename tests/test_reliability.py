@@ -489,3 +489,25 @@ def test_a_raster_error_does_not_echo_the_file(tmp_path, capsys):
         "delta_deg: 25}\ntime: {end: 5.0}\n")
     code, _, err = cli(["run", tmp_path / "d.yaml", "-o", tmp_path / "x.nc"], capsys)
     assert code == 2 and "secret line" not in one_line(err)
+
+
+# --- found by the fuzzer (tests/test_fuzz.py, long profile) ------------------------------------
+
+
+def test_a_list_where_the_stop_rule_belongs_is_one_line(tmp_path, capsys):
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text(DAMBREAK.read_text().replace("output: {every: 1.0, stop_fraction: 0.0}",
+                                                     "output: {every: 1.0, stop_rule: []}"))
+    code, _, err = cli(["run", scenario, "-o", tmp_path / "x.nc"], capsys)
+    assert code == 2 and "output.stop_rule" in one_line(err)  # was a TypeError traceback
+
+
+def test_a_run_ended_by_max_steps_keeps_the_old_file(tmp_path, capsys):
+    out = tmp_path / "x.nc"
+    out.write_bytes(b"the previous good file")
+    code, printed, err = cli(["run", DAMBREAK, "--set", "time.cfl=1e-3", "--set",
+                              "time.max_steps=400", "-o", out], capsys)
+    assert code == 1 and "time.max_steps (400) reached" in one_line(err)
+    assert "wrote" not in printed
+    assert out.read_bytes() == b"the previous good file"  # exit 1 wrote over it before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.nc"]

@@ -570,7 +570,7 @@ class Output(_Model):
         """stop_fraction follows the rule unless written (resolved, so a file says it)."""
         if isinstance(data, dict) and data.get("stop_fraction") is None:
             rule = data.get("stop_rule", "moving_volume")
-            if rule in STOP_FRACTIONS:
+            if isinstance(rule, str) and rule in STOP_FRACTIONS:  # else: its own error
                 data = {**data, "stop_fraction": STOP_FRACTIONS[rule]}
         return data
     dry_threshold: Positive | None = None
