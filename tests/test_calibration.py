@@ -332,3 +332,49 @@ def test_failed_member_scored_as_missing(scene, monkeypatch):
     assert t[t["rheology.mu"] >= 0.2]["misfit"].notna().all()
     assert result.best["rheology.mu"] >= 0.2
     assert "Failed runs (missing)" in (root / "flaky" / "report.md").read_text()
+
+
+# =========================================================================================
+# Forecast: an ensemble sampling a calibration's posterior, with provenance
+# =========================================================================================
+
+
+def test_ensemble_samples_the_posterior_with_provenance(recovered):
+    from avflow.ensemble.orchestrate import file_sha256
+
+    result, out = recovered
+    root = out.parent
+    (root / "forecast.yaml").write_text(
+        "name: trough-forecast\nbase: base.yaml\nvary:\n  release.volume_factor: [1.0, 1.5]\n"
+        "sample:\n  calibration: recover/calibration.nc\n  n: 3\n  seed: 0\n")
+    assert main(["ensemble", str(root / "forecast.yaml"), "-o", str(root / "fc"),
+                 "--workers", "0", "-q"]) == 0
+    with xr.open_dataset(root / "fc" / "ensemble.nc") as ds:
+        assert ds.sizes["realization"] == 6
+        assert ds.attrs["calibration_file"] == str(out / "calibration.nc")
+        assert ds.attrs["calibration_sha256"] == file_sha256(out / "calibration.nc")
+        assert ds.attrs["calibration_use"] == "posterior"
+        draws = result.posterior.draws
+        for mu, xi in zip(ds["rheology_mu"].values, ds["rheology_xi"].values):
+            same = (np.isclose(draws[:, 0], mu, rtol=1e-8, atol=0)
+                    & np.isclose(draws[:, 1], xi, rtol=1e-8, atol=0))
+            assert same.any()  # a draw of the posterior (to 9 digits)
+
+
+def test_forecast_from_a_calibration_without_posterior_is_refused(scene, capsys):
+    root, runout_x = scene
+    path = _calib(root, "observations:\n" + _runout(runout_x)
+                  + "method: lhs\nbudget: 4\nsensitivity: {enabled: false}\n", "lhs.yaml")
+    assert main(["calibrate", str(path), "-o", str(root / "lhs"), "--workers", "0",
+                 "-q"]) == 0
+    capsys.readouterr()
+    (root / "fc2.yaml").write_text("base: base.yaml\nsample:\n  calibration: "
+                                   "lhs/calibration.nc\n  n: 3\n")
+    assert main(["ensemble", str(root / "fc2.yaml"), "-o", str(root / "fc2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "fc2.yaml:3:" in err
+    assert "holds no posterior draws (method lhs): use: best" in err
+    (root / "fc2.yaml").write_text("base: base.yaml\nsample:\n  calibration: "
+                                   "lhs/calibration.nc\n  use: best\n")
+    assert main(["ensemble", str(root / "fc2.yaml"), "-o", str(root / "fc2"), "--workers",
+                 "0", "-q"]) == 0

@@ -17,6 +17,7 @@ from avflow.calibration.observe import SUMMARIES
 __all__ = ["write_outputs"]
 
 GRID_POINTS = 41  #: per axis of the emulated misfit maps
+_UNITS = {"pressure": "kPa", "thickness": "m", "speed": "m/s"}
 
 
 def _atomic(path: Path, write) -> Path:
@@ -53,9 +54,12 @@ def write_outputs(result, report: bool = True) -> list[Path]:
     written = [_atomic(out / "calibration.csv",
                        lambda tmp: result.table.to_csv(tmp, index=False))]
     ds = calibration_dataset(result)
-    from avflow.output.netcdf import write_netcdf
-
-    written.append(write_netcdf(ds, out / "calibration.nc"))
+    # float64 kept (write_netcdf stores maps as float32): draws and design read back exact
+    encoding = {name: ({"_FillValue": None} if name in ds.coords
+                       else {"zlib": True, "complevel": 2} if var.dtype.kind == "f" else {})
+                for name, var in ds.variables.items()}
+    written.append(_atomic(out / "calibration.nc", lambda tmp: ds.to_netcdf(
+        tmp, engine="netcdf4", encoding=encoding)))
     if report:
         written.append(write_report(result, ds))
     return written
@@ -344,7 +348,7 @@ def _dname(o) -> str:
     if o.kind == "deposit" and o.raster is not None:
         return f"RMSE over the union (m), >= {o.threshold:g} m"
     what = f"deposit >= {o.threshold:g} m" if o.kind == "deposit" else \
-        f"peak {o.field} >= {o.threshold:g}"
+        f"peak {o.field} >= {o.threshold:g} {_UNITS[o.field]}"
     return f"1 - {o.score} ({what})"
 
 
@@ -423,7 +427,7 @@ def _sobol_bars(result):
     plt = _plt()
     names = result.calibration.names
     quantities = list(result.sobol)
-    fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(quantities) * len(names)), 4))
+    fig, ax = plt.subplots(figsize=(min(12, max(6, 0.8 * len(quantities) * len(names))), 4))
     width = 0.8 / (2 * len(names))
     x = np.arange(len(quantities))
     for k, n in enumerate(names):
@@ -470,7 +474,7 @@ def _footprint(result):
         else:
             name, factor = _FIELDS[o.field]
             sim = np.nan_to_num(np.asarray(p.fields[name], float)) * factor >= o.threshold
-            what = f"peak {o.field} >= {o.threshold:g}"
+            what = f"peak {o.field} >= {o.threshold:g} {_UNITS[o.field]}"
         obs = observed.masks[k]
     else:
         name, factor = _FIELDS["pressure"]
@@ -511,8 +515,10 @@ def _footprint(result):
     fig, ax = plt.subplots(figsize=(8, 8 * bed.shape[0] / bed.shape[1] + 1.2))
     extent = (xg[0] - dx / 2, xg[-1] + dx / 2, yg[0] - dy / 2, yg[-1] + dy / 2)
     ax.imshow(shade, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
+    from matplotlib.colors import ListedColormap
+
     ax.imshow(np.where(grid_of(sim) > 0, 1.0, np.nan), origin="lower", extent=extent,
-              cmap="autumn", alpha=0.5, vmin=0, vmax=1)
+              cmap=ListedColormap(["orange"]), alpha=0.5, vmin=0, vmax=1)
     if obs is not None:
         ax.contour(xg, yg, grid_of(obs), levels=[0.5], colors="tab:blue", linewidths=1.5)
     for j, line in observed.lines.items():
