@@ -244,6 +244,7 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
                 overhead += time.perf_counter() - clock
                 runner.run(batch, "bayes-opt")
                 step += 1
+        timings["acquisition"] = overhead
         result = _analyse(cal, runner, outdir, timings)
         overhead += timings.get("emulators", 0.0) + timings.get("posterior", 0.0) \
             + timings.get("sobol", 0.0)
