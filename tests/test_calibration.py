@@ -378,3 +378,50 @@ def test_forecast_from_a_calibration_without_posterior_is_refused(scene, capsys)
                                    "lhs/calibration.nc\n  use: best\n")
     assert main(["ensemble", str(root / "fc2.yaml"), "-o", str(root / "fc2"), "--workers",
                  "0", "-q"]) == 0
+
+
+# =========================================================================================
+# On dask: batches as wide as the workers; on a profile: station and interval
+# =========================================================================================
+
+
+def test_bayes_opt_batches_on_a_local_cluster(scene, capsys):
+    root, runout_x = scene
+    path = _calib(root, "observations:\n" + _runout(runout_x)
+                  + "  - {kind: area, name: impact, raster: impact.tif, error: 0.02}\n"
+                  "method: bayes-opt\nbudget: 8\ninitial: 4\nseed: 0\n"
+                  "sensitivity: {enabled: false}\n", "dask.yaml")
+    assert main(["calibrate", str(path), "-o", str(root / "dask"), "--workers", "2"]) == 0
+    err = capsys.readouterr().err
+    progress = [line for line in err.splitlines() if line.startswith("calibrate:")]
+    # the initial design, then two batches of two (one run per worker)
+    assert [line.split(" runs")[0] for line in progress] == [
+        "calibrate: 4", "calibrate: 6", "calibrate: 8"]
+    assert "best misfit" in progress[-1]
+    import pandas as pd
+
+    table = pd.read_csv(root / "dask" / "calibration.csv")
+    assert list(table["stage"]) == ["initial"] * 4 + ["bayes-opt"] * 4
+    assert table["misfit"].notna().all()
+
+
+def test_profile_station_and_interval(tmp_path):
+    """The seed's exponential slope at 25 m (Coulomb 20 deg): its runout x and its
+    1 kPa interval as the observation; delta recovered within 0.5 degree in 10 runs."""
+    import avflow
+    from avflow.calibration import calibrate
+    from conftest import SCENARIOS
+
+    text = (SCENARIOS / "seed_exponential_coulomb20.yaml").read_text()
+    (tmp_path / "prof.yaml").write_text(text.replace("dx: 6.25", "dx: 25.0"))
+    ds = avflow.run(tmp_path / "prof.yaml")
+    x = ds.x_horizontal.values[ds.peak_pressure.values >= 1e3]
+    (tmp_path / "c.yaml").write_text(
+        "base: prof.yaml\nparameters:\n  rheology.delta_deg: [15.0, 25.0]\nobservations:\n"
+        f"  - {{kind: runout, station: {x.max()}, error: 25.0}}\n"
+        f"  - {{kind: area, interval: [{x.min()}, {x.max()}], score: csi}}\n"
+        "method: bayes-opt\nbudget: 10\ninitial: 5\nsensitivity: {enabled: false}\n")
+    result = calibrate(tmp_path / "c.yaml", tmp_path / "out", workers=0, quiet=True)
+    assert abs(result.best["rheology.delta_deg"] - 20.0) <= 0.5
+    best = result.table.loc[result.table["misfit"].idxmin()]
+    assert abs(best["runout0_d"]) <= 25.0 and best["area1_csi"] > 0.95

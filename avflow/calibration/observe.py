@@ -174,7 +174,11 @@ def observe(cal, cells: Cells) -> Observed:
         if obs.kind == "runout":
             line = read_line(cal.files[(k, "line")]) if obs.line else path_for(p, None)
             lines[k] = line
-            if obs.station is not None:
+            if obs.station is not None and p.kind == "profile":
+                # on a profile, station is the horizontal x of the runout point (the path
+                # starts at the first cell, not at x = 0)
+                stations[k] = float(line.project([obs.station], [0.0])[0][0])
+            elif obs.station is not None:
                 stations[k] = float(obs.station)
             else:
                 stations[k] = float(line.project([obs.point[0]], [obs.point[1]])[0][0])

@@ -495,7 +495,8 @@ def _footprint(result):
             ax.fill_between(p.x, np.nanmin(p.z), top, where=obs, color="none",
                             hatch="//", edgecolor="k", label="observed")
         for j, s in observed.stations.items():
-            ax.axvline(s, color="k", ls="--", label="observed runout")
+            ax.axvline(float(observed.lines[j].at(np.array([s]))[0][0]), color="k", ls="--",
+                       label="observed runout")
         ax.set_xlabel("x (m, horizontal)")
         ax.set_ylabel("z (m)")
         ax.legend(fontsize=7)

@@ -74,7 +74,8 @@ class RunoutObservation(_Observation):
     point: tuple[Finite, Finite] | None = None
     """x, y of the observed runout point (projected on the line)."""
     station: Finite | None = None
-    """Distance along the line of the observed runout point (m)."""
+    """Distance along the line of the observed runout point (m); on a profile, its
+    horizontal x (m)."""
     line: str | None = None
     """Path line file (.shp, .geojson, .json, .csv); a profile is its own path."""
     field: Literal["pressure", "thickness"] = "pressure"
