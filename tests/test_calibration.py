@@ -182,6 +182,11 @@ def test_bad_range_and_unknown_parameter(scene):
     with pytest.raises(CalibrationError, match=r"bad2.yaml:3:\d+: parameters.rheology.muu: "
                                                "rheology.muu: unknown field"):
         load_calibration(path)
+    path.write_text("base: base.yaml\nparameters:\n  grid.dx: [10.0, 20.0]\n"
+                    "observations:\n  - {kind: area, raster: impact.tif}\n")
+    with pytest.raises(CalibrationError, match=r"bad2.yaml:3:\d+: parameters.grid.dx: the "
+                                               "grid and the terrain cannot be calibrated"):
+        load_calibration(path)
 
 
 def test_observation_in_another_crs_is_refused(tmp_path):
@@ -425,3 +430,34 @@ def test_profile_station_and_interval(tmp_path):
     assert abs(result.best["rheology.delta_deg"] - 20.0) <= 0.5
     best = result.table.loc[result.table["misfit"].idxmin()]
     assert abs(best["runout0_d"]) <= 25.0 and best["area1_csi"] > 0.95
+
+
+def test_points_observation_scores_the_nearest_cells(scene):
+    """Peak speed and arrival time at points: d = RMSE at the nearest cells; 0 for the truth
+    run itself, and the offset when every observed value is off by it."""
+    import avflow
+    from avflow.calibration.observe import member_cells, observe, score_member
+
+    root, _ = scene
+    ds = avflow.run(root / "base.yaml")
+    pts = [(300.0, 200.0), (514.0, 195.0)]  # the second nearest to the cell (520, 200)
+    cells = [(300.0, 200.0), (520.0, 200.0)]
+    speed = [float(ds.peak_speed.sel(x=x, y=y)) for x, y in cells]
+    arrival = [float(ds.arrival_time.sel(x=x, y=y)) for x, y in cells]
+    path = _calib(root, "observations:\n"
+                  f"  - {{kind: points, name: v, points: {[list(p) for p in pts]}, "
+                  f"values: {speed}}}\n"
+                  f"  - {{kind: points, name: t, field: arrival_time, points: "
+                  f"{[list(p) for p in pts]}, values: {[a + 3.0 for a in arrival]}}}\n",
+                  "points.yaml")
+    cal = load_calibration(path)
+    assert cal.error(0) == 1.0 and cal.error(1) == 5.0  # the stated defaults
+    c = member_cells(ds)
+    row = score_member(cal, observe(cal, c), c)
+    assert row["v_d"] == pytest.approx(0.0, abs=1e-12)
+    assert row["t_d"] == pytest.approx(3.0, rel=1e-9)
+    assert row["misfit"] == pytest.approx((3.0 / 5.0) ** 2, rel=1e-9)
+    path.write_text(path.read_text().replace("values: [", "values: [1.0, ", 1))
+    with pytest.raises(CalibrationError, match=r"observations.0: values must have one value "
+                                               "per point"):
+        load_calibration(path)

@@ -48,6 +48,10 @@ def check_observations(cal, fail) -> None:
     if frame is None:
         length = float(cal.base.terrain.length)
         for k, obs in enumerate(cal.spec.observations):
+            for i, pt in enumerate(getattr(obs, "points", None) or ()):
+                if not 0 <= pt[0] <= length:
+                    raise fail(("observations", k, "points", i), f"x = {pt[0]:g} m lies "
+                               f"outside the profile (0 to {length:g} m)")
             if getattr(obs, "interval", None) is not None:
                 a, b = obs.interval
                 if b < 0 or a > length:
@@ -65,6 +69,12 @@ def check_observations(cal, fail) -> None:
         return (px >= xmin) & (px <= xmax) & (py >= ymin) & (py <= ymax)
 
     for k, obs in enumerate(cal.spec.observations):
+        if obs.kind == "points":
+            for i, pt in enumerate(obs.points):
+                if not inside(*pt):
+                    raise fail(("observations", k, "points", i), f"{list(pt)} lies outside "
+                               f"{where}")
+            continue
         if obs.kind == "runout":
             from avflow.output.path import PathError, read_line
 
@@ -120,6 +130,8 @@ class Cells:
     points: object
     deposit: np.ndarray
     summary: dict
+    arrival: np.ndarray | None = None  #: s, NaN where never reached
+    end: float = math.nan              #: s, the run's last output time
 
 
 def member_cells(ds) -> Cells:
@@ -130,14 +142,19 @@ def member_cells(ds) -> Cells:
 
     points = run_points(ds)
     dep = np.asarray(ds["deposit_thickness"].values, dtype=float)
+    arrival = (np.asarray(ds["arrival_time"].values, dtype=float) if "arrival_time" in ds
+               else None)
     if scene_kind(ds) == "grid":
-        dep = dep[np.isfinite(ds["bed_elevation"].values)]
+        on = np.isfinite(ds["bed_elevation"].values)
+        dep = dep[on]
+        arrival = arrival[on] if arrival is not None else None
     pressure = np.nan_to_num(np.asarray(points.fields["peak_pressure"], float), nan=0.0)
     cell = points.spacing ** 2 if points.kind != "profile" else points.spacing
     summary = {"runout": float(ds["runout"]),
                "impact_area": float(np.count_nonzero(pressure >= 1e3) * cell),
                "deposit_max_thickness": float(ds["deposit_max_thickness"])}
-    return Cells(points, dep, summary)
+    end = float(ds["time"].values[-1]) if "time" in ds.coords else math.nan
+    return Cells(points, dep, summary, arrival, end)
 
 
 @dataclass
@@ -145,6 +162,7 @@ class Observed:
     """The observations on the cells of the calibration's grid."""
 
     masks: dict       #: observation index -> bool mask (areas, deposit polygons/intervals)
+    nearest: dict     #: observation index -> cell index nearest each observed point
     thickness: dict   #: observation index -> observed deposit thickness (rasters)
     lines: dict       #: observation index -> PathLine
     stations: dict    #: observation index -> s_obs (m along the line)
@@ -169,8 +187,13 @@ def observe(cal, cells: Cells) -> Observed:
     from avflow.terrain.raster import read_raster
 
     p = cells.points
-    masks, thickness, lines, stations = {}, {}, {}, {}
+    masks, thickness, lines, stations, nearest = {}, {}, {}, {}, {}
     for k, obs in enumerate(cal.spec.observations):
+        if obs.kind == "points":
+            pts = np.asarray(obs.points, float)
+            nearest[k] = np.array([int(np.argmin((p.x - px) ** 2 + (p.y - py) ** 2))
+                                   for px, py in pts])
+            continue
         if obs.kind == "runout":
             line = read_line(cal.files[(k, "line")]) if obs.line else path_for(p, None)
             lines[k] = line
@@ -197,7 +220,7 @@ def observe(cal, cells: Cells) -> Observed:
                 thickness[k] = np.nan_to_num(values, nan=0.0)
             else:
                 masks[k] = np.nan_to_num(values, nan=-np.inf) > obs.raster_threshold
-    return Observed(masks, thickness, lines, stations, int(p.x.size))
+    return Observed(masks, nearest, thickness, lines, stations, int(p.x.size))
 
 
 def score_member(cal, observed: Observed, cells: Cells) -> dict:
@@ -216,6 +239,19 @@ def score_member(cal, observed: Observed, cells: Cells) -> dict:
             s_sim = result.scalars["runout_s"]
             d = S.runout_difference(s_sim, observed.stations[k])
             row.update({f"{label}_s_sim": s_sim, f"{label}_s_obs": observed.stations[k]})
+        elif obs.kind == "points":
+            cells_at = observed.nearest[k]
+            if obs.field == "arrival_time":
+                # never reached: arrival taken as the run's end (a late arrival, not none)
+                sim = np.where(np.isfinite(cells.arrival[cells_at]), cells.arrival[cells_at],
+                               cells.end)
+            else:
+                name, factor = {"speed": ("peak_speed", 1.0), "pressure": ("peak_pressure",
+                                                                          1e-3),
+                                "thickness": ("peak_thickness", 1.0)}[obs.field]
+                sim = np.nan_to_num(np.asarray(p.fields[name], float)[cells_at]) * factor
+            d = float(np.sqrt(np.mean((sim - np.asarray(obs.values, float)) ** 2)))
+            row[f"{label}_rmse"] = d
         elif obs.kind == "deposit" and k in observed.thickness:
             d = S.rmse_union(cells.deposit, observed.thickness[k], obs.threshold)
             row[f"{label}_rmse"] = d

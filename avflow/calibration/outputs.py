@@ -127,7 +127,9 @@ def calibration_dataset(result):
     for k, obs in enumerate(cal.spec.observations):
         label = cal.label(k)
         col = f"{label}_d"
-        units = "m" if obs.kind == "runout" or (obs.kind == "deposit" and obs.raster) else "1"
+        units = ("m" if obs.kind == "runout" or (obs.kind == "deposit" and obs.raster)
+                 else {"speed": "m s-1", "arrival_time": "s", "thickness": "m",
+                       "pressure": "kPa"}[obs.field] if obs.kind == "points" else "1")
         data[col] = ("run", table[col].to_numpy(float) if col in table
                      else np.full(len(run), np.nan),
                      {"long_name": f"discrepancy of observation {label} ({obs.kind})",
@@ -335,6 +337,8 @@ def write_report(result, ds) -> Path:
 
 def _source(cal, k) -> str:
     o = cal.spec.observations[k]
+    if o.kind == "points":
+        return f"{len(o.points)} point(s)"
     if o.kind == "runout":
         return (f"station {o.station:g} m" if o.station is not None
                 else f"point {list(o.point)}") + (f" on {os.path.basename(o.line)}"
@@ -346,6 +350,8 @@ def _source(cal, k) -> str:
 
 
 def _dname(o) -> str:
+    if o.kind == "points":
+        return f"RMSE of {o.field} at the points"
     if o.kind == "runout":
         return f"s_sim - s_obs (m), {o.field} >= threshold"
     if o.kind == "deposit" and o.raster is not None:

@@ -133,8 +133,29 @@ class DepositObservation(_MapObservation):
     """m: a cell is in the deposit from this thickness."""
 
 
-Observation = Annotated[Union[RunoutObservation, AreaObservation, DepositObservation],
-                        Field(discriminator="kind")]
+class PointsObservation(_Observation):
+    """Values measured at points (peak speed, arrival time, peak thickness or pressure):
+    d = RMSE over the points of the run's value at the nearest cell minus the observed one.
+    Default errors: 1 m/s, 5 s, 0.1 m, 1 kPa."""
+
+    kind: Literal["points"]
+    points: Annotated[list[tuple[Finite, Finite]], Field(min_length=1)]
+    """[[x, y], ...] (on a profile: [[x, 0], ...], x horizontal)."""
+    field: Literal["speed", "arrival_time", "thickness", "pressure"] = "speed"
+    values: Annotated[list[Finite], Field(min_length=1)]
+    """One observed value per point: m/s, s since release, m or kPa."""
+
+    @model_validator(mode="after")
+    def _one_value_each(self):
+        if len(self.values) != len(self.points):
+            raise ValueError(f"values must have one value per point ({len(self.points)}), "
+                             f"got {len(self.values)}")
+        return self
+
+
+Observation = Annotated[Union[RunoutObservation, AreaObservation, DepositObservation,
+                              PointsObservation], Field(discriminator="kind")]
+POINT_ERRORS = {"speed": 1.0, "arrival_time": 5.0, "thickness": 0.1, "pressure": 1.0}
 
 
 class PosteriorSettings(_Model):
@@ -210,6 +231,8 @@ class Calibration:
             return float(self.base.grid.dx)
         if obs.kind == "deposit" and obs.raster is not None:
             return 0.5
+        if obs.kind == "points":
+            return POINT_ERRORS[obs.field]
         return 0.05
 
     def initial(self) -> int:
@@ -227,7 +250,7 @@ def load_calibration(path: str | os.PathLike) -> Calibration:
     return parse_calibration(text, source_path=path)
 
 
-_KINDS = ("runout", "area", "deposit")
+_KINDS = ("runout", "area", "deposit", "points")
 
 
 def parse_calibration(text: str, source_path: str | os.PathLike | None = None,
@@ -277,6 +300,10 @@ def parse_calibration(text: str, source_path: str | os.PathLike | None = None,
         keys = ("parameters", key)
         if not lo < hi:
             raise fail(keys, f"must be [min, max] with min < max, got {[lo, hi]}")
+        if key.split(".")[0] in ("grid", "terrain"):
+            # the observations are put on the cells once: every run must share them
+            raise fail(keys, "the grid and the terrain cannot be calibrated (every run is "
+                             "scored on the same cells); set them in the base scenario")
         for value in (lo, hi):
             try:
                 base.with_updates({key: float(value)})
