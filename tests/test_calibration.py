@@ -430,6 +430,16 @@ def test_profile_station_and_interval(tmp_path):
     assert abs(result.best["rheology.delta_deg"] - 20.0) <= 0.5
     best = result.table.loc[result.table["misfit"].idxmin()]
     assert abs(best["runout0_d"]) <= 25.0 and best["area1_csi"] > 0.95
+    assert "edge of the range" not in (tmp_path / "out" / "report.md").read_text()
+    # a range that stops short of the truth: the best run is on its edge, and the report says
+    text = (tmp_path / "c.yaml").read_text().replace("[15.0, 25.0]", "[15.0, 19.0]")
+    (tmp_path / "c.yaml").write_text(text.replace("method: bayes-opt\nbudget: 10\ninitial: 5",
+                                                  "method: grid\nbudget: 3"))
+    result = calibrate(tmp_path / "c.yaml", tmp_path / "edge", workers=0, quiet=True)
+    assert list(result.table["rheology.delta_deg"]) == [15.0, 17.0, 19.0]
+    assert result.best["rheology.delta_deg"] == 19.0
+    assert ("The best fit lies at the edge of the range of rheology.delta_deg"
+            in (tmp_path / "edge" / "report.md").read_text())
 
 
 def test_points_observation_scores_the_nearest_cells(scene):

@@ -267,6 +267,11 @@ def write_report(result, ds) -> Path:
            f"Misfit {best_row['misfit']:.4g}; " + "; ".join(
                f"{cal.label(k)} d = {best_row.get(cal.label(k) + '_d', math.nan):.4g}"
                for k in range(len(cal.spec.observations))), ""]
+    edges = [n for n, (lo, hi) in zip(names, cal.bounds)
+             if min(best_row[n] - lo, hi - best_row[n]) <= 0.02 * (hi - lo)]
+    for n in edges:
+        md += [f"**The best fit lies at the edge of the range of {n}** (within 2% of it): the "
+               "optimum may lie outside the range; widen it, or read this as a bound.", ""]
     figures = []
     fig = _misfit_pairs(result, ds)
     if fig is not None:
