@@ -471,3 +471,16 @@ def test_points_observation_scores_the_nearest_cells(scene):
     with pytest.raises(CalibrationError, match=r"observations.0: values must have one value "
                                                "per point"):
         load_calibration(path)
+
+
+def test_fast_predictor_is_the_gp_itself():
+    from avflow.calibration.methods import fast_predictor, fit_gp
+
+    rng = np.random.default_rng(1)
+    X = rng.uniform(size=(30, 2))
+    gp = fit_gp(X, np.sin(4 * X[:, 0]) * 50 + 3 * X[:, 1] + 7.0)
+    U = rng.uniform(size=(17, 2))
+    m0, s0 = gp.predict(U, return_std=True)
+    m1, s1 = fast_predictor(gp)(U)
+    np.testing.assert_allclose(m1, m0, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(s1, s0, rtol=1e-9, atol=1e-12)
