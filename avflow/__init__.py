@@ -142,5 +142,13 @@ def run_ensemble(ensemble, outdir, *, workers=None, scheduler=None, overrides=No
         return ds.load()
 
 
+def calibrate(calibration, outdir, *, workers=None, scheduler=None, quiet=False):
+    """Calibrate a scenario to an observed event (``avflow calibrate``): see
+    :func:`avflow.calibration.calibrate`; returns its CalibrationResult."""
+    from avflow.calibration import calibrate as _calibrate
+
+    return _calibrate(calibration, outdir, workers=workers, scheduler=scheduler, quiet=quiet)
+
+
 __all__ = ["__version__", "AvflowError", "ScenarioError", "load_scenario", "run", "open_run",
-           "run_ensemble"]
+           "run_ensemble", "calibrate"]

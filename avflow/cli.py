@@ -271,7 +271,34 @@ def build_parser() -> argparse.ArgumentParser:
     pa.add_argument("-o", "--output", help="output stem (default: RUN_path next to the run "
                                            "file, OUTDIR/path for an ensemble)")
     pa.set_defaults(func=_cmd_path)
+    ca = sub.add_parser("calibrate", help="calibrate parameters to an observed event "
+                                          "(grid, lhs, bayes-opt, posterior); resumable",
+                        parents=[quiet])
+    ca.add_argument("calibration", help="calibration YAML file (base scenario, parameter "
+                                        "ranges, observations, method, budget)")
+    ca.add_argument("-o", "--output", required=True, help="output folder (members/, "
+                    "calibration.nc, calibration.csv, report.md)")
+    ca.add_argument("--workers", type=int, help="local worker processes (0: here, no dask; "
+                    "default: as `avflow ensemble` chooses)")
+    ca.add_argument("--scheduler", help="address or scheduler file of a running dask "
+                                        "scheduler")
+    ca.set_defaults(func=_cmd_calibrate)
     return p
+
+
+def _cmd_calibrate(args) -> int:
+    from avflow.calibration import calibrate, load_calibration
+
+    if args.workers is not None and args.workers < 0:
+        raise AvflowError(f"--workers must be >= 0, got {args.workers}")
+    calibration = load_calibration(args.calibration)  # every check before any run
+    result = calibrate(calibration, args.output, workers=args.workers,
+                       scheduler=args.scheduler, quiet=args.quiet)
+    if not args.quiet:
+        best = ", ".join(f"{k}={v:.6g}" for k, v in result.best.items())
+        print(f"{calibration.name}: {len(result.table)} runs, best fit {best}; wrote "
+              + ", ".join(str(p) for p in result.written))
+    return 0
 
 
 def _cmd_ensemble(args) -> int:

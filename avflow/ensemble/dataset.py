@@ -160,6 +160,10 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike,
         "comment": ("one member per realization; each member's full output is "
                     "members/<scenario_hash>.nc next to this file"),
     }
+    if ensemble.sample.get("calibration"):  # a forecast: the calibration it samples
+        ds.attrs.update(calibration_file=ensemble.sample["calibration"],
+                        calibration_sha256=ensemble.sample["calibration_sha256"],
+                        calibration_use=ensemble.sample["use"])
     return ds
 
 

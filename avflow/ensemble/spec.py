@@ -54,7 +54,7 @@ DEFAULT_SPEED_THRESHOLDS = (1.0, 5.0, 10.0)
 THRESHOLD_UNITS = {"peak_thickness": "m", "peak_speed": "m s-1", "peak_pressure": "kPa"}
 
 _TOP_KEYS = ("name", "description", "base", "vary", "sample", "thresholds")
-_SAMPLE_KEYS = ("n", "seed", "ranges")
+_SAMPLE_KEYS = ("n", "seed", "ranges", "calibration", "use")
 
 #: Most members an ensemble may have unless told otherwise (``--max-members``,
 #: ``$AVFLOW_MAX_MEMBERS``). A member costs some 30 kB and 7 ms to build before any runs
@@ -315,7 +315,8 @@ def parse_ensemble(text: str, source_path: str | os.PathLike | None = None,
     points: list[dict] = [{}]
     sample_info: dict = {}
     if sample is not None:
-        points, sample_info = _sample_points(sample, base, vary, fail)
+        points, sample_info = _sample_points(sample, base, vary, fail,
+                                             os.path.dirname(path) if path else os.getcwd())
 
     if not vary and sample is None:
         raise fail((), "an ensemble needs 'vary:' (cartesian product) or 'sample:' (Latin "
@@ -409,8 +410,10 @@ def _shadowed(key: Any, vary: dict) -> bool:
     return isinstance(key, str) and any(key.startswith(f"{k}.") for k in vary)
 
 
-def _sample_points(sample: Any, base: Scenario, vary: dict, fail) -> tuple[list[dict], dict]:
-    """Latin hypercube points over the ranges, scaled to [min, max] (same seed, same points)."""
+def _sample_points(sample: Any, base: Scenario, vary: dict, fail, folder: str = ""
+                   ) -> tuple[list[dict], dict]:
+    """Latin hypercube points over the ranges, scaled to [min, max] (same seed, same points),
+    or draws of a calibration's posterior (``calibration:``)."""
     from scipy.stats import qmc
 
     if not isinstance(sample, dict):
@@ -420,6 +423,10 @@ def _sample_points(sample: Any, base: Scenario, vary: dict, fail) -> tuple[list[
             hint = (did_you_mean(key, _SAMPLE_KEYS)
                     or f"; expected one of: {', '.join(_SAMPLE_KEYS)}")
             raise fail(("sample", key), "unknown field" + hint)
+    if "calibration" in sample:
+        return _calibration_points(sample, base, vary, fail, folder)
+    if "use" in sample:
+        raise fail(("sample", "use"), "applies with calibration: (a calibration.nc) only")
     n = sample.get("n")
     if n is None:
         raise fail(("sample", "n"), "required, but missing: the number of members to draw")
@@ -448,6 +455,71 @@ def _sample_points(sample: Any, base: Scenario, vary: dict, fail) -> tuple[list[
     scaled = qmc.scale(unit, lo, hi)
     points = [{key: float(v) for key, v in zip(ranges, row)} for row in scaled]
     return points, {"n": n, "seed": seed, "ranges": dict(ranges)}
+
+
+def _calibration_points(sample: dict, base: Scenario, vary: dict, fail, folder: str
+                        ) -> tuple[list[dict], dict]:
+    """Members from ``avflow calibrate``'s calibration.nc: ``use: posterior`` (default),
+    ``n`` of its MCMC draws picked at random (``seed``), or ``use: best``, its best fit (one
+    point). Read as a file (xarray): the ensemble stage does not import the calibration."""
+    import hashlib
+
+    import numpy as np
+    import xarray as xr
+
+    if "ranges" in sample:
+        raise fail(("sample", "ranges"), "give either ranges (Latin hypercube) or "
+                                         "calibration (its posterior), not both")
+    ref = sample["calibration"]
+    if not isinstance(ref, str) or not ref.strip():
+        raise fail(("sample", "calibration"), f"must be the path of a calibration.nc, got "
+                                              f"{ref!r}")
+    nc = Path(os.path.normpath(Path(folder) / Path(ref).expanduser()))
+    use = sample.get("use", "posterior")
+    if use not in ("posterior", "best"):
+        raise fail(("sample", "use"), f"must be posterior or best, got {use!r}")
+    seed = sample.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise fail(("sample", "seed"), f"must be a non-negative integer, got {seed!r}")
+    try:
+        with xr.open_dataset(nc, decode_times=False) as ds:
+            names = [str(v) for v in ds["parameter"].values]
+            if use == "best":
+                rows = ds["best_fit"].values[None, :].astype(float)
+            elif "posterior" not in ds:
+                raise fail(("sample", "use" if "use" in sample else "calibration"),
+                           f"{nc} holds no posterior draws (method "
+                           f"{ds.attrs.get('method', '?')}): use: best, or calibrate with "
+                           "method: posterior")
+            else:
+                rows = ds["posterior"].values.astype(float)
+            method = str(ds.attrs.get("method", ""))
+    except FileNotFoundError:
+        raise fail(("sample", "calibration"), f"file not found: {nc} (relative paths "
+                                              "start at the ensemble file's folder)") from None
+    except (OSError, KeyError, ValueError) as err:
+        raise fail(("sample", "calibration"), f"{nc}: not a calibration.nc of avflow "
+                   f"calibrate ({type(err).__name__}: {err})") from None
+    n = sample.get("n", 1 if use == "best" else None)
+    if n is None:
+        raise fail(("sample", "n"), "required, but missing: the number of posterior draws")
+    if not isinstance(n, int) or isinstance(n, bool) or n <= 0:
+        raise fail(("sample", "n"), f"must be a positive integer, got {n!r}")
+    if use == "best" and n != 1:
+        raise fail(("sample", "n"), "use: best gives one point; n must be 1 (or left out)")
+    if n > len(rows):
+        raise fail(("sample", "n"), f"{nc} holds {len(rows)} draws, fewer than n = {n}")
+    pick = np.random.default_rng(seed).choice(len(rows), size=n, replace=False) \
+        if use == "posterior" else np.arange(1)
+    for key in names:
+        if not _shadowed(key, vary):
+            _check_path(base, key, float(rows[0][names.index(key)]), fail,
+                        ("sample", "calibration"))
+    points = [{k: float(f"{v:.9g}") for k, v in zip(names, rows[i])} for i in pick]
+    digest = hashlib.sha256(nc.read_bytes()).hexdigest()
+    return points, {"n": n, "seed": seed, "ranges": {k: None for k in names},
+                    "calibration": str(nc), "calibration_sha256": digest, "use": use,
+                    "calibration_method": method}
 
 
 def _member_error(err: ScenarioError, index: int, updates: dict, vary: dict, sample_info: dict,
