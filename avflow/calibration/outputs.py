@@ -21,16 +21,9 @@ _UNITS = {"pressure": "kPa", "thickness": "m", "speed": "m/s"}
 
 
 def _atomic(path: Path, write) -> Path:
-    from avflow.output.netcdf import make_temporary, publish
+    from avflow.files import atomic_write
 
-    tmp, _ = make_temporary(path)
-    try:
-        write(str(tmp))
-        publish(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write(path, write)
 
 
 def _plt():
