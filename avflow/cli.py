@@ -279,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     ca.add_argument("-o", "--output", required=True, help="output folder (members/, "
                     "calibration.nc, calibration.csv, report.md)")
     ca.add_argument("--workers", type=int, help="local worker processes (0: here, no dask; "
-                    "default: as `avflow ensemble` chooses)")
+                    "default: as avflow ensemble chooses)")
     ca.add_argument("--scheduler", help="address or scheduler file of a running dask "
                                         "scheduler")
     ca.set_defaults(func=_cmd_calibrate)

@@ -137,7 +137,8 @@ def test_plane_without_the_film_rule_is_bit_for_bit_as_before(monkeypatch, order
 
     if order == "before":
         build = runner.build_terrain
-        monkeypatch.setattr(runner, "build_terrain", lambda sc: before_grid_order(build(sc)))
+        monkeypatch.setattr(runner, "build_terrain",
+                            lambda sc, *limit: before_grid_order(build(sc, *limit)))
     result = simulate(load_scenario(PLANE).with_updates(
         {"time.end": 30.0, "physics.min_flow_thickness": 0.0}))
     st = result.state
