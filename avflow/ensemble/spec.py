@@ -57,9 +57,8 @@ _TOP_KEYS = ("name", "description", "base", "vary", "sample", "thresholds")
 _SAMPLE_KEYS = ("n", "seed", "ranges", "calibration", "use")
 
 #: Most members an ensemble may have unless told otherwise (``--max-members``,
-#: ``$AVFLOW_MAX_MEMBERS``). A member costs some 30 kB and 7 ms to build before any runs
-#: (a validated scenario; docs/performance.md), and a file when it runs: 10,000 is 0.3 GB and
-#: 70 s of building. ``sample: {n: 1000000000}`` reached 20.8 GB in 40 s before this bound.
+#: ``$AVFLOW_MAX_MEMBERS``): each is built and validated before any runs, and what that costs
+#: bounds it (docs/performance.md, "Ensemble members before they run").
 MAX_MEMBERS = 10_000
 ENV_MAX_MEMBERS = "AVFLOW_MAX_MEMBERS"
 
