@@ -153,7 +153,11 @@ def check_folder(path, what: str = "output folder") -> Path:
             raise OutputError(f"{what} {path}: exists and is not a folder")
     except OSError as err:
         raise OutputError(f"{what} {path}: {_why(err)}") from None
-    check_target(path / ".avflow-probe", what=what)
+    probe = path / ".avflow-probe"
+    try:
+        check_target(probe, what=what)
+    except OutputError as err:  # said of the folder, not of the probe's name
+        raise OutputError(str(err).replace(str(probe), str(path))) from None
     return path
 
 

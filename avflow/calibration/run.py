@@ -199,14 +199,12 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     ``report``) ``report.md`` and its PNGs, each atomically.
     """
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-    outdir = Path(outdir)
-    if outdir.exists() and not outdir.is_dir():
-        raise AvflowError(f"-o {outdir}: exists and is not a folder")
-    inputs = [cal.path, cal.base.source_path, *cal.files.values()]
-    for name in ("calibration.nc", "calibration.csv", "report.md"):
-        from avflow.output.netcdf import check_output_path
+    from avflow.files import check_folder, check_target, protected
 
-        check_output_path(outdir / name, [p for p in inputs if p])
+    outdir = check_folder(Path(outdir), "calibration folder")
+    inputs = protected([cal.path, cal.base.source_path, *cal.files.values()])
+    for name in ("calibration.nc", "calibration.csv", "report.md"):
+        check_target(outdir / name, inputs, what="calibration output")
     outdir.mkdir(parents=True, exist_ok=True)
     spec = cal.spec
     d = len(cal.names)
