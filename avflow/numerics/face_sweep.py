@@ -45,10 +45,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.kernels import (DRY, FLOWING, OUTFLOW, TRANSPORT_EPS, WALL, _dirac_face,
-                                     _final_momentum, _limit, _observe, _open_mass,
-                                     _trial_momentum)
-from avflow.numerics.kinetic import half_flux_in, half_flux_out
+from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dirac_face, dt_from_inverse,
+                                 final_momentum, observe_cell, open_mass, trial_momentum)
+from avflow.terrain.mesh import OUTFLOW, WALL
+from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
 from avflow.numerics.vectorize import friction_law, law_copies, law_label, noalias, specialize
@@ -193,7 +193,7 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
         utj = uti
     else:  # open boundary: transmissive for what leaves, closed to what would enter
         gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-        gm_h = _open_mass(fp_h + gm_h) - fp_h
+        gm_h = open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
     f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
@@ -297,7 +297,7 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
             if some and (f < safe_lo or f > safe_hi or near_edge[f] != 0):
                 own_i = shared[i] != mark
                 own_j = own_j and shared[j] != mark
-            if _dirac_face(dirac, fl_i, fl_j):
+            if dirac_face(dirac, fl_i, fl_j):
                 if (fl_i == DRY and own_i) or (own_j and fl_j == DRY):
                     _, qix, qiy, qjx, qjy = _face_flux(f, i, j, face_frame, face_length, e_h,
                                                        e_u1, e_u2, e_c, e_s, e_kh, e_k3)
@@ -326,7 +326,7 @@ def _emit_cells(runs, n_runs, h, hu, hv, gamma_z, density, h_zero, g, o_h, o_u1,
     """The cells of the runs: what each emits through its faces (the square-grid kernel's
     :func:`~avflow.numerics.square_grid.emitted_cell`, one line per value); its sums and
     transport start at 0."""
-    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as kernels._emitted
+    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as physics.emitted_state
     for r in range(n_runs):
         a = max(runs[2 * r], 0)
         for k in range(runs[2 * r + 1] + 1 - a):
@@ -370,7 +370,7 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
             u1 = e_u1[i]
             u2 = e_u2[i]
             centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2
-            qx, qy, fi = _trial_momentum(h[i], h_zero, e_speed[i], hu[i], hv[i], mh * ia, mx * ia,
+            qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[i], hu[i], hv[i], mh * ia, mx * ia,
                                          my * ia, dt, dt_decide, gamma_x[i], gamma_y[i],
                                          gamma_z[i], centripetal, lw, p0, p1, p2, p3, p4, p5, p6,
                                          p7, g, False)
@@ -421,9 +421,9 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             u2 = e_u2[i]
             centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2
             gz = gamma_z[i]
-            qx, qy, cl = _final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
+            qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
                                          p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
-            speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gz, g)
+            speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gz, g)
             old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
             old_arrival, old_moved = arrival[i], last_moved[i]
             h_new[i] = hn
@@ -434,7 +434,7 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             arrival[i] = t_new if good & (hn > h_dry) & math.isnan(old_arrival) else old_arrival
             last_moved[i] = t_new if good & (speed > 0.0) else old_moved
             clamped += cl
-            # kernels._moves with the largest |F_h| / L of the faces that carried mass
+            # physics.cell_moves with the largest |F_h| / L of the faces that carried mass
             moves = (speed > 0.0) & ((speed_n == 0.0)
                                      | (transport[i] > TRANSPORT_EPS * hn * speed_n))
             t_inv[i] = inv_i
@@ -462,7 +462,7 @@ def _step_sums(runs, n_runs, per_cell):
             kinetic += t_kin[i]
             moving += t_mov[i]
             film += t_film[i]
-    return _limit(inv_lim), moving, film, kinetic
+    return dt_from_inverse(inv_lim), moving, film, kinetic
 
 
 #: The cell passes per law kind (:func:`~avflow.numerics.vectorize.law_copies`)
@@ -522,7 +522,7 @@ def _cold_masses(i, face_ptr, face_idx, face_stamp, stamp, pairs, face_frame, fa
         j = pairs[f, 1]
         first = k == i
         fl_k = flag[k]
-        if _dirac_face(dirac, fl_k, flag[j] if j >= 0 else fl_k):
+        if dirac_face(dirac, fl_k, flag[j] if j >= 0 else fl_k):
             if fl == DRY:  # takes back the momentum it brought to the trial
                 _, qix, qiy, qjx, qjy = _face_flux(f, k, j, face_frame, face_length, e_h,
                                                    e_u1, e_u2, e_c, e_s, e_kh, e_k3)
@@ -550,7 +550,7 @@ def _open_outflow(open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt):
     for o in range(open_faces.size):
         f = open_faces[o]
         i = pairs[f, 0]
-        if face_stamp[f] == stamp and not _dirac_face(dirac, flag[i], flag[i]):
+        if face_stamp[f] == stamp and not dirac_face(dirac, flag[i], flag[i]):
             outflow += max(mass[f], 0.0) * dt
     return outflow
 

@@ -4,7 +4,7 @@ The seed's scheme is first order: every face sees the cell averages. Its second-
 (Perthame's and Audusse-Bristeau's kinetic schemes, cited in the seed's section 3) applies
 the same kinetic flux (eqs. 38-40) to the thickness and velocity *reconstructed* at each face
 from limited slopes, with a two-stage strong-stability-preserving Runge-Kutta (Heun) in time
-(:func:`avflow.numerics.kernels.time_loop`). Pure numerics: arrays and scalars only.
+(:func:`avflow.numerics.timeloop.time_loop`). Pure numerics: arrays and scalars only.
 
 Limiters (``numerics.limiter``):
 

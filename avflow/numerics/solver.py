@@ -16,9 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from avflow.numerics import kernels as K
-from avflow.numerics import face_sweep  # noqa: I001 (after kernels, which it builds on)
-from avflow.numerics import face_gather
+from avflow.numerics import face_gather, face_sweep, kernels, stepping
+from avflow.numerics.physics import DRY, UNDER_THRESHOLD
+from avflow.numerics.stepping import ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, Statistics
+from avflow.numerics.timeloop import time_loop
 from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
@@ -26,10 +27,10 @@ from avflow.terrain.bed import Terrain
 from avflow.terrain.squaregrid import SquareGrid, square_grid
 
 STATUS_NAMES = {
-    K.REACHED_TARGET: "running",
-    K.STOPPED: "stopped",
-    K.MAX_STEPS: "max_steps",
-    K.FAILED: "failed",
+    stepping.REACHED_TARGET: "running",
+    stepping.STOPPED: "stopped",
+    stepping.MAX_STEPS: "max_steps",
+    stepping.FAILED: "failed",
 }
 
 
@@ -40,20 +41,25 @@ class State:
     h: np.ndarray  #: thickness normal to the bed, m
     hu: np.ndarray  #: discharge along the first tangent axis, m^2/s
     hv: np.ndarray  #: discharge along the second tangent axis, m^2/s
-    flag: np.ndarray  #: uint8 per cell from the last step: kernels.FLOWING / UNDER_THRESHOLD / DRY
+    flag: np.ndarray  #: uint8 per cell from the last step: physics.FLOWING / UNDER_THRESHOLD / DRY
     peak_h: np.ndarray  #: running maximum of h, m
     peak_speed: np.ndarray  #: running maximum of |u|, m/s
     arrival: np.ndarray  #: first time h exceeded the dry threshold, s (NaN: never)
     last_moved: np.ndarray  #: end of the last step in which u != 0, s (NaN: never moved)
-    stats: np.ndarray = field(default_factory=lambda: np.zeros(K.N_STATS))
+    stats: np.ndarray = field(default_factory=lambda: np.zeros(stepping.N_STATS))
+
+    @property
+    def statistics(self) -> Statistics:
+        """The time loop's statistics, by name."""
+        return Statistics(self.stats)
 
     @property
     def t(self) -> float:
-        return float(self.stats[K.ST_TIME])
+        return float(self.stats[ST_TIME])
 
     @property
     def steps(self) -> int:
-        return int(self.stats[K.ST_STEPS])
+        return int(self.stats[ST_STEPS])
 
     def speed(self) -> np.ndarray:
         """|u| per cell (m/s), 0 where dry."""
@@ -99,7 +105,7 @@ class Solver:
     dirac: bool = True
     h_dry: float = 0.0
     #: m: a cell thinner than this after a step keeps its mass but no momentum (a round-off
-    #: residue of emptying fluxes, see kernels._final_momentum); 0 disables it.
+    #: residue of emptying fluxes, see physics.final_momentum); 0 disables it.
     h_zero: float = 0.0
     #: 1: the seed's first-order scheme; 2: limited linear reconstruction and Heun's two
     #: stages (:mod:`avflow.numerics.reconstruction`)
@@ -157,8 +163,8 @@ class Solver:
         # (order 2 only: the order-1 sweeps keep their fluxes in their own work lines)
         self._flux = np.zeros((m.n_faces if self.order == 2 else 0, 5))
         # Faces of every cell (CSR), for the active lists of the face kernel.
-        self._cell_face_ptr, self._cell_face_idx = K.cell_faces(m.face_cells, n)
-        # What the face kernel keeps from one call to the next (see kernels._advance)
+        self._cell_face_ptr, self._cell_face_idx = kernels.cell_faces(m.face_cells, n)
+        # What the face kernel keeps from one call to the next (see timeloop._advance)
         self._face_stamp = np.full(m.n_faces, -1, dtype=np.int64)
         self._cell_stamp = np.full(n, -1, dtype=np.int64)
         self._cell_sync = np.full(n, -1, dtype=np.int64)
@@ -281,7 +287,7 @@ class Solver:
         # first had left where the second never swept)
         flag = state.flag if layout.compact else self._g_flag
         if not layout.compact:
-            flag.fill(K.DRY)
+            flag.fill(DRY)
             flag[layout.place] = state.flag
         status = grid_loop(int(self.law), threads > 1)(
             threads, layout.nx, layout.ny, layout.valid, layout.x_code,
@@ -313,19 +319,19 @@ class Solver:
             h=h0,
             hu=np.zeros(n),
             hv=np.zeros(n),
-            flag=np.where(h0 > 0.0, K.UNDER_THRESHOLD, K.DRY).astype(np.uint8),
+            flag=np.where(h0 > 0.0, UNDER_THRESHOLD, DRY).astype(np.uint8),
             peak_h=h0.copy(),
             peak_speed=np.zeros(n),
             arrival=np.where(h0 > self.h_dry, 0.0, np.nan),
             last_moved=np.full(n, np.nan),
         )
         self.reset_limits(state)
-        state.stats[K.ST_DT_MIN] = np.inf
+        state.stats[ST_DT_MIN] = np.inf
         return state
 
     def reset_limits(self, state: State) -> None:
         """Recompute the CFL limit of ``state`` (after editing its arrays by hand)."""
-        state.stats[K.ST_DT_LIMIT] = K.dt_limit(
+        state.stats[ST_DT_LIMIT] = kernels.dt_limit(
             self._cfl_factor, self.terrain.gamma_z, state.h, state.hu, state.hv, self.gravity)
 
     def volume(self, state: State) -> float:
@@ -356,7 +362,7 @@ class Solver:
             import numba
 
             numba.set_num_threads(threads)
-        status = K.time_loop(m.structured_1d, self.order, int(self.law), threads > 1)(
+        status = time_loop(m.structured_1d, self.order, int(self.law), threads > 1)(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,

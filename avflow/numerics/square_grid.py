@@ -47,11 +47,11 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                     ST_TIME, TRANSPORT_EPS,
-                                     _final_momentum, _limit, _observe, _open_mass,
-                                     _trial_momentum, record_end, record_step, step_size)
-from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out
+from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
+                                 observe_cell, open_mass, trial_momentum)
+from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES, ST_TIME,
+                                      record_end, record_step, step_size)
+from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
                                        law_kind, line_max, line_sum, noalias, out_select, specialize)
@@ -84,8 +84,8 @@ def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
     :func:`avflow.numerics.kinetic.half_fluxes`, computed there per face side), and the speed
     ``|q| / h`` at time n.
 
-    The face kernel's :func:`~avflow.numerics.kernels._emitted` and
-    :func:`~avflow.numerics.kernels._speed`, the same operations on every value kept, so the
+    The face kernel's :func:`~avflow.numerics.physics.emitted_state` and
+    :func:`~avflow.numerics.physics.speed_of`, the same operations on every value kept, so the
     same bits, written without branches so that LLVM vectorises the loop (4x here): a dry
     cell divides by 1 and its results are replaced by zeros (selects, not jumps); the loop
     counts from 0 and its first index is clamped at 0, which lets LLVM drop Numba's
@@ -93,7 +93,7 @@ def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
     """
     o_h, o_u1, o_u2, o_c = out[E_H], out[E_U1], out[E_U2], out[E_C]
     o_s, o_kh, o_k3, o_speed = out[E_S], out[E_KH], out[E_K3], out[E_SPEED]
-    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as _emitted
+    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as emitted_state
     c0 = max(c0, 0)
     i0 = max(base + c0, 0)
     for j in range(c1 + 1 - c0):
@@ -112,7 +112,7 @@ def emitted_cell(hc, q1, q2, g_normal, dens, h_wet):
     sound = math.sqrt(0.5 * g_normal * hs)  # sound_speed(): 0 on a vertical bed
     sound = sound if g_normal > 0.0 else 0.0
     k = sound * dens
-    positive = hc > 0.0  # _speed(): |q| / h wherever h > 0, film included
+    positive = hc > 0.0  # speed_of(): |q| / h wherever h > 0, film included
     hp = hc if positive else 1.0
     speed = math.sqrt(q1 * q1 + q2 * q2) / hp
     return ((hc if wet else 0.0), (q1 / hs if wet else 0.0), (q2 / hs if wet else 0.0),
@@ -148,7 +148,7 @@ def _face_flux(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, 
         utj = uti
     else:  # open: transmissive for what leaves, closed to what would enter
         gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-        gm_h = _open_mass(fp_h + gm_h) - fp_h
+        gm_h = open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length
     f_t = (uti * fp_h + utj * gm_h) * length
@@ -334,8 +334,8 @@ def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
         ia = inv_area[i]
         u1 = e_u1[c]
         u2 = e_u2[c]
-        centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2  # u.K.u, as kernels._centripetal
-        qx, qy, fi = _trial_momentum(h[i], h_zero, e_speed[c], hu[i], hv[i],
+        centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2  # u.K.u, as physics.centripetal_accel
+        qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[c], hu[i], hv[i],
                                      mh * ia, mx * ia, my * ia, dt,
                                      dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal, lw, p0, p1, p2, p3, p4, p5, p6, p7, g, False)
@@ -439,7 +439,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         qx = dt * (bx / area + g * hn * gx) if dry else qx
         qy = dt * (by / area + g * hn * gy) if dry else qy
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
-        qx, qy, cl = _final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
+        qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
                                      p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
         # writes: the new value where the cell is updated, else what is there
         flag[i] = fi if inside else old_flag
@@ -475,7 +475,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         len_w, len_e, len_s, len_n = x_len[c], x_len[c + 1], ys_len[c], yn_len[c]
         old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
         old_arrival, old_moved = arrival[i], last_moved[i]
-        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
+        speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
                                 g)
         peak_h[i] = hn if good & (hn > old_peak_h) else old_peak_h
         peak_speed[i] = speed if good & (speed > old_peak_speed) else old_peak_speed
@@ -483,7 +483,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         arrival[i] = t_new if arrives else old_arrival
         last_moved[i] = t_new if good & (speed > 0.0) else old_moved
         # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
-        # per metre (kernels._moves; compared as |fh| > eps h |u^n| L: no division)
+        # per metre (physics.cell_moves; compared as |fh| > eps h |u^n| L: no division)
         limit = TRANSPORT_EPS * hn * speed_n
         carried = (((not d_w) & (abs(wm) > limit * len_w))
                    | ((not d_e) & (abs(e_m) > limit * len_e))
@@ -805,7 +805,7 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
                  stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats, rings,
                  min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
-    """:func:`avflow.numerics.kernels.time_loop` for a square grid at order 1 (same arguments
+    """:func:`avflow.numerics.timeloop.time_loop` for a square grid at order 1 (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
     least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
@@ -914,7 +914,7 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv
-        status = record_step(stats, dt, _limit(inv_lim), moving, film, kinetic, clamped, outflow,
+        status = record_step(stats, dt, dt_from_inverse(inv_lim), moving, film, kinetic, clamped, outflow,
                              stop_volume, stop_kinetic, steps, max_steps)
         if status != REACHED_TARGET:
             break
