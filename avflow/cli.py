@@ -40,6 +40,12 @@ class Progress:
             self.stream.write("\n")
 
 
+def _compiling(what: str) -> None:
+    from avflow.numerics.registry import notify_compiling
+
+    notify_compiling(what)
+
+
 def summary_line(ds) -> str:
     """One line: what the run did and where the mass ended."""
     def f(name, fmt):
@@ -123,7 +129,8 @@ def _cmd_run(args) -> int:
             with SnapshotStream(out) as stream:
                 try:
                     result = simulate(scenario, progress=progress,
-                                      max_memory=args.max_memory, snapshots=stream)
+                                      max_memory=args.max_memory, snapshots=stream,
+                                      on_compile=None if args.quiet else _compiling)
                 finally:
                     progress.close()
                 if result.status not in SUCCESS_STATUSES:  # exit 1 writes nothing

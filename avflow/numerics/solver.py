@@ -16,10 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from avflow.numerics import face_gather, face_sweep, kernels, stepping
+from avflow.numerics import face_gather, face_sweep, kernels, registry, stepping
 from avflow.numerics.physics import DRY, UNDER_THRESHOLD
 from avflow.numerics.stepping import ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, Statistics
-from avflow.numerics.timeloop import time_loop
 from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
@@ -119,6 +118,8 @@ class Solver:
     #: at order 1, the face kernel elsewhere; "faces": the face kernel everywhere (the
     #: reference); "grid": the square-grid kernel, an error where it does not apply.
     kernel: str = "auto"
+    #: where the kernels run: "cpu" (the kernels registered in :mod:`avflow.numerics.registry`)
+    backend: str = "cpu"
 
     def __post_init__(self):
         if self.order not in (1, 2):
@@ -134,8 +135,6 @@ class Solver:
             raise ValueError(f"params holds at most {N_PARAMS} values, got {given.size}")
         self.params = np.zeros(N_PARAMS)
         self.params[:given.size] = given
-        if self.kernel not in ("auto", "grid", "faces"):
-            raise ValueError(f"kernel must be auto, grid or faces, got {self.kernel!r}")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be at least 1, got {self.threads}")
         m = self.terrain.mesh
@@ -146,14 +145,17 @@ class Solver:
         # (eq. 41) and 1 / (sqrt(3) g cos(theta)) for the kinetic particle density.
         self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
         self._density = density_factor(self.gravity * self.terrain.gamma_z)
-        if self.kernel != "faces":
-            layout = square_grid(self.terrain) if self.order == 1 else None
-            if layout is None and self.kernel == "grid":
-                raise ValueError("the square-grid kernel runs square grids (planes, DEMs) at "
-                                 "order 1 only")
+        self._kernel = registry.select(self.terrain, self.order, self.kernel, self.backend)
+        if self._kernel.name == "grid":
+            layout = square_grid(self.terrain)
             if layout is not None:
                 self._setup_grid(layout)
                 return
+            if self.kernel == "grid":  # a grid whose faces are not in the kernel's order
+                raise registry.KernelUnavailable(
+                    "the square-grid kernel does not run this grid (its faces are not "
+                    f"axis-aligned rows); available: {registry.available(self.backend)}")
+            self._kernel = registry.KERNELS["faces", self.backend]
         # Work buffers, allocated once per solver and reused by every step.
         self._h_work = np.zeros(n)
         self._hu_work = np.zeros(n)
@@ -259,7 +261,7 @@ class Solver:
         """The time loop on the square-grid kernel (see :meth:`advance`)."""
         import numba
 
-        from avflow.numerics.square_grid import _rings, grid_loop
+        from avflow.numerics.square_grid import _rings
 
         layout, c = self._grid, self._g_cells
         threads = self.threads_used()
@@ -289,7 +291,7 @@ class Solver:
         if not layout.compact:
             flag.fill(DRY)
             flag[layout.place] = state.flag
-        status = grid_loop(int(self.law), threads > 1)(
+        status = self._loop(threads)(
             threads, layout.nx, layout.ny, layout.valid, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
             c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
@@ -306,6 +308,23 @@ class Solver:
                 getattr(state, name)[:] = full[layout.place]
             state.flag[:] = flag[layout.place]
         return STATUS_NAMES[status]
+
+    def _loop(self, threads: int):
+        """The compiled time loop of this solver's kernel, law and threads."""
+        return self._kernel.loop(self.terrain.mesh.structured_1d, self.order, int(self.law),
+                                 threads > 1 and self._kernel.name != "profile")
+
+    def kernels_cached(self) -> bool:
+        """Whether this solver's time loop is compiled already (in this process, or in
+        Numba's cache on disk): False means that its first call compiles it."""
+        return registry.is_cached(self._loop(self.threads_used()))
+
+    def describe_kernel(self) -> str:
+        """What runs this solver, for the user: kernel, order, law, threads."""
+        threads = self.threads_used()
+        law = {"samosat": "samosAT"}.get(Law(self.law).name.lower(), Law(self.law).name.title())
+        return (f"the {self._kernel.name} kernel at order {self.order} with {law} friction"
+                + (f" on {threads} threads" if threads > 1 else ""))
 
     def new_state(self, h0: np.ndarray) -> State:
         """A state at rest (eq. 60) with thickness ``h0`` (m) per cell."""
@@ -362,7 +381,7 @@ class Solver:
             import numba
 
             numba.set_num_threads(threads)
-        status = time_loop(m.structured_1d, self.order, int(self.law), threads > 1)(
+        status = self._loop(threads)(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,

@@ -360,10 +360,12 @@ def _failure(scenario, t: float, reason: str) -> str:
 
 
 def simulate(scenario, progress: Callable[[float, float], None] | None = None, *,
-             max_memory=None, snapshots: Snapshots | None = None) -> RunResult:
+             max_memory=None, snapshots: Snapshots | None = None,
+             on_compile: Callable[[str], None] | None = None) -> RunResult:
     """Run a validated scenario to its end time or until the mass stops.
 
-    ``progress(t, t_end)`` is called after every output time. A non-finite state (h, hu,
+    ``progress(t, t_end)`` is called after every output time; ``on_compile(what)`` before
+    the kernels are compiled, where they are neither in this process nor in Numba's cache. A non-finite state (h, hu,
     hv, checked at every output time, or the mass balance) or a step that cannot keep
     h >= 0 raises :class:`~avflow.errors.RunFailed`: a blow-up is never a result.
     ``snapshots`` records the output times (default: a new :class:`Snapshots`, every field
@@ -382,6 +384,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             "stop_kinetic": -1.0 if by_volume else thresholds["stop_fraction"]}
     t_end, every = scenario.time.end, scenario.output.every
     snaps.record(state, 0.0, terrain)
+    if on_compile is not None and not solver.kernels_cached():
+        on_compile(solver.describe_kernel())
     compile_time = first_use + warm_up(solver, state, scenario.time.max_steps, **stop)
     started = _time.perf_counter()
     recording = 0.0  # s storing snapshots (copies, or writes to the file): not the loop's
