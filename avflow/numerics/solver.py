@@ -88,6 +88,30 @@ def face_offsets(terrain: Terrain) -> np.ndarray:
 
 
 @dataclass
+class ThreadChoice:
+    """Which threads the next steps of a solver with ``threads`` None run on: all of them
+    (``most``) or one. :data:`PROBE_STEPS` steps are timed on each; all threads are kept
+    only when at least :data:`GAIN` faster. Probed again after :data:`FIRST_INTERVAL`
+    steps, then twice as late each time the same clear choice stands."""
+
+    most: int
+    choice: int = 1
+    next_probe: int = 0
+    interval: int = 0
+    PROBE_STEPS = 4
+    FIRST_INTERVAL = 256
+    GAIN = 0.9
+
+    def decide(self, one: float, many: float, steps: int) -> None:
+        """``one``, ``many``: seconds the probe's steps took on one thread and on all."""
+        choice = self.most if many < self.GAIN * one else 1
+        clear = many < self.GAIN * one or many > one / self.GAIN
+        self.interval = (2 * self.interval if choice == self.choice and clear and self.interval
+                         else self.FIRST_INTERVAL)
+        self.choice, self.next_probe = choice, steps + self.interval
+
+
+@dataclass
 class Solver:
     """The kinetic scheme of the seed on one terrain with one friction law.
 
@@ -110,8 +134,9 @@ class Solver:
     #: stages (:mod:`avflow.numerics.reconstruction`)
     order: int = 1
     limiter: str = "minmod"
-    #: CPU threads of the square-grid kernel and of the face kernel (None: Numba's default,
-    #: every core); the answer does not depend on it. 1 runs the serial passes, outside
+    #: CPU threads of the square-grid kernel and of the face kernel (None: every core, where
+    #: timed probes show them faster than one thread, else one: ThreadChoice); the answer
+    #: does not depend on it. 1 runs the serial passes, outside
     #: Numba's thread pool. Profiles run on one.
     threads: int | None = None
     #: "auto": the square-grid kernel (:mod:`avflow.numerics.square_grid`) on square grids
@@ -141,6 +166,7 @@ class Solver:
         n = m.n_cells
         self._grid = None
         self._released = False
+        self._auto = None  # ThreadChoice of threads None
         # Per-cell factors derived from the geometry once: P / (2 A) for the CFL limit
         # (eq. 41) and 1 / (sqrt(3) g cos(theta)) for the kinetic particle density.
         self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
@@ -257,14 +283,14 @@ class Solver:
             cores = os.cpu_count() or 1
         return max(1, min(self.threads or cores, numba.config.NUMBA_NUM_THREADS))
 
-    def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps):
-        """The time loop on the square-grid kernel (see :meth:`advance`)."""
+    def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps,
+                      threads):
+        """The time loop on the square-grid kernel, on ``threads`` (see :meth:`advance`)."""
         import numba
 
         from avflow.numerics.square_grid import _rings
 
         layout, c = self._grid, self._g_cells
-        threads = self.threads_used()
         chunk = None
         if threads > 1:
             numba.set_num_threads(threads)
@@ -282,8 +308,8 @@ class Solver:
         h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays
         # ring buffers of the kernel's blocks, a set per thread, made once (each step made
         # its own before: 0.7-1 ms a step on a map 2000 cells wide)
-        if self._g_rings is None or self._g_rings[0].shape[0] != threads:
-            self._g_rings = _rings(threads, layout.nx)
+        if self._g_rings is None or self._g_rings[0].shape[0] < threads:
+            self._g_rings = _rings(self.threads_used(), layout.nx)
         # the state's own flags: the kernel writes those of the cells it sweeps and keeps
         # the others (a flag buffer kept by the solver gave a second state the flags the
         # first had left where the second never swept)
@@ -291,7 +317,7 @@ class Solver:
         if not layout.compact:
             flag.fill(DRY)
             flag[layout.place] = state.flag
-        status = self._loop(threads)(
+        status = self._loop(self.threads_used())(
             threads, layout.nx, layout.ny, layout.valid, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
             c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
@@ -373,15 +399,65 @@ class Solver:
         if self._released:
             self._setup_grid(square_grid(self.terrain))
             self._released = False
+        most = self.threads_used()
+        if self.threads is None and most > 1 and self._kernel.name != "profile":
+            return self._advance_auto(state, t_target, stop_volume, stop_kinetic, max_steps)
+        return self._advance_on(most, state, t_target, stop_volume, stop_kinetic, max_steps)
+
+    def _advance_auto(self, state, t_target, stop_volume, stop_kinetic, max_steps) -> str:
+        """:meth:`advance` on the threads that run fastest now (``threads`` None): every so
+        often a few steps are timed on one thread, then on all of them one step at a time,
+        stopping as soon as they are behind; all threads go on only where they were clearly
+        faster. The answer does not depend on the threads, bit for bit; on a busy machine a
+        step on two threads sharing a core with another process took 27x one on one thread
+        (docs/performance.md), so a losing probe costs one step, not a call."""
+        auto = self._auto
+        if auto is None or auto.most != self.threads_used():
+            auto = self._auto = ThreadChoice(self.threads_used())
+        while True:
+            if state.steps >= auto.next_probe:
+                status = self._probe(auto, state, t_target, stop_volume, stop_kinetic,
+                                     max_steps)
+                if status is not None:
+                    return status  # the call ended within the probe
+            limit = min(max_steps, auto.next_probe)
+            status = self._advance_on(auto.choice, state, t_target, stop_volume, stop_kinetic,
+                                      limit)
+            if status != "max_steps" or limit == max_steps:
+                return status
+
+    def _probe(self, auto, state, t_target, stop_volume, stop_kinetic, max_steps):
+        """A few steps timed on one thread, then on all, one at a time; ``auto`` decides.
+        Returns the loop's status where the call ended within the probe, else None."""
+        import time
+
+        spent = {1: 0.0, auto.most: 0.0}
+        for k, steps, calls in ((1, ThreadChoice.PROBE_STEPS, 1),
+                                (auto.most, 1, ThreadChoice.PROBE_STEPS)):
+            for _ in range(calls):
+                limit = min(max_steps, state.steps + steps)
+                before, clock = state.steps, time.perf_counter()
+                status = self._advance_on(k, state, t_target, stop_volume, stop_kinetic, limit)
+                spent[k] += time.perf_counter() - clock
+                if status != "max_steps" or limit == max_steps or state.steps == before:
+                    return status
+                if k > 1 and spent[k] >= spent[1]:
+                    break  # behind one thread already
+        auto.decide(spent[1], spent[auto.most], state.steps)
+        return None
+
+    def _advance_on(self, threads, state, t_target, stop_volume, stop_kinetic,
+                    max_steps) -> str:
+        """The time loop on ``threads`` threads (1: every step serial)."""
         if self._grid is not None:
-            return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps)
+            return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps,
+                                      threads)
         m, t = self.terrain.mesh, self.terrain
-        threads = self.threads_used()
         if threads > 1:
             import numba
 
             numba.set_num_threads(threads)
-        status = self._loop(threads)(
+        status = self._loop(self.threads_used())(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
@@ -391,5 +467,5 @@ class Solver:
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
             int(self.order), LIMITERS[self.limiter], self._face_offset,
             self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock,
-            *self._sweep, self._gather_from)
+            *self._sweep, self._gather_from if threads > 1 else np.iinfo(np.int64).max)
         return STATUS_NAMES[status]
