@@ -1,0 +1,192 @@
+"""avflow region: windows grown while the flow reaches their edge, maps that do not depend on
+the workers, releases that cannot run recorded, region files checked (one line, exit 2).
+
+A tiny region: a 30-degree slope running out onto a flat floor, 20 m cells (80 x 30), order 1
+Coulomb; the runs take milliseconds once Numba's kernels are cached.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import xarray as xr
+
+from avflow.cli import main
+from avflow.region import RegionError, load_region
+from avflow.region.orchestrate import run_region
+
+DX = 20.0
+NX, NY = 80, 30
+X0, Y0 = 1000.0, 5000.0  # west and north edges
+CRS = "EPSG:2056"
+
+
+def _dem(folder):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    x = X0 + DX * (np.arange(NX) + 0.5)
+    y = Y0 - DX * (np.arange(NY) + 0.5)
+    # 30 degrees down to x = X0 + 800 m, then flat; a shallow trough along y keeps the flow
+    # near the middle rows
+    s = np.clip(X0 + 800.0 - x, 0.0, None) * math.tan(math.radians(30.0))
+    z = s[None, :] + 0.05 * np.abs(y - y.mean())[:, None] + np.zeros((NY, 1))
+    with rasterio.open(folder / "dem.tif", "w", driver="GTiff", width=NX, height=NY, count=1,
+                       dtype="float32", crs=CRS, transform=from_origin(X0, Y0, DX, DX)) as dst:
+        dst.write(z.astype(np.float32), 1)
+
+
+def _releases(path, boxes, crs=CRS, thickness=None):
+    import pyogrio.raw
+    import shapely
+
+    geoms = [shapely.Polygon(b) if len(b) != 4 or not np.isscalar(b[0]) else shapely.box(*b)
+             for b in boxes]
+    thickness = thickness or [2.0] * len(geoms)
+    pyogrio.raw.write(str(path), np.array([shapely.to_wkb(g) for g in geoms], dtype=object),
+                      [np.arange(1, len(geoms) + 1, dtype=np.int32), np.array(thickness)],
+                      ["id", "thickness"], driver="GPKG", crs=crs, geometry_type="Polygon")
+
+
+REGION = """\
+name: test-region
+dem: dem.tif
+releases:
+  path: {releases}
+  id_field: id
+scenario:
+  rheology: {{law: coulomb, delta_deg: 24.0}}
+  time: {{end: 120.0}}
+  numerics: {{order: 1}}
+window:
+  buffer: {buffer}
+merge:
+  chunk: 16
+"""
+
+#: Two releases on the slope; one outside the DEM; one of zero area (collinear vertices).
+BOXES = [(X0 + 200, Y0 - 400, X0 + 300, Y0 - 300),
+         (X0 + 100, Y0 - 260, X0 + 180, Y0 - 180),
+         (X0 + 5000, Y0 - 400, X0 + 5100, Y0 - 300),
+         [(X0 + 400, Y0 - 200), (X0 + 450, Y0 - 200), (X0 + 500, Y0 - 200)]]
+
+
+@pytest.fixture(scope="module")
+def region_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("region")
+    _dem(folder)
+    _releases(folder / "releases.gpkg", BOXES)
+    for name, buffer in (("small", 40.0), ("whole", 1.0e5)):
+        (folder / f"{name}.yaml").write_text(REGION.format(releases="releases.gpkg",
+                                                           buffer=buffer))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def small(region_dir):
+    """The releases in 40 m windows, run here (no dask)."""
+    return run_region(load_region(region_dir / "small.yaml"), region_dir / "out-small",
+                      workers=0, quiet=True)
+
+
+def test_window_grows_and_equals_whole_dem(region_dir, small):
+    whole = run_region(load_region(region_dir / "whole.yaml"), region_dir / "out-whole",
+                       workers=0, quiet=True)
+    t_small, t_whole = small.table.set_index("id"), whole.table.set_index("id")
+    for rid in (1, 2):
+        assert t_small.loc[rid, "status"] == "ok"
+        assert t_small.loc[rid, "retries"] >= 1  # 40 m around the box: the flow leaves it
+        assert t_whole.loc[rid, "retries"] == 0
+        # the grown window is smaller than the DEM: the test is about a window, not the DEM
+        cells = t_small.loc[rid, "cells"]
+        assert 0 < cells < NX * NY
+        assert t_small.loc[rid, "runout"] == pytest.approx(t_whole.loc[rid, "runout"],
+                                                           abs=1e-9)
+    a = xr.open_zarr(small.store).load()
+    b = xr.open_zarr(whole.store).load()
+    assert int(a.release_count.max()) == 2  # the two flows overlap on the floor
+    for name in ("peak_thickness", "peak_speed", "peak_pressure"):
+        both = np.isfinite(a[name].values) & np.isfinite(b[name].values)
+        assert both.sum() > 100
+        # the same cells reached, and the same values there: a window with no flow at its
+        # edge computes what the whole DEM does (float32 maps: to 1e-5 of the largest)
+        assert np.array_equal(np.isfinite(a[name].values), np.isfinite(b[name].values))
+        scale = float(np.nanmax(b[name].values))
+        assert np.nanmax(np.abs(a[name].values - b[name].values)) <= 1e-5 * scale
+        np.testing.assert_array_equal(a[f"{name}_release"].values,
+                                      b[f"{name}_release"].values)
+    np.testing.assert_array_equal(a.release_count.values, b.release_count.values)
+
+
+def test_invalid_releases_are_recorded_and_the_rest_go_on(region_dir, small, capfd):
+    table = pd.read_csv(region_dir / "out-small" / "releases.csv")
+    rows = table.set_index("id")
+    assert rows.loc[3, "status"] == "invalid" and "outside the DEM" in rows.loc[3, "error"]
+    assert rows.loc[4, "status"] == "invalid" and "zero area" in rows.loc[4, "error"]
+    assert set(rows.loc[[1, 2], "status"]) == {"ok"}
+    for column in ("volume", "runout", "travel_angle", "area", "retries", "wall_time"):
+        assert np.isfinite(rows.loc[[1, 2], column].astype(float)).all()
+    # release 1: 5 x 5 cells of 2 m (the box's cell centres), 400 m^2 of map each, their
+    # bed area 1/cos(30 deg) larger (the trough's 3-degree cross slope adds 0.1 %)
+    assert rows.loc[1, "volume"] == pytest.approx(25 * DX * DX * 2.0 / math.cos(math.radians(30)),
+                                                  rel=2e-3)
+    assert 20.0 < rows.loc[1, "travel_angle"] < 30.0  # Coulomb 24 degrees
+    assert small.failed == 2
+
+
+def test_other_crs_is_recorded_on_stderr(region_dir, capsys):
+    _releases(region_dir / "other_crs.gpkg", BOXES[:1], crs="EPSG:32632")
+    (region_dir / "crs.yaml").write_text(REGION.format(releases="other_crs.gpkg", buffer=40))
+    code = main(["region", str(region_dir / "crs.yaml"), "-o", str(region_dir / "out-crs"),
+                 "--workers", "0", "-q"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "release 1: invalid: its CRS" in err and "differs from the DEM's" in err
+    table = pd.read_csv(region_dir / "out-crs" / "releases.csv")
+    assert list(table.status) == ["invalid"]
+    ds = xr.open_zarr(region_dir / "out-crs" / "region.zarr")
+    assert int(ds.release_count.max()) == 0  # nothing merged
+
+
+def test_resume_reuses_finished_releases(region_dir, small):
+    again = run_region(load_region(region_dir / "small.yaml"), region_dir / "out-small",
+                       workers=0, quiet=True)
+    assert again.ran == 0 and again.reused == 2
+    a = xr.open_zarr(small.store).load()  # the same path: the store was replaced
+    assert int(a.release_count.max()) == 2
+
+
+def test_one_and_two_workers_same_maps(region_dir, small):
+    """Local dask clusters of 1 and 2 workers (one thread each) against the run here."""
+    ref = xr.open_zarr(small.store).load()
+    for n in (1, 2):
+        out = run_region(load_region(region_dir / "small.yaml"), region_dir / f"out-{n}w",
+                         workers=n, quiet=True)
+        assert out.where == "local cluster" and out.workers == n
+        ds = xr.open_zarr(out.store).load()
+        for name in ds.data_vars:
+            assert np.array_equal(ds[name].values, ref[name].values, equal_nan=True), name
+        assert (out.table.retries.values == small.table.retries.values).all()
+
+
+@pytest.mark.parametrize("edit, field", [
+    (("delta_deg: 24.0", "delta_deg: 95.0"), "scenario.rheology.delta_deg"),
+    (("buffer:", "bufer:"), "window.bufer"),
+    (("dem: dem.tif", "dem: none.tif"), "dem"),
+    (("  numerics: {order: 1}", "  grid: {dx: 5}"), "scenario.grid"),
+    (("chunk: 16", "chunk: 3"), "merge.chunk"),
+])
+def test_bad_region_file_one_line_exit_2(region_dir, capsys, edit, field):
+    path = region_dir / "bad.yaml"
+    path.write_text(REGION.format(releases="releases.gpkg", buffer=40).replace(*edit))
+    with pytest.raises(RegionError):
+        load_region(path)
+    code = main(["region", str(path), "-o", str(region_dir / "out-bad")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith(f"avflow: error: {path}:")
+    assert f": {field}: " in err[0]
+    assert not (region_dir / "out-bad").exists()
