@@ -159,6 +159,50 @@ def test_resume_reuses_finished_releases(region_dir, small):
     assert int(a.release_count.max()) == 2
 
 
+def test_interrupt_then_resume_gives_the_same_maps(region_dir, small, monkeypatch, capsys):
+    """Ctrl-C after the first release: it is kept, nothing half-written is left; the rerun
+    reuses it (checksum verified), runs again one whose file was damaged, and the maps are
+    those of the uninterrupted run, bit for bit."""
+    import avflow.region.orchestrate as orch
+
+    out = region_dir / "out-interrupted"
+    calls, run_release = [], orch.run_release
+
+    def interrupted(task):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(task["id"])
+        return run_release(task)
+
+    monkeypatch.setattr(orch, "run_release", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        orch.run_region(load_region(region_dir / "small.yaml"), out, workers=0, quiet=True)
+    monkeypatch.undo()
+    first = calls[0]
+    assert sorted(p.name for p in (out / "releases").iterdir()) == [f"{first}.nc"]
+    assert (out / "checksums" / f"{first}.sha256").is_file()
+    assert not (out / "region.zarr").exists() and not (out / "work").exists()
+    assert not list(out.glob(".*.tmp")) and not list(out.glob(".*lock"))
+    resumed = orch.run_region(load_region(region_dir / "small.yaml"), out, workers=0,
+                              quiet=True)
+    assert resumed.reused == 1 and resumed.ran == 1
+    ref = xr.open_zarr(small.store).load()
+    ds = xr.open_zarr(resumed.store).load()
+    for name in ref.data_vars:
+        assert np.array_equal(ds[name].values, ref[name].values, equal_nan=True), name
+    # a damaged file is run again, said on stderr
+    damaged = out / "releases" / f"{first}.nc"
+    data = bytearray(damaged.read_bytes())
+    data[-10] ^= 0xFF
+    damaged.write_bytes(bytes(data))
+    again = orch.run_region(load_region(region_dir / "small.yaml"), out, workers=0)
+    assert again.reused == 1 and again.ran == 1
+    assert "checksum does not match" in capsys.readouterr().err
+    ds = xr.open_zarr(again.store).load()
+    for name in ref.data_vars:
+        assert np.array_equal(ds[name].values, ref[name].values, equal_nan=True), name
+
+
 def test_one_and_two_workers_same_maps(region_dir, small):
     """Local dask clusters of 1 and 2 workers (one thread each) against the run here."""
     ref = xr.open_zarr(small.store).load()
