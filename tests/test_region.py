@@ -234,3 +234,80 @@ def test_bad_region_file_one_line_exit_2(region_dir, capsys, edit, field):
     assert len(err) == 1 and err[0].startswith(f"avflow: error: {path}:")
     assert f": {field}: " in err[0]
     assert not (region_dir / "out-bad").exists()
+
+
+def test_external_scheduler_with_a_worker_killed(region_dir):
+    """`dask scheduler` and two `dask worker` processes (no nanny) on 127.0.0.1; one worker
+    is killed once the first release has finished; its tasks run on the other, and the maps
+    are those of the run here, bit for bit. Every process started is stopped."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+    from pathlib import Path
+
+    boxes = [(X0 + 100 + 70 * i, Y0 - y - 60, X0 + 160 + 70 * i, Y0 - y)
+             for y in (140, 620) for i in range(5)]
+    _releases(region_dir / "many.gpkg", boxes)
+    (region_dir / "many.yaml").write_text(REGION.format(releases="many.gpkg", buffer=40))
+    region = load_region(region_dir / "many.yaml")
+    ref = run_region(region, region_dir / "out-many-here", workers=0, quiet=True)
+    dask = str(Path(sys.executable).with_name("dask"))
+    sched_file = region_dir / "scheduler.json"
+    env = dict(os.environ, NUMBA_NUM_THREADS="1")
+    procs = []
+    try:
+        procs.append(subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                       "--no-dashboard", "--scheduler-file", str(sched_file)],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                      env=env, start_new_session=True))
+        for _ in range(2):
+            procs.append(subprocess.Popen([dask, "worker", "--scheduler-file", str(sched_file),
+                                           "--nthreads", "1", "--no-nanny",
+                                           "--host", "127.0.0.1", "--no-dashboard"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                          env=env, start_new_session=True))
+        deadline = time.monotonic() + 60
+        while not sched_file.is_file() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        out = region_dir / "out-many-dask"
+        killed = {}
+
+        def kill_one() -> None:  # once the first release is done, not after the last
+            folder = out / "releases"
+            while time.monotonic() < deadline:
+                done = list(folder.glob("*.nc")) if folder.is_dir() else []
+                if done:
+                    killed["done_then"] = len(done)
+                    procs[1].send_signal(signal.SIGKILL)
+                    return
+                time.sleep(0.02)
+
+        from distributed import Client
+
+        with Client(scheduler_file=str(sched_file), timeout=30) as client:
+            client.wait_for_workers(2, timeout=60)
+            killer = threading.Thread(target=kill_one, daemon=True)
+            killer.start()
+            outcome = run_region(region, out, scheduler=str(sched_file), quiet=True)
+            killer.join(5)
+        assert procs[1].wait(10) == -signal.SIGKILL
+        assert 0 < killed["done_then"] < len(boxes)  # killed in the middle
+        assert outcome.where == "scheduler" and outcome.failed == 0
+        assert (outcome.table.status == "ok").all() and len(outcome.table) == len(boxes)
+        a = xr.open_zarr(ref.store).load()
+        b = xr.open_zarr(outcome.store).load()
+        for name in a.data_vars:
+            assert np.array_equal(a[name].values, b[name].values, equal_nan=True), name
+        assert int(b.release_count.max()) >= 2
+    finally:
+        for proc in procs[::-1]:  # the workers first: else they wait for the scheduler
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
