@@ -124,9 +124,9 @@ def run_release(task: dict) -> dict:
     row["wall_time"] = time.perf_counter() - started
     if maps is not None:
         _write_result(path, row, maps)
-    else:  # a record without maps: kept too, so that resume does not retry a bad polygon
+    elif row["status"] == "invalid":  # kept without maps: resume does not retry the polygon
         _write_result(path, row, {"peak_thickness": np.full((1, 1), np.nan, np.float32)})
-    return row
+    return row  # a failed run keeps no file: a rerun tries it again
 
 
 def _run_growing(task, region, dem, row, outdir: Path) -> dict:

@@ -233,6 +233,9 @@ def _check_dem(dem: str, fail) -> None:
     if rotated:
         raise fail(("dem",), f"{dem}: rotated rasters are not supported; warp it north-up "
                              "first (gdalwarp)")
+    if t.a < 0 or t.e > 0:
+        raise fail(("dem",), f"{dem}: only north-up rasters with columns going east are "
+                             "supported; warp it first (gdalwarp)")
     if min(shape) < 2:
         raise fail(("dem",), f"{dem}: {shape[1]} x {shape[0]} cells; a DEM needs at least "
                              "2 x 2")

@@ -225,10 +225,14 @@ def estimate_buffer(dem: DemInfo, bbox, rules) -> float:
     ``search_radius`` of it, clipped to ``[min_buffer, search_radius]``."""
     if rules.buffer is not None:
         return float(rules.buffer)
+    import warnings
+
     box = pixel_box(dem, bbox)
-    top = np.nanmax(read_window(dem, box)) if _has_data(dem, box) else math.nan
     around = window_for(dem, bbox, rules.search_radius)
-    low = np.nanmin(read_window(dem, around)) if _has_data(dem, around) else math.nan
+    with warnings.catch_warnings():  # a box of NODATA only: NaN, the largest buffer below
+        warnings.simplefilter("ignore", RuntimeWarning)
+        top = np.nanmax(read_window(dem, box)) if _has_data(dem, box) else math.nan
+        low = np.nanmin(read_window(dem, around)) if _has_data(dem, around) else math.nan
     drop = top - low
     if not math.isfinite(drop):
         return float(rules.search_radius)
