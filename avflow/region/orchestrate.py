@@ -25,8 +25,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from avflow.ensemble.orchestrate import (ClusterError, Interrupted, _client,  # noqa: F401
-                                         _deferred_sigint, warm)
+# the ensembles' dask client (local cluster, --scheduler, warming) and Ctrl-C handling
+from avflow.ensemble.orchestrate import _client, _deferred_sigint
 from avflow.files import atomic_write, check_folder, check_target, output_lock, protected
 from avflow.region.run import COLUMNS, MERGED, read_result, release_key, result_path, \
     run_release

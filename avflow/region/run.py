@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from avflow.ensemble.orchestrate import checksum_path, file_sha256, write_checksum
-from avflow.files import atomic_text, atomic_write
+from avflow.files import atomic_write
 
 #: Status of a release merged into the maps, and of one merged although its flow reached
 #: the DEM's own border (no larger window exists: the map is then a lower bound there).
