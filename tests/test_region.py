@@ -154,6 +154,21 @@ def test_other_crs_is_recorded_on_stderr(region_dir, capsys):
     assert int(ds.release_count.max()) == 0  # nothing merged
 
 
+def test_a_relative_output_folder_from_another_folder_gives_the_same_maps(region_dir, small,
+                                                                          monkeypatch):
+    """`avflow region REGION.yaml -o maps` from the folder above the region: the windows'
+    files lie under OUTDIR, which must not be read from the region file's folder."""
+    monkeypatch.chdir(region_dir.parent)
+    code = main(["region", f"{region_dir.name}/small.yaml", "-o", "maps-relative",
+                 "--workers", "0", "-q"])
+    assert code == 1  # the three invalid releases of BOXES
+    rows = pd.read_csv(region_dir.parent / "maps-relative" / "releases.csv").set_index("id")
+    assert set(rows.loc[[1, 2], "status"]) == {"ok"}
+    a = xr.open_zarr(region_dir.parent / "maps-relative" / "region.zarr").load()
+    b = xr.open_zarr(small.store).load()
+    np.testing.assert_array_equal(a.peak_thickness.values, b.peak_thickness.values)
+
+
 def test_resume_reuses_finished_releases(region_dir, small):
     import avflow
 

@@ -110,7 +110,8 @@ def run_region(region, outdir, *, workers: int | None = None, scheduler: str | N
     ``outdir`` and merge them. ``workers``: local worker processes (0: here, no dask; None:
     one per core, or here when at most one release is left to run); ``scheduler``: address
     or scheduler file of a running dask scheduler; ``client``: a ``distributed.Client``."""
-    outdir = check_folder(Path(outdir), "region folder")
+    # absolute: the members' scenario files name their windows from their own folder
+    outdir = check_folder(Path(outdir).absolute(), "region folder")
     inputs = protected(region.input_files())
     check_target(outdir / TABLE, inputs, what="region output")
     store = outdir / STORE
