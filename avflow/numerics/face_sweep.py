@@ -649,11 +649,11 @@ MIN_PARALLEL_CELLS = 8192
 def pieces_stay_local(geo, n_faces: int, threads: int) -> bool:
     """Whether the step on ``threads`` threads pays on this mesh (``geo`` from
     :func:`geometry`): its pieces of the faces must leave most cells within one piece,
-    which a cell's faces do when they span few indices (``geo[6]``; 1,204 of 484k faces on
-    401 x 401 triangle nodes). A square grid numbers its x faces before its y faces, so its
-    cells' faces span half the faces, and nearly every cell would be shared by two pieces
-    and summed again: slower on 2 threads than on one (docs/performance.md). Grids run on
-    threads on the square-grid kernel."""
+    which a cell's faces do when they span few indices (``geo[6]``: a small share of the
+    faces on triangles, docs/performance.md). A square grid numbers its x faces before its
+    y faces, so its cells' faces span half the faces, and nearly every cell would be shared
+    by two pieces and summed again: slower on 2 threads than on one (docs/performance.md).
+    Grids run on threads on the square-grid kernel."""
     return 4 * (threads - 1) * int(geo[6][0]) <= n_faces
 
 
@@ -741,8 +741,8 @@ def _find_shared(runs, n_runs, n_touched, pairs, face_ptr, face_idx, span, edge_
     ``shared[i] = mark`` and listed in ``cells``; returns how many. The faces of a cell are
     in index order and span at most ``span`` indices, but for the ``edge_cells`` (with a
     boundary face, numbered far away), so such a cell is one of those or has its first face
-    within ``span`` below a cut, where only it is looked for (on 401 x 401 triangle nodes,
-    about 2,400 faces a cut and the 1,600 cells along the walls). Where that would visit
+    within ``span`` below a cut, where only it is looked for (a few thousand faces a cut
+    and the cells along the walls on triangles). Where that would visit
     more cells than are touched (a square grid, whose x faces come before its y faces: its
     span is half the faces), every touched cell is looked at instead (the same cells: a
     scan of every face within a span of each cut, at every step, cost a grid on faces many
