@@ -44,7 +44,7 @@ from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.vectorize import specialize
 
 #: A stage (or Heun's merge) that sweeps fewer cells than this runs serially, on step_faces
-#: and heun_faces (the measured break-even; see the README's order-2 figures)
+#: and heun_faces (the measured break-even: docs/performance.md, Order 2 on every core)
 MIN_PARALLEL_CELLS = 1024
 
 # Columns of the per-cell work array ``cell_sums`` (n, N_SUMS): a cell's terms of the sums

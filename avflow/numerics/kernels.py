@@ -221,7 +221,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         speed, inv_k = observe_cell(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
         inv_lim = max(inv_lim, inv_k)
         if observe:
-            # observers written out: as a helper (inlined or not) they cost the sweep 3x
+            # observers written out: as a helper, inlined or not, they slowed it (docs/performance.md)
             if hn > peak_h[k]:
                 peak_h[k] = hn
             if speed > peak_speed[k]:
@@ -288,7 +288,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
         ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
         length = face_length[f]
-        # both sides written out: through a helper taking the arrays the sweep ran 30% slower
+        # both sides written out: a helper taking the arrays slowed the sweep (docs/performance.md)
         if order2:  # the reconstructed state at the face
             hi = qi1 = qi2 = 0.0
             if h[i] > h_zero:
@@ -419,7 +419,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
         if observe:
-            # observers written out: as a helper (inlined or not) they cost the sweep 3x
+            # observers written out: as a helper, inlined or not, they slowed it (docs/performance.md)
             if hn > peak_h[i]:
                 peak_h[i] = hn
             if speed > peak_speed[i]:
@@ -483,7 +483,7 @@ def heun_faces(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cel
         hv_new[i] = qy
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
-        # observers written out: as a helper (inlined or not) they cost the sweep 3x
+        # observers written out: as a helper, inlined or not, they slowed it (docs/performance.md)
         if hn > peak_h[i]:
             peak_h[i] = hn
         if speed > peak_speed[i]:
@@ -520,7 +520,7 @@ def cell_faces(face_cells, n_cells):
     """The faces of every cell (CSR: ``idx[ptr[c]:ptr[c + 1]]``), in index order (the order
     in which the face sweeps add them to the cell: a sweep over a cell's own faces that
     sums them in this order gets the same bits). A counting sort, one pass over the faces
-    (numpy's stable argsort of the owners took 11 ms on 179k cells)."""
+    (cheaper than numpy's stable argsort of the owners: docs/performance.md)."""
     n_faces = face_cells.shape[0]
     ptr = np.zeros(n_cells + 1, dtype=np.int64)
     for f in range(n_faces):
@@ -689,10 +689,9 @@ def _agree(cells, count, h, hu, hv, h_to, hu_to, hv_to):
 
 #: The face kernel's time loop (order 1) mends its active lists (:func:`relist`) while at
 #: most this share of the wet cells became wet or dry in a step, and lists them again from
-#: the wet cells (:func:`activate`) beyond it. Measured on 6,349 wet triangle nodes growing
-#: by a ring: mending cost 0.3 of listing at a share of 0.02, 0.6 at 0.08, 1.0-1.6 at 0.19,
-#: 3 at 0.35 (the new faces are sorted, and where the wet cells are mostly new, their
-#: faces are all that are listed)
+#: the wet cells (:func:`activate`) beyond it: about where mending stops costing less than
+#: listing (measured: docs/performance.md; the new faces are sorted, and where the wet cells
+#: are mostly new, their faces are all that are listed)
 RELIST_SHARE = 0.15
 
 
@@ -710,9 +709,9 @@ def _in_index_order(items, count, stamps, stamp):
     blocks of :data:`SCAN_BLOCK` indices that hold one of its items, or sorted where that
     costs less (k log2 k against the blocks' indices). Only those blocks: on a grid the range
     a flow spans is the rows it covers times the map's width (its x faces and, far from
-    them, its y faces), and scanning all of it made a step on a map 4x larger 20% dearer;
-    weighing the sort against that whole range sorted the 12k faces of a flow on a 5 m DEM
-    (0.5 ms) where a scan of their 400-odd blocks takes 30 us.
+    them, its y faces), and scanning all of it made a step cost more on a larger map;
+    weighing the sort against that whole range sorted the faces of a flow on a DEM where a
+    scan of their blocks costs far less (docs/performance.md).
     """
     if count == 0:
         return 0

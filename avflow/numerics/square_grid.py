@@ -29,8 +29,8 @@ Each pass over a row (what cells emit, x faces, y faces, trial, final update) is
 that LLVM vectorises, 8 cells at a time with AVX-512 (:mod:`avflow.numerics.vectorize`
 says how): selects instead of jumps, one contiguous line per quantity (emitted values, face
 fluxes, frames, curvature), boundary faces in a second, scalar pass, and a copy of the
-sweep per friction law. 28 ns a cell on one core here, against 51 ns for the same
-arithmetic written with branches.
+sweep per friction law. The same arithmetic written with branches ran about twice as
+long a cell (docs/performance.md).
 
 ``prange`` runs serially when a function is compiled without ``parallel``: the sweep is
 compiled twice (serial and parallel), and one thread takes the serial one, which never
@@ -86,7 +86,7 @@ def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
 
     The face kernel's :func:`~avflow.numerics.physics.emitted_state` and
     :func:`~avflow.numerics.physics.speed_of`, the same operations on every value kept, so the
-    same bits, written without branches so that LLVM vectorises the loop (4x here): a dry
+    same bits, written without branches so that LLVM vectorises the loop: a dry
     cell divides by 1 and its results are replaced by zeros (selects, not jumps); the loop
     counts from 0 and its first index is clamped at 0, which lets LLVM drop Numba's
     wraparound of negative indices (with it the loop stays scalar).
@@ -189,8 +189,8 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
     (``frames``: the row's ``(4, nx + 1)`` normals).
 
     Two passes: every face inside the map (``1 <= k < nx``) as an INNER face, in one
-    branch-free loop that LLVM vectorises (:func:`_inner_select`; 2.5x the scalar loop
-    here), then the few others (walls, open sides, the map's two sides) again with
+    branch-free loop that LLVM vectorises (:func:`_inner_select`), then the few others
+    (walls, open sides, the map's two sides) again with
     :func:`_face_flux`, which overwrites them (a NO_FACE keeps values nobody reads)."""
     nx = emit.shape[1]
     e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
@@ -235,8 +235,8 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
     values, whatever the ring holds, are overwritten by the second pass).
 
     The twin of :func:`_x_faces` with the west cell at k - 1 there and the row below at c
-    here: one function taking that shift as an argument ran 4x slower (its loop stayed
-    scalar), so the two are written apart."""
+    here: in one function taking that shift as an argument the loop stayed scalar, so the
+    two are written apart."""
     b_h, b_u1, b_u2, b_c = below[E_H], below[E_U1], below[E_U2], below[E_C]
     b_s, b_kh, b_k3 = below[E_S], below[E_KH], below[E_K3]
     a_h, a_u1, a_u2, a_c = above[E_H], above[E_U1], above[E_U2], above[E_C]
@@ -293,7 +293,7 @@ def _side_terms(c, x_code, y_south, xf0, xf1, xf2, xf3, xf4, ys0, ys1, ys2, ys3,
     w_in = (x_code[c] & KIND) == INNER
     s_in = (y_south[c] & KIND) == INNER
     # every value loaded whichever is kept: a load under a condition becomes a masked
-    # load or a gather in the vector loop (here 40x slower than the scalar loop)
+    # load or a gather in the vector loop, slower than the scalar loop (docs/performance.md)
     w0, w1, w2, w3, w4 = xf0[c], xf1[c], xf2[c], xf3[c], xf4[c]
     s0, s1, s2, s3, s4 = ys0[c], ys1[c], ys2[c], ys3[c], ys4[c]
     return ((w0 if w_in else -w0), (w3 if w_in else -w1), (w4 if w_in else -w2),
@@ -373,10 +373,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
     grid-wide diagnostics differ from the face kernel's cell-by-cell sums by round-off).
 
     Two loops, because one loop over the forty-odd lines of both kept most of their base
-    pointers on the stack (some 200 stack loads and stores in 650 instructions per 8 cells:
-    14.1 ns a cell against 13.4 in two, on a row of 400 here); in one function, because
-    a call per loop cost a row about 200 ns more (837 against 623 ns a row of 8 cells, 1241
-    against 1052 for 24)."""
+    pointers on the stack; in one function, because a call per loop cost every row a
+    fixed overhead (both measured: docs/performance.md)."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
@@ -549,8 +547,8 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
     nothing from its neighbours, and what it writes (rows a..b) no other block writes.
 
     Compiled once per friction law with that law's copies of the cell loops
-    (:func:`~avflow.numerics.vectorize.by_law`): a call with some fifty arrays costs about
-    0.5 us, a layer of dispatch per row cost 2.5 ns a cell at 400 columns."""
+    (:func:`~avflow.numerics.vectorize.by_law`): one call per block, rather than a layer
+    of dispatch per row (docs/performance.md)."""
     ring = RING
     for k in range(a - 1, b + 3):
         # --- faces of row k: what rows k - 1 and k emit, computed once per cell
@@ -624,8 +622,8 @@ def _rings(n, nx):
     and lines of one row.
 
     Made once per solver (:meth:`~avflow.numerics.solver.Solver.advance` keeps them), not
-    per step: a set spans the map's width (1.4 MB at 2000 columns, whose fresh pages cost
-    0.7-1 ms a step to fault in and zero, here).
+    per step: a set spans the map's width, and fresh pages at every step would have to be
+    faulted in and zeroed (docs/performance.md).
     What a set holds from the blocks before it (of this step or the last: the ring was
     always reused from row to row) changes nothing: the passes over a row read the emitted
     values and face fluxes that the passes before them wrote in the same stage; a flag read
@@ -738,8 +736,8 @@ def _loops() -> dict:
 def grid_loop(law: int, parallel: bool):
     """The time loop (:func:`_advance_grid`: its arguments, its status codes) for one
     friction law, with the parallel sweep (``threads`` > 1) or without: each copy compiles
-    only its law's cell loops, and the serial one never the parallel sweep (a first run
-    compiled every law's, serial and parallel: 32 s here)."""
+    only its law's cell loops, and the serial one never the parallel sweep (compiling every
+    law's, serial and parallel, made the first run slow: docs/performance.md)."""
     return _LOOPS[law_kind(law), bool(parallel)]
 
 
@@ -780,9 +778,8 @@ def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, l
         short = (LANES - n % LANES) % LANES
         if n > 0 and 0 < short <= LANES - MIN_REMAINDER:
             # a whole vector iteration more instead of a scalar remainder of 3 cells or
-            # more (7 cells in scalar code cost a row 550 ns, 8 more cells in vector code
-            # 230): the cells added are not wet and touch no wet cell, so the sweep leaves
-            # them as they are
+            # more (it costs a row less: docs/performance.md): the cells added are not wet
+            # and touch no wet cell, so the sweep leaves them as they are
             up = min(short, nx - 1 - hi[r])
             hi[r] += up
             lo[r] = max(lo[r] - (short - up), 0)

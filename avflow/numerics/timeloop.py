@@ -75,8 +75,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     ``STRUCTURED``, ``ORDER2`` and ``PARALLEL`` are constants (``structured`` and ``order``
     are not read):
     Numba drops the branches of the other kinds before it types the function, so a run
-    compiles only the sweeps it uses (section 6 at order 1, Coulomb: 27 s -> 7 s cold, this
-    machine).
+    compiles only the sweeps it uses (a fraction of the compile time: docs/performance.md).
     """
     t = stats[ST_TIME]
     # order-2 work arrays: one allocation per call, none per step
@@ -212,9 +211,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                   and (same_lists or n_touched // 2 >= min_parallel_cells)):
                 # the same on threads, each on its piece of the faces (the same bits); on
                 # lists that changed, from twice as many cells (it cuts them and finds the
-                # cells its pieces share again: a pile spreading over 18k nodes ran 0.90x
-                # on 2 threads from 8,192, 0.98x from 16,384; on kept lists, 10k nodes all
-                # wet, 1.5x from 8,192)
+                # cells its pieces share again, a cost the threads must win back:
+                # docs/performance.md)
                 ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step_threads(
                     face_cells, face_frame, face_length, cell_area, cfl_factor, density,
                     gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
@@ -325,7 +323,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             # again), and on a few changes they are mended (order 2 lists with stamps of its
             # own in each stage). An order-1 face step counts the touched cells that became
             # wet or dry: with none, the wet cells are the last step's, and are not looked
-            # for again (a scan of every touched cell, 0.4 ms a step on 161k)
+            # for again (a scan of every touched cell saved)
             n_gained = 0
             n_lost = 0
             if wet_changes != 0:  # (none: the wet cells are the last step's, so is wet)
