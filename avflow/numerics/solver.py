@@ -97,6 +97,8 @@ class ThreadChoice:
     most: int
     choice: int = 1
     next_probe: int = 0
+    #: whether the flow has been large enough for threads (and their loop compiled)
+    ready: bool = False
     interval: int = 0
     PROBE_STEPS = 4
     FIRST_INTERVAL = 256
@@ -317,7 +319,7 @@ class Solver:
         if not layout.compact:
             flag.fill(DRY)
             flag[layout.place] = state.flag
-        status = self._loop(self.threads_used())(
+        status = self._loop(threads)(
             threads, layout.nx, layout.ny, layout.valid, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
             c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
@@ -343,11 +345,11 @@ class Solver:
     def kernels_cached(self) -> bool:
         """Whether this solver's time loop is compiled already (in this process, or in
         Numba's cache on disk): False means that its first call compiles it."""
-        return registry.is_cached(self._loop(self.threads_used()))
+        return registry.is_cached(self._loop(1 if self.threads is None else self.threads_used()))
 
     def describe_kernel(self) -> str:
         """What runs this solver, for the user: kernel, order, law, threads."""
-        threads = self.threads_used()
+        threads = 1 if self.threads is None else self.threads_used()
         law = {"samosat": "samosAT"}.get(Law(self.law).name.lower(), Law(self.law).name.title())
         return (f"the {self._kernel.name} kernel at order {self.order} with {law} friction"
                 + (f" on {threads} threads" if threads > 1 else ""))
@@ -415,7 +417,15 @@ class Solver:
         if auto is None or auto.most != self.threads_used():
             auto = self._auto = ThreadChoice(self.threads_used())
         while True:
-            if state.steps >= auto.next_probe:
+            if not auto.ready and state.steps >= auto.next_probe:
+                # threads only once the flow is large enough to run on them at all: until
+                # then the serial loop runs, and the threaded one is not even compiled
+                if np.count_nonzero(state.h) >= self._parallel_cells():
+                    self._warm(auto.most, state)
+                    auto.ready = True
+                else:
+                    auto.next_probe = state.steps + ThreadChoice.FIRST_INTERVAL
+            if auto.ready and state.steps >= auto.next_probe:
                 status = self._probe(auto, state, t_target, stop_volume, stop_kinetic,
                                      max_steps)
                 if status is not None:
@@ -425,6 +435,21 @@ class Solver:
                                       limit)
             if status != "max_steps" or limit == max_steps:
                 return status
+
+    def _parallel_cells(self) -> int:
+        """Cells from which a step of this solver's kernel runs on threads at all."""
+        if self._grid is not None:
+            return int(self._parallel_from[0])
+        return int(self._gather_from)
+
+    def _warm(self, threads: int, state: State) -> None:
+        """Compile (or load) the loop on ``threads`` with a call that takes no step, on a
+        copy of ``state``, so that a probe does not time a compile."""
+        import dataclasses
+
+        copy = State(**{f.name: getattr(state, f.name).copy()
+                        for f in dataclasses.fields(State)})
+        self._advance_on(threads, copy, copy.t, -1.0, -1.0, 10**9)
 
     def _probe(self, auto, state, t_target, stop_volume, stop_kinetic, max_steps):
         """A few steps timed on one thread, then on all, one at a time; ``auto`` decides.
@@ -457,7 +482,7 @@ class Solver:
             import numba
 
             numba.set_num_threads(threads)
-        status = self._loop(self.threads_used())(
+        status = self._loop(threads)(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
