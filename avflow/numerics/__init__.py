@@ -1,9 +1,16 @@
 """Stage 3, the numerics: pure arrays and scalars, nothing of YAML, xarray or dask.
 
-- :mod:`avflow.numerics.kinetic`: rectangular-Maxwellian half fluxes (seed eqs. 28-41);
+- :mod:`avflow.numerics.kinetic`, :mod:`avflow.numerics.physics`: the pointwise physics,
+  plain functions of scalars (half fluxes eqs. 28-41; threshold, projection, Dirac faces
+  eqs. 47-56; curvature eqs. 61-62), compiled for the CPU by :mod:`avflow.numerics.cpu`;
 - :mod:`avflow.numerics.rheology`: friction laws behind one signature (eqs. 15, 42-50);
-- :mod:`avflow.numerics.kernels`: the Numba sweeps of one step and the time loop (eqs. 26-56);
-- :mod:`avflow.numerics.square_grid`: the structured square-grid kernel, on Numba's threads;
+- :mod:`avflow.numerics.kernels`, :mod:`~avflow.numerics.profile`,
+  :mod:`~avflow.numerics.face_sweep`, :mod:`~avflow.numerics.face_gather`,
+  :mod:`~avflow.numerics.square_grid`, :mod:`~avflow.numerics.reconstruction`: the
+  traversals of one step (profiles, face lists, square-grid rows; order 2's reconstruction);
+- :mod:`avflow.numerics.stepping`, :mod:`avflow.numerics.timeloop`: the time loops' shared
+  rules (step size, stop rules, statistics) and the loop of profiles and faces;
+- :mod:`avflow.numerics.registry`: which kernel runs which scene, on which backend;
 - :mod:`avflow.numerics.solver`: :class:`~avflow.numerics.solver.Solver` and its state;
 - :mod:`avflow.numerics.analytic`: exact dam-break solutions to test against.
 
