@@ -10,11 +10,10 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, link_coordinates,
-                              per_width, time_coords)
+from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, grid_mapping,
+                              link_coordinates, per_width, run_bounds, time_coords)
 from avflow.output.ugrid import to_ugrid_dataset
 from avflow.simulation.runner import RunResult, flags_of, wet_cells
-from avflow.terrain.raster import cf_grid_mapping
 
 #: The variables on (time, space), one value per cell and snapshot (``v`` not on profiles).
 TIME_FIELDS = ("h", "u", "v", "flow_state")
@@ -160,18 +159,6 @@ class WindowedFields:
                 self.values[name][block][inside] = v
 
 
-def _grid_mapping(wkt):
-    """CF grid-mapping attributes of a CRS, without pyproj's UserWarning that a parameter CF
-    cannot name (Swiss LV95's rectified-to-skew angle) was dropped: ``crs_wkt`` and
-    ``spatial_ref`` carry the whole CRS, which GDAL, rioxarray and pyproj read first."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*lost in conversion to CF",
-                                category=UserWarning)
-        return cf_grid_mapping(wkt)
-
-
 def _union(a, b):
     """The box bounding boxes a and b (None: empty)."""
     if a is None or b is None:
@@ -254,14 +241,16 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                                  {**attrs("moving_volume"),
                                   "units": per_width("m3", profile)})
-    crs_attrs = None if profile else _grid_mapping(terrain.crs_wkt)
+    crs_attrs = None if profile else grid_mapping(terrain.crs_wkt)
     if crs_attrs:  # CF 5.6: every map names the CRS; GDAL reads crs_wkt / spatial_ref
-        coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
-                                            **crs_attrs})  # a coordinate: link_coordinates
         for name, (dims, _, attributes) in list(data.items()):
             if dims[-2:] == ("y", "x"):
                 attributes["grid_mapping"] = "crs"
+        if part != "fields":  # a data variable: see link_coordinates
+            data["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
+                                              **crs_attrs})
     if part != "fields":
+        data.update(run_bounds(times))
         s = result.summary
         for name, (units, description) in SUMMARIES.items():
             data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
