@@ -7,7 +7,8 @@ Public API:
   derives variants by dotted path);
 - :func:`run` runs a scenario (a path or a loaded scenario) and returns a CF ``xarray.Dataset``;
 - :func:`open_run` reads a file written by ``avflow run`` as the same Dataset;
-- :func:`run_ensemble` runs an ensemble (a file, a mapping or a list of scenarios).
+- :func:`run_ensemble` runs an ensemble (a file, a mapping or a list of scenarios);
+- :func:`run_region` runs every release area of a region into merged Zarr maps.
 """
 
 __version__ = "0.1.0"
@@ -150,5 +151,26 @@ def calibrate(calibration, outdir, *, workers=None, scheduler=None, quiet=False)
     return _calibrate(calibration, outdir, workers=workers, scheduler=scheduler, quiet=quiet)
 
 
+def run_region(region, outdir, *, workers=None, scheduler=None, quiet=False):
+    """Run every release of a region file (``avflow region``) into ``outdir`` and return
+    the merged maps, ``outdir/region.zarr``, as a lazy ``xarray.Dataset`` (``xr.open_zarr``).
+
+    ``region``: a region YAML file or a :class:`avflow.region.Region`; ``workers``: local
+    worker processes (0: here, no dask; None: one per core); ``scheduler``: address or
+    scheduler file of a running dask scheduler. ``outdir/releases.csv`` has one row per
+    release (status, volume, runout, travel angle, area, retries, wall time); a release
+    that cannot run is a row with its error, never an exception. See docs/guide/region.md.
+    """
+    import xarray as xr
+
+    from avflow.region import load_region
+    from avflow.region.orchestrate import run_region as _run
+
+    if not hasattr(region, "scenario_for"):
+        region = load_region(region)
+    outcome = _run(region, outdir, workers=workers, scheduler=scheduler, quiet=quiet)
+    return xr.open_zarr(outcome.store)
+
+
 __all__ = ["__version__", "AvflowError", "ScenarioError", "load_scenario", "run", "open_run",
-           "run_ensemble", "calibrate"]
+           "run_ensemble", "calibrate", "run_region"]

@@ -40,6 +40,12 @@ class Progress:
             self.stream.write("\n")
 
 
+def _compiling(what: str) -> None:
+    from avflow.numerics.registry import notify_compiling
+
+    notify_compiling(what)
+
+
 def summary_line(ds) -> str:
     """One line: what the run did and where the mass ended."""
     def f(name, fmt):
@@ -123,7 +129,8 @@ def _cmd_run(args) -> int:
             with SnapshotStream(out) as stream:
                 try:
                     result = simulate(scenario, progress=progress,
-                                      max_memory=args.max_memory, snapshots=stream)
+                                      max_memory=args.max_memory, snapshots=stream,
+                                      on_compile=None if args.quiet else _compiling)
                 finally:
                     progress.close()
                 if result.status not in SUCCESS_STATUSES:  # exit 1 writes nothing
@@ -271,6 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     pa.add_argument("-o", "--output", help="output stem (default: RUN_path next to the run "
                                            "file, OUTDIR/path for an ensemble)")
     pa.set_defaults(func=_cmd_path)
+    _add_region_parser(sub, quiet)
     ca = sub.add_parser("calibrate", help="calibrate parameters to an observed event "
                                           "(grid, lhs, bayes-opt, posterior); resumable",
                         parents=[quiet])
@@ -284,6 +292,44 @@ def build_parser() -> argparse.ArgumentParser:
                                         "scheduler")
     ca.set_defaults(func=_cmd_calibrate)
     return p
+
+
+def _add_region_parser(sub, quiet) -> None:
+    g = sub.add_parser("region", help="run every release area of a region file, each in its "
+                       "own window of the DEM, and merge them into Zarr maps; exit 1 if a "
+                       "release failed", parents=[quiet])
+    g.add_argument("region", help="region YAML file (DEM, release polygons, scenario block)")
+    g.add_argument("-o", "--output", required=True, help="output folder (region.zarr, "
+                   "releases.csv, releases/; resumable)")
+    g.add_argument("--workers", type=int, help="local worker processes (0: run here, no "
+                   "dask; default: one per core)")
+    g.add_argument("--scheduler", help="address (tcp://host:port) or scheduler file of a "
+                   "running dask scheduler (default: a local cluster)")
+    g.set_defaults(func=_cmd_region)
+
+
+def _cmd_region(args) -> int:
+    from avflow.ensemble.orchestrate import Interrupted
+    from avflow.region import load_region
+    from avflow.region.orchestrate import run_region
+
+    if args.workers is not None and args.workers < 0:
+        raise AvflowError(f"--workers must be >= 0, got {args.workers}")
+    region = load_region(args.region)  # every check of the file before any release runs
+    try:
+        outcome = run_region(region, args.output, workers=args.workers,
+                             scheduler=args.scheduler, quiet=args.quiet)
+    except (Interrupted, KeyboardInterrupt):
+        print("avflow: interrupted; the finished releases are kept in "
+              f"{Path(args.output) / 'releases'}: run the same command again to resume",
+              file=sys.stderr)
+        return 130
+    if not args.quiet:
+        print(f"{region.name}: {len(outcome.table)} releases, {outcome.ran} run, "
+              f"{outcome.reused} reused, {outcome.failed} not merged ({outcome.elapsed:.1f} s, "
+              f"{outcome.where}); wrote {outcome.store} and "
+              f"{Path(args.output) / 'releases.csv'}")
+    return 0 if outcome.failed == 0 else 1
 
 
 def _cmd_calibrate(args) -> int:

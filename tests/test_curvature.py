@@ -15,6 +15,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from avflow.numerics import kernels as K
+from avflow.numerics import stepping
 from avflow.terrain.bed import bed_hessian, curvature_tensor, plane_basis, profile_terrain, \
     surface_terrain
 from conftest import coulomb, walls
@@ -205,4 +206,4 @@ def test_flag_counts_clamped_cells_on_a_convex_crest():
     state = solver.new_state(np.where(np.abs(cx - 150.0) < 20.0, 2.0, 0.0))
     state.hu[:] = 40.0 * state.h  # launched downslope at 40 m/s
     solver.advance(state, 12.0)
-    assert state.stats[K.ST_CLAMPED] > 0
+    assert state.stats[stepping.ST_CLAMPED] > 0

@@ -14,6 +14,7 @@ import pytest
 
 from avflow.numerics import face_gather as FG
 from avflow.numerics import kernels as K
+from avflow.numerics import physics, stepping
 from avflow.numerics.reconstruction import reconstruct_cells
 from avflow.numerics.rheology import Law
 from avflow.numerics.solver import Solver
@@ -132,7 +133,7 @@ def test_a_stage_in_gather_form_is_step_faces(mesh_kind, law, params):
                                               err_msg=f"{name}, {where}")
         flags_seen.update(np.unique(ref[3][cells]).tolist())
         outflow += ref[0][1]
-    assert {K.FLOWING, K.UNDER_THRESHOLD, K.DRY} <= flags_seen or law != Law.COULOMB
+    assert {physics.FLOWING, physics.UNDER_THRESHOLD, physics.DRY} <= flags_seen or law != Law.COULOMB
     if mesh_kind == "grid" and law != Law.POULIQUEN:  # (Pouliquen's mass is still on its way)
         assert outflow > 0.0
 
@@ -159,7 +160,7 @@ def test_one_and_two_threads_give_the_same_run(mesh_kind):
         runs.append((state, stamps))
     assert_same_runs(runs)
     a = runs[0][0]
-    assert a.stats[K.ST_STEPS] > 50 and a.stats[K.ST_FALLBACK] > 0
-    assert K.UNDER_THRESHOLD in a.flag
+    assert a.stats[stepping.ST_STEPS] > 50 and a.stats[stepping.ST_FALLBACK] > 0
+    assert physics.UNDER_THRESHOLD in a.flag
     if mesh_kind == "grid":
-        assert a.stats[K.ST_OUTFLOW] > 0.0
+        assert a.stats[stepping.ST_OUTFLOW] > 0.0

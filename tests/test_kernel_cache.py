@@ -6,7 +6,8 @@ from pathlib import Path
 import pytest
 
 import avflow.numerics as numerics
-from avflow.numerics import face_sweep, kernels, kinetic, reconstruction, rheology, square_grid
+from avflow.numerics import (cpu, face_sweep, kernels, reconstruction, rheology, square_grid,
+                             timeloop)
 
 
 def test_a_change_to_any_kernel_source_is_a_new_cache_folder(monkeypatch):
@@ -33,11 +34,11 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
              for parallel in (False, True)]
     sweeps = [loop.py_func.__globals__[name] for loop in loops
               for name in ("sweep_serial", "sweep_parallel")]
-    for dispatcher in (*kernels.ADVANCE.values(), *face_sweep.STEP.values(),
+    for dispatcher in (*timeloop.ADVANCE.values(), *face_sweep.STEP.values(),
                        *face_sweep.STEP_THREADS.values(), *face_sweep.STEP_PIECES_SERIAL.values(),
                        kernels.step_faces,
                        kernels.step_profile,
-                       kinetic.half_fluxes, rheology.friction, reconstruction.reconstruct_faces,
+                       cpu.half_fluxes, cpu.trial_momentum, rheology.friction, reconstruction.reconstruct_faces,
                        reconstruction.reconstruct_cells,
                        *loops, *sweeps):
         assert Path(dispatcher._cache._cache_path).is_relative_to(folder), dispatcher

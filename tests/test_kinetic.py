@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from avflow.numerics.kernels import _project
+from avflow.numerics.cpu import project as _project
 from avflow.numerics.kinetic import SQRT3, density_factor, half_fluxes, sound_speed
 from avflow.numerics.rheology import h_stop, pouliquen_mu
 

@@ -8,7 +8,7 @@ import pytest
 
 from avflow.cli import main
 from avflow.errors import AvflowError, RunFailed, ScenarioError
-from avflow.numerics import kernels as K
+from avflow.numerics import stepping
 from avflow.numerics.solver import Solver
 from avflow.scenario.schema import MAX_SNAPSHOTS, load_scenario, parse_scenario
 from avflow.scenario.yamlio import MAX_ALIAS_VALUES
@@ -79,7 +79,7 @@ def poison(monkeypatch, where="h"):
         status = advance(self, state, t_target, **kw)
         if state.t >= 5.0:
             if where == "outflow":
-                state.stats[K.ST_OUTFLOW] = np.inf
+                state.stats[stepping.ST_OUTFLOW] = np.inf
             else:
                 getattr(state, where)[3] = np.nan
         return status

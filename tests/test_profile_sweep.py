@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from avflow.numerics import kernels as K
+from avflow.numerics import physics
 from avflow.numerics import profile as P
 from avflow.numerics.rheology import Law
 from avflow.numerics.solver import Solver
@@ -45,7 +46,7 @@ def one_step_both(solver, state, dt, dt_decide):
                          solver._cfl_factor, solver._density, t.gamma_x, t.gamma_z,
                          np.ascontiguousarray(t.curvature[:, 0]), state.h, state.hu, *new,
                          flag, *common, *obs, True, np.zeros((P.N_WORK, n + 2)),
-                         np.full(n + 2, K.DRY, dtype=np.uint8))
+                         np.full(n + 2, physics.DRY, dtype=np.uint8))
         out.append((res, *new, flag, obs))
     return out
 
@@ -100,7 +101,7 @@ def test_seed_section6_same_bits():
     sc = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
     _, h0, solver, _ = prepare(sc)
     seen = check_along_run(solver, h0, [0.0, 20.0, 60.0, 95.0])
-    assert {K.FLOWING, K.UNDER_THRESHOLD, K.DRY} <= seen  # every branch was exercised
+    assert {physics.FLOWING, physics.UNDER_THRESHOLD, physics.DRY} <= seen  # every branch was exercised
 
 
 @pytest.mark.parametrize("law,params", [

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scipy.optimize import brentq
 
 from avflow.errors import ScenarioError
-from avflow.numerics.kernels import _project
+from avflow.numerics.cpu import project as _project
 from avflow.numerics.rheology import Law, friction, friction_parameters, law_reference
 from avflow.output.dataset import to_dataset
 from avflow.scenario.schema import load_scenario, parse_scenario

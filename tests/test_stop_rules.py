@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from avflow.cli import main
-from avflow.numerics import kernels as K
+from avflow.numerics import stepping
 from avflow.output.dataset import to_dataset
 from avflow.scenario import load_scenario, parse_scenario
 from avflow.simulation.runner import simulate
@@ -178,7 +178,7 @@ def test_flow_reaching_the_dem_edge_is_flagged_and_warned(tmp_path, capsys, boun
     result = simulate(load_scenario(path))
     assert result.summary["runout_truncated"]
     if boundary == "outflow":
-        assert result.state.stats[K.ST_OUTFLOW] > 0.0
+        assert result.state.stats[stepping.ST_OUTFLOW] > 0.0
 
 
 def test_flow_that_stays_inside_is_not_flagged(tmp_path):

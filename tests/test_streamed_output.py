@@ -341,7 +341,7 @@ def sliding(terrain, records=12):
     """States of a blob that slides across the map, end to end, and leaves the cells behind
     it dry (h exactly 0), with what a window must not miss: discharges in dry cells, cells at
     rest, h = -0.0 far from the flow, a map dry for two records and then wet elsewhere."""
-    from avflow.numerics import kernels as K
+    from avflow.numerics import stepping
     from avflow.numerics.solver import State
 
     if terrain.kind == "profile":
@@ -362,8 +362,8 @@ def sliding(terrain, records=12):
             h[:] = 0.0
         if k == 7:
             h[np.argmax(d)] = -0.0  # not +0.0: refreshed (h -0.0, dry)
-        stats = np.zeros(K.N_STATS)
-        stats[K.ST_TIME] = float(k)
+        stats = np.zeros(stepping.N_STATS)
+        stats[stepping.ST_TIME] = float(k)
         yield State(h=h, hu=hu, hv=hv, flag=np.zeros(h.size, np.uint8), peak_h=h.copy(),
                     peak_speed=np.zeros(h.size), arrival=np.full(h.size, np.nan),
                     last_moved=np.full(h.size, np.nan), stats=stats)

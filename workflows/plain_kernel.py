@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.kinetic import SQRT3, half_fluxes
+from avflow.numerics.cpu import SQRT3, half_fluxes
 
 
 @njit(error_model="numpy", cache=True, inline="always")

@@ -23,7 +23,9 @@ from pathlib import Path
 
 #: What the kernels are compiled from: these modules, and the constants Numba freezes into
 #: them from the terrain (boundary and face codes).
-_KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/rheology.py", "numerics/kernels.py",
+_KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/physics.py", "numerics/cpu.py",
+                   "numerics/stepping.py", "numerics/timeloop.py",
+                   "numerics/rheology.py", "numerics/kernels.py",
                    "numerics/reconstruction.py", "numerics/square_grid.py", "numerics/vectorize.py",
                    "numerics/profile.py", "numerics/face_sweep.py", "numerics/face_gather.py",
                    "terrain/mesh.py", "terrain/squaregrid.py")
@@ -65,8 +67,8 @@ def _import_kernels() -> None:
         except OSError:  # sources unreadable (a zipped install): Numba's own locations
             pass
     try:
-        from avflow.numerics import (kernels, kinetic, reconstruction,  # noqa: F401
-                                     rheology, square_grid)
+        from avflow.numerics import (cpu, kernels, reconstruction,  # noqa: F401
+                                     rheology, square_grid, timeloop)
     finally:
         config.CACHE_DIR = saved
 

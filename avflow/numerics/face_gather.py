@@ -36,14 +36,15 @@ import math
 
 from numba import njit, prange
 
-from avflow.numerics.kernels import (DRY, OUTFLOW, UNDER_THRESHOLD, WALL, _centripetal,
-                                     _dirac_face, _emitted, _final_momentum, _limit, _moves,
-                                     _observe, _open_mass, _speed, _trial_momentum)
-from avflow.numerics.kinetic import half_flux_in, half_flux_out
+from avflow.numerics.cpu import (DRY, UNDER_THRESHOLD, cell_moves, centripetal_accel,
+                                 dirac_face, dt_from_inverse, emitted_state, final_momentum,
+                                 observe_cell, open_mass, speed_of, trial_momentum)
+from avflow.terrain.mesh import OUTFLOW, WALL
+from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.vectorize import specialize
 
 #: A stage (or Heun's merge) that sweeps fewer cells than this runs serially, on step_faces
-#: and heun_faces (the measured break-even; see the README's order-2 figures)
+#: and heun_faces (the measured break-even: docs/performance.md, Order 2 on every core)
 MIN_PARALLEL_CELLS = 1024
 
 # Columns of the per-cell work array ``cell_sums`` (n, N_SUMS): a cell's terms of the sums
@@ -74,7 +75,7 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         hi = qi1 = qi2 = 0.0
         if h[i] > h_zero:
             hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
-        hi, ui1, ui2, ci, si, khi, k3i = _emitted(hi, qi1, qi2, 0.0, g * gamma_z[i], density[i])
+        hi, ui1, ui2, ci, si, khi, k3i = emitted_state(hi, qi1, qi2, 0.0, g * gamma_z[i], density[i])
         uni = ui1 * ni_x + ui2 * ni_y
         uti = ui1 * ti_x + ui2 * ti_y
         fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
@@ -85,7 +86,7 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             hj = qj1 = qj2 = 0.0
             if h[j] > h_zero:
                 hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
-            hj, uj1, uj2, cj, sj, khj, k3j = _emitted(hj, qj1, qj2, 0.0, g * gamma_z[j],
+            hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[j],
                                                       density[j])
             unj = uj1 * nj_x + uj2 * nj_y
             utj = uj1 * tj_x + uj2 * tj_y
@@ -96,7 +97,7 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             utj = uti
         else:  # open side: transmissive for what leaves, closed to what would enter
             gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-            gm_h = _open_mass(fp_h + gm_h) - fp_h
+            gm_h = open_mass(fp_h + gm_h) - fp_h
             utj = uti
         f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
         f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
@@ -132,10 +133,10 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
             hv_new[i] = rate_y
             continue
         inv_area = 1.0 / cell_area[i]
-        qx, qy, fi = _trial_momentum(h[i], h_zero, _speed(h[i], hu[i], hv[i]), hu[i], hv[i],
+        qx, qy, fi = trial_momentum(h[i], h_zero, speed_of(h[i], hu[i], hv[i]), hu[i], hv[i],
                                      rate_h * inv_area, rate_x * inv_area, rate_y * inv_area,
                                      dt, dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
-                                     _centripetal(curvature, i, h[i], hu[i], hv[i]),
+                                     centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
                                      law, p0, p1, p2, p3, p4, p5, p6, p7, g, True)
         hu_new[i] = qx
         hv_new[i] = qy
@@ -160,7 +161,7 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
                     continue
             elif not (wet or h[k] > h_zero):
                 continue
-            if _dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
+            if dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
                 # a dry side takes momentum only with mass: the Dirac face (u = 0, eq. 53)
                 # carries neither, not even the resting neighbour's pressure
                 if dry:
@@ -187,21 +188,21 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         i = touched[c]
         area = cell_area[i]
         hn = h[i] + dt / area * h_new[i]
-        speed_n = _speed(h[i], hu[i], hv[i])
+        speed_n = speed_of(h[i], hu[i], hv[i])
         qx = hu_new[i]
         qy = hv_new[i]
         if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
             qx = dt * (qx / area + g * hn * gamma_x[i])
             qy = dt * (qy / area + g * hn * gamma_y[i])
-        qx, qy, cl = _final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
-                                     _centripetal(curvature, i, h[i], hu[i], hv[i]),
+        qx, qy, cl = final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
+                                     centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
                                      law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[i], True)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy
-        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         _keep_terms(cell_sums, i, hn < 0.0, inv_i, hn, area, speed,
-                    _moves(speed, speed_n, transport[i], hn), h_dry, cl)
+                    cell_moves(speed, speed_n, transport[i], hn), h_dry, cl)
 
     # the sums, cell after cell in the list's order; the outflow face after face
     failed, lim, moving, film, kinetic, clamped = _add_terms(touched, n_touched, cell_sums)
@@ -212,7 +213,7 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         f = active_faces[a]
         if face_cells[f, 1] == OUTFLOW:
             i = face_cells[f, 0]
-            if not _dirac_face(dirac, flag[i], flag[i]):
+            if not dirac_face(dirac, flag[i], flag[i]):
                 outflow += max(flux[f, 0], 0.0) * dt
     return True, outflow, lim, moving, film, clamped, kinetic
 
@@ -241,7 +242,7 @@ def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cel
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy
-        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         if hn > peak_h[i]:
             peak_h[i] = hn
         if speed > peak_speed[i]:
@@ -251,7 +252,7 @@ def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cel
         if speed > 0.0:
             last_moved[i] = t_new
         _keep_terms(cell_sums, i, False, inv_i, hn, cell_area[i], speed,
-                    _moves(speed, _speed(h0[i], hu0[i], hv0[i]), transport[i], hn), h_dry,
+                    cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn), h_dry,
                     fell_back)
     _, lim, moving, film, kinetic, fallbacks = _add_terms(cells, n_cells, cell_sums)
     return lim, moving, film, kinetic, fallbacks
@@ -289,7 +290,7 @@ def _add_terms(cells, n_cells, cell_sums):
         moving += cell_sums[i, S_MOVING]
         film += cell_sums[i, S_FILM]
         count += int(cell_sums[i, S_COUNT])
-    return failed, _limit(inv_lim), moving, film, kinetic, count
+    return failed, dt_from_inverse(inv_lim), moving, film, kinetic, count
 
 
 #: Each compiled twice under its own name: on Numba's threads, and serial (``prange`` runs

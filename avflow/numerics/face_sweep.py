@@ -21,14 +21,9 @@ one run). Each pass over cells is one loop without jumps over a run, which LLVM 
 5. per touched cell, the new thickness, the projection of eq. 50, the observers, and the
    step's sums, added cell after cell in the lists' order (step_faces' order).
 
-Measured on 401 x 401 triangle nodes, all wet, one core of this machine class (a shared
-Intel Xeon whose speed varies by a third from one minute to the next: the best of 25 calls
-interleaved with step_faces in one process): a step costs 102-105 ns a node against
-129-130 for step_faces (84-93 against 121-135 a cell on a 400 x 400 grid). The cell passes
-cost 10, 4 and 19 ns a node (emit, trial, final with the sums) against 12, 10 and 58;
-pass 4, 7 ns against 23 (it passes over the faces between flowing cells). The face pass,
-21 ns a face, scalar and bound by its arithmetic, is step_faces' own, and is now two thirds
-of the step.
+The vector cell passes cost less than step_faces' cell loops; the face pass, scalar and
+bound by its arithmetic, is step_faces' own, and is most of the step (the figures:
+docs/performance.md, "Measurements moved out of the code").
 
 On threads (:func:`_step_threads`, below) the same passes run on pieces: the cell passes
 on pieces of the runs, the two face passes on one piece of the active faces a thread, each
@@ -45,10 +40,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.kernels import (DRY, FLOWING, OUTFLOW, TRANSPORT_EPS, WALL, _dirac_face,
-                                     _final_momentum, _limit, _observe, _open_mass,
-                                     _trial_momentum)
-from avflow.numerics.kinetic import half_flux_in, half_flux_out
+from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dirac_face, dt_from_inverse,
+                                 final_momentum, observe_cell, open_mass, trial_momentum)
+from avflow.terrain.mesh import OUTFLOW, WALL
+from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
 from avflow.numerics.vectorize import friction_law, law_copies, law_label, noalias, specialize
@@ -100,8 +95,8 @@ def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=Fa
 
 #: The Dirac pass gathers over the faces of each cell at zero temperature (under the
 #: threshold or dry) while there are fewer than one such cell for this many active faces;
-#: with more, it sweeps every active face (2 ns a face; a cell's gather costs some 6 faces
-#: of 4-5 ns)
+#: with more, it sweeps every active face (a cell's gather costs what sweeping a dozen-odd
+#: faces does: docs/performance.md)
 COLD_GATHER = 32
 
 
@@ -193,7 +188,7 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
         utj = uti
     else:  # open boundary: transmissive for what leaves, closed to what would enter
         gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-        gm_h = _open_mass(fp_h + gm_h) - fp_h
+        gm_h = open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
     f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
@@ -209,11 +204,10 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
     mass flux is kept (``mass[f]``): the few Dirac faces with a dry side recompute their
     momentum in :func:`_add_masses`. Returns the volume that leaves through the open faces
     if every cell flows (:func:`_add_masses`' sum, in its order: a step whose cells all flow
-    has no Dirac face, and skips that pass). Scalar, about 14-20 ns a face here, bound by its
-    arithmetic (reading the frames alone costs 3): a vector loop over lines of the cells'
-    values copied per block of faces took 31 ns, the copies 8 of them (LLVM keeps a loop
-    that gathers the cells' values itself scalar); a vector loop that writes each face's
-    fluxes into lines, the sums then taken per cell, 18 ns.
+    has no Dirac face, and skips that pass). Scalar, bound by its arithmetic: LLVM keeps a
+    loop that gathers the cells' values itself scalar, and the vector forms tried (the
+    cells' values copied into lines per block of faces; each face's fluxes written into
+    lines, the sums then taken per cell) were no faster (docs/performance.md).
 
     On threads (:func:`_step_threads`, each thread on its own piece of the faces; the copy
     ``FACE_FLUXES[True]``): the cells whose faces lie in more than one piece have
@@ -297,7 +291,7 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
             if some and (f < safe_lo or f > safe_hi or near_edge[f] != 0):
                 own_i = shared[i] != mark
                 own_j = own_j and shared[j] != mark
-            if _dirac_face(dirac, fl_i, fl_j):
+            if dirac_face(dirac, fl_i, fl_j):
                 if (fl_i == DRY and own_i) or (own_j and fl_j == DRY):
                     _, qix, qiy, qjx, qjy = _face_flux(f, i, j, face_frame, face_length, e_h,
                                                        e_u1, e_u2, e_c, e_s, e_kh, e_k3)
@@ -326,7 +320,7 @@ def _emit_cells(runs, n_runs, h, hu, hv, gamma_z, density, h_zero, g, o_h, o_u1,
     """The cells of the runs: what each emits through its faces (the square-grid kernel's
     :func:`~avflow.numerics.square_grid.emitted_cell`, one line per value); its sums and
     transport start at 0."""
-    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as kernels._emitted
+    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as physics.emitted_state
     for r in range(n_runs):
         a = max(runs[2 * r], 0)
         for k in range(runs[2 * r + 1] + 1 - a):
@@ -370,7 +364,7 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
             u1 = e_u1[i]
             u2 = e_u2[i]
             centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2
-            qx, qy, fi = _trial_momentum(h[i], h_zero, e_speed[i], hu[i], hv[i], mh * ia, mx * ia,
+            qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[i], hu[i], hv[i], mh * ia, mx * ia,
                                          my * ia, dt, dt_decide, gamma_x[i], gamma_y[i],
                                          gamma_z[i], centripetal, lw, p0, p1, p2, p3, p4, p5, p6,
                                          p7, g, False)
@@ -421,9 +415,9 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             u2 = e_u2[i]
             centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2
             gz = gamma_z[i]
-            qx, qy, cl = _final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
+            qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
                                          p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
-            speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gz, g)
+            speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gz, g)
             old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
             old_arrival, old_moved = arrival[i], last_moved[i]
             h_new[i] = hn
@@ -434,7 +428,7 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             arrival[i] = t_new if good & (hn > h_dry) & math.isnan(old_arrival) else old_arrival
             last_moved[i] = t_new if good & (speed > 0.0) else old_moved
             clamped += cl
-            # kernels._moves with the largest |F_h| / L of the faces that carried mass
+            # physics.cell_moves with the largest |F_h| / L of the faces that carried mass
             moves = (speed > 0.0) & ((speed_n == 0.0)
                                      | (transport[i] > TRANSPORT_EPS * hn * speed_n))
             t_inv[i] = inv_i
@@ -462,7 +456,7 @@ def _step_sums(runs, n_runs, per_cell):
             kinetic += t_kin[i]
             moving += t_mov[i]
             film += t_film[i]
-    return _limit(inv_lim), moving, film, kinetic
+    return dt_from_inverse(inv_lim), moving, film, kinetic
 
 
 #: The cell passes per law kind (:func:`~avflow.numerics.vectorize.law_copies`)
@@ -522,7 +516,7 @@ def _cold_masses(i, face_ptr, face_idx, face_stamp, stamp, pairs, face_frame, fa
         j = pairs[f, 1]
         first = k == i
         fl_k = flag[k]
-        if _dirac_face(dirac, fl_k, flag[j] if j >= 0 else fl_k):
+        if dirac_face(dirac, fl_k, flag[j] if j >= 0 else fl_k):
             if fl == DRY:  # takes back the momentum it brought to the trial
                 _, qix, qiy, qjx, qjy = _face_flux(f, k, j, face_frame, face_length, e_h,
                                                    e_u1, e_u2, e_c, e_s, e_kh, e_k3)
@@ -550,7 +544,7 @@ def _open_outflow(open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt):
     for o in range(open_faces.size):
         f = open_faces[o]
         i = pairs[f, 0]
-        if face_stamp[f] == stamp and not _dirac_face(dirac, flag[i], flag[i]):
+        if face_stamp[f] == stamp and not dirac_face(dirac, flag[i], flag[i]):
             outflow += max(mass[f], 0.0) * dt
     return outflow
 
@@ -565,8 +559,8 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
     whose runs it holds; a face is listed when ``face_stamp[f] == stamp``. ``h_new,
     hu_new, hv_new`` first hold the cells' sums; ``transport`` (per cell): the largest
     ``|F_h| / L`` through its faces. Each
-    pass is one call over all the runs of its list (a call per run cost a flow on a map 4x
-    larger, cut into more runs, a fifth more). Returns
+    pass is one call over all the runs of its list (a call per run made a flow cut into
+    many runs dearer: docs/performance.md). Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic, wet_changes)``, the last the
     touched cells that became wet or dry (none: the next step's lists are these)."""
     pairs, inv_area, curv = geo[0], geo[1], geo[2]
@@ -592,7 +586,7 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
                          flag, h_new, hu_new, hv_new)
     # 4. the mass through the faces that are not Dirac, in face order; what left through
     # the open ones (where every touched cell flows, no face is Dirac and pass 2's sums
-    # and outflow stand: a scan of every active face, a tenth of an all-wet step, saved;
+    # and outflow stand: a scan of every active face saved;
     # where a few are cold, each sums its own faces)
     if n_cold > 0 and n_cold * wk[6][CUT_COLD_GATHER] < n_active:
         cold = wk[10]
@@ -646,21 +640,20 @@ MAX_PIECES = 256
 #: active faces (by default the threads: each cut between two pieces makes shared cells)
 MIN_PIECE = 256
 #: A step of fewer touched cells than this runs serially (:func:`_step`) in the copy of
-#: the time loop with threads: below it, on 2 threads here, waking the pool for the
-#: step's passes costs what the second core saves (README, Kernels and threads); a step
-#: whose lists changed, below twice this (cutting them again costs it)
+#: the time loop with threads: below it, waking the pool for the step's passes costs what
+#: the other cores save (measured on 2 threads: docs/performance.md, Kernels and threads);
+#: a step whose lists changed, below twice this (cutting them again costs it)
 MIN_PARALLEL_CELLS = 8192
 
 
 def pieces_stay_local(geo, n_faces: int, threads: int) -> bool:
     """Whether the step on ``threads`` threads pays on this mesh (``geo`` from
     :func:`geometry`): its pieces of the faces must leave most cells within one piece,
-    which a cell's faces do when they span few indices (``geo[6]``; 1,204 of 484k faces on
-    401 x 401 triangle nodes). A square grid numbers its x faces before its y faces, so its
-    cells' faces span half the faces, and nearly every cell would be shared by two pieces
-    and summed again: on ``avakot_coulomb.yaml`` at 5 m on faces the time loop took 1.78 s
-    on 2 threads (18 s before :func:`_find_shared` looked among the touched cells) against
-    1.04 s on one. Grids run on threads on the square-grid kernel."""
+    which a cell's faces do when they span few indices (``geo[6]``: a small share of the
+    faces on triangles, docs/performance.md). A square grid numbers its x faces before its
+    y faces, so its cells' faces span half the faces, and nearly every cell would be shared
+    by two pieces and summed again: slower on 2 threads than on one (docs/performance.md).
+    Grids run on threads on the square-grid kernel."""
     return 4 * (threads - 1) * int(geo[6][0]) <= n_faces
 
 
@@ -748,12 +741,12 @@ def _find_shared(runs, n_runs, n_touched, pairs, face_ptr, face_idx, span, edge_
     ``shared[i] = mark`` and listed in ``cells``; returns how many. The faces of a cell are
     in index order and span at most ``span`` indices, but for the ``edge_cells`` (with a
     boundary face, numbered far away), so such a cell is one of those or has its first face
-    within ``span`` below a cut, where only it is looked for (on 401 x 401 triangle nodes,
-    about 2,400 faces a cut and the 1,600 cells along the walls). Where that would visit
+    within ``span`` below a cut, where only it is looked for (a few thousand faces a cut
+    and the cells along the walls on triangles). Where that would visit
     more cells than are touched (a square grid, whose x faces come before its y faces: its
     span is half the faces), every touched cell is looked at instead (the same cells: a
-    scan of 137k faces a cut at every step cost avaKot's 5 m grid on faces 12x its time
-    on one thread)."""
+    scan of every face within a span of each cut, at every step, cost a grid on faces many
+    times its time on one thread: docs/performance.md)."""
     n = 0
     if 2 * (n_pieces - 1) * (span + 2) + edge_cells.size > n_touched:
         for r in range(n_runs):
@@ -831,7 +824,7 @@ def _cut_lists(active_faces, n_active, touched, n_touched, same, pairs, face_ptr
     cells' segments and bounds, then the faces', then each face piece's first face), and
     the shared cells found (:func:`_find_shared`). On the lists of the last step
     (``same``) what it made is used again, if it was made on threads (a flow covering its
-    whole mesh, 0.5 ms a step on 484k faces). Returns the numbers of runs of cells and of
+    whole mesh cuts nothing again). Returns the numbers of runs of cells and of
     faces, of pieces of each, and of shared cells."""
     runs, pieces, cut, shared, shared_cells = wk[3], wk[5], wk[6], wk[8], wk[9]
     if same and cut[CUT_PIECES_KEPT] == 1:

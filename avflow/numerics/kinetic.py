@@ -15,19 +15,17 @@ mass of the cell it comes from, which is why h stays >= 0 under the CFL conditio
 A zero temperature (``c = 0``) gives the Dirac density of eqs. 51, 53 and 55: particles move
 with the fluid velocity and no pressure wave propagates.
 
-These functions are scalar and inlined into the sweeps of :mod:`avflow.numerics.solver`.
+These functions are plain scalar functions: :mod:`avflow.numerics.cpu` compiles them, with
+:mod:`avflow.numerics.physics`, into the traversals.
 """
 
 from __future__ import annotations
 
 import math
 
-from numba import njit
-
 SQRT3 = math.sqrt(3.0)  # omega_M of the rectangular density, eq. 32
 
 
-@njit(error_model="numpy", cache=True, inline="always")
 def sound_speed(h, g_normal):
     """Kinetic 'temperature' c = sqrt(g cos(theta) h / 2) (eq. 29), m/s; 0 where dry."""
     if h <= 0.0 or g_normal <= 0.0:
@@ -47,7 +45,6 @@ def density_factor(g_normal):
         return 1.0 / (SQRT3 * np.asarray(g_normal, dtype=float))
 
 
-@njit(error_model="numpy", cache=True, inline="always")
 def half_fluxes(h, un, c, k):
     """Outward and inward half-fluxes of one cell through a face, per unit face length.
 
@@ -82,7 +79,6 @@ def half_fluxes(h, un, c, k):
     return fp_h, fp_q, fm_h, fm_q
 
 
-@njit(error_model="numpy", cache=True, inline="always")
 def half_flux_out(h, un, c, s, kh, k3):
     """``(fp_h, fp_q)`` of :func:`half_fluxes` from a cell's factors computed once per step
     (``s = sqrt(3) c``, ``kh = k / 2``, ``k3 = k / 3``): the same operations, the same bits,
@@ -100,7 +96,6 @@ def half_flux_out(h, un, c, s, kh, k3):
     return kh * (bp * bp - ap * ap), k3 * (bp * bp * bp - ap * ap * ap)
 
 
-@njit(error_model="numpy", cache=True, inline="always")
 def half_flux_in(h, un, c, s, kh, k3):
     """``(fm_h, fm_q)`` of :func:`half_fluxes`, as :func:`half_flux_out`."""
     if h <= 0.0:

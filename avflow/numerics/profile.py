@@ -25,9 +25,9 @@ import math
 
 from numba import njit
 
-from avflow.numerics.kernels import (DRY, FLOWING, TRANSPORT_EPS, _final_momentum, _limit,
-                                     _observe, _open_mass, _trial_momentum)
-from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
+                                 observe_cell, open_mass, trial_momentum)
+from avflow.numerics.cpu import SQRT3, half_fluxes, sound_speed
 from avflow.numerics.vectorize import (friction_law, in_select, law_copies, law_kind, law_label,
                                        line_sum, noalias, out_select, specialize)
 from avflow.terrain.mesh import OUTFLOW, WALL
@@ -47,7 +47,7 @@ def _emit(n, h, hu, gamma_z, density, h_zero, g, up_h, up_q, down_h, down_q, spe
     h_wet = max(h_zero, 0.0)
     for k in range(n):
         hk = h[k]
-        wet = hk > h_wet  # _emitting(): h if h > h_zero else 0
+        wet = hk > h_wet  # emitting(): h if h > h_zero else 0
         he = hk if wet else 0.0
         hs = hk if wet else 1.0
         g_normal = g * gamma_z[k]
@@ -88,7 +88,7 @@ def _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h
         c0 = sound_speed(h0, g * gamma_z[0])
         u0 = hu[0] / h0 if h0 > 0.0 else 0.0
         gp_h, gp_q, _, _ = half_fluxes(h0, min(u0, 0.0), c0, c0 * density[0])
-        flux_h[0] = _open_mass(-(gp_h + down_h[0])) * -1.0
+        flux_h[0] = open_mass(-(gp_h + down_h[0])) * -1.0
         flux_q[0] = gp_q + down_q[0]
     m = n - 1
     if right == WALL:
@@ -99,7 +99,7 @@ def _ends(n, h, hu, gamma_z, density, h_zero, g, left, right, up_h, up_q, down_h
         um = hu[m] / hm if hm > 0.0 else 0.0
         cm = sound_speed(hm, g * gamma_z[m])
         _, _, gm_h, gm_q = half_fluxes(hm, max(um, 0.0), cm, cm * density[m])
-        flux_h[n] = _open_mass(up_h[m] + gm_h)
+        flux_h[n] = open_mass(up_h[m] + gm_h)
         flux_q[n] = up_q[m] + gm_q
 
 
@@ -114,7 +114,7 @@ def _trial(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params
     for k in range(n):
         u = speed[k]
         fl_h, fr_h, fl_q, fr_q = flux_h[k], flux_h[k + 1], flux_q[k], flux_q[k + 1]
-        qx, _, fk = _trial_momentum(h[k], h_zero, u, hu[k], 0.0, (fl_h - fr_h) / dx,
+        qx, _, fk = trial_momentum(h[k], h_zero, u, hu[k], 0.0, (fl_h - fr_h) / dx,
                                     (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
                                     gamma_z[k], kappa[k] * (u * u), lw, p0, p1, p2, p3, p4, p5,
                                     p6, p7, g, False)
@@ -148,7 +148,7 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         cfl_k = cfl_factor[k]
         old_peak_h, old_peak_speed = peak_h[k], peak_speed[k]
         old_arrival, old_moved = arrival[k], last_moved[k]
-        cold = dirac & (fk != FLOWING)  # _dirac_face(); the ends' ghosts share the flag
+        cold = dirac & (fk != FLOWING)  # dirac_face(); the ends' ghosts share the flag
         dirac_l = cold & (f_l != FLOWING)
         dirac_r = cold & (f_r != FLOWING)
         fl = 0.0 if dirac_l else fl
@@ -161,7 +161,7 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         qr = 0.0 if dirac_r else qr
         dry_q = dt * ((ql - qr) / dx + g * hn * gx)
         q = dry_q if (fk == DRY) & (dirac_l | dirac_r) else q
-        qx, _, cl = _final_momentum(fk, speed_n, hn, h_zero, q, 0.0, dt, gz,
+        qx, _, cl = final_momentum(fk, speed_n, hn, h_zero, q, 0.0, dt, gz,
                                     kap * (speed_n * speed_n), lw, p0, p1, p2, p3, p4, p5, p6,
                                     p7, g, h_old, False)
         h_new[k] = hn
@@ -169,13 +169,13 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         hv_new[k] = 0.0
         flag[k] = fk
         clamped += cl
-        speed_k, inv_k = _observe(hn, abs(qx), cfl_k, gz, g)
+        speed_k, inv_k = observe_cell(hn, abs(qx), cfl_k, gz, g)
         peak_h[k] = hn if observe & (hn > old_peak_h) else old_peak_h
         peak_speed[k] = speed_k if observe & (speed_k > old_peak_speed) else old_peak_speed
         arrives = observe & (hn > h_dry) & math.isnan(old_arrival)
         arrival[k] = t_new if arrives else old_arrival
         last_moved[k] = t_new if observe & (speed_k > 0.0) else old_moved
-        # kernels._moves with the transport max(|fl|, |fr|)
+        # physics.cell_moves with the transport max(|fl|, |fr|)
         transport = max(abs(fl), abs(fr))
         moves = (speed_k > 0.0) & ((speed_n == 0.0) | (transport > TRANSPORT_EPS * hn * speed_n))
         t_inv[k] = inv_k
@@ -236,7 +236,7 @@ def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, 
     inv_lim = 0.0
     for k in range(n):
         inv_lim = max(inv_lim, t_inv[k])
-    return (True, outflow, _limit(inv_lim), line_sum(t_mov, 0, n - 1),
+    return (True, outflow, dt_from_inverse(inv_lim), line_sum(t_mov, 0, n - 1),
             line_sum(t_film, 0, n - 1), clamped, line_sum(t_kin, 0, n - 1))
 
 

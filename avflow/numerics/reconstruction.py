@@ -4,7 +4,7 @@ The seed's scheme is first order: every face sees the cell averages. Its second-
 (Perthame's and Audusse-Bristeau's kinetic schemes, cited in the seed's section 3) applies
 the same kinetic flux (eqs. 38-40) to the thickness and velocity *reconstructed* at each face
 from limited slopes, with a two-stage strong-stability-preserving Runge-Kutta (Heun) in time
-(:func:`avflow.numerics.kernels.time_loop`). Pure numerics: arrays and scalars only.
+(:func:`avflow.numerics.timeloop.time_loop`). Pure numerics: arrays and scalars only.
 
 Limiters (``numerics.limiter``):
 
@@ -151,7 +151,7 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
                 uo1 = uc1
                 uo2 = uc2
             # Green-Gauss sums (face value: the mean of the two sides) and the neighbours'
-            # range, written out: Numba helpers taking arrays cost these sweeps 2-3x
+            # range, written out: helpers taking arrays slowed these sweeps (docs/performance.md)
             wx = w * nx
             wy = w * ny
             mid = 0.5 * (hc + ho)
@@ -233,8 +233,7 @@ def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_are
                       h_zero, cell_face_ptr, cell_face_idx, touched, n_touched, velocity,
                       face_state):
     """:func:`reconstruct_faces`' face states, cell after cell: the same bits (what the
-    order-2 time loop runs). Measured on a pile spreading over 6.3k of 161k triangle nodes
-    (4.2k of a 400 x 400 grid), one process, interleaved: 1.31x (1.25x) faster.
+    order-2 time loop runs), faster than the sweep over faces (docs/performance.md).
 
     Each touched cell sweeps its own faces (``cell_face_idx[cell_face_ptr[c]:
     cell_face_ptr[c + 1]]``, in index order, as :func:`avflow.numerics.kernels.cell_faces`

@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from avflow.numerics import kernels as K
-from avflow.numerics import face_sweep  # noqa: I001 (after kernels, which it builds on)
-from avflow.numerics import face_gather
+from avflow.numerics import face_gather, face_sweep, kernels, registry, stepping
+from avflow.numerics.physics import DRY, UNDER_THRESHOLD
+from avflow.numerics.stepping import ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, Statistics
 from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
@@ -26,10 +26,10 @@ from avflow.terrain.bed import Terrain
 from avflow.terrain.squaregrid import SquareGrid, square_grid
 
 STATUS_NAMES = {
-    K.REACHED_TARGET: "running",
-    K.STOPPED: "stopped",
-    K.MAX_STEPS: "max_steps",
-    K.FAILED: "failed",
+    stepping.REACHED_TARGET: "running",
+    stepping.STOPPED: "stopped",
+    stepping.MAX_STEPS: "max_steps",
+    stepping.FAILED: "failed",
 }
 
 
@@ -40,20 +40,25 @@ class State:
     h: np.ndarray  #: thickness normal to the bed, m
     hu: np.ndarray  #: discharge along the first tangent axis, m^2/s
     hv: np.ndarray  #: discharge along the second tangent axis, m^2/s
-    flag: np.ndarray  #: uint8 per cell from the last step: kernels.FLOWING / UNDER_THRESHOLD / DRY
+    flag: np.ndarray  #: uint8 per cell from the last step: physics.FLOWING / UNDER_THRESHOLD / DRY
     peak_h: np.ndarray  #: running maximum of h, m
     peak_speed: np.ndarray  #: running maximum of |u|, m/s
     arrival: np.ndarray  #: first time h exceeded the dry threshold, s (NaN: never)
     last_moved: np.ndarray  #: end of the last step in which u != 0, s (NaN: never moved)
-    stats: np.ndarray = field(default_factory=lambda: np.zeros(K.N_STATS))
+    stats: np.ndarray = field(default_factory=lambda: np.zeros(stepping.N_STATS))
+
+    @property
+    def statistics(self) -> Statistics:
+        """The time loop's statistics, by name."""
+        return Statistics(self.stats)
 
     @property
     def t(self) -> float:
-        return float(self.stats[K.ST_TIME])
+        return float(self.stats[ST_TIME])
 
     @property
     def steps(self) -> int:
-        return int(self.stats[K.ST_STEPS])
+        return int(self.stats[ST_STEPS])
 
     def speed(self) -> np.ndarray:
         """|u| per cell (m/s), 0 where dry."""
@@ -83,6 +88,32 @@ def face_offsets(terrain: Terrain) -> np.ndarray:
 
 
 @dataclass
+class ThreadChoice:
+    """Which threads the next steps of a solver with ``threads`` None run on: all of them
+    (``most``) or one. :data:`PROBE_STEPS` steps are timed on each; all threads are kept
+    only when at least :data:`GAIN` faster. Probed again after :data:`FIRST_INTERVAL`
+    steps, then twice as late each time the same clear choice stands."""
+
+    most: int
+    choice: int = 1
+    next_probe: int = 0
+    #: whether the flow has been large enough for threads (and their loop compiled)
+    ready: bool = False
+    interval: int = 0
+    PROBE_STEPS = 4
+    FIRST_INTERVAL = 256
+    GAIN = 0.9
+
+    def decide(self, one: float, many: float, steps: int) -> None:
+        """``one``, ``many``: seconds the probe's steps took on one thread and on all."""
+        choice = self.most if many < self.GAIN * one else 1
+        clear = many < self.GAIN * one or many > one / self.GAIN
+        self.interval = (2 * self.interval if choice == self.choice and clear and self.interval
+                         else self.FIRST_INTERVAL)
+        self.choice, self.next_probe = choice, steps + self.interval
+
+
+@dataclass
 class Solver:
     """The kinetic scheme of the seed on one terrain with one friction law.
 
@@ -99,20 +130,23 @@ class Solver:
     dirac: bool = True
     h_dry: float = 0.0
     #: m: a cell thinner than this after a step keeps its mass but no momentum (a round-off
-    #: residue of emptying fluxes, see kernels._final_momentum); 0 disables it.
+    #: residue of emptying fluxes, see physics.final_momentum); 0 disables it.
     h_zero: float = 0.0
     #: 1: the seed's first-order scheme; 2: limited linear reconstruction and Heun's two
     #: stages (:mod:`avflow.numerics.reconstruction`)
     order: int = 1
     limiter: str = "minmod"
-    #: CPU threads of the square-grid kernel and of the face kernel (None: Numba's default,
-    #: every core); the answer does not depend on it. 1 runs the serial passes, outside
+    #: CPU threads of the square-grid kernel and of the face kernel (None: every core, where
+    #: timed probes show them faster than one thread, else one: ThreadChoice); the answer
+    #: does not depend on it. 1 runs the serial passes, outside
     #: Numba's thread pool. Profiles run on one.
     threads: int | None = None
     #: "auto": the square-grid kernel (:mod:`avflow.numerics.square_grid`) on square grids
     #: at order 1, the face kernel elsewhere; "faces": the face kernel everywhere (the
     #: reference); "grid": the square-grid kernel, an error where it does not apply.
     kernel: str = "auto"
+    #: where the kernels run: "cpu" (the kernels registered in :mod:`avflow.numerics.registry`)
+    backend: str = "cpu"
 
     def __post_init__(self):
         if self.order not in (1, 2):
@@ -128,26 +162,28 @@ class Solver:
             raise ValueError(f"params holds at most {N_PARAMS} values, got {given.size}")
         self.params = np.zeros(N_PARAMS)
         self.params[:given.size] = given
-        if self.kernel not in ("auto", "grid", "faces"):
-            raise ValueError(f"kernel must be auto, grid or faces, got {self.kernel!r}")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be at least 1, got {self.threads}")
         m = self.terrain.mesh
         n = m.n_cells
         self._grid = None
         self._released = False
+        self._auto = None  # ThreadChoice of threads None
         # Per-cell factors derived from the geometry once: P / (2 A) for the CFL limit
         # (eq. 41) and 1 / (sqrt(3) g cos(theta)) for the kinetic particle density.
         self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
         self._density = density_factor(self.gravity * self.terrain.gamma_z)
-        if self.kernel != "faces":
-            layout = square_grid(self.terrain) if self.order == 1 else None
-            if layout is None and self.kernel == "grid":
-                raise ValueError("the square-grid kernel runs square grids (planes, DEMs) at "
-                                 "order 1 only")
+        self._kernel = registry.select(self.terrain, self.order, self.kernel, self.backend)
+        if self._kernel.name == "grid":
+            layout = square_grid(self.terrain)
             if layout is not None:
                 self._setup_grid(layout)
                 return
+            if self.kernel == "grid":  # a grid whose faces are not in the kernel's order
+                raise registry.KernelUnavailable(
+                    "the square-grid kernel does not run this grid (its faces are not "
+                    f"axis-aligned rows); available: {registry.available(self.backend)}")
+            self._kernel = registry.KERNELS["faces", self.backend]
         # Work buffers, allocated once per solver and reused by every step.
         self._h_work = np.zeros(n)
         self._hu_work = np.zeros(n)
@@ -157,8 +193,8 @@ class Solver:
         # (order 2 only: the order-1 sweeps keep their fluxes in their own work lines)
         self._flux = np.zeros((m.n_faces if self.order == 2 else 0, 5))
         # Faces of every cell (CSR), for the active lists of the face kernel.
-        self._cell_face_ptr, self._cell_face_idx = K.cell_faces(m.face_cells, n)
-        # What the face kernel keeps from one call to the next (see kernels._advance)
+        self._cell_face_ptr, self._cell_face_idx = kernels.cell_faces(m.face_cells, n)
+        # What the face kernel keeps from one call to the next (see timeloop._advance)
         self._face_stamp = np.full(m.n_faces, -1, dtype=np.int64)
         self._cell_stamp = np.full(n, -1, dtype=np.int64)
         self._cell_sync = np.full(n, -1, dtype=np.int64)
@@ -249,14 +285,14 @@ class Solver:
             cores = os.cpu_count() or 1
         return max(1, min(self.threads or cores, numba.config.NUMBA_NUM_THREADS))
 
-    def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps):
-        """The time loop on the square-grid kernel (see :meth:`advance`)."""
+    def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps,
+                      threads):
+        """The time loop on the square-grid kernel, on ``threads`` (see :meth:`advance`)."""
         import numba
 
-        from avflow.numerics.square_grid import _rings, grid_loop
+        from avflow.numerics.square_grid import _rings
 
         layout, c = self._grid, self._g_cells
-        threads = self.threads_used()
         chunk = None
         if threads > 1:
             numba.set_num_threads(threads)
@@ -274,16 +310,16 @@ class Solver:
         h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays
         # ring buffers of the kernel's blocks, a set per thread, made once (each step made
         # its own before: 0.7-1 ms a step on a map 2000 cells wide)
-        if self._g_rings is None or self._g_rings[0].shape[0] != threads:
-            self._g_rings = _rings(threads, layout.nx)
+        if self._g_rings is None or self._g_rings[0].shape[0] < threads:
+            self._g_rings = _rings(self.threads_used(), layout.nx)
         # the state's own flags: the kernel writes those of the cells it sweeps and keeps
         # the others (a flag buffer kept by the solver gave a second state the flags the
         # first had left where the second never swept)
         flag = state.flag if layout.compact else self._g_flag
         if not layout.compact:
-            flag.fill(K.DRY)
+            flag.fill(DRY)
             flag[layout.place] = state.flag
-        status = grid_loop(int(self.law), threads > 1)(
+        status = self._loop(threads)(
             threads, layout.nx, layout.ny, layout.valid, layout.x_code,
             layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
             c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
@@ -301,6 +337,23 @@ class Solver:
             state.flag[:] = flag[layout.place]
         return STATUS_NAMES[status]
 
+    def _loop(self, threads: int):
+        """The compiled time loop of this solver's kernel, law and threads."""
+        return self._kernel.loop(self.terrain.mesh.structured_1d, self.order, int(self.law),
+                                 threads > 1 and self._kernel.name != "profile")
+
+    def kernels_cached(self) -> bool:
+        """Whether this solver's time loop is compiled already (in this process, or in
+        Numba's cache on disk): False means that its first call compiles it."""
+        return registry.is_cached(self._loop(1 if self.threads is None else self.threads_used()))
+
+    def describe_kernel(self) -> str:
+        """What runs this solver, for the user: kernel, order, law, threads."""
+        threads = 1 if self.threads is None else self.threads_used()
+        law = {"samosat": "samosAT"}.get(Law(self.law).name.lower(), Law(self.law).name.title())
+        return (f"the {self._kernel.name} kernel at order {self.order} with {law} friction"
+                + (f" on {threads} threads" if threads > 1 else ""))
+
     def new_state(self, h0: np.ndarray) -> State:
         """A state at rest (eq. 60) with thickness ``h0`` (m) per cell."""
         h0 = np.ascontiguousarray(h0, dtype=float).copy()
@@ -313,19 +366,19 @@ class Solver:
             h=h0,
             hu=np.zeros(n),
             hv=np.zeros(n),
-            flag=np.where(h0 > 0.0, K.UNDER_THRESHOLD, K.DRY).astype(np.uint8),
+            flag=np.where(h0 > 0.0, UNDER_THRESHOLD, DRY).astype(np.uint8),
             peak_h=h0.copy(),
             peak_speed=np.zeros(n),
             arrival=np.where(h0 > self.h_dry, 0.0, np.nan),
             last_moved=np.full(n, np.nan),
         )
         self.reset_limits(state)
-        state.stats[K.ST_DT_MIN] = np.inf
+        state.stats[ST_DT_MIN] = np.inf
         return state
 
     def reset_limits(self, state: State) -> None:
         """Recompute the CFL limit of ``state`` (after editing its arrays by hand)."""
-        state.stats[K.ST_DT_LIMIT] = K.dt_limit(
+        state.stats[ST_DT_LIMIT] = kernels.dt_limit(
             self._cfl_factor, self.terrain.gamma_z, state.h, state.hu, state.hv, self.gravity)
 
     def volume(self, state: State) -> float:
@@ -348,15 +401,88 @@ class Solver:
         if self._released:
             self._setup_grid(square_grid(self.terrain))
             self._released = False
+        most = self.threads_used()
+        if self.threads is None and most > 1 and self._kernel.name != "profile":
+            return self._advance_auto(state, t_target, stop_volume, stop_kinetic, max_steps)
+        return self._advance_on(most, state, t_target, stop_volume, stop_kinetic, max_steps)
+
+    def _advance_auto(self, state, t_target, stop_volume, stop_kinetic, max_steps) -> str:
+        """:meth:`advance` on the threads that run fastest now (``threads`` None): every so
+        often a few steps are timed on one thread, then on all of them one step at a time,
+        stopping as soon as they are behind; all threads go on only where they were clearly
+        faster. The answer does not depend on the threads, bit for bit; on a busy machine a
+        step on two threads sharing a core with another process took 27x one on one thread
+        (docs/performance.md), so a losing probe costs one step, not a call."""
+        auto = self._auto
+        if auto is None or auto.most != self.threads_used():
+            auto = self._auto = ThreadChoice(self.threads_used())
+        while True:
+            if not auto.ready and state.steps >= auto.next_probe:
+                # threads only once the flow is large enough to run on them at all: until
+                # then the serial loop runs, and the threaded one is not even compiled
+                if np.count_nonzero(state.h) >= self._parallel_cells():
+                    self._warm(auto.most, state)
+                    auto.ready = True
+                else:
+                    auto.next_probe = state.steps + ThreadChoice.FIRST_INTERVAL
+            if auto.ready and state.steps >= auto.next_probe:
+                status = self._probe(auto, state, t_target, stop_volume, stop_kinetic,
+                                     max_steps)
+                if status is not None:
+                    return status  # the call ended within the probe
+            limit = min(max_steps, auto.next_probe)
+            status = self._advance_on(auto.choice, state, t_target, stop_volume, stop_kinetic,
+                                      limit)
+            if status != "max_steps" or limit == max_steps:
+                return status
+
+    def _parallel_cells(self) -> int:
+        """Cells from which a step of this solver's kernel runs on threads at all."""
         if self._grid is not None:
-            return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps)
+            return int(self._parallel_from[0])
+        return int(self._gather_from)
+
+    def _warm(self, threads: int, state: State) -> None:
+        """Compile (or load) the loop on ``threads`` with a call that takes no step, on a
+        copy of ``state``, so that a probe does not time a compile."""
+        import dataclasses
+
+        copy = State(**{f.name: getattr(state, f.name).copy()
+                        for f in dataclasses.fields(State)})
+        self._advance_on(threads, copy, copy.t, -1.0, -1.0, 10**9)
+
+    def _probe(self, auto, state, t_target, stop_volume, stop_kinetic, max_steps):
+        """A few steps timed on one thread, then on all, one at a time; ``auto`` decides.
+        Returns the loop's status where the call ended within the probe, else None."""
+        import time
+
+        spent = {1: 0.0, auto.most: 0.0}
+        for k, steps, calls in ((1, ThreadChoice.PROBE_STEPS, 1),
+                                (auto.most, 1, ThreadChoice.PROBE_STEPS)):
+            for _ in range(calls):
+                limit = min(max_steps, state.steps + steps)
+                before, clock = state.steps, time.perf_counter()
+                status = self._advance_on(k, state, t_target, stop_volume, stop_kinetic, limit)
+                spent[k] += time.perf_counter() - clock
+                if status != "max_steps" or limit == max_steps or state.steps == before:
+                    return status
+                if k > 1 and spent[k] >= spent[1]:
+                    break  # behind one thread already
+        auto.decide(spent[1], spent[auto.most], state.steps)
+        return None
+
+    def _advance_on(self, threads, state, t_target, stop_volume, stop_kinetic,
+                    max_steps) -> str:
+        """The time loop on ``threads`` threads (1: every step serial)."""
+        if self._grid is not None:
+            return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps,
+                                      threads)
         m, t = self.terrain.mesh, self.terrain
-        threads = self.threads_used()
         if threads > 1:
             import numba
 
             numba.set_num_threads(threads)
-        status = K.time_loop(m.structured_1d, self.order, int(self.law), threads > 1)(
+        status = self._loop(threads)(
             m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
             self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
             state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
@@ -366,5 +492,5 @@ class Solver:
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
             int(self.order), LIMITERS[self.limiter], self._face_offset,
             self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock,
-            *self._sweep, self._gather_from)
+            *self._sweep, self._gather_from if threads > 1 else np.iinfo(np.int64).max)
         return STATUS_NAMES[status]

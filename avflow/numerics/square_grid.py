@@ -29,8 +29,8 @@ Each pass over a row (what cells emit, x faces, y faces, trial, final update) is
 that LLVM vectorises, 8 cells at a time with AVX-512 (:mod:`avflow.numerics.vectorize`
 says how): selects instead of jumps, one contiguous line per quantity (emitted values, face
 fluxes, frames, curvature), boundary faces in a second, scalar pass, and a copy of the
-sweep per friction law. 28 ns a cell on one core here, against 51 ns for the same
-arithmetic written with branches.
+sweep per friction law. The same arithmetic written with branches ran about twice as
+long a cell (docs/performance.md).
 
 ``prange`` runs serially when a function is compiled without ``parallel``: the sweep is
 compiled twice (serial and parallel), and one thread takes the serial one, which never
@@ -47,11 +47,11 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.kernels import (DRY, FAILED, FLOWING, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                     ST_TIME, TRANSPORT_EPS,
-                                     _final_momentum, _limit, _observe, _open_mass,
-                                     _trial_momentum, record_end, record_step, step_size)
-from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out
+from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
+                                 observe_cell, open_mass, trial_momentum)
+from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES, ST_TIME,
+                                      record_end, record_step, step_size)
+from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
                                        law_kind, line_max, line_sum, noalias, out_select, specialize)
@@ -84,16 +84,16 @@ def _emit_row(base, c0, c1, h, hu, hv, gamma_z, density, h_zero, g, out):
     :func:`avflow.numerics.kinetic.half_fluxes`, computed there per face side), and the speed
     ``|q| / h`` at time n.
 
-    The face kernel's :func:`~avflow.numerics.kernels._emitted` and
-    :func:`~avflow.numerics.kernels._speed`, the same operations on every value kept, so the
-    same bits, written without branches so that LLVM vectorises the loop (4x here): a dry
+    The face kernel's :func:`~avflow.numerics.physics.emitted_state` and
+    :func:`~avflow.numerics.physics.speed_of`, the same operations on every value kept, so the
+    same bits, written without branches so that LLVM vectorises the loop: a dry
     cell divides by 1 and its results are replaced by zeros (selects, not jumps); the loop
     counts from 0 and its first index is clamped at 0, which lets LLVM drop Numba's
     wraparound of negative indices (with it the loop stays scalar).
     """
     o_h, o_u1, o_u2, o_c = out[E_H], out[E_U1], out[E_U2], out[E_C]
     o_s, o_kh, o_k3, o_speed = out[E_S], out[E_KH], out[E_K3], out[E_SPEED]
-    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as _emitted
+    h_wet = max(h_zero, 0.0)  # wet: h > h_zero and h > 0, as emitted_state
     c0 = max(c0, 0)
     i0 = max(base + c0, 0)
     for j in range(c1 + 1 - c0):
@@ -112,7 +112,7 @@ def emitted_cell(hc, q1, q2, g_normal, dens, h_wet):
     sound = math.sqrt(0.5 * g_normal * hs)  # sound_speed(): 0 on a vertical bed
     sound = sound if g_normal > 0.0 else 0.0
     k = sound * dens
-    positive = hc > 0.0  # _speed(): |q| / h wherever h > 0, film included
+    positive = hc > 0.0  # speed_of(): |q| / h wherever h > 0, film included
     hp = hc if positive else 1.0
     speed = math.sqrt(q1 * q1 + q2 * q2) / hp
     return ((hc if wet else 0.0), (q1 / hs if wet else 0.0), (q2 / hs if wet else 0.0),
@@ -148,7 +148,7 @@ def _face_flux(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, 
         utj = uti
     else:  # open: transmissive for what leaves, closed to what would enter
         gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-        gm_h = _open_mass(fp_h + gm_h) - fp_h
+        gm_h = open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length
     f_t = (uti * fp_h + utj * gm_h) * length
@@ -189,8 +189,8 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
     (``frames``: the row's ``(4, nx + 1)`` normals).
 
     Two passes: every face inside the map (``1 <= k < nx``) as an INNER face, in one
-    branch-free loop that LLVM vectorises (:func:`_inner_select`; 2.5x the scalar loop
-    here), then the few others (walls, open sides, the map's two sides) again with
+    branch-free loop that LLVM vectorises (:func:`_inner_select`), then the few others
+    (walls, open sides, the map's two sides) again with
     :func:`_face_flux`, which overwrites them (a NO_FACE keeps values nobody reads)."""
     nx = emit.shape[1]
     e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
@@ -235,8 +235,8 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
     values, whatever the ring holds, are overwritten by the second pass).
 
     The twin of :func:`_x_faces` with the west cell at k - 1 there and the row below at c
-    here: one function taking that shift as an argument ran 4x slower (its loop stayed
-    scalar), so the two are written apart."""
+    here: in one function taking that shift as an argument the loop stayed scalar, so the
+    two are written apart."""
     b_h, b_u1, b_u2, b_c = below[E_H], below[E_U1], below[E_U2], below[E_C]
     b_s, b_kh, b_k3 = below[E_S], below[E_KH], below[E_K3]
     a_h, a_u1, a_u2, a_c = above[E_H], above[E_U1], above[E_U2], above[E_C]
@@ -293,7 +293,7 @@ def _side_terms(c, x_code, y_south, xf0, xf1, xf2, xf3, xf4, ys0, ys1, ys2, ys3,
     w_in = (x_code[c] & KIND) == INNER
     s_in = (y_south[c] & KIND) == INNER
     # every value loaded whichever is kept: a load under a condition becomes a masked
-    # load or a gather in the vector loop (here 40x slower than the scalar loop)
+    # load or a gather in the vector loop, slower than the scalar loop (docs/performance.md)
     w0, w1, w2, w3, w4 = xf0[c], xf1[c], xf2[c], xf3[c], xf4[c]
     s0, s1, s2, s3, s4 = ys0[c], ys1[c], ys2[c], ys3[c], ys4[c]
     return ((w0 if w_in else -w0), (w3 if w_in else -w1), (w4 if w_in else -w2),
@@ -334,8 +334,8 @@ def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
         ia = inv_area[i]
         u1 = e_u1[c]
         u2 = e_u2[c]
-        centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2  # u.K.u, as kernels._centripetal
-        qx, qy, fi = _trial_momentum(h[i], h_zero, e_speed[c], hu[i], hv[i],
+        centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2  # u.K.u, as physics.centripetal_accel
+        qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[c], hu[i], hv[i],
                                      mh * ia, mx * ia, my * ia, dt,
                                      dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal, lw, p0, p1, p2, p3, p4, p5, p6, p7, g, False)
@@ -373,10 +373,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
     grid-wide diagnostics differ from the face kernel's cell-by-cell sums by round-off).
 
     Two loops, because one loop over the forty-odd lines of both kept most of their base
-    pointers on the stack (some 200 stack loads and stores in 650 instructions per 8 cells:
-    14.1 ns a cell against 13.4 in two, on a row of 400 here); in one function, because
-    a call per loop cost a row about 200 ns more (837 against 623 ns a row of 8 cells, 1241
-    against 1052 for 24)."""
+    pointers on the stack; in one function, because a call per loop cost every row a
+    fixed overhead (both measured: docs/performance.md)."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
@@ -439,7 +437,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         qx = dt * (bx / area + g * hn * gx) if dry else qx
         qy = dt * (by / area + g * hn * gy) if dry else qy
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
-        qx, qy, cl = _final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
+        qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
                                      p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
         # writes: the new value where the cell is updated, else what is there
         flag[i] = fi if inside else old_flag
@@ -475,7 +473,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         len_w, len_e, len_s, len_n = x_len[c], x_len[c + 1], ys_len[c], yn_len[c]
         old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
         old_arrival, old_moved = arrival[i], last_moved[i]
-        speed, inv_i = _observe(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
+        speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
                                 g)
         peak_h[i] = hn if good & (hn > old_peak_h) else old_peak_h
         peak_speed[i] = speed if good & (speed > old_peak_speed) else old_peak_speed
@@ -483,7 +481,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         arrival[i] = t_new if arrives else old_arrival
         last_moved[i] = t_new if good & (speed > 0.0) else old_moved
         # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
-        # per metre (kernels._moves; compared as |fh| > eps h |u^n| L: no division)
+        # per metre (physics.cell_moves; compared as |fh| > eps h |u^n| L: no division)
         limit = TRANSPORT_EPS * hn * speed_n
         carried = (((not d_w) & (abs(wm) > limit * len_w))
                    | ((not d_e) & (abs(e_m) > limit * len_e))
@@ -549,8 +547,8 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
     nothing from its neighbours, and what it writes (rows a..b) no other block writes.
 
     Compiled once per friction law with that law's copies of the cell loops
-    (:func:`~avflow.numerics.vectorize.by_law`): a call with some fifty arrays costs about
-    0.5 us, a layer of dispatch per row cost 2.5 ns a cell at 400 columns."""
+    (:func:`~avflow.numerics.vectorize.by_law`): one call per block, rather than a layer
+    of dispatch per row (docs/performance.md)."""
     ring = RING
     for k in range(a - 1, b + 3):
         # --- faces of row k: what rows k - 1 and k emit, computed once per cell
@@ -624,8 +622,8 @@ def _rings(n, nx):
     and lines of one row.
 
     Made once per solver (:meth:`~avflow.numerics.solver.Solver.advance` keeps them), not
-    per step: a set spans the map's width (1.4 MB at 2000 columns, whose fresh pages cost
-    0.7-1 ms a step to fault in and zero, here).
+    per step: a set spans the map's width, and fresh pages at every step would have to be
+    faulted in and zeroed (docs/performance.md).
     What a set holds from the blocks before it (of this step or the last: the ring was
     always reused from row to row) changes nothing: the passes over a row read the emitted
     values and face fluxes that the passes before them wrote in the same stage; a flag read
@@ -738,8 +736,8 @@ def _loops() -> dict:
 def grid_loop(law: int, parallel: bool):
     """The time loop (:func:`_advance_grid`: its arguments, its status codes) for one
     friction law, with the parallel sweep (``threads`` > 1) or without: each copy compiles
-    only its law's cell loops, and the serial one never the parallel sweep (a first run
-    compiled every law's, serial and parallel: 32 s here)."""
+    only its law's cell loops, and the serial one never the parallel sweep (compiling every
+    law's, serial and parallel, made the first run slow: docs/performance.md)."""
     return _LOOPS[law_kind(law), bool(parallel)]
 
 
@@ -780,9 +778,8 @@ def _swept_columns(nx, ny, wet_lo, wet_hi, need_lo, need_hi, prev_lo, prev_hi, l
         short = (LANES - n % LANES) % LANES
         if n > 0 and 0 < short <= LANES - MIN_REMAINDER:
             # a whole vector iteration more instead of a scalar remainder of 3 cells or
-            # more (7 cells in scalar code cost a row 550 ns, 8 more cells in vector code
-            # 230): the cells added are not wet and touch no wet cell, so the sweep leaves
-            # them as they are
+            # more (it costs a row less: docs/performance.md): the cells added are not wet
+            # and touch no wet cell, so the sweep leaves them as they are
             up = min(short, nx - 1 - hi[r])
             hi[r] += up
             lo[r] = max(lo[r] - (short - up), 0)
@@ -805,7 +802,7 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
                  stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats, rings,
                  min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
-    """:func:`avflow.numerics.kernels.time_loop` for a square grid at order 1 (same arguments
+    """:func:`avflow.numerics.timeloop.time_loop` for a square grid at order 1 (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
     least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
@@ -914,7 +911,7 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv
-        status = record_step(stats, dt, _limit(inv_lim), moving, film, kinetic, clamped, outflow,
+        status = record_step(stats, dt, dt_from_inverse(inv_lim), moving, film, kinetic, clamped, outflow,
                              stop_volume, stop_kinetic, steps, max_steps)
         if status != REACHED_TARGET:
             break

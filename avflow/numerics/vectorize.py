@@ -1,11 +1,12 @@
 """What lets LLVM vectorise the kernels' cell loops (8 cells at once with AVX-512).
 
-Numba hands LLVM loops it can vectorise only when (measured on the square-grid kernel):
+Numba hands LLVM loops it can vectorise only when (found on the square-grid kernel;
+figures in docs/performance.md):
 
 - the loop is free of jumps: ``a if c else b`` between values already computed, every
   array element loaded whichever is kept (a load under a condition became a masked load,
-  40x slower), ``&`` and ``|`` rather than ``and`` / ``or``, no inner loop (the four terms of
-  a face order written out), no early return;
+  slower than the scalar loop), ``&`` and ``|`` rather than ``and`` / ``or``, no inner
+  loop (the four terms of a face order written out), no early return;
 - its index provably never negative (the loop counts from 0 from a start clamped at 0:
   Numba's wraparound of negative indices kept it scalar);
 - arrays are 1D lines (2D indexing kept it scalar) and LLVM knows they do not overlap
@@ -28,7 +29,7 @@ def noalias(dispatcher):
     """Compile ``dispatcher`` telling LLVM that its array arguments never overlap (Numba's
     ``noalias`` flag, which its decorator does not expose): without it a loop that reads
     thirty arrays and writes ten needs hundreds of overlap checks, and LLVM leaves it
-    scalar (the final update: 27 ns a cell scalar, 14.5 vectorised). True of every caller
+    scalar (the final update ran about twice as long: docs/performance.md). True of every caller
     here: the state is double-buffered, each ring row and output line is its own array.
     Where Numba's private hook is missing (another version), the loops stay scalar, with
     the same results."""
@@ -80,8 +81,8 @@ def in_select(h, un, c, s, kh, k3):
 
 @njit(error_model="numpy", cache=True, fastmath={"reassoc"}, _nrt=False)
 def line_sum(a, c0, c1):
-    """``a[c0] + ... + a[c1]``, reassociated so that LLVM vectorises it (the per-cell add
-    chain cost 1.2 ns a cell). The order is fixed by the compiled code and the bounds: the
+    """``a[c0] + ... + a[c1]``, reassociated so that LLVM vectorises it (a chain of adds,
+    one a cell, stays scalar). The order is fixed by the compiled code and the bounds: the
     same bits on 1 or N threads; against the face kernel's cell-by-cell sums, round-off."""
     s = 0.0
     c0 = max(c0, 0)
@@ -92,8 +93,8 @@ def line_sum(a, c0, c1):
 
 @njit(error_model="numpy", cache=True, fastmath={"nnan", "nsz", "reassoc"}, _nrt=False)
 def line_max(a, c0, c1):
-    """``max(0, a[c0], ..., a[c1])``, vectorised (the scalar chain of maxima cost 0.8 ns a
-    cell on a row of 400): a maximum is the same value in any order, so the same bits as
+    """``max(0, a[c0], ..., a[c1])``, vectorised (rather than a scalar chain of maxima):
+    a maximum is the same value in any order, so the same bits as
     the chain, for the values of the kernels (never NaN: a NaN thickness is refused before
     a run starts)."""
     m = 0.0
@@ -165,7 +166,7 @@ def by_law(fn, law: int | None, label: str, nrt: bool = True, **names):
 
     In a copy for one law, LLVM folds the law's branches in :func:`~avflow.numerics.rheology.friction` away, and the
     loop of a law without transcendental functions (Coulomb, Voellmy) vectorises (8 cells
-    at once here); with Pouliquen's ``exp`` or samosAT's ``log`` in it, a loop stays
+    at once with AVX-512); with Pouliquen's ``exp`` or samosAT's ``log`` in it, a loop stays
     scalar, so those laws share the copy that reads the law at run time.
 
     ``nrt=False``: compiled without Numba's reference counting, for a function that

@@ -628,8 +628,9 @@ class Numerics(_Model):
     grids and triangles have the one Barth-Jespersen limiter)."""
     threads: Annotated[int, Field(strict=True, ge=1, le=4096)] | None = None
     """CPU threads of the time loop (grids and triangles; profiles run on one; null: every
-    core of the machine). The answer is the same, bit for bit, whatever the
-    number. Ensemble members run on one thread each unless this is set: members are the
+    core this process may use, where a few timed steps show them faster than one thread,
+    else one: a machine busy with other work does not slow a run down). The answer is the
+    same, bit for bit, whatever the number. Ensemble members run on one thread each unless this is set: members are the
     better parallelism there."""
     kernel: Literal["auto", "grid", "faces"] = "auto"
     """auto: the structured square-grid kernel on square grids at order 1, the face kernel

@@ -16,12 +16,12 @@ from typing import Callable
 
 import numpy as np
 
-from avflow.numerics import kernels as K
 from avflow.terrain.raster import RasterError
 from avflow.errors import AvflowWarning, Problem, RunFailed, ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
 from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
+from avflow.numerics.stepping import MAX_RETRIES
 from avflow.simulation.resources import check_resources, release_freed_memory
 from avflow.simulation.summary import deposit_extent, runout_truncated, travel_angle
 from avflow.terrain.bed import Terrain
@@ -360,10 +360,12 @@ def _failure(scenario, t: float, reason: str) -> str:
 
 
 def simulate(scenario, progress: Callable[[float, float], None] | None = None, *,
-             max_memory=None, snapshots: Snapshots | None = None) -> RunResult:
+             max_memory=None, snapshots: Snapshots | None = None,
+             on_compile: Callable[[str], None] | None = None) -> RunResult:
     """Run a validated scenario to its end time or until the mass stops.
 
-    ``progress(t, t_end)`` is called after every output time. A non-finite state (h, hu,
+    ``progress(t, t_end)`` is called after every output time; ``on_compile(what)`` before
+    the kernels are compiled, where they are neither in this process nor in Numba's cache. A non-finite state (h, hu,
     hv, checked at every output time, or the mass balance) or a step that cannot keep
     h >= 0 raises :class:`~avflow.errors.RunFailed`: a blow-up is never a result.
     ``snapshots`` records the output times (default: a new :class:`Snapshots`, every field
@@ -382,6 +384,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             "stop_kinetic": -1.0 if by_volume else thresholds["stop_fraction"]}
     t_end, every = scenario.time.end, scenario.output.every
     snaps.record(state, 0.0, terrain)
+    if on_compile is not None and not solver.kernels_cached():
+        on_compile(solver.describe_kernel())
     compile_time = first_use + warm_up(solver, state, scenario.time.max_steps, **stop)
     started = _time.perf_counter()
     recording = 0.0  # s storing snapshots (copies, or writes to the file): not the loop's
@@ -391,11 +395,11 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
         target = min(k * every, t_end)
         status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
         before = _time.perf_counter()
-        snaps.record(state, float(state.stats[K.ST_MOVING]), terrain)
+        snaps.record(state, state.statistics.moving_volume, terrain)
         recording += _time.perf_counter() - before
         failure = _non_finite(state, terrain)
         if status == "failed" and failure is None:
-            failure = (f"no time step kept h >= 0 after {K.MAX_RETRIES} halvings "
+            failure = (f"no time step kept h >= 0 after {MAX_RETRIES} halvings "
                        f"(time.cfl {scenario.time.cfl:g})")
         if failure is not None:
             status = "failed"
@@ -405,7 +409,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
         if status == "stopped":
             # A mass that never moved (no cell ever had a speed) was at rest from the release.
             time_to_stop = state.t if state.peak_speed.any() else 0.0
-            still = float(state.stats[K.ST_MOVING])
+            still = state.statistics.moving_volume
             status = AT_REST if by_volume or still <= REST_FRACTION * v0 else ENDED_BY_RULE
             break
         if status != "running" or target >= t_end:
@@ -432,7 +436,7 @@ def summarize(result: RunResult, v0: float) -> dict:
     """The scalar summaries of a run (see :mod:`avflow.simulation.summary` for the definitions)."""
     state, terrain = result.state, result.terrain
     v_end = result.solver.volume(state)
-    v_out = float(state.stats[K.ST_OUTFLOW])
+    v_out = state.statistics.outflow_volume
     rho = result.scenario.physics.density
     truncated = runout_truncated(terrain, state.peak_h, result.thresholds["runout"],
                                  result.scenario.terrain.kind == "dem", v_out, result.h0)
@@ -449,11 +453,11 @@ def summarize(result: RunResult, v0: float) -> dict:
         "deposit_volume": v_end,
         "release_volume": v0,
         "outflow_volume": v_out,
-        "film_volume": float(state.stats[K.ST_FILM]),
-        "moving_volume": float(state.stats[K.ST_MOVING]),
-        "moving_volume_end": float(state.stats[K.ST_MOVING]),
-        "kinetic_energy_end": rho * float(state.stats[K.ST_KINETIC]),
-        "kinetic_energy_peak": rho * float(state.stats[K.ST_KINETIC_PEAK]),
+        "film_volume": state.statistics.film_volume,
+        "moving_volume": state.statistics.moving_volume,
+        "moving_volume_end": state.statistics.moving_volume,
+        "kinetic_energy_end": rho * state.statistics.kinetic,
+        "kinetic_energy_peak": rho * state.statistics.kinetic_peak,
         "ended_by": result.thresholds["stop_rule"]
         if result.status in (AT_REST, ENDED_BY_RULE, "stopped")
         else ENDED_BY.get(result.status, result.status),
@@ -461,11 +465,11 @@ def summarize(result: RunResult, v0: float) -> dict:
         "runout_truncated": truncated,
         "status": result.status,
         "steps": state.steps,
-        "dt_min": float(state.stats[K.ST_DT_MIN]),
-        "dt_max": float(state.stats[K.ST_DT_MAX]),
-        "clamped_normal_cells": int(state.stats[K.ST_CLAMPED]),
-        "halved_steps": int(state.stats[K.ST_RETRIES]),
-        "order2_fallbacks": int(state.stats[K.ST_FALLBACK]),
+        "dt_min": state.statistics.dt_min,
+        "dt_max": state.statistics.dt_max,
+        "clamped_normal_cells": int(state.statistics.clamped_cells),
+        "halved_steps": int(state.statistics.halved_steps),
+        "order2_fallbacks": int(state.statistics.order2_fallbacks),
         "wall_time": result.wall_time,
         "compile_time": result.compile_time,
         "cell_updates_per_second": state.steps * terrain.n_cells / max(result.wall_time, 1e-9),

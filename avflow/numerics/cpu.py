@@ -1,0 +1,66 @@
+"""The pointwise physics compiled for the CPU: :mod:`avflow.numerics.kinetic` and
+:mod:`avflow.numerics.physics`, each function inlined into the traversals that call it.
+
+The source modules stay plain Python (callable as they are, and compilable for another target
+by the same :func:`compile_pointwise`); the traversals import the compiled functions from
+here, under the same names.
+"""
+
+from __future__ import annotations
+
+import types
+
+from numba import njit
+
+from avflow.numerics import kinetic, physics
+
+
+def compile_pointwise(modules, decorate) -> dict:
+    """Every public function of ``modules`` compiled by ``decorate``, in one namespace: a
+    compiled function calls the compiled versions of its siblings (``trial_momentum`` the
+    compiled ``normal_accel``), and the modules themselves are left as they are."""
+    namespace: dict = {}
+    for module in modules:
+        namespace.update({k: v for k, v in vars(module).items() if not k.startswith("__")})
+    compiled = {}
+    for module in modules:
+        for name, fn in vars(module).items():
+            if (isinstance(fn, types.FunctionType) and fn.__module__ == module.__name__
+                    and not name.startswith("_")):
+                copy = types.FunctionType(fn.__code__, namespace, fn.__name__,
+                                          fn.__defaults__, fn.__closure__)
+                copy.__qualname__, copy.__module__, copy.__doc__ = (
+                    fn.__qualname__, fn.__module__, fn.__doc__)
+                compiled[name] = decorate(copy)
+    namespace.update(compiled)  # looked up when a caller is typed, so the order is free
+    return compiled
+
+
+#: inlined where called (never compiled on its own unless called from Python)
+_POINTWISE = compile_pointwise(
+    (kinetic, physics), njit(error_model="numpy", cache=True, inline="always"))
+_POINTWISE.pop("density_factor")  # numpy on whole arrays, once per solver: not pointwise
+
+sound_speed = _POINTWISE["sound_speed"]
+half_fluxes = _POINTWISE["half_fluxes"]
+half_flux_out = _POINTWISE["half_flux_out"]
+half_flux_in = _POINTWISE["half_flux_in"]
+normal_accel = _POINTWISE["normal_accel"]
+centripetal_accel = _POINTWISE["centripetal_accel"]
+project = _POINTWISE["project"]
+dt_from_inverse = _POINTWISE["dt_from_inverse"]
+trial_momentum = _POINTWISE["trial_momentum"]
+final_momentum = _POINTWISE["final_momentum"]
+emitting = _POINTWISE["emitting"]
+speed_of = _POINTWISE["speed_of"]
+cell_moves = _POINTWISE["cell_moves"]
+observe_cell = _POINTWISE["observe_cell"]
+open_mass = _POINTWISE["open_mass"]
+dirac_face = _POINTWISE["dirac_face"]
+emitted_state = _POINTWISE["emitted_state"]
+side_fluxes = _POINTWISE["side_fluxes"]
+
+#: the constants the traversals share with the pointwise functions
+SQRT3 = kinetic.SQRT3
+FLOWING, UNDER_THRESHOLD, DRY = physics.FLOWING, physics.UNDER_THRESHOLD, physics.DRY
+TRANSPORT_EPS = physics.TRANSPORT_EPS

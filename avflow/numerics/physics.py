@@ -1,0 +1,206 @@
+"""The pointwise physics of the seed's scheme, written once (issue 27): plain functions of
+scalars, with no decorator of their own. Every traversal (profile, square grid, faces, on
+one thread or many) calls these, compiled for the CPU by :mod:`avflow.numerics.cpu`; another
+target compiles the same functions the same way.
+
+- the threshold test of eq. 49 on the trial momentum of eq. 47 (:func:`trial_momentum`);
+- the projection of eq. 50 with the law's drag (:func:`project`, :func:`final_momentum`);
+- the Dirac face of eqs. 51-53 (:func:`dirac_face`), the open side (:func:`open_mass`);
+- the curvature term of eqs. 61-62 (:func:`centripetal_accel`, :func:`normal_accel`);
+- what a cell emits and how fast it moves (:func:`emitted_state`, :func:`observe_cell`,
+  :func:`cell_moves`);
+
+The kinetic half fluxes are in :mod:`avflow.numerics.kinetic`, the friction laws in
+:mod:`avflow.numerics.rheology`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.numerics.rheology import friction
+
+# Per-cell flag of sweep 1 (kept for output): which density the cell takes in sweep 2.
+FLOWING = 0  #: above the Coulomb threshold: rectangular density
+UNDER_THRESHOLD = 1  #: wet and under the threshold: Dirac density, q = 0 (eqs. 51, 56)
+DRY = 2  #: dry at time n: zero temperature as well, momentum from the projection
+
+#: A cell counts as moving when u != 0 and one of its faces carries a mass flux above this
+#: fraction of h |u|. A kinetic scheme can hold a cell at a steady u != 0 whose face fluxes
+#: balance to round-off (the "fluid-like zone" pinned behind a deposit, seed section 6.4):
+#: such a cell transports nothing and must not keep a run alive.
+TRANSPORT_EPS = 1e-9
+
+
+def normal_accel(g_normal, centripetal):
+    """Bed-normal acceleration ``g cos(theta) + u.K.u`` (eqs. 61-62: ``u^2 / R`` on a profile),
+    clamped at 0 where a convex bed would lift the material off (counted: returns 1)."""
+    n = g_normal + centripetal
+    if n < 0.0:
+        return 0.0, 1
+    return n, 0
+
+
+def centripetal_accel(curvature, i, h, hu, hv):
+    """``u.K.u`` (m/s^2) of cell i at time n: ``curvature[i] = (K11, K12, K22)`` in its basis."""
+    if h <= 0.0:
+        return 0.0
+    u1 = hu / h
+    u2 = hv / h
+    return curvature[i, 0] * u1 * u1 + 2.0 * curvature[i, 1] * u1 * u2 + curvature[i, 2] * u2 * u2
+
+
+def project(qx, qy, tau, drag, dt):
+    """Projection of the trial discharge on the admissible Coulomb set, eq. 50, then drag."""
+    if qy == 0.0:  # along a line: no norm to take, no division without drag
+        excess = abs(qx) - tau * dt
+        if excess <= 0.0:
+            return 0.0, 0.0
+        if drag > 0.0:
+            excess /= 1.0 + drag * dt
+        return math.copysign(excess, qx), 0.0
+    norm = math.sqrt(qx * qx + qy * qy)
+    excess = norm - tau * dt
+    if excess <= 0.0 or norm <= 0.0:
+        return 0.0, 0.0
+    scale = excess / (norm * (1.0 + drag * dt))
+    return qx * scale, qy * scale
+
+
+def dt_from_inverse(inv_lim):
+    """The CFL limit (s) from the largest inverse limit of the cells; inf when all is still."""
+    return 1.0 / inv_lim if inv_lim > 0.0 else math.inf
+
+def trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate_y, dt,
+                    dt_decide, gx, gy, gz, centripetal, law, p0, p1, p2, p3, p4, p5, p6, p7, g,
+                    explicit):
+    """Sweep-1 closure of one cell: q~ of eq. 47 and the threshold test of eq. 49.
+
+    Gravity acts on ``h*``, the thickness after the fluxes (eq. 47), or with ``explicit``
+    (a Runge-Kutta stage of order 2) on the stage's own ``h`` when it is wet: Heun's average
+    of two stages is second order only when each stage is an explicit Euler step. (A cell
+    dry at the stage's start keeps ``h*``, as friction does: a front is first order.)
+
+    ``rate_*``: the flux divergences (mass m/s, momentum m^2/s^2). The trial discharge q~
+    (returned for the projection) uses the step ``dt``; the threshold is tested with
+    ``dt_decide``, the CFL step of the state, so that the decision depends on the state alone
+    and a deposit at rest stays at rest when a step is shortened to land on an output time.
+    Returns ``(q~x, q~y, flag)``.
+    """
+    h_star = h_old if explicit and h_old > h_zero else h_old + dt * rate_h
+    qx = hu_old + dt * (rate_x + g * h_star * gx)
+    qy = hv_old + dt * (rate_y + g * h_star * gy)
+    if h_old <= h_zero:
+        return qx, qy, DRY
+    if dt_decide == dt and not explicit:  # the same numbers: not computed twice
+        hd, qdx, qdy = h_star, qx, qy
+    else:
+        hd = h_old + dt_decide * rate_h
+        qdx = hu_old + dt_decide * (rate_x + g * hd * gx)
+        qdy = hv_old + dt_decide * (rate_y + g * hd * gy)
+    accel, _ = normal_accel(g * gz, centripetal)
+    tau, _ = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, hd, speed_n, accel, g)
+    limit = tau * dt_decide
+    if qdx * qdx + qdy * qdy < limit * limit:
+        return qx, qy, UNDER_THRESHOLD
+    return qx, qy, FLOWING
+
+
+def final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, law, p0, p1, p2, p3,
+                    p4, p5, p6, p7, g, h_old, explicit):
+    """Sweep-2 momentum of one cell: q = 0 under the threshold (eq. 56), else eq. 50.
+
+    The friction is linearised at time n (speed of ``U^n``), with the new thickness (with
+    ``explicit``, a Runge-Kutta stage, with the stage's own thickness when wet, as gravity
+    in :func:`trial_momentum`). A cell
+    left with ``h <= h_zero`` holds a round-off residue of fluxes that nearly emptied it (on
+    real DEMs 1e-28 m at 2 km/s): its momentum is as uncertain as its mass is negligible,
+    so it is set to zero; the mass stays (conservation is untouched).
+    Returns ``(qx, qy, clamped)``; clamped is 1 when the normal acceleration hit 0.
+    """
+    if flag == UNDER_THRESHOLD or h_new <= h_zero:
+        return 0.0, 0.0, 0
+    accel, clamped = normal_accel(g * gz, centripetal)
+    h_fric = h_old if explicit and h_old > h_zero else h_new
+    tau, drag = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h_fric, speed_n, accel, g)
+    qx, qy = project(qx, qy, tau, drag, dt)
+    return qx, qy, clamped
+
+
+def emitting(h, h_zero):
+    """Thickness that emits particles: a cell at or below ``h_zero`` is dry for the scheme.
+
+    It keeps its mass and receives, but sends nothing (and holds no momentum, see
+    :func:`final_momentum`). Without this a film of 1e-30 m spread one cell per step in every
+    direction, whatever the physics, and soon covered the whole DEM.
+    """
+    return h if h > h_zero else 0.0
+
+
+def speed_of(h, hu, hv):
+    """|u| = |q| / h (m/s), 0 where dry."""
+    if h <= 0.0:
+        return 0.0
+    return math.sqrt(hu * hu + hv * hv) / h
+
+
+def cell_moves(speed, speed_n, transport, h):
+    """True when a cell moves material: u != 0 now, and either it just set off (u^n = 0)
+    or one of its faces carried a mass flux above TRANSPORT_EPS h |u^n| in this step."""
+    return speed > 0.0 and (speed_n == 0.0 or transport > TRANSPORT_EPS * h * speed_n)
+
+
+def observe_cell(h, q_norm, cfl_factor, gz, g):
+    """Speed (m/s) of a cell of discharge norm q_norm and its inverse CFL limit (1/s).
+
+    ``cfl_factor = P / (2 A)``: the limit of eq. 41 is ``1 / (cfl_factor (|u| + sqrt(3) c))``;
+    the sweeps keep the largest inverse and divide once per step.
+    """
+    if h <= 0.0:
+        return 0.0, 0.0
+    speed = q_norm / h
+    return speed, cfl_factor * (speed + SQRT3 * sound_speed(h, g * gz))
+
+
+def open_mass(f_out):
+    """Mass flux (outward) through an open side: what leaves, never anything that enters.
+
+    The ghost copies the cell with its outward normal velocity (``max(u_n, 0)``), so a state
+    leaving the map passes through unchanged (the two half fluxes of one state add up to the
+    exact flux ``h u_n``). A cell moving inward would still receive the ghost's particles,
+    mass from outside the map: an open side lets material leave and nothing enter, so the
+    net is cut at 0 (then the face holds the material like a wall, pressure included).
+    """
+    return f_out if f_out > 0.0 else 0.0
+
+
+def dirac_face(dirac, flag_i, flag_j):
+    """True when a face carries the Dirac (zero) mass flux: both cells at zero temperature.
+
+    Eqs. 51-53 and section 3.3 (Figs. 4-5); a boundary ghost shares the flag of its cell.
+    """
+    return dirac and flag_i != FLOWING and flag_j != FLOWING
+
+
+def emitted_state(h, q1, q2, h_zero, g_normal, dens):
+    """What a cell emits through its faces, computed once per step (scalars only):
+    ``(h, u1, u2, c, sqrt(3) c, k / 2, k / 3)`` with ``k = c * dens`` the particle density of
+    :func:`~avflow.numerics.kinetic.half_fluxes`; all zero at or below ``h_zero``. The
+    half fluxes then need no division (:func:`~avflow.numerics.kinetic.half_flux_out`)."""
+    if h <= h_zero or h <= 0.0:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    c = sound_speed(h, g_normal)
+    k = c * dens
+    return h, q1 / h, q2 / h, c, SQRT3 * c, 0.5 * k, k / 3.0
+
+
+def side_fluxes(hf, uf, wet, dens, g_normal):
+    """Half fluxes of a cell's reconstructed state (hf, uf) at one of its faces; nothing from
+    a cell at or below the minimum flowing thickness (``wet`` False). Scalars only: Numba's
+    inlined helpers that take arrays slowed the sweeps threefold."""
+    if not wet:
+        return 0.0, 0.0, 0.0, 0.0
+    c = sound_speed(hf, g_normal)
+    return half_fluxes(hf, uf, c, c * dens)
+

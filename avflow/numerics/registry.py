@@ -1,0 +1,128 @@
+"""Which kernel runs a scene: a table of (traversal, backend) -> kernel, each with the orders
+and meshes it supports, in the manner of xarray's backends. :class:`~avflow.numerics.solver.Solver`
+asks :func:`select`; a combination no kernel runs fails there, at load time, with one line
+naming what is available.
+
+A new backend (a GPU) registers its kernels here with ``backend="cuda"``; a new traversal
+registers its mesh kind. Nothing else chooses a kernel.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+#: the values of ``numerics.kernel``: auto picks the fastest kernel that supports the scene
+CHOICES = ("auto", "grid", "faces")
+
+
+class KernelUnavailable(ValueError):
+    """No registered kernel runs this combination (one line, naming what is available)."""
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """One traversal on one backend."""
+
+    name: str  #: "profile", "grid" or "faces"
+    backend: str  #: "cpu"
+    orders: tuple[int, ...]
+    description: str  #: for messages: what it walks
+    #: None when it runs ``(terrain, order)``, else why not (a phrase)
+    refuses: Callable[[object, int], str | None]
+    #: the compiled time loop for ``(structured, order, law, parallel)``
+    loop: Callable[..., object]
+
+    def label(self) -> str:
+        orders = " and ".join(str(o) for o in self.orders)
+        return f"{self.name} ({self.description}; order{'s' if len(self.orders) > 1 else ''} {orders}; {self.backend})"
+
+
+def _profile_refuses(terrain, order):
+    return None if terrain.mesh.structured_1d else "the mesh is not a profile"
+
+
+def _grid_refuses(terrain, order):
+    if terrain.kind != "grid" or terrain.mesh.face_direction is None:
+        return "the mesh is not a square grid"
+    if order not in (1,):
+        return f"it runs order 1 only, not order {order}"
+    return None
+
+
+def _faces_refuses(terrain, order):
+    return None
+
+
+def _face_loop(structured, order, law, parallel):
+    from avflow.numerics.timeloop import time_loop
+
+    return time_loop(structured, order, law, parallel)
+
+
+def _grid_loop(structured, order, law, parallel):
+    from avflow.numerics.square_grid import grid_loop
+
+    return grid_loop(law, parallel)
+
+
+KERNELS: dict[tuple[str, str], Kernel] = {
+    ("profile", "cpu"): Kernel("profile", "cpu", (1, 2), "a profile's cells in line order",
+                               _profile_refuses, _face_loop),
+    ("grid", "cpu"): Kernel("grid", "cpu", (1,), "square grids (planes, DEMs) by rows, on threads",
+                            _grid_refuses, _grid_loop),
+    ("faces", "cpu"): Kernel("faces", "cpu", (1, 2), "any mesh by face lists, on threads",
+                             _faces_refuses, _face_loop),
+}
+
+
+def available(backend: str | None = None) -> str:
+    """The registered kernels, for messages."""
+    return "; ".join(k.label() for k in KERNELS.values() if backend in (None, k.backend))
+
+
+def select(terrain, order: int, kernel: str = "auto", backend: str = "cpu") -> Kernel:
+    """The kernel that runs ``terrain`` at ``order`` on ``backend``: with ``auto``, the
+    square-grid kernel where it applies, the profile sweep on profiles, the face kernel
+    elsewhere; ``grid`` or ``faces``: that one, or :class:`KernelUnavailable`.
+    (The square-grid kernel can still turn a grid down once laid out: a rotated DEM; the
+    solver then takes the face kernel, which runs any mesh.)"""
+    if kernel not in CHOICES:
+        raise KernelUnavailable(f"kernel must be one of {', '.join(CHOICES)}, got {kernel!r}")
+    if not any(k.backend == backend for k in KERNELS.values()):
+        backends = sorted({k.backend for k in KERNELS.values()})
+        raise KernelUnavailable(f"no kernel runs on the backend {backend!r}; available: "
+                                f"{', '.join(backends)}")
+    wanted = {"auto": ("grid", "profile", "faces"), "grid": ("grid",),
+              "faces": ("profile", "faces")}[kernel]
+    why = []
+    for name in wanted:
+        entry = KERNELS.get((name, backend))
+        if entry is None:
+            why.append(f"{name}: none on {backend}")
+            continue
+        reason = entry.refuses(terrain, order)
+        if reason is None and order in entry.orders:
+            return entry
+        why.append(f"{name}: {reason or f'order {order} is not one of its orders'}")
+    raise KernelUnavailable(f"no {backend} kernel runs this scene at order {order} "
+                            f"({'; '.join(why)}); available: {available(backend)}")
+
+
+def is_cached(dispatcher) -> bool:
+    """Whether ``dispatcher`` is compiled in this process or has machine code in Numba's
+    cache on disk (its index file): False means a first run compiles it."""
+    if getattr(dispatcher, "signatures", None):
+        return True
+    cache = getattr(dispatcher, "_cache", None)
+    index = getattr(getattr(cache, "_cache_file", None), "_index_path", None)
+    return bool(index) and Path(index).is_file()
+
+
+def notify_compiling(what: str, stream=None) -> None:
+    """One line on stderr: the kernels of ``what`` are being compiled for this machine."""
+    print(f"avflow: compiling {what} for this machine (the first run of this kind takes "
+          "15 to 70 s more; the next ones load it from the cache)", file=stream or sys.stderr,
+          flush=True)

@@ -1,0 +1,121 @@
+"""What every time loop shares: its status codes, the slots of the ``stats`` vector it keeps
+between calls (named for readers outside the kernels by :class:`Statistics`), the step size of
+eq. 41 cut to land on an output time, and the stop rules."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Status returned by the time loop (time_loop)
+REACHED_TARGET = 0
+STOPPED = 1
+MAX_STEPS = 2
+FAILED = 3
+
+MAX_RETRIES = 12
+#: Order 2 marks its lists with distinct stamps: stage 1, then stage 2 and the union of
+#: both for every attempt of a step (a halved step lists again).
+STAMPS_PER_STEP = 2 * MAX_RETRIES + 1
+
+# Slots of the float64 ``stats`` vector shared between the time loop and its caller.
+ST_TIME = 0
+ST_DT_LIMIT = 1  #: dt allowed by the CFL condition with cfl = 1, for the next step
+ST_STEPS = 2
+ST_DT_MIN = 3
+ST_DT_MAX = 4
+ST_MOVING = 5  #: volume of cells with u != 0 and h > h_dry after the last step
+ST_FILM = 6  #: volume of cells with u != 0 and 0 < h <= h_dry (a vanishing film)
+ST_OUTFLOW = 7  #: cumulative volume that left through open boundaries
+ST_CLAMPED = 8  #: cumulative count of cell-steps whose normal acceleration was clamped at 0
+ST_RETRIES = 9  #: cumulative count of halved steps
+ST_KINETIC = 10  #: kinetic energy / density, sum of h A |u|^2 / 2 (m^5 s^-2), after the last step
+ST_KINETIC_PEAK = 11  #: its largest value so far
+ST_FALLBACK = 12  #: cumulative count of cell-steps where order 2 fell back to order 1
+N_STATS = 13
+
+
+@njit(error_model="numpy", cache=True)
+def step_size(stats, cfl, t, t_target):
+    """The next step of a time loop: ``cfl`` times the state's CFL limit (the whole interval
+    when nothing moves), cut to land on ``t_target``. Returns ``(dt, dt_decide, last)``:
+    ``dt_decide`` is the uncut step, with which the Coulomb threshold is always tested (the
+    decision depends on the state alone), ``last`` whether the step lands on ``t_target``."""
+    dt_max = stats[ST_DT_LIMIT]
+    dt = cfl * dt_max if dt_max < np.inf else t_target - t
+    if t + dt >= t_target:
+        return t_target - t, dt, True
+    return dt, dt, False
+
+
+@njit(error_model="numpy", cache=True)
+def record_step(stats, dt, dt_limit, moving, film, kinetic, clamped, outflow, stop_volume,
+                stop_kinetic, steps, max_steps):
+    """A finished step into ``stats`` (the ``ST_*`` slots; ``kinetic`` is the sum of
+    h A |u|^2), then the stop rules: STOPPED (moving volume under ``stop_volume``, or kinetic
+    energy at most ``stop_kinetic`` times its peak; negative: rule off), MAX_STEPS, or
+    REACHED_TARGET to go on. ``steps``: taken in this call so far."""
+    stats[ST_DT_LIMIT] = dt_limit
+    stats[ST_MOVING] = moving
+    stats[ST_FILM] = film
+    stats[ST_KINETIC] = 0.5 * kinetic
+    stats[ST_KINETIC_PEAK] = max(stats[ST_KINETIC_PEAK], 0.5 * kinetic)
+    stats[ST_CLAMPED] += clamped
+    stats[ST_OUTFLOW] += outflow
+    stats[ST_DT_MIN] = min(stats[ST_DT_MIN], dt)
+    stats[ST_DT_MAX] = max(stats[ST_DT_MAX], dt)
+    if stop_volume >= 0.0 and moving < stop_volume:
+        return STOPPED
+    if stop_kinetic >= 0.0 and kinetic <= stop_kinetic * (2.0 * stats[ST_KINETIC_PEAK]):
+        return STOPPED
+    if stats[ST_STEPS] + steps >= max_steps:
+        return MAX_STEPS
+    return REACHED_TARGET
+
+
+@njit(error_model="numpy", cache=True)
+def end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv):
+    """The end of a time loop that swaps two buffers each step: the newest state back in
+    ``(h, hu, hv)`` when it sits in the work buffers (an odd number of steps), and
+    :func:`record_end`. (Loops that know where the buffers differ copy only there.)"""
+    if steps % 2 == 1:
+        h[:] = cur_h
+        hu[:] = cur_hu
+        hv[:] = cur_hv
+    record_end(stats, t, steps)
+
+
+@njit(error_model="numpy", cache=True)
+def record_end(stats, t, steps):
+    """The time and the step count of a time loop's call into ``stats``."""
+    stats[ST_TIME] = t
+    stats[ST_STEPS] += steps
+
+
+
+def _slot(index: int, doc: str):
+    return property(lambda self: float(self.array[index]), doc=doc)
+
+
+class Statistics:
+    """The ``stats`` vector of a run, by name: what :mod:`avflow.simulation` reads (the
+    kernels write its ``ST_*`` slots)."""
+
+    __slots__ = ("array",)
+
+    def __init__(self, array: np.ndarray):
+        self.array = array
+
+    time = _slot(ST_TIME, "time reached, s")
+    dt_limit = _slot(ST_DT_LIMIT, "CFL step (cfl = 1) of the current state, s")
+    steps = _slot(ST_STEPS, "steps taken")
+    dt_min = _slot(ST_DT_MIN, "shortest step taken, s")
+    dt_max = _slot(ST_DT_MAX, "longest step taken, s")
+    moving_volume = _slot(ST_MOVING, "volume of moving cells thicker than h_dry, m^3")
+    film_volume = _slot(ST_FILM, "volume of moving cells at most h_dry thick, m^3")
+    outflow_volume = _slot(ST_OUTFLOW, "volume that left through open sides, m^3")
+    clamped_cells = _slot(ST_CLAMPED, "cell-steps whose normal acceleration was clamped at 0")
+    halved_steps = _slot(ST_RETRIES, "steps redone with half the step")
+    kinetic = _slot(ST_KINETIC, "kinetic energy / density after the last step, m^5 s^-2")
+    kinetic_peak = _slot(ST_KINETIC_PEAK, "largest kinetic energy / density, m^5 s^-2")
+    order2_fallbacks = _slot(ST_FALLBACK, "cell-steps where order 2 fell back to order 1")

@@ -1,0 +1,327 @@
+"""Running a region: every release in its own window, on dask as ensembles run, merged.
+
+Layout of OUTDIR::
+
+    releases/<id>.nc        each release's peak maps on its last window and its row
+    checksums/<id>.sha256   their sha256 (resume trusts a file only when it matches)
+    releases.csv            id, status, volume, runout, travel angle, area, retries, times...
+    region.zarr             the merged maps (:mod:`avflow.region.merge`)
+
+Releases run largest first (by polygon area). A release that cannot run (outside the DEM,
+zero area, another CRS, a run that fails) is a row with its status and error, and one line
+on stderr; the others go on. A rerun reuses every release whose file it can trust and
+merges the maps again from the files (the store is rebuilt next to the old one and
+renamed into place at the end).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+# the ensembles' dask client (local cluster, --scheduler, warming) and Ctrl-C handling
+from avflow.ensemble.orchestrate import _client, _deferred_sigint
+from avflow.files import atomic_write, check_folder, check_target, output_lock, protected
+from avflow.region.run import COLUMNS, MERGED, read_result, release_key, result_path, \
+    run_release
+from avflow.region.windows import dem_info, read_releases
+
+#: Names of the outputs in OUTDIR.
+STORE, TABLE = "region.zarr", "releases.csv"
+
+
+@dataclass
+class RegionOutcome:
+    """What :func:`run_region` did."""
+
+    table: object  #: pandas.DataFrame, one row per release, in id order
+    store: Path
+    ran: int
+    reused: int
+    failed: int  #: releases not merged (invalid, failed)
+    elapsed: float  #: s, from the start to the end of the merge
+    where: str
+    workers: int
+    #: s, wall clock in this process: "check", "startup", "runs" (first submit to last
+    #: result), "merge" (merging results into the store), "tables"
+    timings: dict = field(default_factory=dict)
+
+
+class RegionProgress:
+    """``[####....] 12/40 releases, 1 failed, 3.2 km2 covered`` on one line; failures on
+    their own lines (always, even when quiet)."""
+
+    def __init__(self, total: int, pixel_area: float, stream=None, quiet: bool = False):
+        self.stream = stream if stream is not None else sys.stderr
+        self.total, self.quiet, self.pixel_area = total, quiet, pixel_area
+        self.live = self.stream.isatty() and not quiet
+        self.done = self.failed = 0
+        self.covered = 0.0
+        self.started = time.perf_counter()
+
+    def update(self, row: dict) -> None:
+        self.done += 1
+        if row["status"] not in MERGED:
+            self.failed += 1
+            if self.live:
+                self.stream.write("\r\033[K")
+            self.stream.write(f"release {row['id']}: {row['status']}: {row['error']}\n")
+        elif row["status"] == "dem_edge":
+            self.note(f"release {row['id']}: its flow reaches the DEM's border (runout "
+                      "truncated, merged as a lower bound): extend the DEM there")
+        else:
+            cells = (row["row1"] - row["row0"]) * (row["col1"] - row["col0"])
+            self.covered += cells * self.pixel_area
+        self.draw()
+
+    def note(self, message: str) -> None:
+        if self.quiet:
+            return
+        if self.live:
+            self.stream.write("\r\033[K")
+        self.stream.write(message + "\n")
+        self.draw()
+
+    def draw(self) -> None:
+        if not self.live:
+            return
+        filled = int(30 * self.done / max(self.total, 1))
+        wall = time.perf_counter() - self.started
+        self.stream.write(f"\r  [{'#' * filled}{'.' * (30 - filled)}] {self.done}/{self.total}"
+                          f" releases, {self.failed} failed, {self.covered / 1e6:.2f} km2 of "
+                          f"windows ({wall:5.1f} s)")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.live:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def run_region(region, outdir, *, workers: int | None = None, scheduler: str | None = None,
+               quiet: bool = False, client=None) -> RegionOutcome:
+    """Run every release of ``region`` (a :class:`~avflow.region.spec.Region`) into
+    ``outdir`` and merge them. ``workers``: local worker processes (0: here, no dask; None:
+    one per core, or here when at most one release is left to run); ``scheduler``: address
+    or scheduler file of a running dask scheduler; ``client``: a ``distributed.Client``."""
+    # absolute: the members' scenario files name their windows from their own folder
+    outdir = check_folder(Path(outdir).absolute(), "region folder")
+    inputs = protected(region.input_files())
+    check_target(outdir / TABLE, inputs, what="region output")
+    store = outdir / STORE
+    if store.exists() and not store.is_dir():
+        from avflow.files import OutputError
+
+        raise OutputError(f"region output {store}: exists and is not a folder (a Zarr store)")
+    with output_lock(outdir, folder=True, what="region folder"):
+        return _run_locked(region, outdir, workers, scheduler, quiet, client)
+
+
+def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> RegionOutcome:
+    started = time.perf_counter()
+    timings: dict[str, float] = {}
+    dem = dem_info(region.dem)
+    releases = read_releases(region, dem)
+    key = region.key()
+    progress = RegionProgress(len(releases), dem.dx * dem.dy, quiet=quiet)
+    rows: dict[int, dict] = {}
+    todo, reuse = [], []
+    for rel in sorted(releases, key=lambda r: (-r.area, r.id)):  # largest first
+        rkey = release_key(key, rel.wkb, rel.thickness)
+        if rel.problem:
+            rows[rel.id] = _invalid_row(rel, rkey)
+            progress.update(rows[rel.id])
+            continue
+        row, _, why = read_result(result_path(outdir, rel.id), rkey, arrays=False)
+        if row is not None:
+            row["reused"] = True
+            reuse.append(row)
+            continue
+        if why:
+            progress.note(f"release {rel.id}: not reusing releases/{rel.id}.nc: {why}; "
+                          "running it again")
+        todo.append({"id": rel.id, "wkb": rel.wkb, "thickness": rel.thickness,
+                     "area": rel.area, "bbox": rel.bbox, "key": rkey, "region": region,
+                     "dem": dem, "outdir": str(outdir)})
+    timings["check"] = time.perf_counter() - started
+
+    tmp_store = _fresh_store_path(outdir)
+    from avflow.region.merge import RegionStore
+
+    merging = 0.0
+    try:
+        merged = RegionStore(tmp_store, dem, region.merge.fields, region.merge.chunk,
+                             {"title": f"avflow region {region.name}",
+                              "source": "avflow region", "region_key": key})
+
+        def merge(row: dict) -> None:
+            nonlocal merging
+            clock = time.perf_counter()
+            rows[row["id"]] = row
+            if row["status"] in MERGED:
+                _, maps, why = read_result(result_path(outdir, row["id"]), row["key"])
+                if maps is None:
+                    raise RuntimeError(f"release {row['id']}: its result file cannot be "
+                                       f"read back ({why})")
+                merged.add(row["id"], (row["row0"], row["row1"], row["col0"], row["col1"]),
+                           maps, row["reach_threshold"])
+            merging += time.perf_counter() - clock
+            progress.update(row)
+
+        for row in reuse:
+            merge(row)
+        where, n_workers = _run(todo, workers, scheduler, client, merge, timings, progress)
+        progress.close()
+        clock = time.perf_counter()
+        table = _table(rows)
+        atomic_write(outdir / TABLE, lambda tmp: table.to_csv(tmp, index=False))
+        _publish_store(tmp_store, outdir / STORE)
+        timings["tables"] = time.perf_counter() - clock
+    except BaseException:
+        shutil.rmtree(tmp_store, ignore_errors=True)
+        raise
+    finally:
+        shutil.rmtree(outdir / "work", ignore_errors=True)
+    timings["merge"] = merging
+    failed = sum(r["status"] not in MERGED for r in rows.values())
+    return RegionOutcome(table, outdir / STORE, len(todo), len(reuse), failed,
+                         time.perf_counter() - started, where, n_workers, timings)
+
+
+def _invalid_row(rel, rkey: str) -> dict:
+    row = {c: math.nan for c in COLUMNS}
+    row.update(id=rel.id, status="invalid", area=rel.area, retries=0, reused=False,
+               error=rel.problem, key=rkey, wall_time=0.0)
+    return row
+
+
+def _run(todo, workers, scheduler, client, merge, timings, progress) -> tuple[str, int]:
+    """Run the tasks here or on dask, merging each result as it comes."""
+    if not todo:
+        return "nothing to run", 0
+    if workers is None and scheduler is None and client is None and len(todo) == 1:
+        workers = 0
+    if workers == 0 and scheduler is None and client is None:
+        clock = time.perf_counter()
+        for task in todo:
+            merge(run_release(task))
+        timings["runs"] = time.perf_counter() - clock
+        return "here", 0
+    from distributed import as_completed
+
+    clock = time.perf_counter()
+    tiny = _tiny_scenarios(todo[0])
+    with _deferred_sigint() as sigint, _client(
+            scheduler, workers, client, tiny, check=sigint.check, timings=timings,
+            env={"NUMBA_NUM_THREADS": "1"}) as cl:
+        n_workers = len(cl.client.scheduler_info(n_workers=-1)["workers"])
+        timings["startup"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        futures = {cl.client.submit(run_release, {**task, "one_thread": True},
+                                    key=f"avflow-region-release-{task['id']}-{task['key']}",
+                                    priority=len(todo) - k, pure=False, retries=1): task
+                   for k, task in enumerate(todo)}  # largest first: highest priority
+        # polled, as the ensembles do: a Ctrl-C is acted on between two polls
+        pending = as_completed(list(futures), loop=cl.client.loop, raise_errors=False)
+        while not pending.is_empty():
+            sigint.check()
+            done = pending.next_batch(block=False)
+            if not done:
+                time.sleep(0.05)
+                continue
+            for future in done:
+                task = futures.pop(future)
+                try:
+                    row = future.result()
+                except Exception as err:  # noqa: BLE001 - a lost task (KilledWorker)
+                    row = _invalid_row(_Lost(task), task["key"])
+                    row.update(status="failed", error=f"{type(err).__name__}: "
+                                                      f"{' '.join(str(err).split())}")
+                finally:
+                    future.release()
+                merge(row)
+        timings["runs"] = time.perf_counter() - clock
+    where = "scheduler" if scheduler else "client" if client else "local cluster"
+    return where, n_workers
+
+
+@dataclass
+class _Lost:
+    """A task's release, for the row of a task dask gave up on."""
+
+    task: dict
+
+    @property
+    def id(self):
+        return self.task["id"]
+
+    @property
+    def area(self):
+        return self.task["area"]
+
+    problem = ""
+
+
+def _tiny_scenarios(task) -> list[str] | None:
+    """Scenario YAMLs of the first release cut to two steps, on a small window: run here
+    (:func:`avflow.ensemble.orchestrate.warm`) before any worker loads Numba's kernels."""
+    from avflow.region.run import _write_polygon
+    from avflow.region.windows import window_for, write_window
+
+    region, dem = task["region"], task["dem"]
+    folder = Path(task["outdir"]) / "work" / "warm"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        polygon = folder / "release.gpkg"
+        _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
+        dem_file = folder / "dem.tif"
+        write_window(dem, window_for(dem, task["bbox"], 2 * max(dem.dx, dem.dy)), dem_file)
+        sc = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon),
+                                 task["thickness"], "warm")
+        sc = sc.with_updates({"time.end": 1e-3, "time.max_steps": 2, "output.every": 1e-3})
+        texts = [sc.source_text]
+        if sc.numerics.threads is None:
+            texts.append(sc.with_updates({"numerics.threads": 1}).source_text)
+        return texts
+    except Exception:  # noqa: BLE001 - best effort: the releases report their own problems
+        return None
+
+
+def _table(rows: dict):
+    import pandas as pd
+
+    table = pd.DataFrame([{c: rows[i].get(c) for c in COLUMNS} for i in sorted(rows)],
+                         columns=list(COLUMNS))
+    for c in ("retries", "row0", "row1", "col0", "col1", "cells", "steps"):
+        table[c] = table[c].astype("Int64")
+    return table
+
+
+def _fresh_store_path(outdir: Path) -> Path:
+    """A new temporary store name next to the final one (old ones of killed runs removed)."""
+    import tempfile
+
+    for old in outdir.glob(f".{STORE}.*.tmp"):
+        shutil.rmtree(old, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{STORE}.", suffix=".tmp", dir=outdir))
+    tmp.rmdir()  # to_zarr(mode="w-") makes it
+    return tmp
+
+
+def _publish_store(tmp: Path, target: Path) -> None:
+    """The finished store renamed into place; an old one is moved aside first, then
+    removed (two renames: a reader sees the old store or the new one, never a mix)."""
+    old = None
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}.tmp")
+        os.replace(target, old)
+    os.replace(tmp, target)
+    if old is not None:
+        with contextlib.suppress(OSError):
+            shutil.rmtree(old)

@@ -1,0 +1,199 @@
+"""One release of a region, on a worker: its window of the DEM, its run, re-run in grown
+windows while its flow reaches the window's edge, and its result file.
+
+The result file ``OUTDIR/releases/<id>.nc`` holds the release's peak maps on its last
+window (float32, north first) and its row of ``releases.csv`` as attributes; it is written
+atomically and its sha256 kept in ``OUTDIR/checksums/<id>.sha256`` (as ensemble members
+are), so that a rerun reuses it only when every byte is as written and its ``key`` (the
+region's scenario block, window rules and DEM, and the release's polygon and thickness) is
+the release's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from avflow.ensemble.orchestrate import checksum_path, file_sha256, write_checksum
+from avflow.files import atomic_write
+
+#: Status of a release merged into the maps, and of one merged although its flow reached
+#: the DEM's own border (no larger window exists: the map is then a lower bound there).
+MERGED = ("ok", "dem_edge")
+#: Columns of releases.csv, in order.
+COLUMNS = ("id", "status", "volume", "runout", "travel_angle", "area", "retries",
+           "wall_time", "run_time", "buffer", "row0", "row1", "col0", "col1", "cells",
+           "steps", "mass_balance_error", "reach_threshold", "reused", "error")
+
+
+def release_key(region_key: str, wkb: bytes, thickness) -> str:
+    digest = hashlib.sha256(f"{region_key}|{thickness!r}|".encode() + wkb)
+    return digest.hexdigest()[:16]
+
+
+def result_path(outdir, rid: int) -> Path:
+    return Path(outdir) / "releases" / f"{rid}.nc"
+
+
+def read_result(path, key: str | None = None, arrays: bool = True):
+    """``(row, maps, "")`` of a result file a rerun can trust, else ``(None, None, why)``;
+    ``maps``: field name -> float32 array on the row's window (None unless ``arrays``)."""
+    path = Path(path)
+    if not path.is_file():
+        return None, None, ""
+    try:
+        expected = checksum_path(path).read_text().split()[0]
+    except (OSError, IndexError):
+        return None, None, "it has no checksum (never finished)"
+    if file_sha256(path) != expected:
+        return None, None, "its checksum does not match (changed or damaged)"
+    try:
+        import netCDF4
+
+        with netCDF4.Dataset(path) as nc:
+            row = json.loads(nc.getncattr("row"))
+            maps = None
+            if arrays:
+                maps = {name: np.asarray(var[...].filled(np.nan) if np.ma.isMaskedArray(
+                    var[...]) else var[...], dtype=np.float32)
+                    for name, var in nc.variables.items() if name.startswith("peak_")}
+    except Exception as err:  # noqa: BLE001 - a foreign file: run the release again
+        return None, None, f"it cannot be read ({type(err).__name__})"
+    if key is not None and row.get("key") != key:
+        return None, None, "it holds another release's or another region's result"
+    return row, maps, ""
+
+
+def _write_result(path: Path, row: dict, maps: dict) -> None:
+    import netCDF4
+
+    def write(tmp: Path) -> None:
+        with netCDF4.Dataset(tmp, "w") as nc:
+            ny, nx = next(iter(maps.values())).shape
+            nc.createDimension("y", ny)
+            nc.createDimension("x", nx)
+            for name, values in maps.items():
+                var = nc.createVariable(name, "f4", ("y", "x"), zlib=True, complevel=1,
+                                        fill_value=np.float32(np.nan))
+                var.set_auto_maskandscale(False)
+                var[...] = values
+            nc.setncattr("row", json.dumps(row, allow_nan=True))
+
+    checksum_path(path).unlink(missing_ok=True)  # stale: the file is replaced
+    atomic_write(path, write)
+    write_checksum(path)
+
+
+def run_release(task: dict) -> dict:
+    """Run one release (a task of :func:`avflow.region.orchestrate.run_region`); never
+    raises for a model error: the row's status says ``invalid`` or ``failed`` and why.
+
+    ``task``: id, wkb, thickness, area, key, region (the :class:`Region`), dem
+    (:class:`DemInfo`), outdir, one_thread. Idempotent: a trusted result file is returned
+    as it is (a task run twice after a lost worker)."""
+    started = time.perf_counter()
+    rid, outdir = task["id"], Path(task["outdir"])
+    path = result_path(outdir, rid)
+    row, _, _ = read_result(path, task["key"], arrays=False)
+    if row is not None:
+        row.update(reused=True)
+        return row
+    region, dem = task["region"], task["dem"]
+    row = {c: math.nan for c in COLUMNS}
+    row.update(id=rid, status="failed", area=task["area"], retries=0, reused=False, error="",
+               key=task["key"])
+    maps = None
+    try:
+        maps = _run_growing(task, region, dem, row, outdir)
+    except Exception as err:  # noqa: BLE001 - recorded; the other releases go on
+        from avflow.errors import RunFailed, ScenarioError
+
+        problems = getattr(err, "problems", None)
+        message = (" | ".join(f"{p.field + ': ' if p.field else ''}{p.message}"
+                              for p in problems) if problems else " ".join(str(err).split()))
+        row["status"] = ("invalid" if isinstance(err, ScenarioError)
+                         else "failed" if isinstance(err, RunFailed) else "failed")
+        row["error"] = f"{type(err).__name__}: {message}"
+        maps = None
+    row["wall_time"] = time.perf_counter() - started
+    if maps is not None:
+        _write_result(path, row, maps)
+    elif row["status"] == "invalid":  # kept without maps: resume does not retry the polygon
+        _write_result(path, row, {"peak_thickness": np.full((1, 1), np.nan, np.float32)})
+    return row  # a failed run keeps no file: a rerun tries it again
+
+
+def _run_growing(task, region, dem, row, outdir: Path) -> dict:
+    """Runs in windows grown by ``window.growth`` while the flow reaches their edge."""
+    from avflow.region.windows import estimate_buffer, window_for, write_window
+    from avflow.simulation.runner import simulate
+
+    rules = region.window
+    buffer = estimate_buffer(dem, task["bbox"], rules)
+    work = outdir / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    run_time = 0.0
+    with tempfile.TemporaryDirectory(prefix=f"release-{task['id']}-", dir=work) as folder:
+        polygon = Path(folder) / "release.gpkg"
+        _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
+        retries = 0
+        while True:
+            # after max_retries grown windows, the whole DEM
+            window = window_for(dem, task["bbox"], buffer) if retries <= rules.max_retries \
+                else dem.whole
+            dem_file = Path(folder) / f"dem-{retries}.tif"
+            write_window(dem, window, dem_file)
+            scenario = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon),
+                                           task["thickness"], f"{region.name}-{task['id']}")
+            if task.get("one_thread") and scenario.numerics.threads is None:
+                scenario = scenario.with_updates({"numerics.threads": 1})
+            clock = time.perf_counter()
+            result = simulate(scenario)
+            run_time += time.perf_counter() - clock
+            truncated = bool(result.summary["runout_truncated"])
+            dem_file.unlink(missing_ok=True)
+            if not truncated or window == dem.whole:
+                break
+            buffer *= rules.growth
+            retries += 1
+    s = result.summary
+    r0, r1, c0, c1 = window
+    row.update(status="dem_edge" if truncated else "ok", retries=retries,
+               volume=s["release_volume"], runout=s["runout"], travel_angle=s["travel_angle"],
+               steps=int(s["steps"]), mass_balance_error=s["mass_balance_error"],
+               run_time=run_time, buffer=buffer, row0=r0, row1=r1, col0=c0, col1=c1,
+               cells=int(result.terrain.n_cells),
+               reach_threshold=float(result.thresholds["runout"]))
+    terrain, state = result.terrain, result.state
+    rho = scenario.physics.density
+
+    def grid(values):  # south first on the run's grid -> north first, as the DEM's rows
+        return terrain.to_grid(np.asarray(values, dtype=float))[::-1].astype(np.float32)
+
+    return {"peak_thickness": grid(state.peak_h), "peak_speed": grid(state.peak_speed),
+            "peak_pressure": grid(rho * state.peak_speed ** 2)}
+
+
+def _write_polygon(path: Path, wkb: bytes, thickness, crs_wkt) -> None:
+    """The release polygon as a GeoPackage of one feature, in the DEM's CRS, with its
+    thickness as the attribute the run reads."""
+    import pyogrio.raw
+
+    def write(tmp: Path) -> None:
+        import warnings
+
+        tmp.unlink()  # GDAL makes the GeoPackage itself
+        with warnings.catch_warnings():  # the temporary's .tmp extension
+            warnings.simplefilter("ignore", RuntimeWarning)
+            pyogrio.raw.write(str(tmp), np.array([wkb], dtype=object),
+                              [np.array([thickness if thickness else 0.0])], ["thickness"],
+                              layer="release", driver="GPKG", crs=crs_wkt,
+                              geometry_type="Unknown")
+
+    atomic_write(path, write)

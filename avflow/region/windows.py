@@ -1,0 +1,244 @@
+"""Releases of a region and the window of the DEM each runs in.
+
+Windows are in the DEM's pixel rows and columns (row 0 at the north edge, as GDAL stores
+them): ``(r0, r1, c0, c1)``, end exclusive. The DEM is only ever read by windows
+(``rasterio`` ``window=``); a release's run gets its window as a GeoTIFF of its own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from avflow.terrain.raster import same_crs
+
+
+@dataclass(frozen=True)
+class DemInfo:
+    """What the region needs of its DEM: size, georeferencing, CRS (no values)."""
+
+    path: str
+    width: int
+    height: int
+    x0: float  #: west edge, m
+    y0: float  #: north edge, m
+    dx: float  #: column spacing, m (> 0)
+    dy: float  #: row spacing, m (> 0, rows go south)
+    crs_wkt: str | None
+    dtype: str
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        return (self.x0, self.y0 - self.height * self.dy, self.x0 + self.width * self.dx,
+                self.y0)
+
+    def x(self, c0: int = 0, c1: int | None = None) -> np.ndarray:
+        """Cell-centre x of columns c0..c1."""
+        c1 = self.width if c1 is None else c1
+        return self.x0 + self.dx * (np.arange(c0, c1) + 0.5)
+
+    def y(self, r0: int = 0, r1: int | None = None) -> np.ndarray:
+        """Cell-centre y of rows r0..r1 (descending: north first)."""
+        r1 = self.height if r1 is None else r1
+        return self.y0 - self.dy * (np.arange(r0, r1) + 0.5)
+
+    @property
+    def whole(self) -> tuple[int, int, int, int]:
+        return (0, self.height, 0, self.width)
+
+
+def dem_info(path: str) -> DemInfo:
+    import rasterio
+
+    with rasterio.open(path) as src:
+        t = src.transform
+        if t.a < 0 or t.e > 0:
+            raise ValueError(f"{path}: only north-up rasters with columns going east are "
+                             "supported; warp it first (gdalwarp)")
+        return DemInfo(str(path), src.width, src.height, t.c, t.f, t.a, -t.e,
+                       src.crs.to_wkt() if src.crs is not None else None, src.dtypes[0])
+
+
+def read_window(dem: DemInfo, window) -> np.ndarray:
+    """The DEM's values in a window (north first), NODATA as NaN, float64."""
+    import rasterio
+    from rasterio.windows import Window
+
+    r0, r1, c0, c1 = window
+    with rasterio.open(dem.path) as src:
+        band = src.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
+    return band.astype(float).filled(np.nan)
+
+
+def write_window(dem: DemInfo, window, path) -> None:
+    """The DEM's window as a GeoTIFF (its own dtype when it is a float: the values the
+    region's run reads are then those of the DEM to the bit)."""
+    from avflow.terrain.raster import write_tif
+
+    r0, r1, c0, c1 = window
+    values = read_window(dem, window)
+    dtype = dem.dtype if dem.dtype in ("float32", "float64") else "float64"
+    write_tif(path, values[::-1], dem.x(c0, c1), dem.y(r0, r1)[::-1], dem.crs_wkt,
+              dtype=dtype)
+
+
+@dataclass(frozen=True)
+class ReleaseArea:
+    """One release polygon: its id, geometry (WKB), thickness, area, box; ``problem`` says
+    why it cannot run ("" when it can)."""
+
+    id: int
+    index: int  #: feature order in the layer, from 0
+    wkb: bytes
+    thickness: float | None
+    area: float  #: m^2, of the polygon
+    bbox: tuple  #: (xmin, ymin, xmax, ymax), m
+    problem: str = ""
+
+
+def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
+    """Every feature of the release layer; features that cannot run carry their problem
+    (outside the DEM, zero area, another CRS, no thickness...) and are reported, not run."""
+    import pyogrio
+    import shapely
+
+    from avflow.region.spec import RegionError
+
+    spec = region.releases
+    try:
+        meta, _, wkb, columns = pyogrio.raw.read(spec.path)
+    except Exception as err:  # noqa: BLE001 - GDAL's error: one line naming the file
+        raise RegionError(f"{spec.path}: cannot be read as a vector file "
+                          f"({type(err).__name__}: {' '.join(str(err).split())})",
+                          region.path, "releases.path") from None
+    fields = {str(n): c for n, c in zip(meta["fields"], columns)}
+    lower = {k.lower(): k for k in fields}
+    ids = None
+    if spec.id_field is not None:
+        if spec.id_field.lower() not in lower:
+            raise RegionError(f"{spec.path} has no attribute {spec.id_field!r} (it has: "
+                              f"{', '.join(fields) or 'none'})", region.path,
+                              "releases.id_field")
+        ids = fields[lower[spec.id_field.lower()]]
+    thick_name = spec.thickness_field or ("thickness" if spec.thickness is None else None)
+    thicknesses = None
+    if thick_name is not None:
+        if thick_name.lower() not in lower:
+            raise RegionError(f"{spec.path} has no attribute {thick_name!r} (it has: "
+                              f"{', '.join(fields) or 'none'}); give releases.thickness or "
+                              "releases.thickness_field", region.path,
+                              "releases.thickness_field")
+        thicknesses = fields[lower[thick_name.lower()]]
+    layer_crs = meta.get("crs")
+    crs_problem = ""
+    if layer_crs and dem.crs_wkt and not same_crs(_wkt(layer_crs), dem.crs_wkt):
+        crs_problem = (f"its CRS ({layer_crs}) differs from the DEM's; reproject the layer "
+                       "(ogr2ogr -t_srs)")
+    geometries = shapely.from_wkb(wkb)
+    xmin, ymin, xmax, ymax = dem.bounds
+    out, seen = [], {}
+    for k, geom in enumerate(geometries):
+        rid = k + 1
+        problem = ""
+        if ids is not None:
+            try:
+                value = ids[k]
+                rid = int(value)
+                if rid != value or rid < 1:
+                    raise ValueError
+            except (TypeError, ValueError, OverflowError):
+                raise RegionError(f"{spec.path}: feature {k} has {spec.id_field} "
+                                  f"{ids[k]!r}; ids must be positive integers", region.path,
+                                  "releases.id_field") from None
+        if rid in seen:
+            raise RegionError(f"{spec.path}: features {seen[rid]} and {k} have the same id "
+                              f"{rid}; ids must be unique", region.path, "releases.id_field")
+        seen[rid] = k
+        thickness = spec.thickness
+        if thicknesses is not None:
+            thickness = _number(thicknesses[k])
+            if thickness is None or not thickness > 0:
+                problem = f"thickness {thicknesses[k]!r} is not a positive number of metres"
+        if geom is None or geom.is_empty:
+            problem, area, box = "empty geometry", 0.0, (math.nan,) * 4
+        else:
+            area, box = float(geom.area), tuple(float(v) for v in geom.bounds)
+            if geom.geom_type not in ("Polygon", "MultiPolygon"):
+                problem = f"a {geom.geom_type}, not a polygon"
+            elif not area > 0:
+                problem = "zero area"
+            elif box[0] >= xmax or box[2] <= xmin or box[1] >= ymax or box[3] <= ymin:
+                problem = (f"outside the DEM (its box {_box(box)} against the DEM's "
+                           f"{_box(dem.bounds)})")
+        out.append(ReleaseArea(rid, k, b"" if geom is None else shapely.to_wkb(geom), thickness,
+                               area, box, crs_problem or problem))
+    if not out:
+        raise RegionError(f"{spec.path}: holds no feature", region.path, "releases.path")
+    return out
+
+
+def _wkt(crs) -> str:
+    try:
+        from pyproj import CRS
+
+        return CRS.from_user_input(crs).to_wkt()
+    except Exception:  # noqa: BLE001 - compared as text then
+        return str(crs)
+
+
+def _number(value) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _box(box) -> str:
+    return "[" + ", ".join(f"{v:.6g}" for v in box) + "]"
+
+
+def pixel_box(dem: DemInfo, bbox) -> tuple[int, int, int, int]:
+    """The pixels a map box touches, clipped to the DEM."""
+    xmin, ymin, xmax, ymax = bbox
+    c0 = math.floor((xmin - dem.x0) / dem.dx)
+    c1 = math.ceil((xmax - dem.x0) / dem.dx)
+    r0 = math.floor((dem.y0 - ymax) / dem.dy)
+    r1 = math.ceil((dem.y0 - ymin) / dem.dy)
+    return (max(r0, 0), min(max(r1, r0 + 1), dem.height), max(c0, 0),
+            min(max(c1, c0 + 1), dem.width))
+
+
+def window_for(dem: DemInfo, bbox, buffer: float) -> tuple[int, int, int, int]:
+    """The release's pixel box grown by ``buffer`` metres on every side, clipped."""
+    r0, r1, c0, c1 = pixel_box(dem, bbox)
+    nr, nc = math.ceil(buffer / dem.dy), math.ceil(buffer / dem.dx)
+    return (max(r0 - nr, 0), min(r1 + nr, dem.height), max(c0 - nc, 0),
+            min(c1 + nc, dem.width))
+
+
+def estimate_buffer(dem: DemInfo, bbox, rules) -> float:
+    """Buffer (m) from the drop below the release: ``(z_top - z_low) / tan(angle)``, with
+    z_top the highest DEM cell of the release's box and z_low the lowest within
+    ``search_radius`` of it, clipped to ``[min_buffer, search_radius]``."""
+    if rules.buffer is not None:
+        return float(rules.buffer)
+    import warnings
+
+    box = pixel_box(dem, bbox)
+    around = window_for(dem, bbox, rules.search_radius)
+    with warnings.catch_warnings():  # a box of NODATA only: NaN, the largest buffer below
+        warnings.simplefilter("ignore", RuntimeWarning)
+        top = np.nanmax(read_window(dem, box)) if _has_data(dem, box) else math.nan
+        low = np.nanmin(read_window(dem, around)) if _has_data(dem, around) else math.nan
+    drop = top - low
+    if not math.isfinite(drop):
+        return float(rules.search_radius)
+    buffer = drop / math.tan(math.radians(rules.runout_angle_deg))
+    return float(min(max(buffer, rules.min_buffer), rules.search_radius))
+
+
+def _has_data(dem: DemInfo, box) -> bool:
+    return box[1] > box[0] and box[3] > box[2]

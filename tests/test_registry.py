@@ -1,0 +1,89 @@
+"""Kernel dispatch through the registry (issue 27): which kernel runs which scene, one line
+naming what is available where none does, and the word to the user before a compile."""
+
+import math
+
+import numpy as np
+import pytest
+from numba import njit
+
+from avflow.numerics import registry
+from avflow.numerics.rheology import Law
+from avflow.numerics.solver import Solver
+from conftest import SCENARIOS, bump_on_a_slope, slope_profile
+
+COULOMB = np.array([math.tan(math.radians(20.0))])
+
+
+@pytest.mark.parametrize("scene, kernel, order, expected", [
+    ("profile", "auto", 1, "profile"), ("profile", "auto", 2, "profile"),
+    ("profile", "faces", 1, "profile"),
+    ("grid", "auto", 1, "grid"), ("grid", "auto", 2, "faces"), ("grid", "faces", 1, "faces"),
+    ("grid", "grid", 1, "grid"),
+    ("triangles", "auto", 1, "faces"), ("triangles", "auto", 2, "faces"),
+])
+def test_each_scene_gets_its_kernel(scene, kernel, order, expected):
+    ter = slope_profile(100.0, 1.0, 30.0) if scene == "profile" else bump_on_a_slope(scene)
+    assert registry.select(ter, order, kernel).name == expected
+    solver = Solver(ter, Law.COULOMB, COULOMB, order=order, kernel=kernel)
+    assert solver._kernel.name == expected
+    assert solver.kernel_used == ("grid" if expected == "grid" else "faces")
+
+
+@pytest.mark.parametrize("scene, order, backend, words", [
+    ("triangles", 1, "cpu", ["grid: the mesh is not a square grid"]),
+    ("grid", 2, "cpu", ["grid: it runs order 1 only, not order 2"]),
+    ("grid", 1, "cuda", ["no kernel runs on the backend 'cuda'", "available: cpu"]),
+])
+def test_a_combination_no_kernel_runs_fails_at_load_in_one_line_naming_what_is_there(
+        scene, order, backend, words):
+    ter = bump_on_a_slope(scene)
+    with pytest.raises(registry.KernelUnavailable) as err:
+        Solver(ter, Law.COULOMB, COULOMB, order=order, kernel="grid", backend=backend)
+    message = str(err.value)
+    assert "\n" not in message
+    for w in words:
+        assert w in message
+    if backend == "cpu":
+        assert "available: profile" in message and "faces (any mesh" in message
+
+
+def test_a_scenario_asking_for_the_grid_kernel_on_a_profile_names_the_field_and_the_file():
+    from avflow.errors import ScenarioError
+    from avflow.scenario.schema import load_scenario
+    from avflow.simulation.runner import simulate
+
+    sc = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
+    with pytest.raises(ScenarioError, match=r"seed_exponential_coulomb15.yaml: numerics.kernel: "
+                                            r"no cpu kernel runs this scene"):
+        simulate(sc.with_updates({"numerics.kernel": "grid"}))
+
+
+def test_is_cached_tells_a_function_never_compiled_from_one_compiled():
+    @njit
+    def twice(x):
+        return 2 * x
+
+    assert not registry.is_cached(twice)
+    twice(1.0)
+    assert registry.is_cached(twice)
+
+
+def test_the_user_is_told_before_a_compile_and_only_then(monkeypatch, capsys):
+    from avflow.scenario.schema import load_scenario
+    from avflow.simulation.runner import simulate
+
+    sc = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml").with_updates(
+        {"time.end": 1.0})
+    said = []
+    simulate(sc, on_compile=said.append)  # compiled (or loaded) now, if it was not
+    said.clear()
+    simulate(sc, on_compile=said.append)
+    assert said == []  # in this process already: nothing to say
+    monkeypatch.setattr(Solver, "kernels_cached", lambda self: False)
+    simulate(sc, on_compile=said.append)
+    assert said == ["the profile kernel at order 1 with Coulomb friction"]
+    registry.notify_compiling(said[0])
+    err = capsys.readouterr().err
+    assert err.startswith("avflow: compiling the profile kernel at order 1 with Coulomb "
+                          "friction for this machine") and err.count("\n") == 1
