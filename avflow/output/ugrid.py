@@ -29,7 +29,7 @@ def to_ugrid_dataset(result, part: str = "all") -> xr.Dataset:
     ``part`` as in :func:`avflow.output.dataset.to_dataset`: ``"fields"`` holds the mesh
     variables and the fields on (time, node), ``"rest"`` every other variable.
     """
-    from avflow.output.dataset import snapshot_fields
+    from avflow.output.fields import snapshot_fields
 
     terrain, snaps = result.terrain, result.snapshots
     tris = np.asarray(terrain.extras["triangles"], dtype=np.int32)
