@@ -43,10 +43,10 @@ def run(scenario, progress=None, max_memory=None, *, overrides=None):
         Fields ``h``, ``u`` (``v``), ``flow_state`` on ``(time, x)`` or ``(time, y, x)``,
         maps (``peak_thickness``, ``deposit_thickness``...), 0-d summaries (``runout``,
         ``time_to_stop``, ``wall_time`` for the time loop, ``compile_time`` for Numba) and
-        the scenario in the attributes. ``time`` holds seconds since the release (its
-        ``units``, ``seconds since <output.release_time>``, let CF tools read dates), so
-        ``ds.h.sel(time=40, method="nearest")`` works; :func:`open_run` reads a written file
-        back the same way.
+        the scenario in the attributes. ``time`` holds seconds since the release (units
+        ``s``; its ``release_time`` attribute is ``output.release_time``), so
+        ``ds.h.sel(time=40, method="nearest")`` works; :func:`open_run` and plain
+        ``xr.open_dataset`` read a written file back the same way.
 
     Raises
     ------
@@ -71,10 +71,10 @@ def run(scenario, progress=None, max_memory=None, *, overrides=None):
 def open_run(path):
     """A file written by ``avflow run`` (or an ensemble member) as :func:`run` returned it.
 
-    ``time`` in seconds since the release (not decoded to dates), the CRS as the coordinate
-    ``crs`` (``ds.rio.crs`` with rioxarray), the fields as float64 and ``flow_state`` as
-    int8 with -1 outside the mesh, all loaded in memory (the file is closed). Values are
-    those of the file: the fields were stored as float32.
+    ``time`` in seconds since the release, the CRS as the grid-mapping variable ``crs``
+    (``ds.set_coords("crs").rio.crs`` with rioxarray), the fields as float64 and
+    ``flow_state`` as int8 with -1 outside the mesh, all loaded in memory (the file is
+    closed). Values are those of the file: the fields were stored as float32.
     """
     import numpy as np
     import xarray as xr

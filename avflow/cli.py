@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_cmd_ensemble)
     rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble",
                         parents=[quiet])
-    rp.add_argument("outdir", help="output folder of avflow ensemble")
+    rp.add_argument("outdir", help="output folder of avflow ensemble, or its ensemble.nc")
     rp.set_defaults(func=_cmd_report)
     x = sub.add_parser("export", help="write the maps of a grid run, or the probability maps "
                                       "of an ensemble.nc, as GeoTIFF or ESRI ASCII rasters "

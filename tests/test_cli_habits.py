@@ -77,7 +77,7 @@ def test_set_changes_fields_and_data_paths_still_resolve_next_to_the_scenario(
         {"grid.dx": 10.0, "rheology.delta_deg": 15.0,
          "output.release_time": "2024-01-01T06:00:00Z"})
     assert ds.attrs["scenario_hash"] == written.scenario_hash()
-    assert ds["time"].attrs["units"] == "seconds since 2024-01-01 06:00:00"
+    assert ds["time"].attrs["release_time"] == "2024-01-01T06:00:00Z"
 
 
 @pytest.mark.parametrize("item, words", [

@@ -251,7 +251,7 @@ thresholds:
 
 def test_ensemble_nc_carries_the_crs_and_probabilities(dem_ensemble):
     ds = xr.open_dataset(dem_ensemble / "ensemble.nc", decode_times=False)
-    assert "crs" in ds.coords and _same_crs(CRS.from_wkt(ds["crs"].attrs["crs_wkt"]))
+    assert "crs" in ds.data_vars and _same_crs(CRS.from_wkt(ds["crs"].attrs["crs_wkt"]))
     expected = {"peak_thickness": ("threshold", [0.5, 2.0]),
                 "peak_speed": ("speed_threshold", [2.0, 5.0]),
                 "peak_pressure": ("pressure_threshold", [1.0, 3.0, 30.0])}  # classes, kPa

@@ -318,7 +318,7 @@ def test_ensemble_records_the_path_per_member(tmp_path, capsys):
     table = pd.read_csv(outdir / "summary.csv")
     assert table["path_runout_angle"].to_numpy() == pytest.approx([25.0] * 3, abs=0.01)
     assert table["path_runout_s"].is_monotonic_decreasing  # more friction, shorter
-    assert set(table["path_source"]) == {"centre-of-mass track of member 0"}
+    assert set(table["path_source"]) == {"centre-of-mass track of member 0, delta_deg 18"}
     with xr.open_dataset(outdir / "ensemble.nc") as ens:
         assert ens["path_runout_s"].dims == ("realization",)
         assert ens["path_peak_pressure"].dims == ("realization", "path_s")

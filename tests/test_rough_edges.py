@@ -121,7 +121,7 @@ def test_lv95_dem_prints_no_pyproj_warning(tmp_path, capfd):
     import rioxarray  # noqa: F401
     import xarray as xr
 
-    with xr.open_dataset(tmp_path / "lv95.nc", decode_times=False) as ds:
+    with xr.open_dataset(tmp_path / "lv95.nc", decode_coords="all") as ds:
         assert ds.rio.crs.to_epsg() == 2056
 
 
@@ -226,3 +226,52 @@ def test_report_accepts_the_ensemble_file_as_well_as_its_folder(tmp_path):
     by_folder = write_report(tmp_path / "ens")
     assert write_report(tmp_path / "ens" / "ensemble.nc") == by_folder
     assert "at_rest" in by_folder.read_text()
+
+
+def test_lv95_triangles_ensemble_and_their_commands_print_no_pyproj_warning(tmp_path, capfd):
+    """The warning came from every output that turns the CRS into CF attributes: grid files,
+    UGRID files (avflow/output/ugrid.py) and the ensemble's members; run, plot, ensemble,
+    report and export on an EPSG:2056 DEM print none of it."""
+    import rioxarray  # noqa: F401
+    import xarray as xr
+
+    scenario = _lv95_scene(tmp_path)
+    (tmp_path / "ens.yaml").write_text("base: lv95.yaml\nvary:\n  rheology.delta_deg: [20.0, 24.0]\n")
+    short = ["--set", "time.end=20"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        assert main(["run", str(scenario), *short, "--set", "grid.mesh=triangles",
+                     "-o", str(tmp_path / "tri.nc"), "-q"]) == 0
+        assert main(["plot", str(tmp_path / "tri.nc"), "-q"]) == 0
+        assert main(["ensemble", str(tmp_path / "ens.yaml"), *short, "-o", str(tmp_path / "ens"),
+                     "--workers", "0", "-q"]) == 0
+        assert main(["report", str(tmp_path / "ens"), "-q"]) == 0
+        assert main(["export", str(tmp_path / "ens" / "ensemble.nc"), "-q"]) == 0
+    err = capfd.readouterr().err
+    assert "UserWarning" not in err and "lost in conversion" not in err, err
+    for path in (tmp_path / "tri.nc", tmp_path / "ens" / "ensemble.nc"):
+        with xr.open_dataset(path, decode_coords="all") as ds:
+            assert ds.rio.crs.to_epsg() == 2056, path
+        with xr.open_dataset(path) as ds:  # the grid mapping, no coordinate for titles
+            assert "crs" in ds.data_vars and ds["crs"].attrs["crs_wkt"]
+            assert "crs" not in ds["peak_thickness"]._title_for_slice()
+
+
+# --- xarray's defaults ------------------------------------------------------------------------
+
+
+def test_plain_xarray_reads_time_as_seconds_since_the_release(tmp_path):
+    """``xr.open_dataset(run.nc)`` decoded time to 1970 dates, so ``sel(time=40)`` failed."""
+    import xarray as xr
+
+    out = tmp_path / "run.nc"
+    assert main(["run", str(SECTION6), "--set", "grid.dx=50", "--set", "time.end=60",
+                 "--set", "output.every=10", "-o", str(out), "-q"]) == 0
+    with xr.open_dataset(out) as ds:
+        assert ds["time"].dtype == np.float64 and ds["time"].attrs["units"] == "s"
+        assert float(ds.h.sel(time=40, method="nearest").time) == 40.0
+        assert float(ds.h.sel(time=44, method="nearest").time) == 40.0
+        assert ds["time"].attrs["release_time"] == ds.attrs["release_time"]
+        assert ds["peak_thickness"].attrs["cell_methods"] == "duration: maximum"
+        assert float(ds["duration"]) == 60.0
+        assert list(ds["duration_bounds"].values) == [0.0, 60.0]

@@ -106,7 +106,7 @@ def test_streamed_file_equals_the_in_memory_one(kind, tmp_path):
             assert np.isnan(ds["h"].attrs["_FillValue"])
             assert (ds["flow_state"].values == -1).any()
         if kind == "grid":
-            assert ds["time"].attrs["units"] == "seconds since 2024-02-03 10:15:00"
+            assert ds["time"].attrs["release_time"] == "2024-02-03T10:15:00Z"
     assert sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".nc") == [
         "in_memory.nc", "streamed.nc"]
     assert not list(tmp_path.glob(".*.tmp"))

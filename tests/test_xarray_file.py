@@ -1,7 +1,7 @@
-"""A run file that xarray users read without surprises (issue 12 item 3): time in seconds
-since the release (the release instant settable), ``avflow.open_run`` equal to ``avflow.run``,
-the CRS found by rioxarray with xarray's default decoding, no 0-d coordinate in the titles of
-fields it does not describe."""
+"""A run file that xarray users read without surprises (issue 12 item 3, issue 31): time in
+seconds since the release with xarray's defaults too (the release instant settable, an
+attribute), ``avflow.open_run`` equal to ``avflow.run``, the CRS found by rioxarray, no
+``crs = 0`` in plot titles."""
 
 from pathlib import Path
 
@@ -14,7 +14,7 @@ from avflow.output.netcdf import write_netcdf
 from avflow.scenario.schema import parse_scenario
 from avflow.terrain.raster import write_tif
 from conftest import SCENARIOS
-from test_cli_output import CELL_METHODS_NO_COORDINATE, strict_messages
+from test_cli_output import known_messages, strict_messages
 from test_dem import lambert_wkt, tilted
 
 PLANE = SCENARIOS / "plane_box_2d.yaml"
@@ -46,24 +46,27 @@ def plane_run(tmp_path_factory):
 
 def test_time_is_seconds_since_the_release_and_the_release_is_its_reference(plane_run):
     ds, path = plane_run
-    # in memory and through open_run: seconds since release, selectable as numbers
-    back = avflow.open_run(path)
-    for d in (ds, back):
+    # in memory, through open_run and with xarray's defaults: seconds since the release,
+    # selectable as numbers (issue 31: xarray decoded "seconds since" units to 1970 dates)
+    with xr.open_dataset(path) as plain:
+        plain.load()
+    for d in (ds, avflow.open_run(path), plain):
         assert d["time"].dtype == np.float64 and float(d["time"][0]) == 0.0
-        assert d["time"].attrs["units"] == "seconds since 2024-02-03 10:15:00"
+        assert d["time"].attrs["units"] == "s"
+        assert d["time"].attrs["release_time"] == "2024-02-03T10:15:00Z"
         assert float(d["h"].sel(time=40, method="nearest")["time"]) == 40.0
         assert float(d["h"].sel(time=23.0, method="nearest")["time"]) == 25.0
-    assert back.attrs["release_time"] == "2024-02-03T10:15:00Z"
-    # xarray's defaults: the dates of the event, counted from the release
-    with xr.open_dataset(path) as plain:
-        assert plain["time"].values[0] == np.datetime64("2024-02-03T10:15:00")
-        elapsed = (plain["time"] - plain["time"][0]) / np.timedelta64(1, "s")
-        np.testing.assert_array_equal(elapsed.values, ds["time"].values)
+        assert d.attrs["release_time"] == "2024-02-03T10:15:00Z"
+        # the run maxima cover the scalar coordinate `duration`: the whole run
+        assert float(d["duration"]) == 40.0
+        np.testing.assert_array_equal(d["duration_bounds"].values, [0.0, 40.0])
+    np.testing.assert_array_equal(plain["time"].values, ds["time"].values)
 
 
 def test_the_epoch_stays_the_default_release_time(tmp_path):
     ds = avflow.run(avflow.load_scenario(PLANE).with_updates({"time.end": 5.0}))
-    assert ds["time"].attrs["units"] == "seconds since 1970-01-01 00:00:00"
+    assert ds["time"].attrs["units"] == "s"
+    assert ds["time"].attrs["release_time"] == "1970-01-01T00:00:00Z"
     assert ds.attrs["release_time"] == "1970-01-01T00:00:00Z"
 
 
@@ -86,21 +89,24 @@ def test_open_run_returns_what_run_returned(plane_run):
     np.testing.assert_array_equal(back["flow_state"].values, ds["flow_state"].values)
 
 
-def test_no_scalar_coordinate_in_the_way(plane_run):
-    """The run maxima keep CF cell_methods without a 0-d coordinate that xarray would put on
-    every variable and in every plot title."""
+def test_only_the_run_period_is_a_scalar_coordinate(plane_run):
+    """The run maxima name the scalar coordinate ``duration`` (bounds: the whole run) in
+    their cell_methods; it is the only 0-d coordinate, so titles say when, not ``crs = 0``."""
     _, path = plane_run
     with xr.open_dataset(path) as plain:
-        assert [n for n, c in plain.coords.items() if c.ndim == 0] == []
-        assert plain["h"].isel(time=2)._title_for_slice() == "time = 2024-02-03T10:15:10"
-        assert plain["peak_thickness"]._title_for_slice() == ""
-        assert plain["peak_thickness"].attrs["cell_methods"] == "time: maximum"
-        assert plain["deposit_thickness"].attrs["cell_methods"] == "time: point"
+        assert [n for n, c in plain.coords.items() if c.ndim == 0] == ["duration"]
+        assert plain["h"].isel(time=2)._title_for_slice() == "time = 10.0 [s], duration = 40.0 [s]"
+        assert plain["peak_thickness"]._title_for_slice() == "duration = 40.0 [s]"
+        assert plain["peak_thickness"].attrs["cell_methods"] == "duration: maximum"
+        assert plain["deposit_thickness"].attrs["cell_methods"] == "duration: point"
+        assert plain["peak_thickness"].encoding["coordinates"] == "duration"
+        assert "coordinates" not in plain["h"].encoding
 
 
-def test_rioxarray_finds_the_crs_with_xarrays_defaults(tmp_path):
-    """`ds.rio.crs` without decode_coords="all": `crs` is a coordinate of the maps it
-    georeferences (grid_mapping + crs_wkt + spatial_ref), in memory and in the file."""
+def test_rioxarray_finds_the_crs_and_titles_show_no_crs(tmp_path):
+    """``crs`` is the CF grid-mapping variable named by the maps' ``grid_mapping``, not a
+    coordinate: xarray put a 0-d coordinate in every plot title (``crs = 0``, issue 31).
+    rioxarray finds it as it documents, with ``decode_coords="all"``."""
     import rioxarray  # noqa: F401  (registers .rio)
     from pyproj import CRS
 
@@ -109,14 +115,16 @@ def test_rioxarray_finds_the_crs_with_xarrays_defaults(tmp_path):
     path = write_netcdf(ds, tmp_path / "run.nc")
     with xr.open_dataset(path) as plain:
         for d in (ds, plain, avflow.open_run(path)):
-            assert CRS.from_user_input(d.rio.crs).equals(expected, ignore_axis_order=True)
+            assert "crs" in d.data_vars and "crs" not in d.coords
+            assert "crs" not in d["peak_thickness"]._title_for_slice()
+            assert "crs" not in d["h"].isel(time=1)._title_for_slice()
             for name in ("peak_thickness", "h", "bed_elevation"):
                 assert d[name].attrs["grid_mapping"] == "crs"
-                assert CRS.from_user_input(d[name].rio.crs).equals(expected,
-                                                                   ignore_axis_order=True)
-        # in the file, the CRS is named by the maps only, not by series and summaries
         assert "coordinates" not in plain["moving_volume"].encoding
         assert "coordinates" not in plain["runout"].encoding
-        assert plain["peak_thickness"].encoding["coordinates"] == "crs"
         assert {"crs_wkt", "spatial_ref"} <= set(plain["crs"].attrs)
-    assert strict_messages(path) == sorted(CELL_METHODS_NO_COORDINATE)
+    with xr.open_dataset(path, decode_coords="all") as d:
+        assert CRS.from_user_input(d.rio.crs).equals(expected, ignore_axis_order=True)
+        for name in ("peak_thickness", "h", "bed_elevation"):
+            assert CRS.from_user_input(d[name].rio.crs).equals(expected, ignore_axis_order=True)
+    assert strict_messages(path) == sorted(known_messages("grid"))

@@ -131,14 +131,12 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike,
             "long_name": "thickness at the end of the member run", "units": "m",
             "comment": "measured normal to the bed; NaN for failed members"})
         _probabilities(ensemble, maps, ok, space, coords, data)
-        if crs is not None:  # a coordinate, as in a run file (rioxarray looks there)
-            coords["crs"] = ((), np.int32(0), crs)
+        if crs is not None:  # a data variable, as in a run file (no crs = 0 in plot titles)
             for name, (dims, _, attributes) in data.items():
                 if tuple(dims[-2:]) == ("y", "x"):
                     attributes["grid_mapping"] = "crs"
+            data["crs"] = ((), np.int32(0), crs)
     ds = xr.Dataset(data, coords=coords)
-    if "crs" in ds.coords:
-        _link_coordinates(ds)
     failed = int((~ok).sum())
     ds.attrs = {
         "Conventions": "CF-1.11",
@@ -309,16 +307,6 @@ def _probabilities(ensemble: Ensemble, maps: dict, ok: np.ndarray, space: tuple,
             "units": "1",
             "comment": f"fraction of the {n_ok} successful members whose {name} is above "
                        f"the threshold{film}; NaN outside the mesh"})
-
-
-def _link_coordinates(ds: xr.Dataset) -> None:
-    """The 0-d ``crs`` coordinate in the ``coordinates`` of the maps that name it only
-    (xarray would list it on every variable, as it lists the realization coordinates)."""
-    aux = [name for name in ds.coords if name not in ds.dims]
-    for name, var in ds.data_vars.items():
-        linked = [c for c in aux if (var.attrs.get("grid_mapping") == c if ds[c].ndim == 0
-                                     else set(ds[c].dims) <= set(var.dims))]
-        var.encoding["coordinates"] = " ".join(linked) if linked else None
 
 
 def write_ensemble_netcdf(ds: xr.Dataset, path: str | os.PathLike) -> Path:

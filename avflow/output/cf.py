@@ -13,6 +13,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from avflow import __version__
+from avflow.terrain.raster import cf_grid_mapping
 from avflow.numerics.rheology import law_reference
 from avflow.simulation.runner import FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED
 
@@ -22,17 +23,20 @@ SEED_REFERENCE = (
     "equations using a kinetic scheme. J. Geophys. Res. 108(B11), 2527, doi:10.1029/2002JB002024"
 )
 
-#: CF units of ``time`` when the scenario gives no ``output.release_time``: the release is
-#: then placed at the epoch.
-TIME_UNITS = "seconds since 1970-01-01 00:00:00"
+#: Units of ``time``: seconds since the release, a number. Units "<unit> since <datetime>"
+#: would make ``time`` a CF time coordinate, which xarray decodes to dates by default (1970
+#: ones without ``output.release_time``), and ``ds.h.sel(time=40)`` would fail; the release
+#: instant is the ``release_time`` attribute of ``time`` and of the file instead.
+TIME_UNITS = "s"
 EPOCH = datetime(1970, 1, 1)
 
 H_COMMENT = "measured normal to the bed (topography-linked frame of the seed, Fig. 1)"
 
-#: Run maxima reduce over time and keep no time coordinate: CF 7.3.4 names the axis by its
-#: standard name. (A scalar coordinate holding the period would become, in xarray, a
-#: coordinate of every variable and show in every plot title.)
-RUN_MAXIMUM = "time: maximum"
+#: The run maxima and the deposit name, in ``cell_methods``, the scalar coordinate
+#: :data:`RUN` whose bounds are the whole run (CF 7.3: a dimension or a scalar coordinate
+#: of the variable).
+RUN = "duration"
+RUN_MAXIMUM = f"{RUN}: maximum"
 OVER_THE_RUN = "over the whole run, every time step from the release to the last time"
 
 #: name -> attributes. "kind": field (time, space), reduced (space), summary (0-d), coord.
@@ -51,7 +55,7 @@ FIELDS = {
     "peak_speed": dict(kind="reduced", long_name="maximum speed over the run", units="m s-1",
                        cell_methods=RUN_MAXIMUM, comment=OVER_THE_RUN),
     "deposit_thickness": dict(kind="reduced", long_name="thickness at the end of the run",
-                              units="m", cell_methods="time: point",
+                              units="m", cell_methods=f"{RUN}: point",
                               comment=f"{H_COMMENT}; at the last time of the run"),
     "bed_elevation": dict(kind="static", standard_name="ground_level_altitude", units="m"),
     "slope_angle": dict(kind="static", standard_name="ground_slope_angle", units="degree"),
@@ -113,43 +117,68 @@ def release_instant(release_time: str | None) -> datetime:
     return t
 
 
-def time_units(release_time: str | None = None) -> str:
-    """``seconds since <release>`` (UTC), the CF units of ``time``."""
-    t = release_instant(release_time)
-    stamp = t.strftime("%Y-%m-%d %H:%M:%S")
-    if t.microsecond:
-        stamp += f".{t.microsecond:06d}".rstrip("0")
-    return f"seconds since {stamp}"
+def release_stamp(release_time: str | None) -> str:
+    """The release instant as ISO 8601 UTC, ``2024-02-03T10:15:00Z`` (the epoch if unset)."""
+    return release_instant(release_time).isoformat() + "Z"
 
 
 def time_coords(times: np.ndarray, release_time: str | None = None) -> dict:
-    """``time``: seconds since the release, whose instant is the reference of its units.
+    """``time``, seconds since the release, and the scalar coordinate :data:`RUN` that the
+    run maxima reduce over, with bounds ``[0, last time]``.
 
-    CF 4.4 wants "unit since reference" for time; the reference is ``output.release_time``
-    (the epoch by default), so the stored values are seconds since release: read them as
-    numbers with ``avflow.open_run`` or ``xr.open_dataset(f, decode_times=False)``, or as
-    dates (those of the event, with a real release time) with xarray's default decoding.
+    ``time`` is a plain coordinate in s (no ``standard_name: time``, no ``axis: T``: CF
+    4.4 gives those to time coordinates, whose units are "<unit> since <datetime>"), so
+    ``xr.open_dataset(f).h.sel(time=40, method="nearest")`` works with xarray's defaults;
+    its ``release_time`` attribute (ISO 8601, UTC) is the instant of its 0.
     """
-    return {"time": ("time", times, {
-        "standard_name": "time", "units": time_units(release_time),
-        "calendar": "proleptic_gregorian", "units_metadata": "leap_seconds: none", "axis": "T",
-        "long_name": "time since release",
-        "comment": "the reference instant of the units is the release"})}
+    stamp = release_stamp(release_time)
+    end = float(times[-1]) if len(times) else 0.0
+    return {
+        "time": ("time", times, {
+            "long_name": "time since release", "units": TIME_UNITS, "release_time": stamp,
+            "comment": f"seconds since the release at {stamp} (output.release_time)"}),
+        RUN: ((), end, {
+            "long_name": "time since release over the whole run", "units": TIME_UNITS,
+            "bounds": f"{RUN}_bounds",
+            "comment": "the run maxima and the deposit (cell_methods) cover these bounds: "
+                       "from the release to the last time of the run"}),
+    }
+
+
+def run_bounds(times: np.ndarray) -> dict:
+    """The bounds variable of :data:`RUN` (CF 7.1: one more dimension than its scalar
+    coordinate), as a data variable of :func:`to_dataset`."""
+    end = float(times[-1]) if len(times) else 0.0
+    return {f"{RUN}_bounds": (("nv",), np.array([0.0, end]), {})}
+
+
+def grid_mapping(wkt) -> dict | None:
+    """CF grid-mapping attributes of a CRS (None without one), without pyproj's UserWarning
+    that a parameter CF cannot name (Swiss LV95's rectified-to-skew angle) was dropped:
+    ``crs_wkt`` and ``spatial_ref`` carry the whole CRS, which GDAL, rioxarray and pyproj
+    read first. Every output (grids, UGRID meshes, ensembles) takes it from here."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*lost in conversion to CF",
+                                category=UserWarning)
+        return cf_grid_mapping(wkt)
 
 
 def link_coordinates(ds) -> None:
     """Name in each variable's ``coordinates`` only the auxiliary coordinates that describe it.
 
-    Those on its dimensions (``x_horizontal``, the UGRID node coordinates), and the 0-d
-    grid-mapping coordinate ``crs`` only on the maps whose ``grid_mapping`` names it. xarray
-    would list every 0-d coordinate on every variable. ``crs`` is a coordinate so that
-    xarray, opening the file with its defaults, keeps it as one, where rioxarray looks for
-    the CRS (``ds.rio.crs``), as GDAL and CF do through ``grid_mapping``.
+    Those on its dimensions (``x_horizontal``, the UGRID node coordinates), and the scalar
+    coordinate :data:`RUN` only on the maps whose ``cell_methods`` name it: xarray would list
+    every 0-d coordinate on every variable. The grid-mapping variable ``crs`` is no
+    coordinate (CF 5.6 names it by ``grid_mapping``): as one, xarray would show ``crs = 0``
+    in every plot title.
     """
     aux = [name for name in ds.coords if name not in ds.dims]
     for name, var in ds.data_vars.items():
+        methods = str(var.attrs.get("cell_methods", "")).split()
         linked = [c for c in aux
-                  if (var.attrs.get("grid_mapping") == c if ds[c].ndim == 0
+                  if (f"{c}:" in methods if ds[c].ndim == 0
                       else set(ds[c].dims) <= set(var.dims))]
         var.encoding["coordinates"] = " ".join(linked) if linked else None
 
@@ -167,7 +196,7 @@ def global_attributes(result) -> dict:
         "scenario_hash": sc.scenario_hash(),
         "scenario": sc.source_text,
         "avflow_version": __version__,
-        "release_time": release_instant(sc.output.release_time).isoformat() + "Z",
+        "release_time": release_stamp(sc.output.release_time),
         "status": s["status"],
         "runout_threshold_m": th["runout"],
         "dry_threshold_m": th["dry"],

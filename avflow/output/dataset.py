@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, link_coordinates,
-                              per_width, time_coords)
+from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, grid_mapping,
+                              link_coordinates, per_width, run_bounds, time_coords)
+from avflow.output.fields import cell_values, horizontal_basis, snapshot_fields
 from avflow.output.ugrid import to_ugrid_dataset
 from avflow.simulation.runner import RunResult, flags_of, wet_cells
-from avflow.terrain.raster import cf_grid_mapping
 
 #: The variables on (time, space), one value per cell and snapshot (``v`` not on profiles).
 TIME_FIELDS = ("h", "u", "v", "flow_state")
@@ -22,42 +22,6 @@ TIME_FIELDS = ("h", "u", "v", "flow_state")
 #: ``part`` of :func:`to_dataset`: everything; the fields on (time, space) of the snapshots
 #: given; everything but those fields (the snapshots' h, hu, hv and flags are not read).
 PARTS = ("all", "fields", "rest")
-
-
-def snapshot_fields(terrain, h, hu, hv, flag) -> dict:
-    """h, u (v) and flow_state of snapshots: per-cell arrays ``(..., cells)`` -> arrays on the
-    output grid ``(..., [y,] x)`` (NaN outside a DEM, flow_state -1), or on the nodes of a
-    triangle mesh. One snapshot ``(cells,)`` or a stack ``(time, cells)`` give the same values.
-    """
-    values = _cell_values(np.asarray(h), hu, hv, flag, _basis(terrain))
-    if terrain.kind == "triangles":  # fields on the nodes of a UGRID mesh, no grid
-        return values
-    return {name: terrain.to_grid(v, fill=-1).astype(np.int8) if name == "flow_state"
-            else terrain.to_grid(v) for name, v in values.items()}
-
-
-def _basis(terrain):
-    """(e1_x, e2_x, e1_y, e2_y) per cell: the horizontal components of the cells' tangent
-    basis, which turn (u, v) along the bed into the output's u and v; None on profiles."""
-    if terrain.kind == "profile":
-        return None
-    e1, e2 = terrain.tangent_basis[:, 0, :], terrain.tangent_basis[:, 1, :]
-    return e1[:, 0], e2[:, 0], e1[:, 1], e2[:, 1]
-
-
-def _cell_values(h, hu, hv, flag, basis) -> dict:
-    """h, u (v) and flow_state per cell, before any grid: the arithmetic of
-    :func:`snapshot_fields` and :class:`WindowedFields` (one, so both give the same bits).
-    ``basis``: :func:`_basis` of those cells, or None on profiles (u along the bed)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ua = np.where(h > 0, np.asarray(hu) / h, 0.0)
-        va = np.where(h > 0, np.asarray(hv) / h, 0.0)
-    flags = np.asarray(flag).astype(np.int8)
-    if basis is None:
-        return {"h": h, "u": ua, "flow_state": flags}
-    # Velocity along the bed, as the components of its horizontal projection.
-    e1x, e2x, e1y, e2y = basis
-    return {"h": h, "u": ua * e1x + va * e2x, "v": ua * e1y + va * e2y, "flow_state": flags}
 
 
 #: Cells refreshed at once by :meth:`WindowedFields.update` (its temporaries: about fifteen
@@ -85,7 +49,7 @@ class WindowedFields:
         self.values = {name: np.array(v, dtype=dtypes[name]) for name, v in first.items()}
         self.grid = terrain.kind == "grid"
         self.cell_index = terrain.cell_index if self.grid else None
-        basis = _basis(terrain)
+        basis = horizontal_basis(terrain)
         self.basis = None if basis is None else tuple(np.ascontiguousarray(e) for e in basis)
         if self.grid:
             self.shape = terrain.grid_shape
@@ -153,23 +117,11 @@ class WindowedFields:
 
         h, hu, hv = take(h), take(hu), take(hv)
         basis = None if self.basis is None else tuple(take(e) for e in self.basis)
-        for name, v in _cell_values(h, hu, hv, flags_of(h, hu, hv), basis).items():
+        for name, v in cell_values(h, hu, hv, flags_of(h, hu, hv), basis).items():
             if inside is None or isinstance(inside, slice):
                 self.values[name][block] = v
             else:
                 self.values[name][block][inside] = v
-
-
-def _grid_mapping(wkt):
-    """CF grid-mapping attributes of a CRS, without pyproj's UserWarning that a parameter CF
-    cannot name (Swiss LV95's rectified-to-skew angle) was dropped: ``crs_wkt`` and
-    ``spatial_ref`` carry the whole CRS, which GDAL, rioxarray and pyproj read first."""
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*lost in conversion to CF",
-                                category=UserWarning)
-        return cf_grid_mapping(wkt)
 
 
 def _union(a, b):
@@ -254,14 +206,16 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                                  {**attrs("moving_volume"),
                                   "units": per_width("m3", profile)})
-    crs_attrs = None if profile else _grid_mapping(terrain.crs_wkt)
+    crs_attrs = None if profile else grid_mapping(terrain.crs_wkt)
     if crs_attrs:  # CF 5.6: every map names the CRS; GDAL reads crs_wkt / spatial_ref
-        coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
-                                            **crs_attrs})  # a coordinate: link_coordinates
         for name, (dims, _, attributes) in list(data.items()):
             if dims[-2:] == ("y", "x"):
                 attributes["grid_mapping"] = "crs"
+        if part != "fields":  # a data variable: see link_coordinates
+            data["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
+                                              **crs_attrs})
     if part != "fields":
+        data.update(run_bounds(times))
         s = result.summary
         for name, (units, description) in SUMMARIES.items():
             data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),

@@ -1032,7 +1032,9 @@ def _ensemble_results(table, outdir: Path, settings: PathSettings, line: PathLin
                 return float(np.nanmax(np.hypot(p.com_x - p.com_x[0], p.com_y - p.com_y[0])))
             k_far = max(members, key=lambda k: travel(members[k]))
             line = path_for(members[k_far], None)
-            line = PathLine(line.x, line.y, source=f"{line.source} of member {k_far}")
+            label = member_labels(table).get(k_far, f"member {k_far}")  # its varied values
+            named = "" if label == f"member {k_far}" else f", {label}"
+            line = PathLine(line.x, line.y, source=f"{line.source} of member {k_far}{named}")
     spacing = min(p.spacing for p in members.values())
     results, rows = [], []
     for k, p in members.items():

@@ -8,7 +8,7 @@ carries ``mesh: mesh`` and ``location: node``. Names, units and other attributes
 fields and summaries are those of the grid outputs (:data:`avflow.output.cf.FIELDS`,
 :data:`avflow.output.cf.SUMMARIES`); the volumes are m^3, the velocity is the horizontal
 projection of the velocity along the bed, as on grids. With a DEM's CRS, the fields name
-the grid-mapping variable ``crs`` (:func:`avflow.terrain.raster.cf_grid_mapping`).
+the grid-mapping variable ``crs`` (:func:`avflow.output.cf.grid_mapping`).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from avflow.terrain.raster import cf_grid_mapping
-from avflow.output.cf import FIELDS, SUMMARIES, global_attributes, link_coordinates, time_coords
+from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, grid_mapping,
+                              link_coordinates, run_bounds, time_coords)
 
 MESH = "mesh"
 NODE, FACE = "node", "face"
@@ -29,7 +29,7 @@ def to_ugrid_dataset(result, part: str = "all") -> xr.Dataset:
     ``part`` as in :func:`avflow.output.dataset.to_dataset`: ``"fields"`` holds the mesh
     variables and the fields on (time, node), ``"rest"`` every other variable.
     """
-    from avflow.output.dataset import snapshot_fields
+    from avflow.output.fields import snapshot_fields
 
     terrain, snaps = result.terrain, result.snapshots
     tris = np.asarray(terrain.extras["triangles"], dtype=np.int32)
@@ -46,12 +46,12 @@ def to_ugrid_dataset(result, part: str = "all") -> xr.Dataset:
                                           "units": "m"}),
     }
     on_node = {"mesh": MESH, "location": "node"}
-    crs_attrs = cf_grid_mapping(terrain.crs_wkt)  # None without a CRS
-    grid_mapping = {"grid_mapping": "crs"} if crs_attrs else {}
+    crs_attrs = grid_mapping(terrain.crs_wkt)  # None without a CRS
+    named_crs = {"grid_mapping": "crs"} if crs_attrs else {}
 
     def attrs(name, **extra):
         base = {k: v for k, v in FIELDS[name].items() if k not in ("kind", "grid_only")}
-        return {**base, **on_node, **grid_mapping, **extra}
+        return {**base, **on_node, **named_crs, **extra}
 
     space = (NODE,)
     data = {} if part == "rest" else {
@@ -80,10 +80,12 @@ def to_ugrid_dataset(result, part: str = "all") -> xr.Dataset:
         data["flow_state"] = (("time", *space), fields["flow_state"],
                               attrs("flow_state", _FillValue=np.int8(-1)))
     if part != "fields":
-        _add_rest(data, result, space, attrs, on_node, grid_mapping)
-    if crs_attrs:  # a coordinate, named by the fields on the nodes (see link_coordinates)
-        coords["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
-                                            **crs_attrs})
+        _add_rest(data, result, space, attrs, on_node, named_crs)
+    if crs_attrs and part != "fields":  # named by the fields' grid_mapping, no coordinate
+        data["crs"] = ((), np.int32(0), {"long_name": "coordinate reference system",
+                                          **crs_attrs})
+    if part != "fields":
+        data.update(run_bounds(np.asarray(snaps.time, dtype=float)))
     ds = xr.Dataset(data, coords=coords)
     link_coordinates(ds)
     if part != "fields":
@@ -95,7 +97,7 @@ def to_ugrid_dataset(result, part: str = "all") -> xr.Dataset:
     return ds
 
 
-def _add_rest(data, result, space, attrs, on_node, grid_mapping) -> None:
+def _add_rest(data, result, space, attrs, on_node, named_crs) -> None:
     """The maps of the final state, the series, the static maps and the summaries."""
     terrain, snaps, state = result.terrain, result.snapshots, result.state
     data["peak_thickness"] = (space, state.peak_h, attrs("peak_thickness"))
@@ -109,7 +111,7 @@ def _add_rest(data, result, space, attrs, on_node, grid_mapping) -> None:
     data["bed_elevation"] = (space, terrain.bed_elevation, attrs("bed_elevation"))
     data["slope_angle"] = (space, terrain.slope_deg, attrs("slope_angle"))
     data["cell_area"] = (space, terrain.mesh.cell_area, {
-        **on_node, **grid_mapping, "standard_name": "cell_area", "units": "m2",
+        **on_node, **named_crs, "standard_name": "cell_area", "units": "m2",
         "comment": "area of the median dual cell, measured on the bed"})
     com = np.asarray(snaps.center_of_mass, dtype=float)
     for k, axis in enumerate("xyz"):

@@ -30,16 +30,12 @@ class RegionStore:
         import dask.array as da
         import xarray as xr
 
-        from avflow.terrain.raster import cf_grid_mapping
+        from avflow.output.cf import grid_mapping
 
         self.path, self.dem, self.chunk = Path(path), dem, chunk
         self.fields = [FIELD_NAMES[f] for f in fields]
         shape, chunks = (dem.height, dem.width), (chunk, chunk)
-        import warnings
-
-        with warnings.catch_warnings():  # pyproj: a parameter CF has no name for; the WKT has it
-            warnings.simplefilter("ignore", UserWarning)
-            gm = cf_grid_mapping(dem.crs_wkt)
+        gm = grid_mapping(dem.crs_wkt)  # without pyproj's warning on LV95, as every output
         data, encoding = {}, {}
         units = {"peak_pressure": "Pa", "peak_thickness": "m", "peak_speed": "m s-1"}
         for name in self.fields:
