@@ -60,6 +60,12 @@ class State:
     def steps(self) -> int:
         return int(self.stats[ST_STEPS])
 
+    def copy(self) -> "State":
+        """A copy of every array (a call on it leaves this state as it is)."""
+        import dataclasses
+
+        return State(**{f.name: getattr(self, f.name).copy() for f in dataclasses.fields(State)})
+
     def speed(self) -> np.ndarray:
         """|u| per cell (m/s), 0 where dry."""
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -445,10 +451,7 @@ class Solver:
     def _warm(self, threads: int, state: State) -> None:
         """Compile (or load) the loop on ``threads`` with a call that takes no step, on a
         copy of ``state``, so that a probe does not time a compile."""
-        import dataclasses
-
-        copy = State(**{f.name: getattr(state, f.name).copy()
-                        for f in dataclasses.fields(State)})
+        copy = state.copy()
         self._advance_on(threads, copy, copy.t, -1.0, -1.0, 10**9)
 
     def _probe(self, auto, state, t_target, stop_volume, stop_kinetic, max_steps):

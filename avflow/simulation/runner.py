@@ -248,7 +248,7 @@ def warm_up(solver: Solver, state: State, max_steps: int, **stop) -> float:
     types of the run. ``wall_time`` then counts the time loop alone (a first run in a fresh
     environment spends seconds compiling; later ones load the cache in milliseconds).
     """
-    copy = State(**{f.name: getattr(state, f.name).copy() for f in dataclasses.fields(State)})
+    copy = state.copy()
     started = _time.perf_counter()
     solver.advance(copy, copy.t, max_steps=max_steps, **stop)
     return _time.perf_counter() - started
