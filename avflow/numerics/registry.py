@@ -47,8 +47,6 @@ def _profile_refuses(terrain, order):
 def _grid_refuses(terrain, order):
     if terrain.kind != "grid" or terrain.mesh.face_direction is None:
         return "the mesh is not a square grid"
-    if order not in (1,):
-        return f"it runs order 1 only, not order {order}"
     return None
 
 
@@ -104,9 +102,12 @@ def select(terrain, order: int, kernel: str = "auto", backend: str = "cpu") -> K
             why.append(f"{name}: none on {backend}")
             continue
         reason = entry.refuses(terrain, order)
-        if reason is None and order in entry.orders:
+        if reason is None and order not in entry.orders:
+            orders = " and ".join(str(o) for o in entry.orders)
+            reason = f"it runs order {orders} only, not order {order}"
+        if reason is None:
             return entry
-        why.append(f"{name}: {reason or f'order {order} is not one of its orders'}")
+        why.append(f"{name}: {reason}")
     raise KernelUnavailable(f"no {backend} kernel runs this scene at order {order} "
                             f"({'; '.join(why)}); available: {available(backend)}")
 
