@@ -30,6 +30,9 @@ def test_the_kernels_give_the_recorded_states(case):
         for k, got in enumerate(states[f]):
             want = REFERENCE[f"{name}/{f}/{k}"]
             where = f"{name}: {f} at t = {TIMES[case[1]][k]} s"
+            if f == "stats":  # slots added since the recording are zero in these runs
+                assert not np.any(got[want.size:]), where
+                got = got[:want.size]
             if SAME_MACHINE or f == "flag":
                 np.testing.assert_array_equal(_bits(got), _bits(want), err_msg=where)
             else:

@@ -59,8 +59,11 @@ open_mass = _POINTWISE["open_mass"]
 dirac_face = _POINTWISE["dirac_face"]
 emitted_state = _POINTWISE["emitted_state"]
 side_fluxes = _POINTWISE["side_fluxes"]
+source_rate = _POINTWISE["source_rate"]
+take_erodible = _POINTWISE["take_erodible"]
 
 #: the constants the traversals share with the pointwise functions
 SQRT3 = kinetic.SQRT3
 FLOWING, UNDER_THRESHOLD, DRY = physics.FLOWING, physics.UNDER_THRESHOLD, physics.DRY
 TRANSPORT_EPS = physics.TRANSPORT_EPS
+SOURCE_NONE, SOURCE_CONSTANT = physics.SOURCE_NONE, physics.SOURCE_CONSTANT

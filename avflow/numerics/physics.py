@@ -204,3 +204,26 @@ def side_fluxes(hf, uf, wet, dens, g_normal):
     c = sound_speed(hf, g_normal)
     return half_fluxes(hf, uf, c, c * dens)
 
+
+
+# Mass sources (issue 27's seam for entrainment, issue 30): what a law takes from the
+# erodible layer, applied by numerics.sources once per step after the seed's step.
+SOURCE_NONE = 0  #: no source: the pass is not run at all
+SOURCE_CONSTANT = 1  #: a fixed rate s0 (m/s of erodible depth) wherever the flow lies
+
+
+def source_rate(kind, s0, s1, s2, s3, h, speed):
+    """Rate (m/s) at which a wet cell of thickness ``h`` and speed ``speed`` takes from its
+    erodible layer, for the source law ``kind`` with its parameters ``s0 .. s3``."""
+    if kind == SOURCE_CONSTANT:
+        return s0
+    return 0.0
+
+
+def take_erodible(rate, dt, erodible):
+    """Erodible depth (m) a cell takes in a step ``dt``: ``rate * dt``, never more than the
+    layer holds, so the layer never goes below zero and the budget stays exact."""
+    if rate <= 0.0 or erodible <= 0.0:
+        return 0.0
+    take = rate * dt
+    return take if take < erodible else erodible

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from avflow.numerics import face_gather, face_sweep, kernels, registry, stepping
+from avflow.numerics.sources import MassSource, no_source
 from avflow.numerics.physics import DRY, UNDER_THRESHOLD
 from avflow.numerics.stepping import ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, Statistics
 from avflow.numerics.rheology import N_PARAMS, Law
@@ -45,6 +46,8 @@ class State:
     peak_speed: np.ndarray  #: running maximum of |u|, m/s
     arrival: np.ndarray  #: first time h exceeded the dry threshold, s (NaN: never)
     last_moved: np.ndarray  #: end of the last step in which u != 0, s (NaN: never moved)
+    #: what is left of the erodible layer, m per cell (empty: the run has no mass source)
+    erodible: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stats: np.ndarray = field(default_factory=lambda: np.zeros(stepping.N_STATS))
 
     @property
@@ -153,6 +156,8 @@ class Solver:
     kernel: str = "auto"
     #: where the kernels run: "cpu" (the kernels registered in :mod:`avflow.numerics.registry`)
     backend: str = "cpu"
+    #: a mass source and its erodible layer (:mod:`avflow.numerics.sources`); None: none
+    source: MassSource | None = None
 
     def __post_init__(self):
         if self.order not in (1, 2):
@@ -172,6 +177,10 @@ class Solver:
             raise ValueError(f"threads must be at least 1, got {self.threads}")
         m = self.terrain.mesh
         n = m.n_cells
+        if self.source is not None and self.source.erodible.shape != (n,):
+            raise ValueError(f"the erodible layer has {self.source.erodible.size} cells, the "
+                             f"mesh {n}")
+        self._source = no_source()[1] if self.source is None else self.source.vector()
         self._grid = None
         self._released = False
         self._auto = None  # ThreadChoice of threads None
@@ -255,8 +264,12 @@ class Solver:
         self._g_flag = np.zeros(n, dtype=np.uint8)
         self._g_rings = None  # the kernel's ring buffers, a set per thread (_advance_grid)
         if not layout.compact:  # state and observers on the full grid, copied in and out
-            self._g_state = {name: np.zeros(n) for name in
-                             ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")}
+            self._g_state = {name: np.zeros(n) for name in self._grid_fields()}
+
+    def _grid_fields(self) -> tuple:
+        """The State arrays the square-grid kernel reads and writes."""
+        return (("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
+                + (("erodible",) if self.source is not None else ()))
 
     @property
     def kernel_used(self) -> str:
@@ -305,7 +318,7 @@ class Solver:
             # blocks handed out one at a time, not split evenly up front: a thread that the
             # system deschedules (a busy machine) then holds up one block, not its share
             chunk = numba.set_parallel_chunksize(1)
-        names = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
+        names = self._grid_fields()
         if layout.compact:
             arrays = [getattr(state, name) for name in names]
         else:
@@ -313,7 +326,8 @@ class Solver:
             for name, full in zip(names, arrays):
                 full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
                 full[layout.place] = getattr(state, name)
-        h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays
+        h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays[:7]
+        erodible = arrays[7] if self.source is not None else state.erodible
         # ring buffers of the kernel's blocks, a set per thread, made once (each step made
         # its own before: 0.7-1 ms a step on a map 2000 cells wide)
         if self._g_rings is None or self._g_rings[0].shape[0] < threads:
@@ -334,7 +348,7 @@ class Solver:
             self.params, float(self.gravity), bool(self.dirac), float(self.h_dry),
             float(self.h_zero), float(self.cfl), float(t_target), int(max_steps),
             float(stop_volume), float(stop_kinetic), peak_h, peak_speed, arrival, last_moved,
-            state.stats, self._g_rings, *self._parallel_from)
+            state.stats, self._g_rings, erodible, self._source, *self._parallel_from)
         if chunk is not None:
             numba.set_parallel_chunksize(chunk)
         if not layout.compact:
@@ -377,6 +391,8 @@ class Solver:
             peak_speed=np.zeros(n),
             arrival=np.where(h0 > self.h_dry, 0.0, np.nan),
             last_moved=np.full(n, np.nan),
+            erodible=(self.source.erodible.copy() if self.source is not None
+                      else np.zeros(0)),
         )
         self.reset_limits(state)
         state.stats[ST_DT_MIN] = np.inf
@@ -394,6 +410,17 @@ class Solver:
         held = np.flatnonzero(state.h)
         return math.fsum(state.h[held] * self.terrain.mesh.cell_area[held])
 
+    def entrained_volume(self, state: State) -> float:
+        """Volume the source has added to the flow so far (m^3; m^2 on a profile), read from
+        what is left of the erodible layer, not from the steps' counts: the balance
+        ``released + entrained = on the map + outflow`` then checks the source's own books."""
+        if self.source is None:
+            return 0.0
+        taken = self.source.erodible - state.erodible
+        held = np.flatnonzero(taken)
+        return self.source.density_ratio * math.fsum(
+            taken[held] * self.terrain.mesh.cell_area[held])
+
     def advance(self, state: State, t_target: float, *, stop_volume: float = -1.0,
                 stop_kinetic: float = -1.0, max_steps: int = 10**9) -> str:
         """Run the time loop until ``t_target`` (s), a stop, or ``max_steps`` steps in all.
@@ -404,6 +431,9 @@ class Solver:
         ``stop_kinetic`` times its peak (negative: never). Returns ``"running"`` (target reached),
         ``"stopped"``, ``"max_steps"`` or ``"failed"``.
         """
+        if self.source is not None and state.erodible.shape != self.source.erodible.shape:
+            raise ValueError("the state has no erodible layer of this solver's source "
+                             "(make it with new_state)")
         if self._released:
             self._setup_grid(square_grid(self.terrain))
             self._released = False
@@ -495,5 +525,6 @@ class Solver:
             state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
             int(self.order), LIMITERS[self.limiter], self._face_offset,
             self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock,
-            *self._sweep, self._gather_from if threads > 1 else np.iinfo(np.int64).max)
+            *self._sweep, self._gather_from if threads > 1 else np.iinfo(np.int64).max,
+            state.erodible, self._source)
         return STATUS_NAMES[status]

@@ -47,10 +47,11 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
-                                 observe_cell, open_mass, trial_momentum)
-from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES, ST_TIME,
-                                      record_end, record_step, step_size)
+from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, dt_from_inverse,
+                                 final_momentum, observe_cell, open_mass, trial_momentum)
+from avflow.numerics.sources import SRC_KIND, add_span
+from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
+                                      ST_SOURCE, ST_TIME, record_end, record_step, step_size)
 from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
@@ -801,7 +802,8 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
                  curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
                  law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
                  stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats, rings,
-                 min_parallel_cells=MIN_PARALLEL_CELLS, min_block_rows=MIN_BLOCK_ROWS):
+                 erodible, source, min_parallel_cells=MIN_PARALLEL_CELLS,
+                 min_block_rows=MIN_BLOCK_ROWS):
     """:func:`avflow.numerics.timeloop.time_loop` for a square grid at order 1 (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
@@ -815,6 +817,8 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
 
     Only the swept region is computed (:func:`_swept_columns`), so a step costs the area
     the flow covers; its rows are found from the extents of the wet cells kept per row.
+    ``erodible, source``: the mass source (:mod:`avflow.numerics.sources`), over the swept
+    cells of each accepted step (they hold every wet cell).
     """
     if threads > rings[0].shape[0]:
         threads = 1  # fewer sets of ring buffers than threads: every step serial
@@ -902,6 +906,13 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
         if not ok:
             status = FAILED
             break
+        if source[SRC_KIND] != SOURCE_NONE:  # only wet cells gain: wet_lo/hi still hold
+            for r in range(r0, r1 + 1):
+                gained, inv = add_span(r * nx + lo[r], r * nx + hi[r] + 1, nxt_h, nxt_hu,
+                                       nxt_hv, erodible, source, dt, h_zero, h_dry, t_new,
+                                       cell_area, cfl_factor, gamma_z, g, peak_h, arrival)
+                stats[ST_SOURCE] += gained
+                inv_lim = max(inv_lim, inv)
         t = t_target if last else t + dt
         steps += 1
         for r in range(max(band0 - 1, 0), min(band1 + 2, ny)):

@@ -32,7 +32,8 @@ ST_RETRIES = 9  #: cumulative count of halved steps
 ST_KINETIC = 10  #: kinetic energy / density, sum of h A |u|^2 / 2 (m^5 s^-2), after the last step
 ST_KINETIC_PEAK = 11  #: its largest value so far
 ST_FALLBACK = 12  #: cumulative count of cell-steps where order 2 fell back to order 1
-N_STATS = 13
+ST_SOURCE = 13  #: cumulative volume the mass source added (numerics.sources)
+N_STATS = 14
 
 
 @njit(error_model="numpy", cache=True)
@@ -119,3 +120,5 @@ class Statistics:
     kinetic = _slot(ST_KINETIC, "kinetic energy / density after the last step, m^5 s^-2")
     kinetic_peak = _slot(ST_KINETIC_PEAK, "largest kinetic energy / density, m^5 s^-2")
     order2_fallbacks = _slot(ST_FALLBACK, "cell-steps where order 2 fell back to order 1")
+    source_volume = _slot(ST_SOURCE, "volume the mass source added, m^3 (as counted by the "
+                          "steps; the balance reads the erodible layer itself)")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from avflow.numerics.cpu import DRY
+from avflow.numerics.cpu import DRY, SOURCE_NONE, dt_from_inverse
 from avflow.numerics.face_gather import N_SUMS
 from avflow.numerics.face_gather import heun_cells_parallel as _heun_parallel
 from avflow.numerics.face_gather import step_cells_parallel as _step_parallel
@@ -23,9 +23,10 @@ from avflow.numerics.profile import N_WORK as _PROFILE_WORK
 from avflow.numerics.profile import STEP as _PROFILE_STEP
 from avflow.numerics.reconstruction import (reconstruct_cells, reconstruct_profile,
                                             reconstruct_cells_parallel as _recon_par)
+from avflow.numerics.sources import SRC_KIND, add_listed, add_span
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, STAMPS_PER_STEP,
-                                      ST_FALLBACK, ST_RETRIES, ST_TIME, end_loop, record_end,
-                                      record_step, step_size)
+                                      ST_FALLBACK, ST_RETRIES, ST_SOURCE, ST_TIME, end_loop,
+                                      record_end, record_step, step_size)
 from avflow.numerics.vectorize import law_kind, law_label, specialize
 
 
@@ -35,7 +36,7 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
             stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
             stats, order, limiter, face_offset, face_stamp, cell_stamp, cell_sync, synced, clock,
-            sweep_geo, sweep_work, min_parallel_cells):
+            sweep_geo, sweep_work, min_parallel_cells, erodible, source):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -59,7 +60,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     :func:`avflow.numerics.face_sweep._step_threads`, each thread scattering into the cells
     of its own piece of the faces, from twice as many where its lists changed; order 2:
     :mod:`avflow.numerics.face_gather`, in gather form; the same bits as the serial
-    sweeps).
+    sweeps). ``erodible, source``: the mass source and its layer
+    (:mod:`avflow.numerics.sources`), applied once per accepted step to the new state.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
     Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
@@ -313,6 +315,18 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
         if not ok:
             status = FAILED
             break
+        if source[SRC_KIND] != SOURCE_NONE:  # only wet cells gain: the wet lists still hold
+            if STRUCTURED:
+                src_volume, inv = add_span(0, n, nxt_h, nxt_hu, nxt_hv, erodible, source, dt,
+                                           h_zero, h_dry, t_new, cell_area, cfl_factor,
+                                           gamma_z, g, peak_h, arrival)
+            else:  # the cells the step touched (order 2: either stage), every wet one
+                src_volume, inv = add_listed(union if ORDER2 else touched, n_changed, nxt_h,
+                                             nxt_hu, nxt_hv, erodible, source, dt, h_zero,
+                                             h_dry, t_new, cell_area, cfl_factor, gamma_z, g,
+                                             peak_h, arrival)
+            stats[ST_SOURCE] += src_volume
+            lim = min(lim, dt_from_inverse(inv))
         t = t_target if last else t + dt
         steps += 1
         if not STRUCTURED:

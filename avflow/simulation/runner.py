@@ -437,6 +437,7 @@ def summarize(result: RunResult, v0: float) -> dict:
     state, terrain = result.state, result.terrain
     v_end = result.solver.volume(state)
     v_out = state.statistics.outflow_volume
+    v_src = result.solver.entrained_volume(state)
     rho = result.scenario.physics.density
     truncated = runout_truncated(terrain, state.peak_h, result.thresholds["runout"],
                                  result.scenario.terrain.kind == "dem", v_out, result.h0)
@@ -461,7 +462,8 @@ def summarize(result: RunResult, v0: float) -> dict:
         "ended_by": result.thresholds["stop_rule"]
         if result.status in (AT_REST, ENDED_BY_RULE, "stopped")
         else ENDED_BY.get(result.status, result.status),
-        "mass_balance_error": abs(v_end + v_out - v0) / v0,
+        # released + entrained (read from the erodible layer) = on the map + out
+        "mass_balance_error": abs(v_end + v_out - v0 - v_src) / (v0 + v_src),
         "runout_truncated": truncated,
         "status": result.status,
         "steps": state.steps,
