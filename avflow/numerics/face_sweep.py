@@ -36,6 +36,7 @@ scatter meets them, so the same bits on any number of threads.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit, prange
@@ -51,6 +52,14 @@ from avflow.numerics.vectorize import friction_law, law_copies, law_label, noali
 # Lines of the per-cell work array (N_CELL_LINES, n): what the step's sums need
 C_INV, C_KIN, C_MOV, C_FILM = range(4)
 N_CELL_LINES = 4
+
+
+#: What the sweep reads of a mesh besides its frames and lengths (:func:`geometry`)
+SweepGeometry = namedtuple("SweepGeometry", "pairs inv_area curvature face_ptr face_idx "
+                           "open_faces span near_edge edge_cells")
+#: The sweep's work arrays (:func:`work`)
+SweepWork = namedtuple("SweepWork", "emit mass per_cell runs side pieces cut face_mark "
+                       "shared_mark shared_cells cold")
 
 
 def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=False):
@@ -77,10 +86,10 @@ def geometry(mesh, inv_area, curvature, cell_face_ptr, cell_face_idx, threads=Fa
     near_edge = edge[fc[:, 0]] | (fc[:, 1] >= 0) & edge[np.maximum(fc[:, 1], 0)]
     if not threads:
         near_edge, edge = near_edge[:0], edge[:0]
-    return (fc.astype(np.int32), np.ascontiguousarray(inv_area),
-            np.ascontiguousarray(np.asarray(curvature).T), cell_face_ptr, cell_face_idx,
-            open_faces, np.array([span], dtype=np.int64), near_edge.astype(np.uint8),
-            np.flatnonzero(edge).astype(np.int64))
+    return SweepGeometry(fc.astype(np.int32), np.ascontiguousarray(inv_area),
+                         np.ascontiguousarray(np.asarray(curvature).T), cell_face_ptr,
+                         cell_face_idx, open_faces, np.array([span], dtype=np.int64),
+                         near_edge.astype(np.uint8), np.flatnonzero(edge).astype(np.int64))
 
 
 # How a step's lists are cut (the work arrays' ``cut``, :func:`work`): the pieces' least
@@ -122,21 +131,22 @@ def work(n_cells: int, n_faces: int, threads: int = 1, min_piece: int | None = N
     cut[CUT_FACE_PIECES] = face_pieces or threads
     cut[CUT_COLD_GATHER] = COLD_GATHER if cold_gather is None else cold_gather
     n_pieces = int(cut[CUT_MAX_PIECES])
-    return (np.zeros((N_EMIT, n_cells)), np.zeros(n_faces), np.zeros((N_CELL_LINES, n_cells)),
-            np.empty(2 * (n_cells + n_faces) + 4, dtype=np.int64), np.zeros((4, f)),
-            np.empty(2 * (m + f) + 8 * n_pieces + 8 if on_threads else 0, dtype=np.int64),
-            cut, np.full(f, -1, dtype=np.int64), np.full(m, -1, dtype=np.int64),
-            np.empty(m, dtype=np.int64), np.empty(n_cells, dtype=np.int64))
+    return SweepWork(
+        np.zeros((N_EMIT, n_cells)), np.zeros(n_faces), np.zeros((N_CELL_LINES, n_cells)),
+        np.empty(2 * (n_cells + n_faces) + 4, dtype=np.int64), np.zeros((4, f)),
+        np.empty(2 * (m + f) + 8 * n_pieces + 8 if on_threads else 0, dtype=np.int64),
+        cut, np.full(f, -1, dtype=np.int64), np.full(m, -1, dtype=np.int64),
+        np.empty(m, dtype=np.int64), np.empty(n_cells, dtype=np.int64))
 
 
 def unused():
     """The same tuples, empty: for the time loops that do not run this sweep (same types,
     so one compiled loop serves both)."""
-    return ((np.empty((0, 2), dtype=np.int32), np.empty(0), np.empty((3, 0)),
-             np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
-             np.empty(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
-             np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64)),
-            (np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
+    return (SweepGeometry(np.empty((0, 2), dtype=np.int32), np.empty(0), np.empty((3, 0)),
+                          np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
+                          np.empty(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                          np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64)),
+            SweepWork(np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
              np.empty(0, dtype=np.int64), np.empty((4, 0)), np.empty(0, dtype=np.int64),
              np.zeros(N_CUT, dtype=np.int64), np.empty(0, dtype=np.int64),
              np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64),
@@ -473,7 +483,7 @@ def _runs(active_faces, n_active, touched, n_touched, same, wk):
     """The runs of both lists (:func:`runs_of`; cells, then faces, in ``wk``'s runs):
     those the last step left when the lists are its own (``same``), else made and kept.
     Returns how many of each."""
-    runs, cut = wk[3], wk[6]
+    runs, cut = wk.runs, wk.cut
     if same:
         return cut[CUT_RUNS], cut[CUT_FACE_RUNS]
     n_runs = runs_of(touched, n_touched, runs)
@@ -563,8 +573,8 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
     many runs dearer: docs/performance.md). Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic, wet_changes)``, the last the
     touched cells that became wet or dry (none: the next step's lists are these)."""
-    pairs, inv_area, curv = geo[0], geo[1], geo[2]
-    emit, mass, per_cell, runs = wk[0], wk[1], wk[2], wk[3]
+    pairs, inv_area, curv = geo.pairs, geo.inv_area, geo.curvature
+    emit, mass, per_cell, runs = wk.emit, wk.mass, wk.per_cell, wk.runs
     e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
     t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
     t_mov, t_film = per_cell[C_MOV], per_cell[C_FILM]
@@ -576,10 +586,10 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
                 emit[E_C], emit[E_S], emit[E_KH], emit[E_K3], e_speed, h_new, hu_new, hv_new,
                 transport)
     # 2. the active faces' fluxes and the cells' sums, in face order
-    none = wk[8][:0]  # no cell shared by threads here
+    none = wk.shared_mark[:0]  # no cell shared by threads here
     outflow = face_fluxes(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
-                          mass, h_new, hu_new, hv_new, transport, none, 0, 0, 0, geo[7],
-                          wk[4], wk[7], dt)
+                          mass, h_new, hu_new, hv_new, transport, none, 0, 0, 0, geo.near_edge,
+                          wk.side, wk.face_mark, dt)
     # 3. the trial and the flags
     n_cold = trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, hu,
                          hv, gamma_x, gamma_y, gamma_z, law, params, g, h_zero, dt, dt_decide,
@@ -588,17 +598,17 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
     # the open ones (where every touched cell flows, no face is Dirac and pass 2's sums
     # and outflow stand: a scan of every active face saved;
     # where a few are cold, each sums its own faces)
-    if n_cold > 0 and n_cold * wk[6][CUT_COLD_GATHER] < n_active:
-        cold = wk[10]
+    if n_cold > 0 and n_cold * wk.cut[CUT_COLD_GATHER] < n_active:
+        cold = wk.cold
         n_cold = _cold_cells(runs, n_runs, flag, cold)
         for c in range(n_cold):
-            _cold_masses(cold[c], geo[3], geo[4], face_stamp, stamp, pairs, face_frame,
+            _cold_masses(cold[c], geo.face_ptr, geo.face_idx, face_stamp, stamp, pairs, face_frame,
                          face_length, emit, mass, flag, dirac, h_new, hu_new, hv_new)
-        outflow = _open_outflow(geo[5], face_stamp, stamp, pairs, mass, flag, dirac, dt)
+        outflow = _open_outflow(geo.open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt)
     elif n_cold > 0:
         outflow = add_masses(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
                              mass, flag, dirac, dt, h_new, hu_new, hv_new, none, 0, 0, 0,
-                             geo[7])
+                             geo.near_edge)
     # 5. the new state, the observers
     n_bad, clamped, flips = final_cells(
         runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h, gamma_x,
@@ -649,12 +659,12 @@ MIN_PARALLEL_CELLS = 8192
 def pieces_stay_local(geo, n_faces: int, threads: int) -> bool:
     """Whether the step on ``threads`` threads pays on this mesh (``geo`` from
     :func:`geometry`): its pieces of the faces must leave most cells within one piece,
-    which a cell's faces do when they span few indices (``geo[6]``: a small share of the
+    which a cell's faces do when they span few indices (``geo.span``: a small share of the
     faces on triangles, docs/performance.md). A square grid numbers its x faces before its
     y faces, so its cells' faces span half the faces, and nearly every cell would be shared
     by two pieces and summed again: slower on 2 threads than on one (docs/performance.md).
     Grids run on threads on the square-grid kernel."""
-    return 4 * (threads - 1) * int(geo[6][0]) <= n_faces
+    return 4 * (threads - 1) * int(geo.span[0]) <= n_faces
 
 
 @njit(error_model="numpy", cache=True)
@@ -826,7 +836,8 @@ def _cut_lists(active_faces, n_active, touched, n_touched, same, pairs, face_ptr
     (``same``) what it made is used again, if it was made on threads (a flow covering its
     whole mesh cuts nothing again). Returns the numbers of runs of cells and of
     faces, of pieces of each, and of shared cells."""
-    runs, pieces, cut, shared, shared_cells = wk[3], wk[5], wk[6], wk[8], wk[9]
+    runs, pieces, cut = wk.runs, wk.pieces, wk.cut
+    shared, shared_cells = wk.shared_mark, wk.shared_cells
     if same and cut[CUT_PIECES_KEPT] == 1:
         return (cut[CUT_RUNS], cut[CUT_FACE_RUNS], cut[CUT_CELL_PIECES],
                 cut[CUT_FACE_PIECES_MADE], cut[CUT_SHARED])
@@ -876,11 +887,12 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
        then, serially, the volume through the open faces (in face order) and the step's
        sums (in the lists' order).
     """
-    pairs, inv_area, curv = geo[0], geo[1], geo[2]
-    face_ptr, face_idx, open_faces, span = geo[3], geo[4], geo[5], geo[6][0]
-    near_edge, edge_cells = geo[7], geo[8]
-    emit, mass, per_cell, runs, side, pieces = wk[0], wk[1], wk[2], wk[3], wk[4], wk[5]
-    cut, marks, shared, shared_cells = wk[6], wk[7], wk[8], wk[9]
+    pairs, inv_area, curv = geo.pairs, geo.inv_area, geo.curvature
+    face_ptr, face_idx, open_faces, span = geo.face_ptr, geo.face_idx, geo.open_faces, geo.span[0]
+    near_edge, edge_cells = geo.near_edge, geo.edge_cells
+    emit, mass, per_cell, runs, side = wk.emit, wk.mass, wk.per_cell, wk.runs, wk.side
+    pieces, cut, marks = wk.pieces, wk.cut, wk.face_mark
+    shared, shared_cells = wk.shared_mark, wk.shared_cells
     max_pieces = cut[CUT_MAX_PIECES]
     e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
     t_inv, t_kin = per_cell[C_INV], per_cell[C_KIN]
@@ -921,7 +933,7 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
     # where every touched cell flows: the sums of 2 stand; where a few are cold, each sums
     # its own faces, shared or not)
     if n_cold > 0 and n_cold * cut[CUT_COLD_GATHER] < n_active:
-        cold = wk[10]
+        cold = wk.cold
         n_cold = _cold_cells(runs, n_runs, flag, cold)
         for c in prange(n_cold):
             _cold_masses(cold[c], face_ptr, face_idx, face_stamp, stamp, pairs, face_frame,

@@ -19,7 +19,8 @@ import numpy as np
 from avflow.numerics import face_gather, face_sweep, kernels, registry, stepping
 from avflow.numerics.sources import MassSource, no_source
 from avflow.numerics.physics import DRY, UNDER_THRESHOLD
-from avflow.numerics.stepping import ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, Statistics
+from avflow.numerics.stepping import (ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, FaceMesh,
+                                      FaceWork, GridMesh, GridWork, Statistics)
 from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
@@ -239,6 +240,14 @@ class Solver:
         else:
             self._gather_from = (face_sweep.MIN_PARALLEL_CELLS if on_threads
                                  else np.iinfo(np.int64).max)
+        t = self.terrain
+        self._face_mesh = FaceMesh(m.face_cells, m.face_frame, m.face_length, m.cell_area,
+                                   self._cfl_factor, self._density, t.gamma_x, t.gamma_y,
+                                   t.gamma_z, t.curvature, self._cell_face_ptr,
+                                   self._cell_face_idx, self._face_offset)
+        self._face_work = FaceWork(self._h_work, self._hu_work, self._hv_work, self._flux,
+                                   self._transport, self._face_stamp, self._cell_stamp,
+                                   self._cell_sync, self._synced, self._clock)
 
     def _setup_grid(self, layout: SquareGrid) -> None:
         """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
@@ -259,6 +268,12 @@ class Solver:
             # (3, places): one contiguous line per component, for the kernel's vector loops
             "curvature": np.ascontiguousarray(full(t.curvature).T),
         }
+        c = self._g_cells
+        self._g_mesh = GridMesh(layout.nx, layout.ny, layout.valid, layout.x_code,
+                                layout.x_frame, layout.x_length, layout.y_code,
+                                layout.y_frame, layout.y_length, c["cell_area"],
+                                c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"],
+                                c["gamma_y"], c["gamma_z"], c["curvature"])
         n = layout.n_places
         self._h_work, self._hu_work, self._hv_work = np.zeros(n), np.zeros(n), np.zeros(n)
         self._g_flag = np.zeros(n, dtype=np.uint8)
@@ -281,7 +296,8 @@ class Solver:
         once a run is over, before its file is finished; the next :meth:`advance` builds
         them again. Nothing happens for the other kernels."""
         if self._grid is not None:
-            self._grid = self._g_cells = self._g_state = self._g_flag = self._g_rings = None
+            self._grid = self._g_cells = self._g_state = self._g_flag = None
+            self._g_rings = self._g_mesh = None
             self._h_work = self._hu_work = self._hv_work = None
             self._released = True
 
@@ -311,7 +327,7 @@ class Solver:
 
         from avflow.numerics.square_grid import _rings
 
-        layout, c = self._grid, self._g_cells
+        layout = self._grid
         chunk = None
         if threads > 1:
             numba.set_num_threads(threads)
@@ -320,14 +336,13 @@ class Solver:
             chunk = numba.set_parallel_chunksize(1)
         names = self._grid_fields()
         if layout.compact:
-            arrays = [getattr(state, name) for name in names]
+            arrays = {}
         else:
-            arrays = [self._g_state[name] for name in names]
-            for name, full in zip(names, arrays):
+            arrays = self._g_state
+            for name in names:
+                full = arrays[name]
                 full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
                 full[layout.place] = getattr(state, name)
-        h, hu, hv, peak_h, peak_speed, arrival, last_moved = arrays[:7]
-        erodible = arrays[7] if self.source is not None else state.erodible
         # ring buffers of the kernel's blocks, a set per thread, made once (each step made
         # its own before: 0.7-1 ms a step on a map 2000 cells wide)
         if self._g_rings is None or self._g_rings[0].shape[0] < threads:
@@ -339,21 +354,17 @@ class Solver:
         if not layout.compact:
             flag.fill(DRY)
             flag[layout.place] = state.flag
-        status = self._loop(threads)(
-            threads, layout.nx, layout.ny, layout.valid, layout.x_code,
-            layout.x_frame, layout.x_length, layout.y_code, layout.y_frame, layout.y_length,
-            c["cell_area"], c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"], c["gamma_y"],
-            c["gamma_z"], c["curvature"], h, hu, hv, self._h_work, self._hu_work,
-            self._hv_work, flag, int(self.law),
-            self.params, float(self.gravity), bool(self.dirac), float(self.h_dry),
-            float(self.h_zero), float(self.cfl), float(t_target), int(max_steps),
-            float(stop_volume), float(stop_kinetic), peak_h, peak_speed, arrival, last_moved,
-            state.stats, self._g_rings, erodible, self._source, *self._parallel_from)
+        fields = self._fields(state, dict(arrays, flag=flag))
+        run = self._control(t_target, max_steps, stop_volume, stop_kinetic,
+                            *self._parallel_from)
+        work = GridWork(self._h_work, self._hu_work, self._hv_work, self._g_rings)
+        status = self._loop(threads)(threads, self._g_mesh, fields, work, self._physics(),
+                                     run)
         if chunk is not None:
             numba.set_parallel_chunksize(chunk)
         if not layout.compact:
-            for name, full in zip(names, arrays):
-                getattr(state, name)[:] = full[layout.place]
+            for name in names:
+                getattr(state, name)[:] = arrays[name][layout.place]
             state.flag[:] = flag[layout.place]
         return STATUS_NAMES[status]
 
@@ -504,27 +515,41 @@ class Solver:
         auto.decide(spent[1], spent[auto.most], state.steps)
         return None
 
+    def _fields(self, state: State, arrays=None) -> stepping.Fields:
+        """The state's arrays as the time loops take them (``arrays``: the square-grid
+        kernel's copies on its full grid, by name, where it does not run on the state's)."""
+        def get(name):
+            return arrays[name] if arrays and name in arrays else getattr(state, name)
+
+        return stepping.Fields(*(get(name) for name in stepping.Fields._fields))
+
+    def _physics(self) -> stepping.Physics:
+        """The friction law, gravity, the Dirac flux, the thresholds and the source."""
+        return stepping.Physics(int(self.law), self.params, float(self.gravity),
+                                bool(self.dirac), float(self.h_dry), float(self.h_zero),
+                                self._source)
+
+    def _control(self, t_target, max_steps, stop_volume, stop_kinetic, parallel_cells,
+                 block_rows) -> stepping.Control:
+        """How far a call runs, its stop rules, and from how many cells (grid: and rows a
+        block) a step runs on threads."""
+        return stepping.Control(float(self.cfl), float(t_target), int(max_steps),
+                                float(stop_volume), float(stop_kinetic),
+                                int(LIMITERS[self.limiter]), int(parallel_cells),
+                                int(block_rows))
+
     def _advance_on(self, threads, state, t_target, stop_volume, stop_kinetic,
                     max_steps) -> str:
         """The time loop on ``threads`` threads (1: every step serial)."""
         if self._grid is not None:
             return self._advance_grid(state, t_target, stop_volume, stop_kinetic, max_steps,
                                       threads)
-        m, t = self.terrain.mesh, self.terrain
         if threads > 1:
             import numba
 
             numba.set_num_threads(threads)
-        status = self._loop(threads)(
-            m.structured_1d, m.face_cells, m.face_frame, m.face_length, m.cell_area,
-            self._cfl_factor, self._density, t.gamma_x, t.gamma_y, t.gamma_z, t.curvature,
-            state.h, state.hu, state.hv, self._h_work, self._hu_work, self._hv_work,
-            self._flux, self._transport, state.flag, int(self.law), self.params, float(self.gravity),
-            bool(self.dirac), float(self.h_dry), float(self.h_zero), float(self.cfl), float(t_target),
-            int(max_steps), float(stop_volume), float(stop_kinetic), state.peak_h, state.peak_speed, state.arrival,
-            state.last_moved, self._cell_face_ptr, self._cell_face_idx, state.stats,
-            int(self.order), LIMITERS[self.limiter], self._face_offset,
-            self._face_stamp, self._cell_stamp, self._cell_sync, self._synced, self._clock,
-            *self._sweep, self._gather_from if threads > 1 else np.iinfo(np.int64).max,
-            state.erodible, self._source)
+        run = self._control(t_target, max_steps, stop_volume, stop_kinetic,
+                            self._gather_from if threads > 1 else np.iinfo(np.int64).max, 0)
+        status = self._loop(threads)(self._face_mesh, self._fields(state), self._face_work,
+                                     self._physics(), run, *self._sweep)
         return STATUS_NAMES[status]

@@ -42,6 +42,7 @@ run compiles only what it runs.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numba
 import numpy as np
@@ -51,7 +52,8 @@ from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, dt_fr
                                  final_momentum, observe_cell, open_mass, trial_momentum)
 from avflow.numerics.sources import SRC_KIND, add_span
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                      ST_SOURCE, ST_TIME, record_end, record_step, step_size)
+                                      ST_SOURCE, ST_TIME, Conserved, Observers, record_end,
+                                      record_step, step_size)
 from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
@@ -649,56 +651,48 @@ def _block_for(law, label):
                   _final_cells=by_law(_final_cells, law, label, nrt=False))
 
 
-_sweep_block_coulomb = _block_for(COULOMB, "coulomb")
-_sweep_block_voellmy = _block_for(VOELLMY, "voellmy")
-_sweep_block_any = _block_for(None, "any")
+#: :func:`_sweep_block` per law kind
+_BLOCKS = {COULOMB: _block_for(COULOMB, "coulomb"), VOELLMY: _block_for(VOELLMY, "voellmy"),
+           ANY_LAW: _block_for(None, "any")}
 
 
-def _sweep(n_blocks, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame,
-           y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
-           curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt,
-           dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, r0, r1, lo, hi, rows,
-           wet_lo, wet_hi, rings):
-    """One step on the band ``r0..r1``, cut in ``n_blocks`` blocks of rows, one per task;
-    ``rings``: the ring buffers (:func:`_rings`), a set per thread."""
+#: The rows a step sweeps: ``r0..r1``, each row's columns ``lo..hi``, the rows' sums
+#: (``R_*`` slots), and each row's wet extent (kept from step to step)
+Band = namedtuple("Band", "r0 r1 lo hi rows wet_lo wet_hi")
+
+
+def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, band, rings):
+    """One step on the band ``r0..r1`` (``band``: :data:`Band`), from ``cur`` into ``nxt``
+    (:data:`~avflow.numerics.stepping.Conserved`), cut in ``n_blocks`` blocks of rows, one
+    per task; ``rings``: the ring buffers (:func:`_rings`), a set per thread. The block
+    sweep takes its arrays one by one: LLVM knows only arguments not to overlap
+    (:func:`~avflow.numerics.vectorize.noalias`)."""
+    r0, r1 = band.r0, band.r1
     n_rows = r1 - r0 + 1
     for blk in prange(n_blocks):
         a = r0 + (n_rows * blk) // n_blocks
         b = r0 + (n_rows * (blk + 1)) // n_blocks - 1
         if a <= b:
             slot = thread_slot()  # the ring buffers of the thread running this block
-            emit, xf, yf, fl = rings[0][slot], rings[1][slot], rings[2][slot], rings[3][slot]
-            scratch, qx, qy, marks = rings[4][slot], rings[5][slot], rings[6][slot], rings[7][slot]
-            if LAW_KIND == COULOMB:
-                _sweep_block_coulomb(
-                    a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
-                    gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
-                    params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
-                    emit, xf, yf, fl, scratch, qx, qy, marks)
-            elif LAW_KIND == VOELLMY:
-                _sweep_block_voellmy(
-                    a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
-                    gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
-                    params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
-                    emit, xf, yf, fl, scratch, qx, qy, marks)
-            else:
-                _sweep_block_any(
-                    a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame, y_length, cell_area, inv_area, cfl_factor, density, gamma_x,
-                    gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law,
-                    params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                    peak_speed, arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
-                    emit, xf, yf, fl, scratch, qx, qy, marks)
+            sweep_block(
+                a, b, grid.nx, grid.ny, grid.valid, grid.x_code, grid.x_frame, grid.x_length,
+                grid.y_code, grid.y_frame, grid.y_length, grid.cell_area, grid.inv_area,
+                grid.cfl_factor, grid.density, grid.gamma_x, grid.gamma_y, grid.gamma_z,
+                grid.curvature, cur.h, cur.hu, cur.hv, nxt.h, nxt.hu, nxt.hv, flag,
+                physics.law, physics.params, physics.g, physics.dirac, physics.h_dry,
+                physics.h_zero, dt, dt_decide, t_new, obs.peak_h, obs.peak_speed,
+                obs.arrival, obs.last_moved, r0, r1, band.lo, band.hi, band.rows,
+                band.wet_lo, band.wet_hi, rings[0][slot], rings[1][slot], rings[2][slot],
+                rings[3][slot], rings[4][slot], rings[5][slot], rings[6][slot],
+                rings[7][slot])
 
 
-#: Placeholders of the constants of the copies of :func:`_sweep` (the law kind whose cell
-#: loops it runs) and of :func:`_advance_grid` (whether it has the parallel sweep): see
-#: :func:`grid_loop`
-LAW_KIND = ANY_LAW
+#: Placeholder of the constant of the copies of :func:`_advance_grid` (whether it has the
+#: parallel sweep): see :func:`grid_loop`
 PARALLEL = True
-#: Placeholders of the sweeps :func:`_advance_grid`'s copies call
-sweep_serial = sweep_parallel = None
+#: Placeholders of the sweeps :func:`_advance_grid`'s copies call, and of the block sweep
+#: (its law's copy) a copy of :func:`_sweep` calls
+sweep_serial = sweep_parallel = sweep_block = None
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -716,7 +710,7 @@ def _sweep_for(kind: int, parallel: bool):
     """:func:`_sweep` for one law kind, compiled serial or parallel (``prange`` runs
     serially without Numba's ``parallel``), each under its own name."""
     return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
-                      parallel=parallel, LAW_KIND=kind,
+                      parallel=parallel, sweep_block=_BLOCKS[kind],
                       thread_slot=numba.get_thread_id if parallel else _first_slot)
 
 
@@ -797,13 +791,7 @@ MIN_PARALLEL_CELLS = 32768
 MIN_BLOCK_ROWS = 16
 
 
-def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame,
-                 y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
-                 curvature, h, hu, hv, h_work, hu_work, hv_work, flag,
-                 law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
-                 stop_kinetic, peak_h, peak_speed, arrival, last_moved, stats, rings,
-                 erodible, source, min_parallel_cells=MIN_PARALLEL_CELLS,
-                 min_block_rows=MIN_BLOCK_ROWS):
+def _advance_grid(threads, grid, fields, work, physics, run):
     """:func:`avflow.numerics.timeloop.time_loop` for a square grid at order 1 (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
@@ -819,7 +807,23 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
     the flow covers; its rows are found from the extents of the wet cells kept per row.
     ``erodible, source``: the mass source (:mod:`avflow.numerics.sources`), over the swept
     cells of each accepted step (they hold every wet cell).
+
+    The arguments are named tuples: ``grid`` (:data:`~avflow.numerics.stepping.GridMesh`),
+    ``fields`` (:data:`~avflow.numerics.stepping.Fields`), ``work``
+    (:data:`~avflow.numerics.stepping.GridWork`), ``physics``
+    (:data:`~avflow.numerics.stepping.Physics`) and ``run``
+    (:data:`~avflow.numerics.stepping.Control`).
     """
+    nx, ny, cell_area, cfl_factor = grid.nx, grid.ny, grid.cell_area, grid.cfl_factor
+    gamma_z = grid.gamma_z
+    h, hu, hv, flag, stats = fields.h, fields.hu, fields.hv, fields.flag, fields.stats
+    peak_h, arrival, erodible = fields.peak_h, fields.arrival, fields.erodible
+    obs = Observers(fields.peak_h, fields.peak_speed, fields.arrival, fields.last_moved)
+    h_work, hu_work, hv_work, rings = work.h_work, work.hu_work, work.hv_work, work.rings
+    g, h_dry, h_zero, source = physics.g, physics.h_dry, physics.h_zero, physics.source
+    cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
+    stop_volume, stop_kinetic = run.stop_volume, run.stop_kinetic
+    min_parallel_cells, min_block_rows = run.min_parallel_cells, run.min_block_rows
     if threads > rings[0].shape[0]:
         threads = 1  # fewer sets of ring buffers than threads: every step serial
     t = stats[ST_TIME]
@@ -866,22 +870,15 @@ def _advance_grid(threads, nx, ny, valid, x_code, x_frame, x_length, y_code, y_f
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
             if r1 >= r0:
+                cur = Conserved(cur_h, cur_hu, cur_hv)
+                nxt = Conserved(nxt_h, nxt_hu, nxt_hv)
+                band = Band(r0, r1, lo, hi, rows, wet_lo, wet_hi)
                 if PARALLEL and n_blocks > 1:  # blocks of at least 16 rows, 8 per thread
-                    sweep_parallel(n_blocks, nx, ny, valid, x_code, x_frame,
-                                   x_length, y_code, y_frame, y_length, cell_area, inv_area,
-                                   cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu,
-                                   cur_hv, nxt_h, nxt_hu, nxt_hv, flag, law, params, g, dirac,
-                                   h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                                   arrival, last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi,
-                                   rings)
+                    sweep_parallel(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide,
+                                   t_new, band, rings)
                 else:
-                    sweep_serial(1, nx, ny, valid, x_code, x_frame, x_length,
-                                 y_code, y_frame, y_length, cell_area, inv_area, cfl_factor,
-                                 density,
-                                 gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv,
-                                 nxt_h, nxt_hu, nxt_hv, flag, law, params, g, dirac, h_dry,
-                                 h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival,
-                                 last_moved, r0, r1, lo, hi, rows, wet_lo, wet_hi, rings)
+                    sweep_serial(1, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new,
+                                 band, rings)
             ok = True
             outflow = 0.0
             inv_lim = 0.0

@@ -4,8 +4,46 @@ eq. 41 cut to land on an output time, and the stop rules."""
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit
+
+#: What every time loop takes by name (Numba types named tuples of arrays and scalars):
+#: the state and observers of a run, changed in place (``stats``: the ``ST_*`` slots)
+Fields = namedtuple("Fields", "h hu hv flag peak_h peak_speed arrival last_moved erodible "
+                    "stats")
+#: the physics: friction law and its parameters (numerics.rheology), gravity, the Dirac
+#: flux on or off, the dry and zero thresholds, the mass source (numerics.sources)
+Physics = namedtuple("Physics", "law params g dirac h_dry h_zero source")
+#: how far and how to run: CFL number, target time, step budget, stop rules, order 2's
+#: limiter, and the least cells (and grid rows per block) of a step on threads
+Control = namedtuple("Control", "cfl t_target max_steps stop_volume stop_kinetic limiter "
+                     "min_parallel_cells min_block_rows")
+
+#: What the face kernel's time loop reads of a mesh (:meth:`Solver` builds it once):
+#: faces, frames, lengths, per-cell factors, each cell's faces (CSR), order 2's offsets
+FaceMesh = namedtuple("FaceMesh", "face_cells face_frame face_length cell_area cfl_factor "
+                      "density gamma_x gamma_y gamma_z curvature cell_face_ptr "
+                      "cell_face_idx face_offset")
+#: what it works in and keeps from one call to the next: the work buffers, order 2's face
+#: fluxes, each cell's transport, and the active lists' stamps and clock
+FaceWork = namedtuple("FaceWork", "h_work hu_work hv_work flux transport face_stamp "
+                      "cell_stamp cell_sync synced clock")
+
+
+#: What the square-grid kernel's time loop reads of its ``ny x nx`` grid
+#: (:class:`~avflow.terrain.squaregrid.SquareGrid`: faces by row and column, per-cell factors
+#: on the full grid)
+GridMesh = namedtuple("GridMesh", "nx ny valid x_code x_frame x_length y_code y_frame "
+                      "y_length cell_area inv_area cfl_factor density gamma_x gamma_y gamma_z "
+                      "curvature")
+#: its work buffers and the ring buffers of its blocks, a set per thread
+GridWork = namedtuple("GridWork", "h_work hu_work hv_work rings")
+#: one buffer of the conserved variables (the time loops swap two each step)
+Conserved = namedtuple("Conserved", "h hu hv")
+#: the running observers, changed in place by every step
+Observers = namedtuple("Observers", "peak_h peak_speed arrival last_moved")
 
 # Status returned by the time loop (time_loop)
 REACHED_TARGET = 0

@@ -9,7 +9,10 @@ branches of the other kinds before it types a copy, so a run compiles only what 
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
+from numba import njit
 
 from avflow.numerics.cpu import DRY, SOURCE_NONE, dt_from_inverse
 from avflow.numerics.face_gather import N_SUMS
@@ -25,18 +28,83 @@ from avflow.numerics.reconstruction import (reconstruct_cells, reconstruct_profi
                                             reconstruct_cells_parallel as _recon_par)
 from avflow.numerics.sources import SRC_KIND, add_listed, add_span
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, STAMPS_PER_STEP,
-                                      ST_FALLBACK, ST_RETRIES, ST_SOURCE, ST_TIME, end_loop,
-                                      record_end, record_step, step_size)
+                                      ST_FALLBACK, ST_RETRIES, ST_SOURCE, ST_TIME, Conserved,
+                                      Observers, end_loop, record_end, record_step, step_size)
 from avflow.numerics.vectorize import law_kind, law_label, specialize
 
 
-def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-            gamma_x, gamma_y, gamma_z, curvature,
-            h, hu, hv, h_work, hu_work, hv_work, flux, transport, flag,
-            law, params, g, dirac, h_dry, h_zero, cfl, t_target, max_steps, stop_volume,
-            stop_kinetic, peak_h, peak_speed, arrival, last_moved, cell_face_ptr, cell_face_idx,
-            stats, order, limiter, face_offset, face_stamp, cell_stamp, cell_sync, synced, clock,
-            sweep_geo, sweep_work, min_parallel_cells, erodible, source):
+#: The face kernel's lists and what :func:`relist` works in (:func:`list_work`): the wet
+#: cells now and after the last step, the touched cells and active faces, the cells that
+#: became wet or dry, relist's new lists (they swap with the last ones) and its work
+ListWork = namedtuple("ListWork", "wet wet_last touched active_faces gained lost new_faces "
+                      "new_cells fresh_faces gone_faces added dropped")
+
+
+@njit(error_model="numpy", cache=True)
+def list_work(n, nf, mended):
+    """:data:`ListWork` for ``n`` cells and ``nf`` faces (0 and 0: no lists, a profile),
+    relist's arrays empty unless the lists are ``mended`` (order 1 on faces)."""
+    m_re = n if mended else 0
+    f_re = nf if mended else 0
+    return ListWork(np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64),
+                    np.empty(n, dtype=np.int64), np.empty(nf, dtype=np.int64),
+                    np.empty(m_re, dtype=np.int64), np.empty(m_re, dtype=np.int64),
+                    np.empty(f_re, dtype=np.int64), np.empty(m_re, dtype=np.int64),
+                    np.empty(f_re, dtype=np.int64), np.empty(f_re, dtype=np.int64),
+                    np.empty(m_re, dtype=np.int64), np.empty(2 * f_re, dtype=np.int64))
+
+
+@njit(error_model="numpy", cache=True)
+def sync_fresh(fresh, n_fresh, call, cell_sync, synced, n_synced, fields, work):
+    """Order 1 on faces: a cell touched for the first time in this ``call`` gets its state
+    into the work buffers (never written yet in this call, so ``fields`` holds it), and is
+    listed in ``synced`` (to go back at the end). Returns how many are listed."""
+    for c in range(n_fresh):
+        i = fresh[c]
+        if cell_sync[i] != call:
+            cell_sync[i] = call
+            work.h_work[i] = fields.h[i]
+            work.hu_work[i] = fields.hu[i]
+            work.hv_work[i] = fields.hv[i]
+            synced[n_synced] = i
+            n_synced += 1
+    return n_synced
+
+
+@njit(error_model="numpy", cache=True)
+def wet_after(changed, n_changed, h, h_zero, wet, wet_last, n_wet, gained, lost, order2):
+    """The wet cells after a step into ``wet``, in index order: only the ``changed`` cells
+    (sorted) can be wet. At order 1 (not ``order2``) also those that became wet
+    (``gained``) or dry (``lost``) against the last step's ``n_wet`` cells (``wet_last``,
+    sorted), merged from both lists. Returns ``(n_wet, n_gained, n_lost)``."""
+    n_new = 0
+    n_gained = 0
+    n_lost = 0
+    p = 0
+    for c in range(n_changed):
+        i = changed[c]
+        if h[i] > h_zero:
+            if not order2:
+                while p < n_wet and wet_last[p] < i:
+                    lost[n_lost] = wet_last[p]
+                    n_lost += 1
+                    p += 1
+                if p < n_wet and wet_last[p] == i:
+                    p += 1
+                else:
+                    gained[n_gained] = i
+                    n_gained += 1
+            wet[n_new] = i
+            n_new += 1
+    if not order2:
+        while p < n_wet:
+            lost[n_lost] = wet_last[p]
+            n_lost += 1
+            p += 1
+    return n_new, n_gained, n_lost
+
+
+def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
     """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
 
     ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
@@ -64,6 +132,13 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     (:mod:`avflow.numerics.sources`), applied once per accepted step to the new state.
     Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
+    The arguments are named tuples: ``mesh``
+    (:data:`~avflow.numerics.stepping.FaceMesh`), ``fields``
+    (:data:`~avflow.numerics.stepping.Fields`: the state, observers, erodible layer and
+    ``stats``), ``work`` (:data:`~avflow.numerics.stepping.FaceWork`), ``physics``
+    (:data:`~avflow.numerics.stepping.Physics`), ``run``
+    (:data:`~avflow.numerics.stepping.Control`); their fields are named as here.
+
     Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
     ``cell_stamp`` and ``cell_sync`` (per cell, -1 at first), ``synced`` (per cell, any) and
     ``clock`` (int64[2]: the steps stamped so far, the calls). The stamps then never repeat,
@@ -74,29 +149,34 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     changed mends them (:func:`relist`: a spreading flow lists its front, not its area).
 
     A template: :func:`time_loop` gives its copy for the mesh kind and the order, where
-    ``STRUCTURED``, ``ORDER2`` and ``PARALLEL`` are constants (``structured`` and ``order``
-    are not read):
+    ``STRUCTURED``, ``ORDER2`` and ``PARALLEL`` are constants:
     Numba drops the branches of the other kinds before it types the function, so a run
     compiles only the sweeps it uses (a fraction of the compile time: docs/performance.md).
     """
+    face_cells, face_frame, face_length = mesh.face_cells, mesh.face_frame, mesh.face_length
+    cell_area, cfl_factor, density = mesh.cell_area, mesh.cfl_factor, mesh.density
+    gamma_x, gamma_y, gamma_z = mesh.gamma_x, mesh.gamma_y, mesh.gamma_z
+    curvature = mesh.curvature
+    cell_face_ptr, cell_face_idx = mesh.cell_face_ptr, mesh.cell_face_idx
+    h, hu, hv, flag, stats = fields.h, fields.hu, fields.hv, fields.flag, fields.stats
+    peak_h, peak_speed, arrival, last_moved = (fields.peak_h, fields.peak_speed,
+                                               fields.arrival, fields.last_moved)
+    erodible = fields.erodible
+    h_work, hu_work, hv_work = work.h_work, work.hu_work, work.hv_work
+    flux, transport, face_stamp, cell_stamp = (work.flux, work.transport, work.face_stamp,
+                                               work.cell_stamp)
+    cell_sync, synced, clock = work.cell_sync, work.synced, work.clock
+    law, params, g, dirac = physics.law, physics.params, physics.g, physics.dirac
+    h_dry, h_zero, source = physics.h_dry, physics.h_zero, physics.source
+    cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
+    stop_volume, stop_kinetic, limiter = run.stop_volume, run.stop_kinetic, run.limiter
+    min_parallel_cells = run.min_parallel_cells
     t = stats[ST_TIME]
     # order-2 work arrays: one allocation per call, none per step
-    m2 = h.size if ORDER2 else 0
-    f2 = face_cells.shape[0] if ORDER2 else 0
-    recon = np.zeros((m2 if STRUCTURED else 0, 4))
-    velocity = np.zeros((0 if STRUCTURED else m2, 2))  # reconstruct_cells' work
-    face_state = np.zeros((0 if STRUCTURED else f2, 2, 3))
-    cell_sums = np.empty((m2 if PARALLEL else 0, N_SUMS))  # the gather form's per-cell sums
-    no_emit = np.zeros((0, 7))  # step_faces' emitted values: read at order 1 only
-    s_h = np.zeros(m2)
-    s_hu = np.zeros(m2)
-    s_hv = np.zeros(m2)
-    flag1 = np.full(m2, DRY, dtype=flag.dtype)  # stage-1 flags; DRY outside a step
-    wet2 = np.empty(0 if STRUCTURED else m2, dtype=np.int64)
-    touched2 = np.empty(0 if STRUCTURED else m2, dtype=np.int64)
-    union = np.empty(0 if STRUCTURED else m2, dtype=np.int64)
-    active2 = np.empty(0 if STRUCTURED else f2, dtype=np.int64)
-    all_cells = np.arange(m2 if STRUCTURED else 0)
+    o2 = order2_work(h.size if ORDER2 else 0, face_cells.shape[0] if ORDER2 else 0,
+                     STRUCTURED, PARALLEL)
+    union = o2.union
+    obs = Observers(peak_h, peak_speed, arrival, last_moved)
     # order-1 profile sweep (avflow.numerics.profile): its work lines, once per call
     m1 = h.size if STRUCTURED and not ORDER2 else 0
     p_work = np.zeros((_PROFILE_WORK, m1 + 2 if m1 else 0))
@@ -119,25 +199,12 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
     clock[1] += 1
     call = clock[1]
     n_synced = 0
-    m_faces = 0 if STRUCTURED else n  # the face kernel's lists
-    wet = np.empty(n, dtype=np.int64)
-    touched = np.empty(n, dtype=np.int64)
-    active_faces = np.empty(nf, dtype=np.int64)
-    # order 1: the last step's wet cells, those that became wet / dry since, and what
-    # relist() works in (its new lists swap with the last ones)
-    m_re = 0 if STRUCTURED or ORDER2 else n
-    f_re = 0 if STRUCTURED or ORDER2 else nf
-    wet_last = np.empty(m_faces, dtype=np.int64)
-    gained = np.empty(m_re, dtype=np.int64)
-    lost = np.empty(m_re, dtype=np.int64)
-    new_faces = np.empty(f_re, dtype=np.int64)
-    new_cells = np.empty(m_re, dtype=np.int64)
-    fresh_faces = np.empty(f_re, dtype=np.int64)
-    gone_faces = np.empty(f_re, dtype=np.int64)
-    added = np.empty(m_re, dtype=np.int64)
-    dropped = np.empty(2 * f_re, dtype=np.int64)
+    lw = list_work(0 if STRUCTURED else n, 0 if STRUCTURED else nf,
+                   not (STRUCTURED or ORDER2))
+    wet, wet_last, touched, active_faces = lw.wet, lw.wet_last, lw.touched, lw.active_faces
+    gained, lost, new_faces, new_cells = lw.gained, lw.lost, lw.new_faces, lw.new_cells
     n_wet = 0
-    for i in range(m_faces):
+    for i in range(wet_last.size):
         if h[i] > h_zero:
             wet[n_wet] = i
             n_wet += 1
@@ -177,24 +244,17 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     gained, n_gained, lost, n_lost, cur_h, h_zero, cell_face_ptr,
                     cell_face_idx, face_cells, face_stamp, cell_stamp, list_stamp,
                     active_faces, n_active, touched, n_touched, new_faces, new_cells,
-                    fresh_faces, gone_faces, added, dropped)
+                    lw.fresh_faces, lw.gone_faces, lw.added, lw.dropped)
                 active_faces, new_faces = new_faces, active_faces
                 touched, new_cells = new_cells, touched
-                _agree(dropped, n_dropped, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
-                fresh = added
+                _agree(lw.dropped, n_dropped, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
+                fresh = lw.added
             if not ORDER2:
                 # a cell touched for the first time in this call: its state into the work
                 # buffers (never written yet in this call, so h holds it); both buffers then
                 # agree on it, as the copies of the cells that leave the lists keep them
-                for c in range(n_fresh):
-                    i = fresh[c]
-                    if cell_sync[i] != call:
-                        cell_sync[i] = call
-                        h_work[i] = h[i]
-                        hu_work[i] = hu[i]
-                        hv_work[i] = hv[i]
-                        synced[n_synced] = i
-                        n_synced += 1
+                n_synced = sync_fresh(fresh, n_fresh, call, cell_sync, synced, n_synced,
+                                      fields, work)
         n_changed = n_touched if not STRUCTURED else 0
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
@@ -231,82 +291,17 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
                     touched, n_touched, same_lists, face_stamp, list_stamp, sweep_geo,
                     sweep_work)
             elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
-                reconstruct_profile(cur_h, cur_hu, h_zero, limiter, recon)
-                ok, out, lim, moving, film, clamped, kinetic = step_profile(
-                    face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
-                    curvature,
-                    cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv, flux, flag,
-                    law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved, True, recon, False)
-                if ok:
-                    flag1[:] = flag
-                    reconstruct_profile(nxt_h, nxt_hu, h_zero, limiter, recon)
-                    ok, out2, lim, moving, film, clamped2, kinetic = step_profile(
-                        face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z,
-                        curvature,
-                        nxt_h, nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, flag,
-                        law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                        peak_speed, arrival, last_moved, True, recon, False)
-                if ok:
-                    out = 0.5 * (out + out2)
-                    clamped += clamped2
-                    profile_transport(flag, flux, dirac, transport)
-                    lim, moving, film, kinetic, fallbacks = heun_faces(
-                        all_cells, h.size, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
-                        transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new,
-                        peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu, nxt_hv)
+                ok, out, lim, moving, film, clamped, kinetic, fallbacks = heun_profile(
+                    mesh, physics, Conserved(cur_h, cur_hu, cur_hv),
+                    Conserved(nxt_h, nxt_hu, nxt_hv), flux, transport, flag, obs, o2, limiter,
+                    dt, dt_decide, t_new)
             else:  # order 2 on faces, each stage on its own active lists
-                ok, out, lim, moving, film, clamped, kinetic = order2_stage(
-                    face_cells, face_frame, face_length, face_offset, cell_area, cfl_factor,
-                    density, gamma_x, gamma_y, gamma_z, curvature, cur_h, cur_hu, cur_hv,
-                    nxt_h, nxt_hu, nxt_hv, flux, transport, flag, law, params, g, dirac,
-                    h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival,
-                    last_moved, active_faces, n_active, touched, n_touched, cell_face_ptr,
-                    cell_face_idx, velocity, face_state, no_emit, cell_sums,
-                    min_parallel_cells)
-                if ok:
-                    n_wet2 = 0
-                    for c in range(n_touched):
-                        i = touched[c]
-                        flag1[i] = flag[i]
-                        s_h[i] = nxt_h[i]  # stage 2 rewrites only its own touched cells
-                        s_hu[i] = nxt_hu[i]
-                        s_hv[i] = nxt_hv[i]
-                        if nxt_h[i] > h_zero:
-                            wet2[n_wet2] = i
-                            n_wet2 += 1
-                    # fresh stamps for each attempt: stage 1 listed with the step's first
-                    stamp = STAMPS_PER_STEP * (clock[0] + steps) + 2 * attempt
-                    n_active2, n_touched2 = activate(wet2, n_wet2, cell_face_ptr, cell_face_idx,
-                                                     face_cells, face_stamp, cell_stamp,
-                                                     stamp + 1, active2, touched2)
-                    ok, out2, lim, moving, film, clamped2, kinetic = order2_stage(
-                        face_cells, face_frame, face_length, face_offset, cell_area,
-                        cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature, nxt_h,
-                        nxt_hu, nxt_hv, s_h, s_hu, s_hv, flux, transport, flag, law, params, g,
-                        dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                        arrival, last_moved, active2, n_active2, touched2, n_touched2,
-                        cell_face_ptr, cell_face_idx, velocity, face_state, no_emit, cell_sums,
-                        min_parallel_cells)
-                if ok:
-                    out = 0.5 * (out + out2)
-                    clamped += clamped2
-                    n_changed = merge_lists(touched, n_touched, touched2, n_touched2, cell_stamp,
-                                            stamp + 2, union)
-                    if PARALLEL and n_changed >= min_parallel_cells:
-                        lim, moving, film, kinetic, fallbacks = heun_cells_parallel(
-                            union, n_changed, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
-                            transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero,
-                            t_new, peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu,
-                            nxt_hv, cell_sums)
-                    else:
-                        lim, moving, film, kinetic, fallbacks = heun_faces(
-                            union, n_changed, cur_h, cur_hu, cur_hv, s_h, s_hu, s_hv, flag1,
-                            transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero,
-                            t_new, peak_h, peak_speed, arrival, last_moved, nxt_h, nxt_hu,
-                            nxt_hv)
-                    for c in range(n_changed):
-                        flag1[union[c]] = DRY
+                stamp = STAMPS_PER_STEP * (clock[0] + steps) + 2 * attempt
+                ok, out, lim, moving, film, clamped, kinetic, fallbacks, n_changed = (
+                    order2_faces(mesh, physics, Conserved(cur_h, cur_hu, cur_hv),
+                                 Conserved(nxt_h, nxt_hu, nxt_hv), flux, transport, flag, obs,
+                                 work, o2, Lists(active_faces, n_active, touched, n_touched),
+                                 stamp, dt, dt_decide, t_new, min_parallel_cells))
             if ok:
                 break
             dt *= 0.5
@@ -342,29 +337,8 @@ def _advance(structured, face_cells, face_frame, face_length, cell_area, cfl_fac
             n_lost = 0
             if wet_changes != 0:  # (none: the wet cells are the last step's, so is wet)
                 wet, wet_last = wet_last, wet
-                n_new = 0
-                p = 0
-                for c in range(n_changed):
-                    i = changed[c]
-                    if nxt_h[i] > h_zero:
-                        if not ORDER2:
-                            while p < n_wet and wet_last[p] < i:
-                                lost[n_lost] = wet_last[p]
-                                n_lost += 1
-                                p += 1
-                            if p < n_wet and wet_last[p] == i:
-                                p += 1
-                            else:
-                                gained[n_gained] = i
-                                n_gained += 1
-                        wet[n_new] = i
-                        n_new += 1
-                if not ORDER2:
-                    while p < n_wet:
-                        lost[n_lost] = wet_last[p]
-                        n_lost += 1
-                        p += 1
-                n_wet = n_new
+                n_wet, n_gained, n_lost = wet_after(changed, n_changed, nxt_h, h_zero, wet,
+                                                    wet_last, n_wet, gained, lost, ORDER2)
             same_wet = not ORDER2 and n_gained == 0 and n_lost == 0
             n_previous = n_changed
         stats[ST_FALLBACK] += fallbacks
@@ -397,47 +371,172 @@ faces_step = None
 faces_step_threads = None
 
 
-def _stage_faces(face_cells, face_frame, face_length, face_offset, cell_area, cfl_factor,
-                 density, gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new,
-                 hv_new, flux, transport, flag, law, params, g, dirac, h_dry, h_zero, dt,
-                 dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, active_faces,
-                 n_active, touched, n_touched, cell_face_ptr, cell_face_idx, velocity,
-                 face_state, no_emit, cell_sums, min_parallel_cells):
-    """One stage of order 2 on faces, from ``(h, hu, hv)`` into ``(h_new, hu_new, hv_new)``
-    on the listed faces and cells: the reconstruction (``face_state``), then the step.
+#: The face kernel's active lists: the listed faces and the cells they touch (their counts
+#: first in each array's use)
+Lists = namedtuple("Lists", "active_faces n_active touched n_touched")
+#: Order 2's work arrays (:func:`order2_work`): the profile's reconstruction, the faces'
+#: reconstructed states and cell velocities, the gather form's per-cell sums, stage 2's
+#: state and stage 1's flags (DRY outside a step), stage 2's lists and both stages' union,
+#: and every cell of a profile
+Order2Work = namedtuple("Order2Work", "recon velocity face_state no_emit cell_sums s_h s_hu "
+                        "s_hv flag1 wet2 touched2 union active2 all_cells")
+
+
+@njit(error_model="numpy", cache=True)
+def order2_work(m2, f2, structured, parallel):
+    """:data:`Order2Work` for ``m2`` cells and ``f2`` faces (0 and 0 at order 1), once a call
+    (none per step)."""
+    return Order2Work(np.zeros((m2 if structured else 0, 4)),
+                      np.zeros((0 if structured else m2, 2)),
+                      np.zeros((0 if structured else f2, 2, 3)),
+                      np.zeros((0, 7)),  # step_faces' emitted values: read at order 1 only
+                      np.empty((m2 if parallel else 0, N_SUMS)),
+                      np.zeros(m2), np.zeros(m2), np.zeros(m2),
+                      np.full(m2, DRY, dtype=np.uint8),
+                      np.empty(0 if structured else m2, dtype=np.int64),
+                      np.empty(0 if structured else m2, dtype=np.int64),
+                      np.empty(0 if structured else m2, dtype=np.int64),
+                      np.empty(0 if structured else f2, dtype=np.int64),
+                      np.arange(m2 if structured else 0))
+
+
+@njit(error_model="numpy", cache=True)
+def heun_profile(mesh, physics, cur, nxt, flux, transport, flag, obs, o2, limiter, dt,
+                 dt_decide, t_new):
+    """An order-2 step on a profile: stage 1 (``cur`` -> ``nxt``), stage 2 (``nxt`` -> o2's
+    ``s_*``), each a full step of the seed's scheme on its reconstruction, and Heun's average
+    into ``nxt``. Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic,
+    fallbacks)``."""
+    m, p = mesh, physics
+    s_h, s_hu, s_hv, flag1 = o2.s_h, o2.s_hu, o2.s_hv, o2.flag1
+    reconstruct_profile(cur.h, cur.hu, p.h_zero, limiter, o2.recon)
+    ok, out, lim, moving, film, clamped, kinetic = step_profile(
+        m.face_cells, m.cell_area, m.cfl_factor, m.density, m.gamma_x, m.gamma_y, m.gamma_z,
+        m.curvature, cur.h, cur.hu, cur.hv, nxt.h, nxt.hu, nxt.hv, flux, flag, p.law,
+        p.params, p.g, p.dirac, p.h_dry, p.h_zero, dt, dt_decide, t_new, obs.peak_h,
+        obs.peak_speed, obs.arrival, obs.last_moved, True, o2.recon, False)
+    if not ok:
+        return ok, out, lim, moving, film, clamped, kinetic, 0
+    flag1[:] = flag
+    reconstruct_profile(nxt.h, nxt.hu, p.h_zero, limiter, o2.recon)
+    ok, out2, lim, moving, film, clamped2, kinetic = step_profile(
+        m.face_cells, m.cell_area, m.cfl_factor, m.density, m.gamma_x, m.gamma_y, m.gamma_z,
+        m.curvature, nxt.h, nxt.hu, nxt.hv, s_h, s_hu, s_hv, flux, flag, p.law, p.params,
+        p.g, p.dirac, p.h_dry, p.h_zero, dt, dt_decide, t_new, obs.peak_h, obs.peak_speed,
+        obs.arrival, obs.last_moved, True, o2.recon, False)
+    if not ok:
+        return ok, out, lim, moving, film, clamped, kinetic, 0
+    profile_transport(flag, flux, p.dirac, transport)
+    lim, moving, film, kinetic, fallbacks = heun_faces(
+        o2.all_cells, cur.h.size, cur.h, cur.hu, cur.hv, s_h, s_hu, s_hv, flag1, transport,
+        m.cell_area, m.cfl_factor, m.gamma_z, p.g, p.h_dry, p.h_zero, t_new, obs.peak_h,
+        obs.peak_speed, obs.arrival, obs.last_moved, nxt.h, nxt.hu, nxt.hv)
+    return (ok, 0.5 * (out + out2), lim, moving, film, clamped + clamped2, kinetic,
+            fallbacks)
+
+
+def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2, lists,
+                  stamp, dt, dt_decide, t_new, min_parallel_cells):
+    """An order-2 step on faces: stage 1 on the step's ``lists``, stage 2 on lists of its
+    own (stamped ``stamp + 1``), Heun's average over the cells either touched (their union
+    in o2's ``union``, stamped ``stamp + 2``). A template: compiled with and without threads
+    (``PARALLEL``, :data:`ORDER2_FACES`). Returns ``(ok, outflow, dt_limit, moving, film,
+    clamped, kinetic, fallbacks, cells changed)``."""
+    m, p = mesh, physics
+    s = Conserved(o2.s_h, o2.s_hu, o2.s_hv)
+    flag1, touched, n_touched = o2.flag1, lists.touched, lists.n_touched
+    ok, out, lim, moving, film, clamped, kinetic = order2_stage(
+        mesh, physics, cur, nxt, flux, transport, flag, obs, dt, dt_decide, t_new, lists, o2,
+        min_parallel_cells)
+    if not ok:
+        return ok, out, lim, moving, film, clamped, kinetic, 0, n_touched
+    n_wet2 = 0
+    for c in range(n_touched):
+        i = touched[c]
+        flag1[i] = flag[i]
+        s.h[i] = nxt.h[i]  # stage 2 rewrites only its own touched cells
+        s.hu[i] = nxt.hu[i]
+        s.hv[i] = nxt.hv[i]
+        if nxt.h[i] > p.h_zero:
+            o2.wet2[n_wet2] = i
+            n_wet2 += 1
+    n_active2, n_touched2 = activate(o2.wet2, n_wet2, m.cell_face_ptr, m.cell_face_idx,
+                                     m.face_cells, work.face_stamp, work.cell_stamp,
+                                     stamp + 1, o2.active2, o2.touched2)
+    ok, out2, lim, moving, film, clamped2, kinetic = order2_stage(
+        mesh, physics, nxt, s, flux, transport, flag, obs, dt, dt_decide, t_new,
+        Lists(o2.active2, n_active2, o2.touched2, n_touched2), o2, min_parallel_cells)
+    if not ok:
+        return ok, out, lim, moving, film, clamped, kinetic, 0, n_touched
+    union = o2.union
+    n_changed = merge_lists(touched, n_touched, o2.touched2, n_touched2, work.cell_stamp,
+                            stamp + 2, union)
+    if PARALLEL and n_changed >= min_parallel_cells:
+        lim, moving, film, kinetic, fallbacks = heun_cells_parallel(
+            union, n_changed, cur.h, cur.hu, cur.hv, s.h, s.hu, s.hv, flag1, transport,
+            m.cell_area, m.cfl_factor, m.gamma_z, p.g, p.h_dry, p.h_zero, t_new, obs.peak_h,
+            obs.peak_speed, obs.arrival, obs.last_moved, nxt.h, nxt.hu, nxt.hv, o2.cell_sums)
+    else:
+        lim, moving, film, kinetic, fallbacks = heun_faces(
+            union, n_changed, cur.h, cur.hu, cur.hv, s.h, s.hu, s.hv, flag1, transport,
+            m.cell_area, m.cfl_factor, m.gamma_z, p.g, p.h_dry, p.h_zero, t_new, obs.peak_h,
+            obs.peak_speed, obs.arrival, obs.last_moved, nxt.h, nxt.hu, nxt.hv)
+    for c in range(n_changed):
+        flag1[union[c]] = DRY
+    return (ok, 0.5 * (out + out2), lim, moving, film, clamped + clamped2, kinetic,
+            fallbacks, n_changed)
+
+
+def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, dt, dt_decide, t_new,
+                 lists, o2, min_parallel_cells):
+    """One stage of order 2 on faces, from ``cur`` into ``nxt`` on the listed faces and
+    cells: the reconstruction (o2's ``face_state``), then the step.
     In the copy with threads (``PARALLEL``) a stage of at least ``min_parallel_cells``
     cells runs both in gather form on Numba's threads (:mod:`avflow.numerics.face_gather`,
     the same bits), any other on :func:`reconstruct_cells` and :func:`step_faces`.
     Returns step_faces' ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
-    if PARALLEL and n_touched >= min_parallel_cells:
-        reconstruct_cells_parallel(face_cells, face_frame, face_length, face_offset,
-                                   cell_area, h, hu, hv, h_zero, cell_face_ptr, cell_face_idx,
-                                   touched, n_touched, velocity, face_state)
+    m, p = mesh, physics
+    if PARALLEL and lists.n_touched >= min_parallel_cells:
+        reconstruct_cells_parallel(m.face_cells, m.face_frame, m.face_length, m.face_offset,
+                                   m.cell_area, cur.h, cur.hu, cur.hv, p.h_zero,
+                                   m.cell_face_ptr, m.cell_face_idx, lists.touched,
+                                   lists.n_touched, o2.velocity, o2.face_state)
         return step_cells_parallel(
-            face_cells, face_frame, face_length, cell_area, cfl_factor, density, gamma_x,
-            gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flux, transport,
-            flag, law, params, g, dirac, h_zero, h_dry, dt, dt_decide, active_faces, n_active,
-            touched, n_touched, cell_face_ptr, cell_face_idx, face_state, cell_sums)
-    reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_area, h, hu, hv,
-                      h_zero, cell_face_ptr, cell_face_idx, touched, n_touched, velocity,
-                      face_state)
-    return step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                      gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new,
-                      flux, transport, flag, law, params, g, dirac, h_dry, h_zero, dt,
-                      dt_decide, t_new, peak_h, peak_speed, arrival, last_moved, active_faces,
-                      n_active, touched, n_touched, True, face_state, False, no_emit)
+            m.face_cells, m.face_frame, m.face_length, m.cell_area, m.cfl_factor, m.density,
+            m.gamma_x, m.gamma_y, m.gamma_z, m.curvature, cur.h, cur.hu, cur.hv, nxt.h,
+            nxt.hu, nxt.hv, flux, transport, flag, p.law, p.params, p.g, p.dirac, p.h_zero,
+            p.h_dry, dt, dt_decide, lists.active_faces, lists.n_active, lists.touched,
+            lists.n_touched, m.cell_face_ptr, m.cell_face_idx, o2.face_state, o2.cell_sums)
+    reconstruct_cells(m.face_cells, m.face_frame, m.face_length, m.face_offset, m.cell_area,
+                      cur.h, cur.hu, cur.hv, p.h_zero, m.cell_face_ptr, m.cell_face_idx,
+                      lists.touched, lists.n_touched, o2.velocity, o2.face_state)
+    return step_faces(m.face_cells, m.face_frame, m.face_length, m.cell_area, m.cfl_factor,
+                      m.density, m.gamma_x, m.gamma_y, m.gamma_z, m.curvature, cur.h, cur.hu,
+                      cur.hv, nxt.h, nxt.hu, nxt.hv, flux, transport, flag, p.law, p.params,
+                      p.g, p.dirac, p.h_dry, p.h_zero, dt, dt_decide, t_new, obs.peak_h,
+                      obs.peak_speed, obs.arrival, obs.last_moved, lists.active_faces,
+                      lists.n_active, lists.touched, lists.n_touched, True, o2.face_state,
+                      False, o2.no_emit)
 
 
-#: Placeholders of the constants of :func:`_advance`'s and :func:`_stage_faces`' copies (see
-#: :func:`time_loop`), and of what their copies with threads call (none in the others)
+#: Placeholders of the constants of the copies of :func:`_advance`, :func:`_order2_faces`
+#: and :func:`_stage_faces` (see :func:`time_loop`), and of what their copies call (the
+#: functions on threads only in the copies with threads)
 STRUCTURED = ORDER2 = PARALLEL = False
-reconstruct_cells_parallel = step_cells_parallel = heun_cells_parallel = order2_stage = None
+reconstruct_cells_parallel = step_cells_parallel = heun_cells_parallel = None
+order2_stage = order2_faces = None
 
-#: :func:`_stage_faces` serial and with threads, each under its own name
+#: :func:`_stage_faces` and :func:`_order2_faces` serial and with threads, each under its
+#: own name
 ORDER2_STAGE = {
     False: specialize(_stage_faces, "_serial", PARALLEL=False),
     True: specialize(_stage_faces, "_parallel", PARALLEL=True,
                      reconstruct_cells_parallel=_recon_par, step_cells_parallel=_step_parallel)}
+ORDER2_FACES = {
+    parallel: specialize(_order2_faces, "_parallel" if parallel else "_serial",
+                         PARALLEL=parallel, order2_stage=ORDER2_STAGE[parallel],
+                         heun_cells_parallel=_heun_parallel if parallel else None)
+    for parallel in (False, True)}
 
 
 def _advance_for(structured: bool, order2: bool, kind: int | None = None,
@@ -457,9 +556,8 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
                 names["faces_step_threads"] = _FACES_THREADS[kind]
     if parallel:
         suffix += "_parallel"
-        names["heun_cells_parallel"] = _heun_parallel
     return specialize(_advance, suffix, STRUCTURED=structured, ORDER2=order2,
-                      PARALLEL=parallel, order2_stage=ORDER2_STAGE[parallel], **names)
+                      PARALLEL=parallel, order2_faces=ORDER2_FACES[parallel], **names)
 
 
 #: The time loop per (structured, order 2, law kind, threads): the law only at order 1,
