@@ -38,7 +38,8 @@ from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, UNDER_THRESHOLD, cell_moves, centripetal_accel,
                                  dirac_face, dt_from_inverse, emitted_state, final_momentum,
-                                 observe_cell, open_mass, speed_of, trial_momentum)
+                                 observe, observe_cell, open_mass, speed_of, step_terms,
+                                 trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.vectorize import specialize
@@ -243,14 +244,9 @@ def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cel
         hu_new[i] = qx
         hv_new[i] = qy
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
-        if hn > peak_h[i]:
-            peak_h[i] = hn
-        if speed > peak_speed[i]:
-            peak_speed[i] = speed
-        if hn > h_dry and math.isnan(arrival[i]):
-            arrival[i] = t_new
-        if speed > 0.0:
-            last_moved[i] = t_new
+        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
+            True, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
+            last_moved[i])
         _keep_terms(cell_sums, i, False, inv_i, hn, cell_area[i], speed,
                     cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn), h_dry,
                     fell_back)
@@ -265,9 +261,8 @@ def _keep_terms(cell_sums, i, failed, inv_lim, hn, area, speed, moves, h_dry, co
     kinetic energy, its moving or film volume (``moves``: it carried mass), a count."""
     cell_sums[i, S_FAIL] = 1.0 if failed else 0.0
     cell_sums[i, S_INV] = inv_lim
-    cell_sums[i, S_KINETIC] = hn * area * speed * speed
-    cell_sums[i, S_MOVING] = hn * area if moves and hn > h_dry else 0.0
-    cell_sums[i, S_FILM] = hn * area if moves and hn <= h_dry else 0.0
+    cell_sums[i, S_KINETIC], cell_sums[i, S_MOVING], cell_sums[i, S_FILM] = step_terms(
+        hn, area, speed, moves, h_dry)
     cell_sums[i, S_COUNT] = count
 
 

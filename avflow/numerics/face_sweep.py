@@ -42,7 +42,8 @@ import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dirac_face, dt_from_inverse,
-                                 final_momentum, observe_cell, open_mass, trial_momentum)
+                                 final_momentum, observe, observe_cell, open_mass, step_terms,
+                                 trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
@@ -433,18 +434,15 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             h_new[i] = hn
             hu_new[i] = qx
             hv_new[i] = qy
-            peak_h[i] = hn if good & (hn > old_peak_h) else old_peak_h
-            peak_speed[i] = speed if good & (speed > old_peak_speed) else old_peak_speed
-            arrival[i] = t_new if good & (hn > h_dry) & math.isnan(old_arrival) else old_arrival
-            last_moved[i] = t_new if good & (speed > 0.0) else old_moved
+            peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
+                good, hn, speed, t_new, h_dry, old_peak_h, old_peak_speed, old_arrival,
+                old_moved)
             clamped += cl
             # physics.cell_moves with the largest |F_h| / L of the faces that carried mass
             moves = (speed > 0.0) & ((speed_n == 0.0)
                                      | (transport[i] > TRANSPORT_EPS * hn * speed_n))
             t_inv[i] = inv_i
-            t_kin[i] = hn * area * speed * speed
-            t_mov[i] = hn * area if moves & (hn > h_dry) else 0.0
-            t_film[i] = hn * area if moves & (hn <= h_dry) else 0.0
+            t_kin[i], t_mov[i], t_film[i] = step_terms(hn, area, speed, moves, h_dry)
     # (a step with a cell below 0 is redone; every run was updated all the same, so the
     # observers it leaves do not depend on how the runs were cut for the threads)
     return n_bad, clamped, flips

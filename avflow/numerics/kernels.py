@@ -39,8 +39,8 @@ from numba import njit
 from avflow.numerics.cpu import (DRY, UNDER_THRESHOLD, cell_moves, centripetal_accel,
                                  dirac_face, dt_from_inverse, emitted_state, emitting,
                                  final_momentum, half_flux_in, half_flux_out, half_fluxes,
-                                 observe_cell, open_mass, side_fluxes, sound_speed, speed_of,
-                                 trial_momentum)
+                                 observe, observe_cell, open_mass, side_fluxes, sound_speed,
+                                 speed_of, step_terms, trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 
 
@@ -95,7 +95,7 @@ def _profile_fluxes2(recon, h, h_zero, density, gamma_z, g, left, right, flux):
 def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
                  h, hu, hv, h_new, hu_new, hv_new, flux, flag,
                  law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                 arrival, last_moved, order2, recon, observe):
+                 arrival, last_moved, order2, recon, watch):
     """One step on a profile (faces in line order, uniform dx), the face loop fused into the
     cell loops: the time loop runs it at order 2; at order 1 it runs the vectorised
     :func:`avflow.numerics.profile.step`, and this fused sweep is the reference that one is
@@ -104,7 +104,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     Same arithmetic as :func:`step_faces`.
     With ``order2`` the faces see the reconstructed states ``recon`` (h_L, u_L, h_R, u_R per
     cell, :func:`avflow.numerics.reconstruction.reconstruct_profile`) instead of the averages.
-    ``observe``: update the observers (peaks, arrival, last motion); False for a
+    ``watch``: update the observers (peaks, arrival, last motion); False for a
     Runge-Kutta stage, whose state is not one of the run's.
     ``flux[k, 0]`` is the mass flux (m^2/s) through face k towards +x, ``flux[k, 1]`` its
     momentum flux. Returns
@@ -220,22 +220,15 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
         clamped += cl
         speed, inv_k = observe_cell(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
         inv_lim = max(inv_lim, inv_k)
-        if observe:
-            # observers written out: as a helper, inlined or not, they slowed it (docs/performance.md)
-            if hn > peak_h[k]:
-                peak_h[k] = hn
-            if speed > peak_speed[k]:
-                peak_speed[k] = speed
-            if hn > h_dry and math.isnan(arrival[k]):
-                arrival[k] = t_new
-            if speed > 0.0:
-                last_moved[k] = t_new
-        kinetic += hn * dx * speed * speed
-        if cell_moves(speed, speed_n, max(abs(fl), abs(fr)), hn):
-            if hn > h_dry:
-                moving += hn * dx
-            else:
-                film += hn * dx
+        if watch:
+            peak_h[k], peak_speed[k], arrival[k], last_moved[k] = observe(
+                True, hn, speed, t_new, h_dry, peak_h[k], peak_speed[k], arrival[k],
+                last_moved[k])
+        kin, mov, fil = step_terms(hn, dx, speed, cell_moves(speed, speed_n,
+                                                             max(abs(fl), abs(fr)), hn), h_dry)
+        kinetic += kin
+        moving += mov
+        film += fil
     return True, outflow, dt_from_inverse(inv_lim), moving, film, clamped, kinetic
 
 
@@ -245,7 +238,7 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
                h, hu, hv, h_new, hu_new, hv_new, flux, transport, flag,
                law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
                arrival, last_moved, active_faces, n_active, touched, n_touched, order2,
-               face_state, observe, emit):
+               face_state, watch, emit):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
     Only the ``n_active`` faces of ``active_faces`` (those of the wet cells) and the
@@ -418,22 +411,15 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
         clamped += cl
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
-        if observe:
-            # observers written out: as a helper, inlined or not, they slowed it (docs/performance.md)
-            if hn > peak_h[i]:
-                peak_h[i] = hn
-            if speed > peak_speed[i]:
-                peak_speed[i] = speed
-            if hn > h_dry and math.isnan(arrival[i]):
-                arrival[i] = t_new
-            if speed > 0.0:
-                last_moved[i] = t_new
-        kinetic += hn * area * speed * speed
-        if cell_moves(speed, speed_n, transport[i], hn):
-            if hn > h_dry:
-                moving += hn * area
-            else:
-                film += hn * area
+        if watch:
+            peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
+                True, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
+                last_moved[i])
+        kin, mov, fil = step_terms(hn, area, speed, cell_moves(speed, speed_n, transport[i], hn),
+                                   h_dry)
+        kinetic += kin
+        moving += mov
+        film += fil
     return True, outflow, dt_from_inverse(inv_lim), moving, film, clamped, kinetic
 
 
@@ -483,22 +469,15 @@ def heun_faces(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cel
         hv_new[i] = qy
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
-        # observers written out: as a helper, inlined or not, they slowed it (docs/performance.md)
-        if hn > peak_h[i]:
-            peak_h[i] = hn
-        if speed > peak_speed[i]:
-            peak_speed[i] = speed
-        if hn > h_dry and math.isnan(arrival[i]):
-            arrival[i] = t_new
-        if speed > 0.0:
-            last_moved[i] = t_new
+        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
+            True, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
+            last_moved[i])
         area = cell_area[i]
-        kinetic += hn * area * speed * speed
-        if cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn):
-            if hn > h_dry:
-                moving += hn * area
-            else:
-                film += hn * area
+        moves = cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn)
+        kin, mov, fil = step_terms(hn, area, speed, moves, h_dry)
+        kinetic += kin
+        moving += mov
+        film += fil
     return dt_from_inverse(inv_lim), moving, film, kinetic, fallbacks
 
 

@@ -163,6 +163,26 @@ def observe_cell(h, q_norm, cfl_factor, gz, g):
     return speed, cfl_factor * (speed + SQRT3 * sound_speed(h, g * gz))
 
 
+def observe(write, h, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved):
+    """The running observers of a cell after a step, each a select (no branch, so the cell
+    loops vectorise): peak thickness and speed, arrival (first time above ``h_dry``) and
+    the last time it moved. ``write`` False keeps them as they were (a step to be redone).
+    Every traversal's final pass calls this: a new running map is one more value here."""
+    return (h if write & (h > peak_h) else peak_h,
+            speed if write & (speed > peak_speed) else peak_speed,
+            t_new if write & (h > h_dry) & math.isnan(arrival) else arrival,
+            t_new if write & (speed > 0.0) else last_moved)
+
+
+def step_terms(h, area, speed, moves, h_dry):
+    """A cell's terms of the step's sums: kinetic energy / density ``h A |u|^2`` (halved
+    once for the run), and its volume moving (``moves``, :func:`cell_moves`) above
+    ``h_dry`` or as a film at most ``h_dry`` thick: what the stop rules read."""
+    volume = h * area
+    return (volume * speed * speed, volume if moves & (h > h_dry) else 0.0,
+            volume if moves & (h <= h_dry) else 0.0)
+
+
 def open_mass(f_out):
     """Mass flux (outward) through an open side: what leaves, never anything that enters.
 

@@ -26,7 +26,7 @@ import math
 from numba import njit
 
 from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
-                                 observe_cell, open_mass, trial_momentum)
+                                 observe, observe_cell, open_mass, step_terms, trial_momentum)
 from avflow.numerics.cpu import SQRT3, half_fluxes, sound_speed
 from avflow.numerics.vectorize import (friction_law, in_select, law_copies, law_kind, law_label,
                                        line_sum, noalias, out_select, specialize)
@@ -123,10 +123,10 @@ def _trial(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params
 
 
 def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
-           law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new,
+           law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, watch, h_new, hu_new, hv_new,
            flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film):
     """Pass 4: per cell, the new thickness (Dirac faces carry nothing), the momentum of
-    eq. 50, the observers (``observe``: False for a Runge-Kutta stage), what the sums need.
+    eq. 50, the observers (``watch``: False for a Runge-Kutta stage), what the sums need.
     Returns ``(cells below 0, clamped)``; a cell below 0 makes the step be redone,
     whatever it wrote."""
     lw = friction_law(law)
@@ -170,18 +170,14 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         flag[k] = fk
         clamped += cl
         speed_k, inv_k = observe_cell(hn, abs(qx), cfl_k, gz, g)
-        peak_h[k] = hn if observe & (hn > old_peak_h) else old_peak_h
-        peak_speed[k] = speed_k if observe & (speed_k > old_peak_speed) else old_peak_speed
-        arrives = observe & (hn > h_dry) & math.isnan(old_arrival)
-        arrival[k] = t_new if arrives else old_arrival
-        last_moved[k] = t_new if observe & (speed_k > 0.0) else old_moved
+        peak_h[k], peak_speed[k], arrival[k], last_moved[k] = observe(
+            watch, hn, speed_k, t_new, h_dry, old_peak_h, old_peak_speed, old_arrival,
+            old_moved)
         # physics.cell_moves with the transport max(|fl|, |fr|)
         transport = max(abs(fl), abs(fr))
         moves = (speed_k > 0.0) & ((speed_n == 0.0) | (transport > TRANSPORT_EPS * hn * speed_n))
         t_inv[k] = inv_k
-        t_kin[k] = hn * dx * speed_k * speed_k
-        t_mov[k] = hn * dx if moves & (hn > h_dry) else 0.0
-        t_film[k] = hn * dx if moves & (hn <= h_dry) else 0.0
+        t_kin[k], t_mov[k], t_film[k] = step_terms(hn, dx, speed_k, moves, h_dry)
     return n_bad, clamped
 
 

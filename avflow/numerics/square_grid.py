@@ -49,7 +49,8 @@ import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, dt_from_inverse,
-                                 final_momentum, observe_cell, open_mass, trial_momentum)
+                                 final_momentum, observe, observe_cell, open_mass, step_terms,
+                                 trial_momentum)
 from avflow.numerics.sources import SRC_KIND, add_span
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
                                       ST_SOURCE, ST_TIME, Conserved, Observers, record_end,
@@ -478,11 +479,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         old_arrival, old_moved = arrival[i], last_moved[i]
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
                                 g)
-        peak_h[i] = hn if good & (hn > old_peak_h) else old_peak_h
-        peak_speed[i] = speed if good & (speed > old_peak_speed) else old_peak_speed
-        arrives = good & (hn > h_dry) & math.isnan(old_arrival)
-        arrival[i] = t_new if arrives else old_arrival
-        last_moved[i] = t_new if good & (speed > 0.0) else old_moved
+        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
+            good, hn, speed, t_new, h_dry, old_peak_h, old_peak_speed, old_arrival, old_moved)
         # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
         # per metre (physics.cell_moves; compared as |fh| > eps h |u^n| L: no division)
         limit = TRANSPORT_EPS * hn * speed_n
@@ -492,9 +490,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
                    | ((not d_n) & (abs(nm) > limit * len_n)))
         moves = good & (speed > 0.0) & ((speed_n == 0.0) | carried)
         t_inv[c] = inv_i if good else 0.0
-        t_kin[c] = hn * area * speed * speed if good else 0.0
-        t_mov[c] = hn * area if moves & (hn > h_dry) else 0.0
-        t_film[c] = hn * area if moves & (hn <= h_dry) else 0.0
+        kin, t_mov[c], t_film[c] = step_terms(hn, area, speed, moves, h_dry)
+        t_kin[c] = kin if good else 0.0
         # what left through open sides (a face's flux is outward from its owner: -term for
         # the cell's own faces), through the faces that are not Dirac
         open_w = ((w_code & KIND) == HIGH_OPEN) & (not d_w) & (wm < 0.0)
