@@ -70,9 +70,9 @@ def test_a_stage_in_gather_form_is_step_faces(mesh_kind, law, params):
                           face_state)
         limit = K.dt_limit(solver._cfl_factor, terrain.gamma_z, h, hu, hv, solver.gravity)
         dt = 0.5 * limit
-        geometry = (m.face_cells, m.face_frame, m.face_length, m.cell_area, solver._cfl_factor,
-                    solver._density, terrain.gamma_x, terrain.gamma_y, terrain.gamma_z,
-                    terrain.curvature, h, hu, hv)
+        state_n = stepping.Conserved(h, hu, hv)
+        when = stepping.StepTime(dt, dt, t + dt)
+        lists = stepping.Lists(active, n_active, touched, n_touched, False, stamps[0], k)
         outs = []
         for kind in ("step_faces", "serial", "parallel"):
             new = [np.full(n, np.nan) for _ in range(3)]
@@ -80,28 +80,28 @@ def test_a_stage_in_gather_form_is_step_faces(mesh_kind, law, params):
             transport = np.full(n, np.nan)
             flag = state.flag.copy()
             obs = {name: getattr(state, name).copy() for name in OBSERVERS}
-            law_args = (int(law), solver.params, solver.gravity, True)
+            phys = stepping.Physics(int(law), solver.params, solver.gravity, True,
+                                    solver.h_dry, solver.h_zero, solver._source)
+            observers = stepping.Observers(*[obs[name] for name in OBSERVERS])
             if kind == "step_faces":
-                r = K.step_faces(*geometry, *new, flux, transport, flag, *law_args,
-                                 solver.h_dry, solver.h_zero, dt, dt, t + dt,
-                                 *[obs[name] for name in OBSERVERS], active, n_active, touched,
-                                 n_touched, True, face_state, False, np.zeros((0, 7)))
+                r = K.step_faces(solver._face_mesh, phys, state_n, stepping.Conserved(*new),
+                                 flux, transport, flag, observers, when, lists, True,
+                                 face_state, False, np.zeros((0, 7)))
             else:
                 step = FG.step_cells_serial if kind == "serial" else FG.step_cells_parallel
                 numba.set_num_threads(2 if kind == "parallel" else threads)
                 try:
-                    r = step(*geometry, *new, flux, transport, flag, *law_args, solver.h_zero,
-                             solver.h_dry, dt, dt, active, n_active, touched, n_touched,
-                             solver._cell_face_ptr, solver._cell_face_idx, face_state,
+                    r = step(solver._face_mesh, phys, state_n, stepping.Conserved(*new), flux,
+                             transport, flag, when, lists, face_state,
                              np.full((n, FG.N_SUMS), np.nan))
                 finally:
                     numba.set_num_threads(threads)
             # Heun's average of this stage with the state (as the second stage's merge)
             avg = [np.full(n, np.nan) for _ in range(3)]
             cells = touched[:n_touched]
-            args = (cells, n_touched, h, hu, hv, *new, state.flag, transport, m.cell_area,
-                    solver._cfl_factor, terrain.gamma_z, solver.gravity, solver.h_dry,
-                    solver.h_zero, t + dt, *[obs[name] for name in OBSERVERS], *avg)
+            args = (cells, n_touched, solver._face_mesh, phys, state_n,
+                    stepping.Conserved(*new), state.flag, transport, observers, t + dt,
+                    stepping.Conserved(*avg))
             if kind == "step_faces":
                 rh = K.heun_faces(*args)
             else:

@@ -111,7 +111,7 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
         # what earlier steps and calls left there)
         unlisted = face_stamp != k
         for wk in works.values():
-            wk[1][unlisted] = np.nan
+            wk.mass[unlisted] = np.nan
         results, outputs = [], []
         for kernel in KERNELS:
             new = [h.copy(), hu.copy(), hv.copy()]  # the buffers agree where nothing is touched
@@ -119,15 +119,16 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
             ob = {name: obs[name].copy() for name in OBSERVERS}
             flux = np.zeros((n_faces, 5))
             transport = np.zeros(n)
-            law_args = (int(law), solver.params, G, dirac, h_dry, h_zero, dt, dt, t_new)
+            phys = stepping.Physics(int(law), solver.params, G, dirac, h_dry, h_zero,
+                                    solver._source)
+            cur, nxt = stepping.Conserved(h, hu, hv), stepping.Conserved(*new)
+            observers = stepping.Observers(*[ob[name] for name in OBSERVERS])
+            when = stepping.StepTime(dt, dt, t_new)
+            lists = stepping.Lists(active, n_active, touched, n_touched, same, face_stamp, k)
             if kernel == "reference":
-                r = K.step_faces(mesh.face_cells, mesh.face_frame, mesh.face_length,
-                                 mesh.cell_area, solver._cfl_factor, solver._density,
-                                 terrain.gamma_x, terrain.gamma_y, terrain.gamma_z,
-                                 terrain.curvature, h, hu, hv, *new, flux, transport, fl,
-                                 *law_args, ob["peak_h"], ob["peak_speed"], ob["arrival"],
-                                 ob["last_moved"], active, n_active, touched, n_touched,
-                                 False, np.zeros((0, 2, 3)), True, emit)
+                r = K.step_faces(solver._face_mesh, phys, cur, nxt, flux, transport, fl,
+                                 observers, when, lists, False, np.zeros((0, 2, 3)), True,
+                                 emit)
             else:
                 step, sweep = step_new, (solver._sweep[0], works[kernel])
                 if kernel in THREAD_KERNELS:
@@ -136,19 +137,15 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                     sweep = (geo, works[kernel])
                     numba.set_num_threads(1 if kernel == "pieces serially" else 2)
                 try:
-                    r = step(mesh.face_cells, mesh.face_frame, mesh.face_length,
-                             mesh.cell_area, solver._cfl_factor, solver._density,
-                             terrain.gamma_x, terrain.gamma_y, terrain.gamma_z, h, hu, hv, *new,
-                             transport, fl, *law_args, ob["peak_h"], ob["peak_speed"],
-                             ob["arrival"], ob["last_moved"], active, n_active, touched,
-                             n_touched, same, face_stamp, k, *sweep)
+                    r = step(solver._face_mesh, phys, cur, nxt, transport, fl, observers,
+                             when, lists, *sweep)
                 finally:
                     numba.set_num_threads(threads)
             results.append(r)
             outputs.append((new, fl, ob))
             if kernel in THREAD_KERNELS:
                 wk = sweep[1]  # a cell shared in this step carries its number
-                shared = wk[8][touched[:n_touched]] == wk[6][face_sweep.CUT_MARK]
+                shared = wk.shared_mark[touched[:n_touched]] == wk.cut[face_sweep.CUT_MARK]
                 shares.add((kernel, bool(shared.any()), not shared.all()))
         (ref_new, ref_fl, ref_ob) = outputs[0]
         if np.all(ref_fl[touched[:n_touched]] == physics.FLOWING):
@@ -501,13 +498,13 @@ def test_the_step_on_threads_runs_where_its_pieces_stay_local():
                                  ("refined triangles", bump_on_a_slope("triangles"), False)):
         solver = Solver(terrain, Law.COULOMB, params, kernel="faces", threads=2)
         geo, wk = solver._sweep
-        span, n_faces = int(geo[6][0]), terrain.mesh.n_faces
+        span, n_faces = int(geo.span[0]), terrain.mesh.n_faces
         assert face_sweep.pieces_stay_local(geo, n_faces, 2) is local, (name, span, n_faces)
         if local:
             assert 4 * span <= n_faces
             assert solver._gather_from == face_sweep.MIN_PARALLEL_CELLS
-            assert wk[4].shape == (4, n_faces)
+            assert wk.side.shape == (4, n_faces)
         else:
             assert 4 * span > n_faces
             assert solver._gather_from > terrain.mesh.n_cells
-            assert wk[4].shape == (4, 0)
+            assert wk.side.shape == (4, 0)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from avflow.numerics import kernels as K
-from avflow.numerics import physics
+from avflow.numerics import physics, stepping
 from avflow.numerics import profile as P
 from avflow.numerics.rheology import Law
 from avflow.numerics.solver import Solver
@@ -34,19 +34,20 @@ def one_step_both(solver, state, dt, dt_decide):
         flag = np.full(n, 7, dtype=np.uint8)
         obs = [state.peak_h.copy(), state.peak_speed.copy(), state.arrival.copy(),
                state.last_moved.copy()]
-        common = (int(solver.law), solver.params, float(solver.gravity), bool(solver.dirac),
-                  float(solver.h_dry), float(solver.h_zero), dt, dt_decide, t_new)
+        cur, nxt = stepping.Conserved(state.h, state.hu, state.hv), stepping.Conserved(*new)
+        observers = stepping.Observers(*obs)
+        when = stepping.StepTime(dt, dt_decide, t_new)
         if sweep == "fused":
-            res = K.step_profile(m.face_cells, m.cell_area, solver._cfl_factor, solver._density,
-                                 t.gamma_x, t.gamma_y, t.gamma_z, t.curvature, state.h,
-                                 state.hu, state.hv, *new, np.zeros((n + 1, 2)), flag, *common,
-                                 *obs, False, np.zeros((0, 4)), True)
+            res = K.step_profile(solver._face_mesh, solver._physics(), cur, nxt,
+                                 np.zeros((n + 1, 2)), flag, observers, when, False,
+                                 np.zeros((0, 4)), True)
         else:
-            res = P.step(m.face_cells[0, 1], m.face_cells[n, 1], m.cell_area[0],
-                         solver._cfl_factor, solver._density, t.gamma_x, t.gamma_z,
-                         np.ascontiguousarray(t.curvature[:, 0]), state.h, state.hu, *new,
-                         flag, *common, *obs, True, np.zeros((P.N_WORK, n + 2)),
-                         np.full(n + 2, physics.DRY, dtype=np.uint8))
+            line = P.ProfileLine(m.face_cells[0, 1], m.face_cells[n, 1], m.cell_area[0],
+                                 solver._cfl_factor, solver._density, t.gamma_x, t.gamma_z,
+                                 np.ascontiguousarray(t.curvature[:, 0]),
+                                 np.zeros((P.N_WORK, n + 2)),
+                                 np.full(n + 2, physics.DRY, dtype=np.uint8))
+            res = P.step(line, solver._physics(), cur, nxt, flag, observers, when, True)
         out.append((res, *new, flag, obs))
     return out
 

@@ -53,15 +53,21 @@ S_FAIL, S_INV, S_MOVING, S_FILM, S_KINETIC, S_COUNT = range(6)
 N_SUMS = 6
 
 
-def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-               gamma_x, gamma_y, gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flux,
-               transport, flag, law, params, g, dirac, h_zero, h_dry, dt, dt_decide,
-               active_faces, n_active, touched, n_touched, cell_face_ptr, cell_face_idx,
-               face_state, cell_sums):
+def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face_state,
+               cell_sums):
     """One order-2 stage on the listed faces and cells (step_faces' arguments at order 2;
     ``cell_face_ptr, cell_face_idx``: the cells' faces in index order; ``cell_sums``: work,
     (n, :data:`N_SUMS`)). Returns ``(ok, outflow, dt_limit, moving, film, clamped,
     kinetic)`` as step_faces does."""
+    face_cells, face_frame, face_length = mesh.face_cells, mesh.face_frame, mesh.face_length
+    cell_area, cfl_factor, density = mesh.cell_area, mesh.cfl_factor, mesh.density
+    gamma_x, gamma_y, gamma_z = mesh.gamma_x, mesh.gamma_y, mesh.gamma_z
+    curvature, h, hu, hv, h_new = mesh.curvature, cur.h, cur.hu, cur.hv, nxt.h
+    hu_new, hv_new, law, params, g = nxt.hu, nxt.hv, physics.law, physics.params, physics.g
+    dirac, h_zero, h_dry, dt = physics.dirac, physics.h_zero, physics.h_dry, when.dt
+    dt_decide, active_faces, n_active = when.dt_decide, lists.active_faces, lists.n_active
+    touched, n_touched, cell_face_ptr = lists.touched, lists.n_touched, mesh.cell_face_ptr
+    cell_face_idx = mesh.cell_face_idx
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
 
@@ -219,13 +225,17 @@ def step_cells(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     return True, outflow, lim, moving, film, clamped, kinetic
 
 
-def heun_cells(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cell_area,
-               cfl_factor, gamma_z, g, h_dry, h_zero, t_new, peak_h, peak_speed, arrival,
-               last_moved, h_new, hu_new, hv_new, cell_sums):
+def heun_cells(cells, n_cells, mesh, physics, start, stage2, flag1, transport, obs, t_new,
+               new, cell_sums):
     """:func:`avflow.numerics.kernels.heun_faces` on threads: Heun's average of the two
     stages and the observers per cell, each cell's terms of the sums into ``cell_sums``,
     added afterwards in the list's order (the same bits). Returns ``(dt_limit, moving, film,
     kinetic, fallbacks)``."""
+    h0, hu0, hv0, h2, hu2, hv2 = start.h, start.hu, start.hv, stage2.h, stage2.hu, stage2.hv
+    cell_area, cfl_factor, gamma_z = mesh.cell_area, mesh.cfl_factor, mesh.gamma_z
+    g, h_dry, h_zero, peak_h = physics.g, physics.h_dry, physics.h_zero, obs.peak_h
+    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    h_new, hu_new, hv_new = new.h, new.hu, new.hv
     for c in prange(n_cells):
         i = cells[c]
         # U^{n+1} = (U^n + U**) / 2, the first-order answer q = 0 where the first stage

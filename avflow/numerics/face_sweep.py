@@ -557,10 +557,7 @@ def _open_outflow(open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt):
     return outflow
 
 
-def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, gamma_x,
-          gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport, flag, law, params, g,
-          dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
-          active_faces, n_active, touched, n_touched, same, face_stamp, stamp, geo, wk):
+def _step(mesh, physics, cur, nxt, transport, flag, obs, when, lists, geo, wk):
     """One order-1 step over the active lists (sorted): the numbers of
     :func:`~avflow.numerics.kernels.step_faces`, with ``geo`` from :func:`geometry` and
     ``wk`` from :func:`work`; ``same``: the lists are those of the last step with ``wk``,
@@ -571,6 +568,16 @@ def _step(face_cells, face_frame, face_length, cell_area, cfl_factor, density, g
     many runs dearer: docs/performance.md). Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic, wet_changes)``, the last the
     touched cells that became wet or dry (none: the next step's lists are these)."""
+    face_frame, face_length, cell_area = mesh.face_frame, mesh.face_length, mesh.cell_area
+    cfl_factor, density, gamma_x = mesh.cfl_factor, mesh.density, mesh.gamma_x
+    gamma_y, gamma_z, h, hu, hv = mesh.gamma_y, mesh.gamma_z, cur.h, cur.hu, cur.hv
+    h_new, hu_new, hv_new, law, params = nxt.h, nxt.hu, nxt.hv, physics.law, physics.params
+    g, dirac, h_dry, h_zero = physics.g, physics.dirac, physics.h_dry, physics.h_zero
+    dt, dt_decide, t_new, peak_h = when.dt, when.dt_decide, when.t_new, obs.peak_h
+    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
+    n_touched, same, face_stamp = lists.n_touched, lists.same, lists.face_stamp
+    stamp = lists.stamp
     pairs, inv_area, curv = geo.pairs, geo.inv_area, geo.curvature
     emit, mass, per_cell, runs = wk.emit, wk.mass, wk.per_cell, wk.runs
     e_u1, e_u2, e_speed = emit[E_U1], emit[E_U2], emit[E_SPEED]
@@ -863,11 +870,7 @@ def _cut_lists(active_faces, n_active, touched, n_touched, same, pairs, face_ptr
     return n_runs, n_face_runs, n_cp, n_fp, n_shared
 
 
-def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                  gamma_x, gamma_y, gamma_z, h, hu, hv, h_new, hu_new, hv_new, transport,
-                  flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-                  peak_speed, arrival, last_moved, active_faces, n_active, touched, n_touched,
-                  same, face_stamp, stamp, geo, wk):
+def _step_threads(mesh, physics, cur, nxt, transport, flag, obs, when, lists, geo, wk):
     """:func:`_step` on Numba's threads (its arguments, its returns, its bits; ``geo`` and
     ``wk`` from :func:`geometry` and :func:`work` with ``threads``):
 
@@ -885,6 +888,16 @@ def _step_threads(face_cells, face_frame, face_length, cell_area, cfl_factor, de
        then, serially, the volume through the open faces (in face order) and the step's
        sums (in the lists' order).
     """
+    face_frame, face_length, cell_area = mesh.face_frame, mesh.face_length, mesh.cell_area
+    cfl_factor, density, gamma_x = mesh.cfl_factor, mesh.density, mesh.gamma_x
+    gamma_y, gamma_z, h, hu, hv = mesh.gamma_y, mesh.gamma_z, cur.h, cur.hu, cur.hv
+    h_new, hu_new, hv_new, law, params = nxt.h, nxt.hu, nxt.hv, physics.law, physics.params
+    g, dirac, h_dry, h_zero = physics.g, physics.dirac, physics.h_dry, physics.h_zero
+    dt, dt_decide, t_new, peak_h = when.dt, when.dt_decide, when.t_new, obs.peak_h
+    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
+    n_touched, same, face_stamp = lists.n_touched, lists.same, lists.face_stamp
+    stamp = lists.stamp
     pairs, inv_area, curv = geo.pairs, geo.inv_area, geo.curvature
     face_ptr, face_idx, open_faces, span = geo.face_ptr, geo.face_idx, geo.open_faces, geo.span[0]
     near_edge, edge_cells = geo.near_edge, geo.edge_cells

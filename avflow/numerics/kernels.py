@@ -92,10 +92,7 @@ def _profile_fluxes2(recon, h, h_zero, density, gamma_z, g, left, right, flux):
 
 
 @njit(error_model="numpy", cache=True)
-def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, gamma_z, curvature,
-                 h, hu, hv, h_new, hu_new, hv_new, flux, flag,
-                 law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                 arrival, last_moved, order2, recon, watch):
+def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, watch):
     """One step on a profile (faces in line order, uniform dx), the face loop fused into the
     cell loops: the time loop runs it at order 2; at order 1 it runs the vectorised
     :func:`avflow.numerics.profile.step`, and this fused sweep is the reference that one is
@@ -110,6 +107,13 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
     momentum flux. Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)`` (see :func:`step_faces`).
     """
+    face_cells, cell_area, cfl_factor = mesh.face_cells, mesh.cell_area, mesh.cfl_factor
+    density, gamma_x, gamma_z = mesh.density, mesh.gamma_x, mesh.gamma_z
+    curvature, h, hu, h_new = mesh.curvature, cur.h, cur.hu, nxt.h
+    hu_new, hv_new, law, params, g = nxt.hu, nxt.hv, physics.law, physics.params, physics.g
+    dirac, h_dry, h_zero, dt = physics.dirac, physics.h_dry, physics.h_zero, when.dt
+    dt_decide, t_new, peak_h = when.dt_decide, when.t_new, obs.peak_h
+    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
     n = h.size
     dx = cell_area[0]
     r = dt / dx
@@ -233,11 +237,7 @@ def step_profile(face_cells, cell_area, cfl_factor, density, gamma_x, gamma_y, g
 
 
 @njit(error_model="numpy", cache=True)
-def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-               gamma_x, gamma_y, gamma_z, curvature,
-               h, hu, hv, h_new, hu_new, hv_new, flux, transport, flag,
-               law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-               arrival, last_moved, active_faces, n_active, touched, n_touched, order2,
+def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, order2,
                face_state, watch, emit):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
@@ -258,6 +258,16 @@ def step_faces(face_cells, face_frame, face_length, cell_area, cfl_factor, densi
     ``transport`` is a per-cell work array; clamped the number of cells whose normal
     acceleration was clamped at 0; kinetic the sum of h A |u|^2 of the new state.
     """
+    face_cells, face_frame, face_length = mesh.face_cells, mesh.face_frame, mesh.face_length
+    cell_area, cfl_factor, density = mesh.cell_area, mesh.cfl_factor, mesh.density
+    gamma_x, gamma_y, gamma_z = mesh.gamma_x, mesh.gamma_y, mesh.gamma_z
+    curvature, h, hu, hv, h_new = mesh.curvature, cur.h, cur.hu, cur.hv, nxt.h
+    hu_new, hv_new, law, params, g = nxt.hu, nxt.hv, physics.law, physics.params, physics.g
+    dirac, h_dry, h_zero, dt = physics.dirac, physics.h_dry, physics.h_zero, when.dt
+    dt_decide, t_new, peak_h = when.dt_decide, when.t_new, obs.peak_h
+    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
+    n_touched = lists.n_touched
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
     for c in range(n_touched):
@@ -436,14 +446,18 @@ def profile_transport(flag, flux, dirac, transport):
 
 
 @njit(error_model="numpy", cache=True)
-def heun_faces(cells, n_cells, h0, hu0, hv0, h2, hu2, hv2, flag1, transport, cell_area,
-               cfl_factor, gamma_z, g, h_dry, h_zero, t_new, peak_h, peak_speed, arrival,
-               last_moved, h_new, hu_new, hv_new):
+def heun_faces(cells, n_cells, mesh, physics, start, stage2, flag1, transport, obs, t_new,
+               new):
     """Order 2: Heun's average of the two stages over the ``n_cells``
     listed ``cells`` (those either stage changed; all cells on a profile) and the step's
     observers. ``transport`` holds the face fluxes of the stage that last swept each cell.
     Returns ``(dt_limit, moving, film, kinetic, fallbacks)`` as the step kernels do (moving
     cells: u != 0 and a face that carried mass)."""
+    h0, hu0, hv0, h2, hu2, hv2 = start.h, start.hu, start.hv, stage2.h, stage2.hu, stage2.hv
+    cell_area, cfl_factor, gamma_z = mesh.cell_area, mesh.cfl_factor, mesh.gamma_z
+    g, h_dry, h_zero, peak_h = physics.g, physics.h_dry, physics.h_zero, obs.peak_h
+    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    h_new, hu_new, hv_new = new.h, new.hu, new.hv
     inv_lim = 0.0
     moving = 0.0
     film = 0.0

@@ -22,6 +22,7 @@ by round-off.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 from numba import njit
 
@@ -189,14 +190,26 @@ FINAL = law_copies(_final)
 trial_pass = final_pass = None
 
 
-def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
-          hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-          peak_speed, arrival, last_moved, observe, work, pflag):
+#: What the order-1 profile step reads of its line: the end conditions, the uniform
+#: ``dx``, the per-cell factors, the curvature line (``curvature[:, 0]``, contiguous) and
+#: its work lines and flags (:data:`N_WORK` x ``n + 2``, ``n + 2``), made once a time loop
+ProfileLine = namedtuple("ProfileLine", "left right dx cfl_factor density gamma_x gamma_z "
+                         "kappa work pflag")
+
+
+def _step(line, physics, cur, nxt, flag, obs, when, watch):
     """One order-1 step on a profile of uniform ``dx`` with end conditions ``left`` and
     ``right`` (WALL or OUTFLOW): :func:`~avflow.numerics.kernels.step_profile`'s numbers.
     ``kappa``: the curvature line (``curvature[:, 0]``, contiguous); ``work``: float lines
     ``(N_WORK, n + 2)``, ``pflag``: ``n + 2`` flags (uint8), allocated once per time loop.
     Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
+    left, right, dx, cfl_factor = line.left, line.right, line.dx, line.cfl_factor
+    density, gamma_x, gamma_z, kappa = line.density, line.gamma_x, line.gamma_z, line.kappa
+    h, hu, h_new, hu_new, hv_new, law = cur.h, cur.hu, nxt.h, nxt.hu, nxt.hv, physics.law
+    params, g, dirac, h_dry = physics.params, physics.g, physics.dirac, physics.h_dry
+    h_zero, dt, dt_decide, t_new = physics.h_zero, when.dt, when.dt_decide, when.t_new
+    peak_h, peak_speed, arrival = obs.peak_h, obs.peak_speed, obs.arrival
+    last_moved, work, pflag = obs.last_moved, line.work, line.pflag
     n = h.size
     up_h, up_q, down_h, down_q = work[W_UP_H], work[W_UP_Q], work[W_DOWN_H], work[W_DOWN_Q]
     speed, flux_h, flux_q = work[W_SPEED], work[W_FLUX_H], work[W_FLUX_Q]
@@ -215,7 +228,7 @@ def _step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, 
     pflag[n + 1] = pflag[n]
     n_bad, clamped = final_pass(
         n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag, law,
-        params, g, dirac, h_dry, h_zero, dx, dt, t_new, observe, h_new, hu_new, hv_new, flag,
+        params, g, dirac, h_dry, h_zero, dx, dt, t_new, watch, h_new, hu_new, hv_new, flag,
         peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
     if n_bad > 0:
         return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
@@ -243,12 +256,7 @@ STEP = {kind: specialize(_step, "_" + law_label(kind), trial_pass=TRIAL[kind],
         for kind in TRIAL}
 
 
-def step(left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
-         hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-         peak_speed, arrival, last_moved, observe, work, pflag):
-    """:func:`_step` in the copy for ``law`` (from Python; the time loop calls its law's
+def step(line, physics, cur, nxt, flag, obs, when, watch):
+    """:func:`_step` in the copy for the law (from Python; the time loop calls its law's
     copy itself)."""
-    return STEP[law_kind(law)](
-        left, right, dx, cfl_factor, density, gamma_x, gamma_z, kappa, h, hu, h_new, hu_new,
-        hv_new, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h,
-        peak_speed, arrival, last_moved, observe, work, pflag)
+    return STEP[law_kind(physics.law)](line, physics, cur, nxt, flag, obs, when, watch)

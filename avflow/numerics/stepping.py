@@ -45,6 +45,14 @@ Conserved = namedtuple("Conserved", "h hu hv")
 #: the running observers, changed in place by every step
 Observers = namedtuple("Observers", "peak_h peak_speed arrival last_moved")
 
+#: one step's times: the step, the CFL step the threshold is tested with (eq. 49: the
+#: decision depends on the state alone), and the time the step lands on
+StepTime = namedtuple("StepTime", "dt dt_decide t_new")
+#: the face kernel's active lists: the listed faces and the cells they touch, whether they
+#: are the last step's (``same``: a step keeps what it made of them), and the stamp that
+#: marks a listed face (``face_stamp[f] == stamp``)
+Lists = namedtuple("Lists", "active_faces n_active touched n_touched same face_stamp stamp")
+
 # Status returned by the time loop (time_loop)
 REACHED_TARGET = 0
 STOPPED = 1

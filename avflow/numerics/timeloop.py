@@ -23,13 +23,15 @@ from avflow.numerics.face_sweep import STEP_THREADS as _FACES_THREADS
 from avflow.numerics.kernels import (RELIST_SHARE, _agree, activate, heun_faces, merge_lists,
                                      profile_transport, relist, step_faces, step_profile)
 from avflow.numerics.profile import N_WORK as _PROFILE_WORK
+from avflow.numerics.profile import ProfileLine
 from avflow.numerics.profile import STEP as _PROFILE_STEP
 from avflow.numerics.reconstruction import (reconstruct_cells, reconstruct_profile,
                                             reconstruct_cells_parallel as _recon_par)
 from avflow.numerics.sources import SRC_KIND, add_listed, add_span
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, STAMPS_PER_STEP,
                                       ST_FALLBACK, ST_RETRIES, ST_SOURCE, ST_TIME, Conserved,
-                                      Observers, end_loop, record_end, record_step, step_size)
+                                      Lists, Observers, StepTime, end_loop, record_end,
+                                      record_step, step_size)
 from avflow.numerics.vectorize import law_kind, law_label, specialize
 
 
@@ -153,10 +155,9 @@ def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
     Numba drops the branches of the other kinds before it types the function, so a run
     compiles only the sweeps it uses (a fraction of the compile time: docs/performance.md).
     """
-    face_cells, face_frame, face_length = mesh.face_cells, mesh.face_frame, mesh.face_length
-    cell_area, cfl_factor, density = mesh.cell_area, mesh.cfl_factor, mesh.density
-    gamma_x, gamma_y, gamma_z = mesh.gamma_x, mesh.gamma_y, mesh.gamma_z
-    curvature = mesh.curvature
+    face_cells, cell_area, cfl_factor = mesh.face_cells, mesh.cell_area, mesh.cfl_factor
+    density, gamma_x, gamma_z, curvature = (mesh.density, mesh.gamma_x, mesh.gamma_z,
+                                            mesh.curvature)
     cell_face_ptr, cell_face_idx = mesh.cell_face_ptr, mesh.cell_face_idx
     h, hu, hv, flag, stats = fields.h, fields.hu, fields.hv, fields.flag, fields.stats
     peak_h, peak_speed, arrival, last_moved = (fields.peak_h, fields.peak_speed,
@@ -166,8 +167,7 @@ def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
     flux, transport, face_stamp, cell_stamp = (work.flux, work.transport, work.face_stamp,
                                                work.cell_stamp)
     cell_sync, synced, clock = work.cell_sync, work.synced, work.clock
-    law, params, g, dirac = physics.law, physics.params, physics.g, physics.dirac
-    h_dry, h_zero, source = physics.h_dry, physics.h_zero, physics.source
+    g, h_dry, h_zero, source = physics.g, physics.h_dry, physics.h_zero, physics.source
     cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
     stop_volume, stop_kinetic, limiter = run.stop_volume, run.stop_kinetic, run.limiter
     min_parallel_cells = run.min_parallel_cells
@@ -179,11 +179,13 @@ def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
     obs = Observers(peak_h, peak_speed, arrival, last_moved)
     # order-1 profile sweep (avflow.numerics.profile): its work lines, once per call
     m1 = h.size if STRUCTURED and not ORDER2 else 0
-    p_work = np.zeros((_PROFILE_WORK, m1 + 2 if m1 else 0))
-    p_flag = np.full(m1 + 2 if m1 else 0, DRY, dtype=flag.dtype)
     p_kappa = np.empty(m1)
     for i in range(m1):
         p_kappa[i] = curvature[i, 0]
+    line = ProfileLine(face_cells[0, 1], face_cells[face_cells.shape[0] - 1, 1], cell_area[0],
+                       cfl_factor, density, gamma_x, gamma_z, p_kappa,
+                       np.zeros((_PROFILE_WORK, m1 + 2 if m1 else 0)),
+                       np.full(m1 + 2 if m1 else 0, DRY, dtype=flag.dtype))
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     status = REACHED_TARGET
@@ -263,12 +265,14 @@ def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
             same_lists = same_wet or attempt > 0
             wet_changes = -1  # (the order-1 face steps count the cells wet or dry anew)
             fallbacks = 0
+            cur = Conserved(cur_h, cur_hu, cur_hv)
+            nxt = Conserved(nxt_h, nxt_hu, nxt_hv)
+            when = StepTime(dt, dt_decide, t_new)
+            lists = Lists(active_faces, n_active, touched, n_touched, same_lists, face_stamp,
+                          list_stamp)
             if STRUCTURED and not ORDER2:
                 ok, out, lim, moving, film, clamped, kinetic = profile_step(
-                    face_cells[0, 1], face_cells[n, 1], cell_area[0], cfl_factor, density,
-                    gamma_x, gamma_z, p_kappa, cur_h, cur_hu, nxt_h, nxt_hu, nxt_hv, flag, law,
-                    params, g, dirac, h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed,
-                    arrival, last_moved, True, p_work, p_flag)
+                    line, physics, cur, nxt, flag, obs, when, True)
             elif (not ORDER2 and PARALLEL and n_touched >= min_parallel_cells
                   and (same_lists or n_touched // 2 >= min_parallel_cells)):
                 # the same on threads, each on its piece of the faces (the same bits); on
@@ -276,32 +280,20 @@ def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
                 # cells its pieces share again, a cost the threads must win back:
                 # docs/performance.md)
                 ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step_threads(
-                    face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                    gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
-                    transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
-                    t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
-                    touched, n_touched, same_lists, face_stamp, list_stamp, sweep_geo,
+                    mesh, physics, cur, nxt, transport, flag, obs, when, lists, sweep_geo,
                     sweep_work)
             elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
                 ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step(
-                    face_cells, face_frame, face_length, cell_area, cfl_factor, density,
-                    gamma_x, gamma_y, gamma_z, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv,
-                    transport, flag, law, params, g, dirac, h_dry, h_zero, dt, dt_decide,
-                    t_new, peak_h, peak_speed, arrival, last_moved, active_faces, n_active,
-                    touched, n_touched, same_lists, face_stamp, list_stamp, sweep_geo,
+                    mesh, physics, cur, nxt, transport, flag, obs, when, lists, sweep_geo,
                     sweep_work)
             elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
                 ok, out, lim, moving, film, clamped, kinetic, fallbacks = heun_profile(
-                    mesh, physics, Conserved(cur_h, cur_hu, cur_hv),
-                    Conserved(nxt_h, nxt_hu, nxt_hv), flux, transport, flag, obs, o2, limiter,
-                    dt, dt_decide, t_new)
+                    mesh, physics, cur, nxt, flux, transport, flag, obs, o2, limiter, when)
             else:  # order 2 on faces, each stage on its own active lists
                 stamp = STAMPS_PER_STEP * (clock[0] + steps) + 2 * attempt
                 ok, out, lim, moving, film, clamped, kinetic, fallbacks, n_changed = (
-                    order2_faces(mesh, physics, Conserved(cur_h, cur_hu, cur_hv),
-                                 Conserved(nxt_h, nxt_hu, nxt_hv), flux, transport, flag, obs,
-                                 work, o2, Lists(active_faces, n_active, touched, n_touched),
-                                 stamp, dt, dt_decide, t_new, min_parallel_cells))
+                    order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2,
+                                 lists, stamp, when, min_parallel_cells))
             if ok:
                 break
             dt *= 0.5
@@ -371,9 +363,6 @@ faces_step = None
 faces_step_threads = None
 
 
-#: The face kernel's active lists: the listed faces and the cells they touch (their counts
-#: first in each array's use)
-Lists = namedtuple("Lists", "active_faces n_active touched n_touched")
 #: Order 2's work arrays (:func:`order2_work`): the profile's reconstruction, the faces'
 #: reconstructed states and cell velocities, the gather form's per-cell sums, stage 2's
 #: state and stage 1's flags (DRY outside a step), stage 2's lists and both stages' union,
@@ -401,52 +390,43 @@ def order2_work(m2, f2, structured, parallel):
 
 
 @njit(error_model="numpy", cache=True)
-def heun_profile(mesh, physics, cur, nxt, flux, transport, flag, obs, o2, limiter, dt,
-                 dt_decide, t_new):
+def heun_profile(mesh, physics, cur, nxt, flux, transport, flag, obs, o2, limiter, when):
     """An order-2 step on a profile: stage 1 (``cur`` -> ``nxt``), stage 2 (``nxt`` -> o2's
     ``s_*``), each a full step of the seed's scheme on its reconstruction, and Heun's average
     into ``nxt``. Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic,
     fallbacks)``."""
-    m, p = mesh, physics
-    s_h, s_hu, s_hv, flag1 = o2.s_h, o2.s_hu, o2.s_hv, o2.flag1
-    reconstruct_profile(cur.h, cur.hu, p.h_zero, limiter, o2.recon)
+    s = Conserved(o2.s_h, o2.s_hu, o2.s_hv)
+    reconstruct_profile(cur.h, cur.hu, physics.h_zero, limiter, o2.recon)
     ok, out, lim, moving, film, clamped, kinetic = step_profile(
-        m.face_cells, m.cell_area, m.cfl_factor, m.density, m.gamma_x, m.gamma_y, m.gamma_z,
-        m.curvature, cur.h, cur.hu, cur.hv, nxt.h, nxt.hu, nxt.hv, flux, flag, p.law,
-        p.params, p.g, p.dirac, p.h_dry, p.h_zero, dt, dt_decide, t_new, obs.peak_h,
-        obs.peak_speed, obs.arrival, obs.last_moved, True, o2.recon, False)
+        mesh, physics, cur, nxt, flux, flag, obs, when, True, o2.recon, False)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0
-    flag1[:] = flag
-    reconstruct_profile(nxt.h, nxt.hu, p.h_zero, limiter, o2.recon)
+    o2.flag1[:] = flag
+    reconstruct_profile(nxt.h, nxt.hu, physics.h_zero, limiter, o2.recon)
     ok, out2, lim, moving, film, clamped2, kinetic = step_profile(
-        m.face_cells, m.cell_area, m.cfl_factor, m.density, m.gamma_x, m.gamma_y, m.gamma_z,
-        m.curvature, nxt.h, nxt.hu, nxt.hv, s_h, s_hu, s_hv, flux, flag, p.law, p.params,
-        p.g, p.dirac, p.h_dry, p.h_zero, dt, dt_decide, t_new, obs.peak_h, obs.peak_speed,
-        obs.arrival, obs.last_moved, True, o2.recon, False)
+        mesh, physics, nxt, s, flux, flag, obs, when, True, o2.recon, False)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0
-    profile_transport(flag, flux, p.dirac, transport)
+    profile_transport(flag, flux, physics.dirac, transport)
     lim, moving, film, kinetic, fallbacks = heun_faces(
-        o2.all_cells, cur.h.size, cur.h, cur.hu, cur.hv, s_h, s_hu, s_hv, flag1, transport,
-        m.cell_area, m.cfl_factor, m.gamma_z, p.g, p.h_dry, p.h_zero, t_new, obs.peak_h,
-        obs.peak_speed, obs.arrival, obs.last_moved, nxt.h, nxt.hu, nxt.hv)
+        o2.all_cells, cur.h.size, mesh, physics, cur, s, o2.flag1, transport, obs, when.t_new,
+        nxt)
     return (ok, 0.5 * (out + out2), lim, moving, film, clamped + clamped2, kinetic,
             fallbacks)
 
 
 def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2, lists,
-                  stamp, dt, dt_decide, t_new, min_parallel_cells):
+                  stamp, when, min_parallel_cells):
     """An order-2 step on faces: stage 1 on the step's ``lists``, stage 2 on lists of its
     own (stamped ``stamp + 1``), Heun's average over the cells either touched (their union
     in o2's ``union``, stamped ``stamp + 2``). A template: compiled with and without threads
     (``PARALLEL``, :data:`ORDER2_FACES`). Returns ``(ok, outflow, dt_limit, moving, film,
     clamped, kinetic, fallbacks, cells changed)``."""
-    m, p = mesh, physics
+    m = mesh
     s = Conserved(o2.s_h, o2.s_hu, o2.s_hv)
     flag1, touched, n_touched = o2.flag1, lists.touched, lists.n_touched
     ok, out, lim, moving, film, clamped, kinetic = order2_stage(
-        mesh, physics, cur, nxt, flux, transport, flag, obs, dt, dt_decide, t_new, lists, o2,
+        mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, o2,
         min_parallel_cells)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0, n_touched
@@ -457,15 +437,17 @@ def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2,
         s.h[i] = nxt.h[i]  # stage 2 rewrites only its own touched cells
         s.hu[i] = nxt.hu[i]
         s.hv[i] = nxt.hv[i]
-        if nxt.h[i] > p.h_zero:
+        if nxt.h[i] > physics.h_zero:
             o2.wet2[n_wet2] = i
             n_wet2 += 1
     n_active2, n_touched2 = activate(o2.wet2, n_wet2, m.cell_face_ptr, m.cell_face_idx,
                                      m.face_cells, work.face_stamp, work.cell_stamp,
                                      stamp + 1, o2.active2, o2.touched2)
+    lists2 = Lists(o2.active2, n_active2, o2.touched2, n_touched2, False, work.face_stamp,
+                   stamp + 1)
     ok, out2, lim, moving, film, clamped2, kinetic = order2_stage(
-        mesh, physics, nxt, s, flux, transport, flag, obs, dt, dt_decide, t_new,
-        Lists(o2.active2, n_active2, o2.touched2, n_touched2), o2, min_parallel_cells)
+        mesh, physics, nxt, s, flux, transport, flag, obs, when, lists2, o2,
+        min_parallel_cells)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0, n_touched
     union = o2.union
@@ -473,50 +455,38 @@ def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2,
                             stamp + 2, union)
     if PARALLEL and n_changed >= min_parallel_cells:
         lim, moving, film, kinetic, fallbacks = heun_cells_parallel(
-            union, n_changed, cur.h, cur.hu, cur.hv, s.h, s.hu, s.hv, flag1, transport,
-            m.cell_area, m.cfl_factor, m.gamma_z, p.g, p.h_dry, p.h_zero, t_new, obs.peak_h,
-            obs.peak_speed, obs.arrival, obs.last_moved, nxt.h, nxt.hu, nxt.hv, o2.cell_sums)
+            union, n_changed, mesh, physics, cur, s, flag1, transport, obs, when.t_new, nxt,
+            o2.cell_sums)
     else:
         lim, moving, film, kinetic, fallbacks = heun_faces(
-            union, n_changed, cur.h, cur.hu, cur.hv, s.h, s.hu, s.hv, flag1, transport,
-            m.cell_area, m.cfl_factor, m.gamma_z, p.g, p.h_dry, p.h_zero, t_new, obs.peak_h,
-            obs.peak_speed, obs.arrival, obs.last_moved, nxt.h, nxt.hu, nxt.hv)
+            union, n_changed, mesh, physics, cur, s, flag1, transport, obs, when.t_new, nxt)
     for c in range(n_changed):
         flag1[union[c]] = DRY
     return (ok, 0.5 * (out + out2), lim, moving, film, clamped + clamped2, kinetic,
             fallbacks, n_changed)
 
 
-def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, dt, dt_decide, t_new,
-                 lists, o2, min_parallel_cells):
+def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, o2,
+                 min_parallel_cells):
     """One stage of order 2 on faces, from ``cur`` into ``nxt`` on the listed faces and
     cells: the reconstruction (o2's ``face_state``), then the step.
     In the copy with threads (``PARALLEL``) a stage of at least ``min_parallel_cells``
     cells runs both in gather form on Numba's threads (:mod:`avflow.numerics.face_gather`,
     the same bits), any other on :func:`reconstruct_cells` and :func:`step_faces`.
     Returns step_faces' ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
-    m, p = mesh, physics
+    m = mesh
     if PARALLEL and lists.n_touched >= min_parallel_cells:
         reconstruct_cells_parallel(m.face_cells, m.face_frame, m.face_length, m.face_offset,
-                                   m.cell_area, cur.h, cur.hu, cur.hv, p.h_zero,
+                                   m.cell_area, cur.h, cur.hu, cur.hv, physics.h_zero,
                                    m.cell_face_ptr, m.cell_face_idx, lists.touched,
                                    lists.n_touched, o2.velocity, o2.face_state)
-        return step_cells_parallel(
-            m.face_cells, m.face_frame, m.face_length, m.cell_area, m.cfl_factor, m.density,
-            m.gamma_x, m.gamma_y, m.gamma_z, m.curvature, cur.h, cur.hu, cur.hv, nxt.h,
-            nxt.hu, nxt.hv, flux, transport, flag, p.law, p.params, p.g, p.dirac, p.h_zero,
-            p.h_dry, dt, dt_decide, lists.active_faces, lists.n_active, lists.touched,
-            lists.n_touched, m.cell_face_ptr, m.cell_face_idx, o2.face_state, o2.cell_sums)
+        return step_cells_parallel(mesh, physics, cur, nxt, flux, transport, flag, when,
+                                   lists, o2.face_state, o2.cell_sums)
     reconstruct_cells(m.face_cells, m.face_frame, m.face_length, m.face_offset, m.cell_area,
-                      cur.h, cur.hu, cur.hv, p.h_zero, m.cell_face_ptr, m.cell_face_idx,
+                      cur.h, cur.hu, cur.hv, physics.h_zero, m.cell_face_ptr, m.cell_face_idx,
                       lists.touched, lists.n_touched, o2.velocity, o2.face_state)
-    return step_faces(m.face_cells, m.face_frame, m.face_length, m.cell_area, m.cfl_factor,
-                      m.density, m.gamma_x, m.gamma_y, m.gamma_z, m.curvature, cur.h, cur.hu,
-                      cur.hv, nxt.h, nxt.hu, nxt.hv, flux, transport, flag, p.law, p.params,
-                      p.g, p.dirac, p.h_dry, p.h_zero, dt, dt_decide, t_new, obs.peak_h,
-                      obs.peak_speed, obs.arrival, obs.last_moved, lists.active_faces,
-                      lists.n_active, lists.touched, lists.n_touched, True, o2.face_state,
-                      False, o2.no_emit)
+    return step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, True,
+                      o2.face_state, False, o2.no_emit)
 
 
 #: Placeholders of the constants of the copies of :func:`_advance`, :func:`_order2_faces`
