@@ -1,0 +1,256 @@
+"""Velocity-weakening friction of Lucas, Mangeney and Ampuero (2014) (issue 34).
+
+``mu(|u|) = mu_w + (mu_s - mu_w) / (1 + |u| / U_w)``: the law against its formula, a pile at
+rest under atan(mu_s) on every kernel at both orders, the block on a plane between atan(mu_w)
+and atan(mu_s) (at rest it stays, above the analytic speed threshold it accelerates, below
+it stops), its parameter checks, and an ensemble mixing it with the other laws.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.integrate import solve_ivp
+
+from avflow.errors import ScenarioError
+from avflow.numerics.rheology import (Law, friction, friction_parameters, law_reference,
+                                      velocity_weakening_mu, velocity_weakening_threshold)
+from avflow.numerics.solver import Solver
+from avflow.scenario.schema import load_scenario, parse_scenario
+from conftest import slope_profile
+
+G = 9.81
+MU_S, MU_W, U_W = 0.7, 0.1, 4.0  # test values (atan: 35.0 and 5.7 degrees)
+PARAMS = np.array([MU_S, MU_W, U_W, 0.0, 0.0, 0.0, 0.0, 0.0])
+
+
+def _scenario(rheology, theta=20.0):
+    return f"""
+name: velocity-weakening
+terrain: {{kind: profile, length: 1000.0, slope: {{kind: constant, theta_deg: {theta}}},
+          curvature: false}}
+grid: {{dx: 10.0}}
+release: {{kind: box, x: [0.0, 1000.0], thickness: 1.0}}
+rheology: {rheology}
+time: {{end: 10.0, cfl: 0.5}}
+output: {{every: 10.0}}
+"""
+
+
+# --- the law ---------------------------------------------------------------------------------
+
+
+def test_parameters_are_packed_and_the_reference_is_the_paper():
+    rheology = parse_scenario(_scenario(
+        "{law: velocity_weakening, mu_s: 0.7, mu_w: 0.1, U_w: 4.0}")).rheology
+    law, params = friction_parameters(rheology)
+    assert law is Law.VELOCITY_WEAKENING
+    np.testing.assert_array_equal(params, PARAMS)
+    assert "Lucas, Mangeney and Ampuero (2014)" in law_reference(law)
+    assert "Nat. Commun. 5, 3417" in law_reference(law)
+
+
+def test_tau_is_the_formula_times_the_normal_load_and_there_is_no_drag():
+    """tau = mu(|u|) h N with mu by hand; mu_s at rest, the mid value at U_w, mu_w far out;
+    mu_w = mu_s is Coulomb at every speed."""
+    for h in (0.0, 1e-9, 0.3, 40.0):
+        for v in (0.0, 0.5, 4.0, 60.0, 1e6):
+            for n in (0.0, 4.0, 9.81):
+                tau, drag = friction(int(Law.VELOCITY_WEAKENING), *PARAMS, h, v, n, G)
+                by_hand = (MU_W + (MU_S - MU_W) / (1.0 + v / U_W)) * h * n
+                assert tau == pytest.approx(by_hand, rel=1e-15, abs=0.0) and drag == 0.0
+    assert velocity_weakening_mu(0.0, MU_S, MU_W, U_W) == MU_S  # exactly: Coulomb at rest
+    assert velocity_weakening_mu(U_W, MU_S, MU_W, U_W) == pytest.approx((MU_S + MU_W) / 2)
+    assert velocity_weakening_mu(1e12, MU_S, MU_W, U_W) == pytest.approx(MU_W, rel=1e-10)
+    tau, _ = friction(int(Law.VELOCITY_WEAKENING), 0.4, 0.4, 2.0, 0, 0, 0, 0, 0,
+                      2.0, 33.0, 9.0, G)
+    assert tau == friction(int(Law.COULOMB), 0.4, 0, 0, 0, 0, 0, 0, 0, 2.0, 33.0, 9.0, G)[0]
+
+
+finite = dict(allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(speed=st.floats(0.0, 1e4, **finite), mu_s=st.floats(0.0, 3.0, **finite),
+       frac=st.floats(0.0, 1.0, **finite), u_w=st.floats(1e-3, 1e3, **finite))
+def test_mu_stays_between_mu_w_and_mu_s_and_falls_with_speed(speed, mu_s, frac, u_w):
+    """The law only brakes, never more than Coulomb with mu_s nor less than with mu_w, and
+    a faster cell never has more friction (velocity weakening)."""
+    mu_w = frac * mu_s
+    mu = velocity_weakening_mu(speed, mu_s, mu_w, u_w)
+    assert mu_w * (1 - 1e-15) <= mu <= mu_s * (1 + 1e-15)
+    assert velocity_weakening_mu(speed * 1.5 + 1.0, mu_s, mu_w, u_w) <= mu * (1 + 1e-15)
+
+
+def test_speed_threshold_is_where_gravity_balances_the_weakened_friction():
+    """u_c = U_w (mu_s - tan) / (tan - mu_w) solves mu(u_c) = tan(theta); 0 from
+    atan(mu_s) up, infinite from atan(mu_w) down."""
+    for theta in (10.0, 20.0, 30.0):
+        u_c = velocity_weakening_threshold(theta, MU_S, MU_W, U_W)
+        assert velocity_weakening_mu(u_c, MU_S, MU_W, U_W) == pytest.approx(
+            math.tan(math.radians(theta)), rel=1e-14)
+    assert velocity_weakening_threshold(36.0, MU_S, MU_W, U_W) == 0.0
+    assert velocity_weakening_threshold(5.0, MU_S, MU_W, U_W) == math.inf
+
+
+# --- rest: Coulomb with mu_s, bit for bit, every kernel --------------------------------------
+
+
+def _plane(mesh_kind, theta_deg=20.0):
+    from avflow.terrain.bed import surface_terrain
+    from avflow.terrain.trimesh import triangle_terrain
+    from conftest import walls
+
+    x, y = np.arange(0.0, 401.0, 10.0), np.arange(0.0, 301.0, 10.0)
+    xx, _ = np.meshgrid(x, y)
+    z = -math.tan(math.radians(theta_deg)) * xx
+    if mesh_kind == "triangles":
+        return triangle_terrain(z, x, y, walls())
+    return surface_terrain(z, x, y, walls())
+
+
+@pytest.mark.parametrize("mesh_kind, kernel, order", [
+    ("profile", "auto", 1), ("profile", "auto", 2),
+    ("grid", "grid", 1), ("grid", "faces", 1), ("grid", "faces", 2),
+    ("triangles", "faces", 1), ("triangles", "faces", 2)])
+def test_pile_under_atan_mu_s_stays_exactly_at_rest(mesh_kind, kernel, order):
+    """A parabolic pile (10 m high, 100 m in radius) on a 20 degree profile or a 15 degree
+    plane under mu_s = tan 30 deg and mu_w = 0.1 (which alone lets it flow): at rest mu =
+    mu_s exactly, so the threshold of eq. 49 holds it and the Dirac flux moves no mass. h
+    bit for bit after 2000 steps, q = 0. (The plane is gentler: a 2D pile's rim on 10 m
+    cells on 20 degrees is at tan 30 deg's limit and slumps under Coulomb 30 deg too.)"""
+    params = np.array([math.tan(math.radians(30.0)), MU_W, U_W])
+    if mesh_kind == "profile":
+        terrain = slope_profile(1000.0, 5.0, 20.0)
+        h0 = np.maximum(0.0, 10.0 * (1.0 - ((terrain.x - 500.0) / 100.0) ** 2))
+    else:
+        terrain = _plane(mesh_kind, 15.0)
+        xx, yy = terrain.cell_xy()
+        h0 = np.maximum(0.0, 10.0 * (1.0 - ((xx - 200.0) ** 2 + (yy - 150.0) ** 2) / 100.0**2))
+    solver = Solver(terrain, Law.VELOCITY_WEAKENING, params, order=order, kernel=kernel,
+                    threads=1)
+    state = solver.new_state(h0)
+    assert solver.advance(state, 1e9, max_steps=2000) == "max_steps"
+    assert state.steps == 2000
+    assert np.array_equal(state.h, h0)
+    assert not state.hu.any() and not state.hv.any()
+    # the same pile under mu_w alone (Coulomb 5.7 deg) does flow: the rest is mu_s's doing
+    moving = Solver(terrain, Law.COULOMB, np.array([MU_W]), order=order, kernel=kernel,
+                    threads=1)
+    other = moving.new_state(h0)
+    moving.advance(other, 1e9, max_steps=20)
+    assert other.hu.any()
+
+
+# --- a block on a plane between atan(mu_w) and atan(mu_s) ------------------------------------
+
+THETA = 20.0  # deg: atan(0.1) = 5.7 < 20 < atan(0.7) = 35
+LENGTH, H = 4000.0, 2.0
+MIDDLE = (1500.0, 3500.0)
+
+
+def _block(u0, order, dx=10.0, t_end=30.0):
+    """A uniform layer (2 m) over a long slope, launched downslope at u0: away from the ends
+    the fluxes cancel and each cell is the point mass ``du/dt = g cos(tan - mu(u))`` (seed
+    eqs. 47-50 with mu at time n). The wall at the top sends a rarefaction down at most at
+    u + sqrt(3) c (38 m/s here: 1.1 km in 30 s), the outflow at the bottom sends nothing
+    further up than (sqrt(3) c - u) t < 230 m, so the middle 1500-3500 m stays uniform."""
+    terrain = slope_profile(LENGTH, dx, THETA, x_max="outflow")
+    solver = Solver(terrain, Law.VELOCITY_WEAKENING, PARAMS, order=order)
+    state = solver.new_state(np.full(terrain.n_cells, H))
+    state.hu[:] = u0 * H
+    solver.advance(state, t_end)
+    middle = (terrain.x > MIDDLE[0]) & (terrain.x < MIDDLE[1])
+    assert np.array_equal(state.h[middle], np.full(middle.sum(), H))  # still uniform
+    return state.hu[middle] / H
+
+
+def point_mass_speed(u0, t_end):
+    th = math.radians(THETA)
+
+    def rhs(_, u):
+        return [G * math.cos(th) * (math.tan(th) - velocity_weakening_mu(u[0], MU_S, MU_W, U_W))]
+
+    return solve_ivp(rhs, (0.0, t_end), [u0], rtol=1e-12, atol=1e-12).y[0, -1]
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_block_released_at_rest_stays_at_rest(order):
+    """mu_s = 0.7 > tan 20 deg = 0.36: the layer never moves (q = 0 exactly), though mu_w
+    alone would accelerate it at 2.4 m/s^2."""
+    assert not _block(0.0, order).any()
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_speed_threshold_of_the_block_is_the_analytic_one(order):
+    """Released 0.1% above u_c = U_w (mu_s - tan) / (tan - mu_w) = 5.09 m/s it accelerates;
+    0.1% below it brakes and stops. u_c is the unstable fixed point of du/dt = g cos (tan -
+    mu(u)) (mu falls with u), and each explicit stage moves u away from it on its own side
+    (u^{n+1} - u_c = u^n - u_c + dt f(u^n), f of the sign of u - u_c; Heun's average of two
+    such stages too), so the scheme's threshold is the analytic one at any dt; 0.1% grows
+    by exp(f'(u_c) t) = exp(0.27 t), out of round-off and into a stop or a run within 30 s."""
+    u_c = velocity_weakening_threshold(THETA, MU_S, MU_W, U_W)
+    assert u_c == pytest.approx(4.0 * (0.7 - math.tan(math.radians(20.0)))
+                                / (math.tan(math.radians(20.0)) - 0.1), rel=1e-15)
+    above = _block(u_c * 1.001, order)
+    below = _block(u_c * 0.999, order)
+    assert above.min() > 2.0 * u_c, above.min()   # ran away (point mass: 13 m/s)
+    assert not below.any()                        # stopped: q = 0 exactly (eq. 49)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_block_launched_above_the_threshold_follows_the_point_mass(order):
+    """Launched at 2 u_c the layer accelerates as the point mass (solve_ivp, 1e-12). Each
+    stage's friction is explicit (mu at time n): order 1 is Euler's method, first order in
+    dt, order 2 Heun's, second order; the error at 20 s is under 2% at dx = 10 m and falls
+    by 2 (order 1) or 4 (order 2) when dx, hence dt, halves."""
+    u0, t_end = 2.0 * velocity_weakening_threshold(THETA, MU_S, MU_W, U_W), 20.0
+    exact = point_mass_speed(u0, t_end)
+    errors = []
+    for dx in (10.0, 5.0):
+        u = _block(u0, order, dx=dx, t_end=t_end)
+        assert np.ptp(u) <= 1e-12 * exact  # uniform: every middle cell the same point mass
+        errors.append(abs(u[0] / exact - 1.0))
+    assert exact > 2.5 * u0  # it accelerated: 10 -> 40 m/s
+    assert errors[0] < 0.01, errors
+    assert 0.8 / 2**order < errors[1] / errors[0] < 1.2 / 2**order, errors
+
+
+# --- bad input -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("rheology, dotted, words", [
+    ("mu_s: 0.3, mu_w: 0.5, U_w: 4.0", "rheology.mu_w", "must be at most mu_s (0.3), got 0.5"),
+    ("mu_s: 0.7, mu_w: 0.1, U_w: 0", "rheology.U_w", "must be > 0, got 0"),
+    ("mu_s: 0.7, mu_w: 0.1, U_w: -4.0", "rheology.U_w", "must be > 0, got -4"),
+    ("mu_s: .nan, mu_w: 0.1, U_w: 4.0", "rheology.mu_s", "finite"),
+    ("mu_s: 0.7, mu_w: .nan, U_w: 4.0", "rheology.mu_w", "finite"),
+    ("mu_s: 0.7, mu_w: 0.1, U_w: .nan", "rheology.U_w", "finite"),
+    ("mu_s: 0.7, mu_w: -0.1, U_w: 4.0", "rheology.mu_w", "must be >= 0"),
+    ("mu_s: 0.7, mu_w: 0.1", "rheology.U_w", "required"),
+    ("mu_s: 0.7, mu_w: 0.1, U_w: 4.0, xi: 3", "rheology.xi", "unknown field"),
+], ids=["mu_w>mu_s", "U_w=0", "U_w<0", "nan-mu_s", "nan-mu_w", "nan-U_w", "mu_w<0",
+        "missing", "unknown"])
+def test_bad_parameters_give_one_line_errors(tmp_path, rheology, dotted, words):
+    path = tmp_path / "bad.yaml"
+    path.write_text(_scenario("{law: velocity_weakening, %s}" % rheology))
+    with pytest.raises(ScenarioError) as caught:
+        load_scenario(path)
+    text = str(caught.value)
+    assert len(text.splitlines()) == 1, text
+    assert text.startswith(f"{path}:7:") and f": {dotted}: " in text and words in text, text
+
+
+def test_bad_parameters_exit_2_with_one_line_from_the_command_line(tmp_path):
+    import subprocess
+    import sys
+
+    path = tmp_path / "bad.yaml"
+    path.write_text(_scenario("{law: velocity_weakening, mu_s: 0.2, mu_w: 0.5, U_w: 4.0}"))
+    done = subprocess.run([sys.executable, "-m", "avflow.cli", "run", str(path), "-o",
+                           str(tmp_path / "out.nc")], capture_output=True, text=True)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout == "" and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert f"{path}:7:" in done.stderr and "rheology.mu_w: must be at most mu_s" in done.stderr
