@@ -254,3 +254,47 @@ def test_bad_parameters_exit_2_with_one_line_from_the_command_line(tmp_path):
     assert done.returncode == 2, done.stderr
     assert done.stdout == "" and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert f"{path}:7:" in done.stderr and "rheology.mu_w: must be at most mu_s" in done.stderr
+
+
+# --- an ensemble mixing the laws -------------------------------------------------------------
+
+LAWS_ENSEMBLE = """
+name: four-laws
+base: base.yaml
+vary:
+  rheology:
+    - {law: coulomb, delta_deg: 24.0}
+    - {law: voellmy, mu: 0.155, xi: 4000.0}
+    - {law: samosat}
+    - {law: velocity_weakening, mu_s: 0.4452, mu_w: 0.155, U_w: 4.0}
+thresholds: [0.1, 1.0]
+"""
+
+
+def test_an_ensemble_mixing_four_laws_runs_and_its_report_keeps_them_apart(tmp_path):
+    """scenarios/ensembles/avakot_friction_laws.yaml's mix on the cheap plane scene (20 m
+    cells): one member per law, each named in ensemble.nc and in its own row of the
+    report's per-law table. Velocity weakening from tan 24 deg = 0.4452 at rest never has
+    more friction than Coulomb 24 deg, so it runs at least as far (farther: it speeds up)."""
+    import xarray as xr
+
+    from avflow.cli import main
+    from conftest import SCENARIOS
+
+    base = (SCENARIOS / "plane_box_runout_2d.yaml").read_text().replace("dx: 10.0", "dx: 20.0")
+    (tmp_path / "base.yaml").write_text(base)
+    (tmp_path / "ens.yaml").write_text(LAWS_ENSEMBLE)
+    out = tmp_path / "out"
+    assert main(["ensemble", str(tmp_path / "ens.yaml"), "-o", str(out)]) == 0
+    assert main(["report", str(out)]) == 0
+    laws = ["coulomb", "voellmy", "samosat", "velocity_weakening"]
+    with xr.open_dataset(out / "ensemble.nc", decode_times=False) as ds:
+        assert list(ds["law"].values) == laws
+        runout = dict(zip(laws, ds["runout"].values))
+        np.testing.assert_array_equal(ds["rheology_U_w"].values[:3], np.nan)
+        assert float(ds["rheology_U_w"].values[3]) == 4.0
+    assert runout["velocity_weakening"] > runout["coulomb"] > 0.0
+    text = (out / "report.md").read_text()
+    table = text.split("## Summary per law")[1].split("##")[0]
+    rows = [line.split("|")[1].strip() for line in table.splitlines() if line.startswith("| ")]
+    assert rows == ["law"] + laws
