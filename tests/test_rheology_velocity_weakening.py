@@ -298,3 +298,68 @@ def test_an_ensemble_mixing_four_laws_runs_and_its_report_keeps_them_apart(tmp_p
     table = text.split("## Summary per law")[1].split("##")[0]
     rows = [line.split("|")[1].strip() for line in table.splitlines() if line.startswith("| ")]
     assert rows == ["law"] + laws
+
+
+# --- volume mobility (workflows/volume_mobility.py, coarse) ------------------------------------
+
+
+def _workflow():
+    import importlib.util
+
+    from conftest import REPO
+
+    spec = importlib.util.spec_from_file_location("volume_mobility",
+                                                  REPO / "workflows" / "volume_mobility.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_coulomb_mobility_does_not_depend_on_volume_on_a_plane():
+    """A plane has no length scale and neither has Coulomb's law: the member of 1e6 m^3 is
+    the member of 1e10 m^3 shrunk by 1e4^(1/3) in length and 1e4^(1/6) in time, so H/L is
+    the same to round-off (1e-12; the grid, the window and the film threshold scale with
+    the release, workflows/volume_mobility.py: magnified)."""
+    vm = _workflow()
+    coulomb = vm.law_members()[0]
+    assert coulomb.rheology.law == "coulomb"
+    rows = [vm.run_member(coulomb, v, cells=4) for v in (1e6, 1e10)]
+    assert rows[0]["steps"] == rows[1]["steps"]
+    assert rows[1]["H_over_L"] == pytest.approx(rows[0]["H_over_L"], rel=1e-12)
+    assert rows[1]["L_m"] / rows[0]["L_m"] == pytest.approx(1e4 ** (1 / 3), rel=1e-12)
+    assert all(r["status"] == "at_rest" and r["volume_lost"] < 1e-12 for r in rows)
+
+
+def test_velocity_weakening_mobility_grows_with_volume_coarse():
+    """The issue's benchmark at 4 cells per radius (1e6, 1e8, 1e10 m^3; the workflow's 8
+    cells give -0.038, measured 2026-12-04): velocity weakening's log-log slope of H/L
+    against V is negative but short of Scheidegger's -0.157 on this scene, which only lets
+    a mass fall its own height (speed ~ sqrt(g h0) ~ V^(1/6), so mu ~ U_w / |u| falls at
+    most as V^(-1/6), and mu_w = 0.1 stops it sooner). Pinned within 0.01 of the measured
+    -0.037; Coulomb's slope is 0 (the test above), at most a third of it in magnitude.
+    docs/guide/volume-mobility.md: the target is not met, and why."""
+    vm = _workflow()
+    weakening = vm.law_members()[1]
+    assert weakening.rheology.law == "velocity_weakening"
+    rows = [vm.run_member(weakening, v, cells=4) for v in (1e6, 1e8, 1e10)]
+    assert all(r["status"] == "at_rest" and r["volume_lost"] < 1e-9 for r in rows)
+    h_over_l = [r["H_over_L"] for r in rows]
+    assert h_over_l[0] > h_over_l[1] > h_over_l[2]  # mobility grows with volume
+    measured = vm.slope(rows, "velocity_weakening")
+    assert measured == pytest.approx(-0.037, abs=0.01)
+    # the issue's target (-0.157 +- 0.05) is not met here: if this fails, it is, and the
+    # docs should say so
+    assert measured > -0.157 + 0.05
+    # the same flows under Coulomb with mu_s go less far at every volume
+    assert max(h_over_l) < vm.run_member(vm.law_members()[0], 1e6, cells=4)["H_over_L"]
+
+
+def test_volume_mobility_workflow_writes_its_table_and_plot(tmp_path, capsys):
+    vm = _workflow()
+    assert vm.main(["-o", str(tmp_path), "--cells", "3", "--volumes", "1e6,1e10"]) == 0
+    text = (tmp_path / "volume_mobility.csv").read_text().splitlines()
+    assert text[0].startswith("law,volume_m3,H_m,L_m,H_over_L") and len(text) == 5
+    assert (tmp_path / "volume_mobility.png").stat().st_size > 10_000
+    out = capsys.readouterr().out
+    assert "coulomb: " in out and "velocity_weakening: " in out and "Scheidegger -0.157" in out
+    assert vm.main(["-o", str(tmp_path), "--volumes", "1e6,lots"]) == 2
