@@ -60,8 +60,12 @@ def test_tau_is_the_formula_times_the_normal_load_and_there_is_no_drag():
             for n in (0.0, 4.0, 9.81):
                 tau, drag = friction(int(Law.VELOCITY_WEAKENING), *PARAMS, h, v, n, G)
                 by_hand = (MU_W + (MU_S - MU_W) / (1.0 + v / U_W)) * h * n
-                assert tau == pytest.approx(by_hand, rel=1e-15, abs=0.0) and drag == 0.0
-    assert velocity_weakening_mu(0.0, MU_S, MU_W, U_W) == MU_S  # exactly: Coulomb at rest
+                # the paper's form by hand, the kernel's rearranged one: a few ulps apart
+                assert tau == pytest.approx(by_hand, rel=1e-14, abs=0.0) and drag == 0.0
+    # exactly Coulomb at rest, for any pair (mu_w + (mu_s - mu_w) rounds 0.9, 0.2 to
+    # 0.8999999999999999)
+    for mu_s, mu_w in ((MU_S, MU_W), (0.9, 0.2), (0.9391491627785106, 0.35800764067250507)):
+        assert velocity_weakening_mu(0.0, mu_s, mu_w, U_W) == mu_s
     assert velocity_weakening_mu(U_W, MU_S, MU_W, U_W) == pytest.approx((MU_S + MU_W) / 2)
     assert velocity_weakening_mu(1e12, MU_S, MU_W, U_W) == pytest.approx(MU_W, rel=1e-10)
     tau, _ = friction(int(Law.VELOCITY_WEAKENING), 0.4, 0.4, 2.0, 0, 0, 0, 0, 0,

@@ -148,11 +148,14 @@ def velocity_weakening_mu(speed, mu_s, mu_w, u_w):
     """Friction coefficient of Lucas, Mangeney and Ampuero (2014):
     ``mu_w + (mu_s - mu_w) / (1 + |u| / U_w)``.
 
-    ``mu_s`` at rest (exactly: the threshold of a cell at rest is Coulomb's with mu_s), half
-    way to ``mu_w`` at ``|u| = U_w``, tending to ``mu_w`` in fast flow. Always in
-    [mu_w, mu_s], so the law never pushes a cell (the projection of eq. 50 only brakes).
+    ``mu_s`` at rest, half way to ``mu_w`` at ``|u| = U_w``, tending to ``mu_w`` in fast
+    flow. Always in [mu_w, mu_s], so the law never pushes a cell (the projection of eq. 50
+    only brakes). Written ``mu_s - (mu_s - mu_w) s / (1 + s)``, s = |u| / U_w, the same
+    number, so that at rest it is mu_s to the bit (``mu_w + (mu_s - mu_w)`` can round off
+    mu_s): the threshold of a cell at rest is Coulomb's with mu_s exactly.
     """
-    return mu_w + (mu_s - mu_w) / (1.0 + speed / u_w)
+    s = speed / u_w
+    return mu_s - (mu_s - mu_w) * (s / (1.0 + s))
 
 
 def velocity_weakening_threshold(theta_deg, mu_s, mu_w, u_w):
