@@ -8,7 +8,8 @@ plus the curvature term u^2/R of eqs. 61-62), what is
 - ``tau``: the Coulomb-type part of the basal shear stress divided by the density (m^2/s^2),
   ``mu(h, |u|) * h * normal_accel`` (eqs. 12, 44), the threshold of the projection (eq. 49);
 - ``drag``: a velocity-proportional rate (1/s) treated implicitly after the projection,
-  zero for Coulomb and Pouliquen, ``g |u| / (xi h)`` for Voellmy's turbulent term,
+  zero for Coulomb, Pouliquen and velocity weakening, ``g |u| / (xi h)`` for Voellmy's
+  turbulent term,
   ``|u| / (D(h)^2 h)`` for samosAT's (:func:`samosat_drag_factor`).
 
 The law is chosen by name once, outside the time loop (:class:`Law`), and enters the Numba
@@ -33,6 +34,8 @@ __all__ = [
     "h_stop",
     "pouliquen_steady_froude",
     "samosat_drag_factor",
+    "velocity_weakening_mu",
+    "velocity_weakening_threshold",
 ]
 
 
@@ -43,6 +46,8 @@ class Law(IntEnum):
     POULIQUEN = 2  #: flow-dependent angle of Pouliquen (1999), eq. 15, static branch below Fr = beta
     VOELLMY = 3  #: Coulomb plus turbulent drag g u^2 / xi (Voellmy 1955; Salm 1993)
     SAMOSAT = 4  #: AvaFrame's snow law: Coulomb reduced with speed, plus drag depending on h
+    #: Lucas, Mangeney and Ampuero (2014): mu_w + (mu_s - mu_w) / (1 + |u| / U_w)
+    VELOCITY_WEAKENING = 5
 
 
 # Plain ints for the kernels: Numba freezes module globals as compile-time constants.
@@ -50,6 +55,7 @@ COULOMB = int(Law.COULOMB)
 POULIQUEN = int(Law.POULIQUEN)
 VOELLMY = int(Law.VOELLMY)
 SAMOSAT = int(Law.SAMOSAT)
+VELOCITY_WEAKENING = int(Law.VELOCITY_WEAKENING)
 
 N_PARAMS = 8  # length of the parameter vector every law is packed into (zeros where unused)
 
@@ -67,6 +73,11 @@ _REFERENCES = {
         "samosAT: Sampl and Zwinger (2004), Ann. Glaciol. 38, 393-398, as implemented in "
         "AvaFrame com1DFA (DFAToolsCython.SamosATfric; Tonnel et al. (2023), Geosci. Model "
         "Dev. 16, 7013-7035; https://docs.avaframe.org, com1DFA theory, friction models)"
+    ),
+    Law.VELOCITY_WEAKENING: (
+        "Lucas, Mangeney and Ampuero (2014), Frictional velocity-weakening in landslides on "
+        "Earth and on other planetary bodies, Nat. Commun. 5, 3417, doi:10.1038/ncomms4417: "
+        "mu(|u|) = mu_w + (mu_s - mu_w) / (1 + |u| / U_w)"
     ),
 }
 
@@ -86,6 +97,7 @@ def friction_parameters(rheology, density: float | None = None) -> tuple[Law, np
     - Pouliquen: ``[tan(delta1), tan(delta2), d (m), beta]``
     - Voellmy: ``[mu, xi (m/s^2)]``
     - samosAT: ``[mu, tau0 / rho (m^2/s^2), Rs0, 0.001 Pa / rho (m^2/s^2), kappa, R (m), B]``
+    - velocity weakening: ``[mu_s, mu_w, U_w (m/s)]``
     """
     params = np.zeros(N_PARAMS)
     law = Law[rheology.law.upper()]
@@ -108,6 +120,8 @@ def friction_parameters(rheology, density: float | None = None) -> tuple[Law, np
                              f"got {density!r}")
         params[:7] = (rheology.mu, rheology.tau0 / density, rheology.Rs0,
                       SAMOSAT_P_EPS / density, rheology.kappa, rheology.R, rheology.B)
+    elif law is Law.VELOCITY_WEAKENING:
+        params[:3] = (rheology.mu_s, rheology.mu_w, rheology.U_w)
     return law, params
 
 
@@ -127,6 +141,37 @@ def pouliquen_mu(h, speed, g, tan1, tan2, d, beta):
     if froude >= beta:
         return tan1 + (tan2 - tan1) * math.exp(-beta * h / (d * froude))
     return tan1 + (tan2 - tan1) * math.exp(-h / d)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def velocity_weakening_mu(speed, mu_s, mu_w, u_w):
+    """Friction coefficient of Lucas, Mangeney and Ampuero (2014):
+    ``mu_w + (mu_s - mu_w) / (1 + |u| / U_w)``.
+
+    ``mu_s`` at rest, half way to ``mu_w`` at ``|u| = U_w``, tending to ``mu_w`` in fast
+    flow. Always in [mu_w, mu_s], so the law never pushes a cell (the projection of eq. 50
+    only brakes). Written ``mu_s - (mu_s - mu_w) s / (1 + s)``, s = |u| / U_w, the same
+    number, so that at rest it is mu_s to the bit (``mu_w + (mu_s - mu_w)`` can round off
+    mu_s): the threshold of a cell at rest is Coulomb's with mu_s exactly.
+    """
+    s = speed / u_w
+    return mu_s - (mu_s - mu_w) * (s / (1.0 + s))
+
+
+def velocity_weakening_threshold(theta_deg, mu_s, mu_w, u_w):
+    """Speed (m/s) above which a block on a plane of slope theta accelerates.
+
+    On the plane ``du/dt = g cos(theta) (tan(theta) - mu(u))``; mu falls with u, so the
+    block speeds up iff ``mu(u) < tan(theta)``, i.e. ``u > U_w (mu_s - tan) / (tan - mu_w)``.
+    0 at or above atan(mu_s) (it moves from rest), infinite at or below atan(mu_w) (it
+    always brakes).
+    """
+    t = math.tan(math.radians(theta_deg))
+    if t >= mu_s:
+        return 0.0
+    if t <= mu_w:
+        return math.inf
+    return u_w * (mu_s - t) / (t - mu_w)
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -171,6 +216,9 @@ def friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g):
     if law == POULIQUEN:
         mu = pouliquen_mu(h, speed, g, p0, p1, p2, p3)
         return mu * h * normal_accel, 0.0
+    if law == VELOCITY_WEAKENING:
+        # p0, p1, p2 = mu_s, mu_w, U_w; speed at time n like Pouliquen's (seed section 3.3)
+        return velocity_weakening_mu(speed, p0, p1, p2) * h * normal_accel, 0.0
     if law == SAMOSAT:
         # p0..p6 = mu, tau0/rho, Rs0, 0.001 Pa/rho, kappa, R, B (friction_parameters)
         hn = h * normal_accel

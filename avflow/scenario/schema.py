@@ -450,7 +450,33 @@ class SamosAT(_Model):
     """Offset of the turbulent term's logarithmic profile (-)."""
 
 
-Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy, SamosAT], Field(discriminator="law")]
+class VelocityWeakening(_Model):
+    """Velocity-weakening friction of Lucas, Mangeney and Ampuero (2014, Nat. Commun. 5, 3417)::
+
+        mu(|u|) = mu_w + (mu_s - mu_w) / (1 + |u| / U_w)
+
+    Coulomb with ``mu_s`` at rest (a pile under atan(mu_s) stays at rest exactly), half way
+    to ``mu_w`` at ``|u| = U_w``, tending to ``mu_w`` in fast flow. No defaults: see the
+    model page (guide/model.md) for where the values of the examples come from.
+    """
+
+    law: Literal["velocity_weakening"]
+    mu_s: NonNegative
+    """Friction coefficient at rest (-), tan of the static friction angle."""
+    mu_w: NonNegative
+    """Weakened friction coefficient (-), the fast-flow limit; at most mu_s."""
+    U_w: Positive
+    """Weakening speed (m/s): mu is half way from mu_s to mu_w at |u| = U_w."""
+
+    @model_validator(mode="after")
+    def _weakens(self) -> VelocityWeakening:
+        if not self.mu_w <= self.mu_s:
+            raise _problem(f"must be at most mu_s ({self.mu_s!r}), got {self.mu_w!r}", "mu_w")
+        return self
+
+
+Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy, SamosAT, VelocityWeakening],
+                     Field(discriminator="law")]
 
 # =========================================================================================
 # Grid, time, output, boundaries, physics
