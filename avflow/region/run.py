@@ -1,7 +1,8 @@
 """One release of a region, on a worker: its window of the DEM, its run, re-run in grown
 windows while its flow reaches the window's edge, and its result file.
 
-The result file ``OUTDIR/releases/<id>.nc`` holds the release's peak maps on its last
+The result file ``OUTDIR/releases/<id>.nc`` (``<id>-<scenario>.nc`` when the region has
+scenarios) holds the release's peak maps on its last
 window (float32, north first) and its row of ``releases.csv`` as attributes; it is written
 atomically and its sha256 kept in ``OUTDIR/checksums/<id>.sha256`` (as ensemble members
 are), so that a rerun reuses it only when every byte is as written and its ``key`` (the
@@ -27,18 +28,24 @@ from avflow.files import atomic_write
 #: the DEM's own border (no larger window exists: the map is then a lower bound there).
 MERGED = ("ok", "dem_edge")
 #: Columns of releases.csv, in order.
-COLUMNS = ("id", "status", "volume", "runout", "travel_angle", "area", "retries",
+COLUMNS = ("id", "scenario", "return_period", "thickness", "status", "volume", "runout", "travel_angle", "area", "retries",
            "wall_time", "run_time", "buffer", "row0", "row1", "col0", "col1", "cells",
            "steps", "mass_balance_error", "reach_threshold", "reused", "error")
 
 
-def release_key(region_key: str, wkb: bytes, thickness) -> str:
-    digest = hashlib.sha256(f"{region_key}|{thickness!r}|".encode() + wkb)
+def release_key(region_key: str, wkb: bytes, thickness, scenario_key: str = "") -> str:
+    """16 hex chars: the region's key, the polygon, its thickness and the scenario's key
+    ("" without scenarios: the keys of a region without them stay as they were)."""
+    extra = f"{scenario_key}|" if scenario_key else ""
+    digest = hashlib.sha256(f"{region_key}|{thickness!r}|{extra}".encode() + wkb)
     return digest.hexdigest()[:16]
 
 
-def result_path(outdir, rid: int) -> Path:
-    return Path(outdir) / "releases" / f"{rid}.nc"
+def result_path(outdir, rid: int, scenario: int | None = None) -> Path:
+    """``releases/<id>.nc``, or ``releases/<id>-<scenario>.nc`` in a region with
+    scenarios (``scenario`` given)."""
+    name = f"{rid}.nc" if scenario is None else f"{rid}-{scenario}.nc"
+    return Path(outdir) / "releases" / name
 
 
 def read_result(path, key: str | None = None, arrays: bool = True):
@@ -94,22 +101,39 @@ def run_release(task: dict) -> dict:
     """Run one release (a task of :func:`avflow.region.orchestrate.run_region`); never
     raises for a model error: the row's status says ``invalid`` or ``failed`` and why.
 
-    ``task``: id, wkb, thickness, area, key, region (the :class:`Region`), dem
-    (:class:`DemInfo`), outdir, one_thread. Idempotent: a trusted result file is returned
-    as it is (a task run twice after a lost worker)."""
+    ``task``: id, wkb, thickness (m, or a :class:`~avflow.region.spec.ThicknessRule`),
+    area, key, region (the :class:`Region`), dem (:class:`DemInfo`), outdir, one_thread;
+    scenario (index), file_scenario (its index in file names, None without scenarios),
+    updates, return_period. Idempotent: a trusted result file is returned as it is (a task
+    run twice after a lost worker)."""
     started = time.perf_counter()
     rid, outdir = task["id"], Path(task["outdir"])
-    path = result_path(outdir, rid)
+    path = result_path(outdir, rid, task.get("file_scenario"))
     row, _, _ = read_result(path, task["key"], arrays=False)
     if row is not None:
         row.update(reused=True)
         return row
     region, dem = task["region"], task["dem"]
     row = {c: math.nan for c in COLUMNS}
-    row.update(id=rid, status="failed", area=task["area"], retries=0, reused=False, error="",
-               key=task["key"])
+    row.update(id=rid, scenario=task.get("scenario", 0), status="failed", area=task["area"],
+               retries=0, reused=False, error="", key=task["key"],
+               return_period=task.get("return_period") or math.nan)
     maps = None
     try:
+        if isinstance(task["thickness"], (int, float)) or task["thickness"] is None:
+            row["thickness"] = task["thickness"] if task["thickness"] else math.nan
+        else:  # a rule: from the DEM under the polygon
+            from avflow.region.windows import rule_thickness
+
+            try:
+                thickness, _, _ = rule_thickness(dem, task["wkb"], task["thickness"])
+            except ValueError as err:
+                from avflow.errors import ScenarioError
+
+                raise ScenarioError(f"scenarios.return_periods.{task.get('return_period')}: "
+                                    f"{err}") from None
+            task = {**task, "thickness": thickness}
+            row["thickness"] = thickness
         maps = _run_growing(task, region, dem, row, outdir)
     except Exception as err:  # noqa: BLE001 - recorded; the other releases go on
         from avflow.errors import RunFailed, ScenarioError
@@ -149,8 +173,10 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
                 else dem.whole
             dem_file = Path(folder) / f"dem-{retries}.tif"
             write_window(dem, window, dem_file)
+            name = f"{region.name}-{task['id']}" + (
+                f"-{task['file_scenario']}" if task.get("file_scenario") is not None else "")
             scenario = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon),
-                                           task["thickness"], f"{region.name}-{task['id']}")
+                                           task["thickness"], name, task.get("updates"))
             if task.get("one_thread") and scenario.numerics.threads is None:
                 scenario = scenario.with_updates({"numerics.threads": 1})
             clock = time.perf_counter()

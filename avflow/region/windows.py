@@ -96,6 +96,8 @@ class ReleaseArea:
     area: float  #: m^2, of the polygon
     bbox: tuple  #: (xmin, ymin, xmax, ymax), m
     problem: str = ""
+    #: values of the attributes that ``scenarios.return_periods`` names (m)
+    attributes: dict | None = None
 
 
 def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
@@ -122,7 +124,18 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
                               f"{', '.join(fields) or 'none'})", region.path,
                               "releases.id_field")
         ids = fields[lower[spec.id_field.lower()]]
-    thick_name = spec.thickness_field or ("thickness" if spec.thickness is None else None)
+    by_period = {rs.thickness for rs in region.scenarios if isinstance(rs.thickness, str)}
+    periods = any(rs.return_period is not None for rs in region.scenarios)
+    thick_name = spec.thickness_field or ("thickness" if spec.thickness is None
+                                          and not periods else None)
+    named = {}
+    for name in sorted(by_period):
+        if name.lower() not in lower:
+            rp = next(rs.return_period for rs in region.scenarios if rs.thickness == name)
+            raise RegionError(f"{spec.path} has no attribute {name!r} (it has: "
+                              f"{', '.join(fields) or 'none'}); the thickness of "
+                              f"{rp} years", region.path, "scenarios.return_periods")
+        named[name] = fields[lower[name.lower()]]
     thicknesses = None
     if thick_name is not None:
         if thick_name.lower() not in lower:
@@ -161,6 +174,11 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
             thickness = _number(thicknesses[k])
             if thickness is None or not thickness > 0:
                 problem = f"thickness {thicknesses[k]!r} is not a positive number of metres"
+        attributes = {name: _number(values[k]) for name, values in named.items()}
+        for name, value in attributes.items():
+            if value is None or not value > 0:
+                problem = (f"{name} {named[name][k]!r} is not a positive number of metres "
+                           "(scenarios.return_periods)")
         if geom is None or geom.is_empty:
             problem, area, box = "empty geometry", 0.0, (math.nan,) * 4
         else:
@@ -173,7 +191,7 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
                 problem = (f"outside the DEM (its box {_box(box)} against the DEM's "
                            f"{_box(dem.bounds)})")
         out.append(ReleaseArea(rid, k, b"" if geom is None else shapely.to_wkb(geom), thickness,
-                               area, box, crs_problem or problem))
+                               area, box, crs_problem or problem, attributes or None))
     if not out:
         raise RegionError(f"{spec.path}: holds no feature", region.path, "releases.path")
     return out
@@ -242,3 +260,40 @@ def estimate_buffer(dem: DemInfo, bbox, rules) -> float:
 
 def _has_data(dem: DemInfo, box) -> bool:
     return box[1] > box[0] and box[3] > box[2]
+
+
+def rule_thickness(dem: DemInfo, wkb: bytes, rule) -> tuple[float, float, float]:
+    """``(thickness, mean elevation, mean slope in degrees)`` of a release by a
+    :class:`~avflow.region.spec.ThicknessRule`, over the DEM cells whose centres lie in
+    the polygon (those a run releases), slopes by central differences."""
+    import shapely
+    from rasterio.features import rasterize
+    from rasterio.transform import from_origin
+
+    geom = shapely.from_wkb(wkb)
+    r0, r1, c0, c1 = pixel_box(dem, geom.bounds)
+    r0, r1, c0, c1 = max(r0 - 1, 0), min(r1 + 1, dem.height), max(c0 - 1, 0), \
+        min(c1 + 1, dem.width)
+    z = read_window(dem, (r0, r1, c0, c1))
+    inside = rasterize([(geom, 1)], out_shape=z.shape, fill=0, dtype="uint8",
+                       transform=from_origin(dem.x0 + c0 * dem.dx, dem.y0 - r0 * dem.dy,
+                                             dem.dx, dem.dy)).astype(bool)
+    inside &= np.isfinite(z)
+    if not inside.any():
+        raise ValueError("no DEM cell centre with data inside the polygon (for the "
+                         "thickness rule)")
+    gy, gx = np.gradient(z, dem.dy, dem.dx) if min(z.shape) > 1 else (z * 0, z * 0)
+    slope = np.degrees(np.arctan(np.hypot(gx, gy)))
+    elevation = float(np.mean(z[inside]))
+    psi = float(np.nanmean(slope[inside]))
+    d = rule.d0 + rule.gradient * (elevation - rule.reference_elevation) / 100.0
+    if rule.slope_correction:
+        s, c = math.sin(math.radians(psi)), math.cos(math.radians(psi))
+        if not s - 0.202 * c > 0.05:
+            raise ValueError(f"mean slope {psi:.1f} degrees: too gentle for the slope "
+                             "correction of the thickness rule (f(psi) needs psi > 14 deg)")
+        d *= 0.291 / (s - 0.202 * c)
+    if not d > 0:
+        raise ValueError(f"the thickness rule gives {d:.3g} m at a mean elevation of "
+                         f"{elevation:.0f} m")
+    return float(d), elevation, psi
