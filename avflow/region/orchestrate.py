@@ -144,7 +144,7 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
         for rs in scenarios:
             thickness = _thickness(rel, rs)
             rkey = release_key(key, rel.wkb, thickness if not hasattr(thickness, "d0")
-                               else None, rs.key())
+                               else None, rs.key() + rel.fingerprint)
             if rel.problem:
                 rows[rel.id, rs.index] = _invalid_row(rel, rkey, rs)
                 progress.update(rows[rel.id, rs.index])
@@ -163,7 +163,7 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
                          "area": rel.area, "bbox": rel.bbox, "key": rkey, "region": region,
                          "dem": dem, "outdir": str(outdir), "scenario": rs.index,
                          "file_scenario": fs, "updates": rs.updates,
-                         "return_period": rs.return_period})
+                         "return_period": rs.return_period, "patch": rel.patch})
     timings["check"] = time.perf_counter() - started
 
     tmp_store = _fresh_store_path(outdir)
@@ -379,11 +379,13 @@ def _tiny_scenarios(task) -> list[str] | None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
         polygon = folder / "release.gpkg"
-        _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
+        # a polygon even for a raster's patch, a metre for a rule: two steps of the kernels
+        thickness = task["thickness"] if isinstance(task["thickness"], (int, float)) else 1.0
+        _write_polygon(polygon, task["wkb"], thickness, dem.crs_wkt)
         dem_file = folder / "dem.tif"
         write_window(dem, window_for(dem, task["bbox"], 2 * max(dem.dx, dem.dy)), dem_file)
-        sc = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon),
-                                 task["thickness"], "warm")
+        sc = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon), thickness,
+                                 "warm", task.get("updates"))
         sc = sc.with_updates({"time.end": 1e-3, "time.max_steps": 2, "output.every": 1e-3})
         texts = [sc.source_text]
         if sc.numerics.threads is None:

@@ -121,7 +121,8 @@ def run_release(task: dict) -> dict:
     maps = None
     try:
         if isinstance(task["thickness"], (int, float)) or task["thickness"] is None:
-            row["thickness"] = task["thickness"] if task["thickness"] else math.nan
+            row["thickness"] = task["thickness"] if task["thickness"] else (
+                task["patch"].mean if task.get("patch") is not None else math.nan)
         else:  # a rule: from the DEM under the polygon
             from avflow.region.windows import rule_thickness
 
@@ -165,7 +166,9 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
     run_time = 0.0
     with tempfile.TemporaryDirectory(prefix=f"release-{task['id']}-", dir=work) as folder:
         polygon = Path(folder) / "release.gpkg"
-        _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
+        patch = task.get("patch")
+        if patch is None:
+            _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
         retries = 0
         while True:
             # after max_retries grown windows, the whole DEM
@@ -175,8 +178,13 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
             write_window(dem, window, dem_file)
             name = f"{region.name}-{task['id']}" + (
                 f"-{task['file_scenario']}" if task.get("file_scenario") is not None else "")
-            scenario = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon),
-                                           task["thickness"], name, task.get("updates"))
+            release = polygon
+            if patch is not None:  # the patch's thickness on this window, as the DEM's cells
+                release = Path(folder) / f"release-{retries}.tif"
+                _write_patch(release, dem, window, patch, task["thickness"])
+            scenario = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(release),
+                                           task["thickness"], name, task.get("updates"),
+                                           raster=patch is not None)
             if task.get("one_thread") and scenario.numerics.threads is None:
                 scenario = scenario.with_updates({"numerics.threads": 1})
             clock = time.perf_counter()
@@ -184,6 +192,8 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
             run_time += time.perf_counter() - clock
             truncated = bool(result.summary["runout_truncated"])
             dem_file.unlink(missing_ok=True)
+            if patch is not None:
+                release.unlink(missing_ok=True)
             if not truncated or window == dem.whole:
                 break
             buffer *= rules.growth
@@ -223,3 +233,17 @@ def _write_polygon(path: Path, wkb: bytes, thickness, crs_wkt) -> None:
                               geometry_type="Unknown")
 
     atomic_write(path, write)
+
+
+def _write_patch(path: Path, dem, window, patch, thickness) -> None:
+    """A raster patch's thickness on a DEM window, as a GeoTIFF on the window's own cells
+    (so that the run samples each cell's value exactly); ``thickness`` (m), when given,
+    replaces its values (the raster then only marks the patch)."""
+    from avflow.terrain.raster import write_tif
+
+    r0, r1, c0, c1 = window
+    values = patch.values(dem, window)
+    if isinstance(thickness, (int, float)) and thickness:
+        values = np.where(values > 0, float(thickness), 0.0)
+    write_tif(path, values[::-1], dem.x(c0, c1), dem.y(r0, r1)[::-1], dem.crs_wkt,
+              dtype="float64")

@@ -75,8 +75,15 @@ class _Model(BaseModel):
 
 
 class Releases(_Model):
-    path: Annotated[str, Field(strict=True, min_length=1)]
+    path: Annotated[str, Field(strict=True, min_length=1)] | None = None
     """Polygon layer (.shp, .gpkg, .geojson, .fgb...), relative to the region file."""
+    raster: Annotated[str, Field(strict=True, min_length=1)] | None = None
+    """Instead of ``path``: a release-thickness raster (m; any GDAL raster) on the DEM's
+    grid (same cell size, aligned, any part of it); each connected patch of cells above 0
+    is one release (ids in scan order, from the north-west), its cells' values its
+    thickness."""
+    connectivity: Literal[4, 8] = 8
+    """Cells of a raster patch touch by their sides (4) or their sides and corners (8)."""
     thickness: Positive | None = None
     """m, normal to the bed, for every polygon; null: the ``thickness_field`` attribute."""
     thickness_field: Annotated[str, Field(strict=True, min_length=1)] | None = None
@@ -225,17 +232,20 @@ class Region:
         return len(self.scenarios) > 1 or self.scenarios != SINGLE
 
     def scenario_for(self, dem_path: str, dx: float, dy: float, release_path: str,
-                     thickness: float | None, name: str, updates: dict | None = None):
+                     thickness: float | None, name: str, updates: dict | None = None,
+                     raster: bool = False):
         """The scenario of one release: its DEM window, the DEM's own spacing (so cells are
-        the DEM's pixels) and its polygon, the scenario's ``updates`` (dotted fields, as an
-        ensemble member's); output.every = time.end (only peaks are kept)."""
+        the DEM's pixels) and its polygon (or, ``raster``, its thickness raster on the
+        window), the scenario's ``updates`` (dotted fields, as an ensemble member's);
+        output.every = time.end (only peaks are kept)."""
         written = json.loads(json.dumps(self.scenario))  # a deep copy of plain data
         for key, value in (updates or {}).items():
             _set_dotted(written, key, json.loads(json.dumps(value)))
         written.update(name=name, terrain={"kind": "dem", "path": dem_path},
                        grid={"dx": dx, **({"dy": dy} if dy != dx else {})},
-                       release={"kind": "polygon", "path": release_path,
-                                **({"thickness": thickness} if thickness else {})})
+                       release={"kind": "raster", "path": release_path} if raster else
+                       {"kind": "polygon", "path": release_path,
+                        **({"thickness": thickness} if thickness else {})})
         output = dict(written.get("output") or {})
         output["every"] = written["time"]["end"]
         written["output"] = output
@@ -251,7 +261,8 @@ class Region:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def input_files(self) -> list[str]:
-        return [p for p in (self.path, self.dem, self.releases.path) if p]
+        return [p for p in (self.path, self.dem, self.releases.path, self.releases.raster)
+                if p]
 
 
 def _set_dotted(data: dict, dotted: str, value) -> None:
@@ -291,8 +302,22 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
         raise _first_error(err, fail) from None
     dem = _existing(spec.dem, base_dir, fail, ("dem",))
     _check_dem(dem, fail)
+    given = [k for k in ("path", "raster") if getattr(spec.releases, k) is not None]
+    if len(given) != 1:
+        raise fail(("releases", given[-1]) if given else ("releases",),
+                   "give either path (a polygon layer) or raster (a release-thickness "
+                   "raster)" + (", not both" if given else ""))
     releases = spec.releases.model_copy(
-        update={"path": _existing(spec.releases.path, base_dir, fail, ("releases", "path"))})
+        update={given[0]: _existing(getattr(spec.releases, given[0]), base_dir, fail,
+                                    ("releases", given[0]))})
+    if releases.raster is not None:
+        for key in ("thickness_field", "id_field"):
+            if getattr(releases, key) is not None:
+                raise fail(("releases", key), "a release raster has no attributes: its "
+                           "values are the thickness, its patches numbered in scan order")
+        _check_release_raster(releases.raster, dem, fail)
+    elif "connectivity" in (data.get("releases") or {}):
+        raise fail(("releases", "connectivity"), "applies to a release raster only")
     if releases.thickness is not None and releases.thickness_field is not None:
         raise fail(("releases", "thickness_field"), "give either thickness (one for every "
                    "polygon) or thickness_field (an attribute), not both")
@@ -309,6 +334,11 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
             which = "thickness" if releases.thickness is not None else "thickness_field"
             raise fail(("releases", which), "the release thickness comes from "
                        "scenarios.return_periods; leave releases." + which + " out")
+    if releases.raster is not None:
+        for k, rs in enumerate(spec.scenarios.return_periods or () if spec.scenarios else ()):
+            if isinstance(rs.thickness, str):
+                raise fail(("scenarios", "return_periods", k, "thickness"), "a release "
+                           "raster has no attributes: give metres or a rule ({d0: ...})")
     thresholds = _region_thresholds(spec.merge, spec.scenarios is not None, stand_in, fail)
     return Region(name=spec.name.strip(), path=path, text=text, dem=dem, releases=releases,
                   scenario=spec.scenario, window=spec.window, merge=spec.merge,
@@ -463,6 +493,35 @@ def _check_dem(dem: str, fail) -> None:
                              "2 x 2")
     if not (math.isfinite(t.a) and math.isfinite(t.e) and t.a != 0 and t.e != 0):
         raise fail(("dem",), f"{dem}: no cell size in its georeferencing")
+
+
+def _check_release_raster(raster: str, dem: str, fail) -> None:
+    """A release raster on the DEM's grid: same CRS, cell size and alignment (header only)."""
+    import rasterio
+
+    from avflow.terrain.raster import same_crs
+
+    keys = ("releases", "raster")
+    try:
+        with rasterio.open(raster) as src:
+            t, crs = src.transform, src.crs
+        with rasterio.open(dem) as src:
+            d, dem_crs = src.transform, src.crs
+    except Exception as err:  # noqa: BLE001 - GDAL's own error, in one line
+        raise fail(keys, f"{raster}: cannot be read as a raster ({type(err).__name__}: "
+                         f"{' '.join(str(err).split())[:120]})") from None
+    if crs is not None and dem_crs is not None and not same_crs(crs.to_wkt(),
+                                                                 dem_crs.to_wkt()):
+        raise fail(keys, f"{raster}: its CRS differs from the DEM's; reproject it onto the "
+                         "DEM's grid (gdalwarp -t_srs ... -tr ... -tap)")
+    off_c, off_r = (t.c - d.c) / d.a, (t.f - d.f) / d.e
+    if (t.b != 0 or t.d != 0 or not math.isclose(t.a, d.a, rel_tol=1e-9)
+            or not math.isclose(t.e, d.e, rel_tol=1e-9)
+            or abs(off_c - round(off_c)) > 1e-6 or abs(off_r - round(off_r)) > 1e-6):
+        raise fail(keys, f"{raster}: its cells are not the DEM's (cell {t.a:g} x {-t.e:g} m "
+                         f"at {t.c:.6g}, {t.f:.6g}; the DEM's {d.a:g} x {-d.e:g} m at "
+                         f"{d.c:.6g}, {d.f:.6g}); warp it onto the DEM's grid first "
+                         "(gdalwarp -tr -tap, or -te with the DEM's bounds)")
 
 
 def _check_scenario_block(block: dict, path: str | None, positions: dict,

@@ -98,6 +98,101 @@ class ReleaseArea:
     problem: str = ""
     #: values of the attributes that ``scenarios.return_periods`` names (m)
     attributes: dict | None = None
+    #: a patch of a release raster: :class:`Patch` (None: a polygon)
+    patch: "Patch | None" = None
+    #: what the result depends on besides the polygon and thickness (a patch's values)
+    fingerprint: str = ""
+
+
+@dataclass(frozen=True)
+class Patch:
+    """One connected patch of a release raster, found again on a worker from a window of
+    the raster: the component with the ``seed`` cell (rows, columns in the DEM's pixels)."""
+
+    raster: str
+    box: tuple  #: (r0, r1, c0, c1), DEM pixels, end exclusive: the patch's cells
+    seed: tuple  #: (row, col), DEM pixels: its first cell in scan order
+    offset: tuple  #: (rows, cols) of the raster's first pixel in the DEM's pixels
+    connectivity: int
+    mean: float = math.nan  #: m, the mean thickness of its cells
+
+    def values(self, dem: "DemInfo", window) -> np.ndarray:
+        """The patch's thickness on a DEM window (north first, 0 outside the patch)."""
+        import rasterio
+        from rasterio.windows import Window
+        from scipy import ndimage
+
+        r0, r1, c0, c1 = self.box
+        orow, ocol = self.offset
+        with rasterio.open(self.raster) as src:
+            band = src.read(1, window=Window(c0 - ocol, r0 - orow, c1 - c0, r1 - r0),
+                            masked=True)
+        h = band.astype(float).filled(0.0)
+        h = np.where(np.isfinite(h) & (h > 0), h, 0.0)
+        labels, _ = ndimage.label(h > 0, structure=_structure(self.connectivity))
+        mine = labels == labels[self.seed[0] - r0, self.seed[1] - c0]
+        w0, w1, v0, v1 = window
+        out = np.zeros((w1 - w0, v1 - v0))
+        out[r0 - w0:r1 - w0, c0 - v0:c1 - v0] = np.where(mine, h, 0.0)
+        return out
+
+
+def _structure(connectivity: int) -> np.ndarray:
+    return np.ones((3, 3), bool) if connectivity == 8 else np.array(
+        [[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+
+
+def read_raster_releases(region, dem: DemInfo) -> list[ReleaseArea]:
+    """Every connected patch of cells above 0 of the region's release raster, one release
+    each (ids 1, 2... in scan order of their first cell). The raster is read whole (its
+    labels: 4 bytes a cell); each release keeps only its box and first cell."""
+    import hashlib
+
+    import rasterio
+    import shapely
+    from rasterio.features import shapes
+    from rasterio.transform import from_origin
+    from scipy import ndimage
+
+    from avflow.region.spec import RegionError
+
+    spec = region.releases
+    with rasterio.open(spec.raster) as src:
+        t = src.transform
+        h = src.read(1, masked=True).astype(float).filled(0.0)
+    orow, ocol = round((t.f - dem.y0) / -dem.dy), round((t.c - dem.x0) / dem.dx)
+    h = np.where(np.isfinite(h) & (h > 0), h, 0.0)
+    labels, n = ndimage.label(h > 0, structure=_structure(spec.connectivity))
+    if n == 0:
+        raise RegionError(f"{spec.raster}: holds no cell above 0 (no release)", region.path,
+                          "releases.raster")
+    out = []
+    xmin, ymin, xmax, ymax = dem.bounds
+    for k, sl in enumerate(ndimage.find_objects(labels)):
+        rid = k + 1
+        mine = labels[sl] == rid
+        rows, cols = np.nonzero(mine)
+        first = (int(rows[0]) + sl[0].start + orow, int(cols[0]) + sl[1].start + ocol)
+        r0, r1 = sl[0].start + orow, sl[0].stop + orow
+        c0, c1 = sl[1].start + ocol, sl[1].stop + ocol
+        transform = from_origin(dem.x0 + c0 * dem.dx, dem.y0 - r0 * dem.dy, dem.dx, dem.dy)
+        geom = shapely.union_all([shapely.geometry.shape(g) for g, _ in shapes(
+            mine.astype(np.uint8), mask=mine, transform=transform, connectivity=8)])
+        values = np.where(mine, h[sl], 0.0)
+        thick = float(values[mine].mean())
+        box = tuple(float(v) for v in geom.bounds)
+        problem = ""
+        if r0 < 0 or c0 < 0 or r1 > dem.height or c1 > dem.width:
+            problem = (f"outside the DEM (its box {_box(box)} against the DEM's "
+                       f"{_box((xmin, ymin, xmax, ymax))})")
+        digest = hashlib.sha256(np.ascontiguousarray(values).tobytes()
+                                + repr(values.shape).encode()).hexdigest()[:16]
+        thickness = spec.thickness  # None: the raster's values
+        out.append(ReleaseArea(rid, k, shapely.to_wkb(geom), thickness,
+                               float(mine.sum()) * dem.dx * dem.dy, box, problem, None,
+                               Patch(spec.raster, (r0, r1, c0, c1), first, (orow, ocol),
+                                     spec.connectivity, thick), f"raster:{digest}"))
+    return out
 
 
 def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
@@ -109,6 +204,8 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
     from avflow.region.spec import RegionError
 
     spec = region.releases
+    if spec.raster is not None:
+        return read_raster_releases(region, dem)
     try:
         meta, _, wkb, columns = pyogrio.raw.read(spec.path)
     except Exception as err:  # noqa: BLE001 - GDAL's error: one line naming the file
