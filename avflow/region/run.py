@@ -194,8 +194,9 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
             dem_file.unlink(missing_ok=True)
             if patch is not None:
                 release.unlink(missing_ok=True)
-            if not truncated or window == dem.whole:
-                break
+            if not truncated or window == dem.whole or not _inner_edge_reached(
+                    result, window, dem):
+                break  # a flow at the DEM's own border (or NODATA): no window is larger
             buffer *= rules.growth
             retries += 1
     s = result.summary
@@ -214,6 +215,31 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
 
     return {"peak_thickness": grid(state.peak_h), "peak_speed": grid(state.peak_speed),
             "peak_pressure": grid(rho * state.peak_speed ** 2)}
+
+
+def _inner_edge_reached(result, window, dem) -> bool:
+    """Whether the flow reached a side of its window that is not the DEM's own border, below
+    the lowest released cell (where ``runout_truncated`` looks): only then can a grown
+    window change the run. A flow truncated by the DEM's border or its NODATA alone is as
+    it would be on the whole DEM, which it would otherwise grow to for nothing
+    (docs/performance.md, "Regional maps")."""
+    terrain = result.terrain
+
+    def grid(values):  # north first, as the window's rows
+        return terrain.to_grid(np.asarray(values, dtype=float))[::-1]
+
+    peak, z, h0 = grid(result.state.peak_h), grid(terrain.bed_elevation), grid(result.h0)
+    r0, r1, c0, c1 = window
+    side = np.zeros(peak.shape, dtype=bool)
+    side[0, :] |= r0 > 0
+    side[-1, :] |= r1 < dem.height
+    side[:, 0] |= c0 > 0
+    side[:, -1] |= c1 < dem.width
+    released = np.nan_to_num(h0) > 0.0
+    low = np.nanmin(z[released]) if released.any() else np.inf
+    with np.errstate(invalid="ignore"):
+        below = np.nan_to_num(z, nan=np.inf) < low
+    return bool(np.any(side & below & (np.nan_to_num(peak) > result.thresholds["runout"])))
 
 
 def _write_polygon(path: Path, wkb: bytes, thickness, crs_wkt) -> None:
