@@ -329,7 +329,9 @@ def _cmd_region(args) -> int:
               file=sys.stderr)
         return 130
     if not args.quiet:
-        print(f"{region.name}: {len(outcome.table)} releases, {outcome.ran} run, "
+        runs = (f"{outcome.table.id.nunique()} releases x {len(region.scenarios)} scenarios"
+                if region.with_scenarios else f"{len(outcome.table)} releases")
+        print(f"{region.name}: {runs}, {outcome.ran} run, "
               f"{outcome.reused} reused, {outcome.failed} not merged ({outcome.elapsed:.1f} s, "
               f"{outcome.where}); wrote {outcome.store} and "
               f"{Path(args.output) / 'releases.csv'}")

@@ -151,3 +151,29 @@ def test_empty_release_raster(folder, capsys):
     assert code == 2 and len(err) == 1 and "releases.raster: " in err[0]
     assert "holds no cell above 0" in err[0]
     assert math.isfinite(DX)
+
+
+def test_raster_and_scenarios_on_two_dask_workers(folder):
+    """Raster patches, return periods (one by the thickness rule) and a varied friction on
+    a local cluster of 2 workers: the maps, counts and probabilities of the run here, bit
+    for bit (tasks, patches and rules travel to the workers)."""
+    text = RASTER.format(releases="release.tif", buffer=40.0) + """\
+scenarios:
+  return_periods:
+    - {years: 30, thickness: 1.0}
+    - {years: 300, thickness: {d0: 1.5, reference_elevation: 300.0}}
+  vary: {rheology.delta_deg: [22.0, 26.0]}
+"""
+    (folder / "both.yaml").write_text(text)
+    region = load_region(folder / "both.yaml")
+    here = run_region(region, folder / "out-both-here", workers=0, quiet=True)
+    dask = run_region(region, folder / "out-both-dask", workers=2, quiet=True)
+    assert dask.where == "local cluster" and dask.workers == 2
+    assert len(here.table) == 2 * 4 and (here.table.status == "ok").all()
+    cols = ["id", "scenario", "thickness", "volume", "runout", "retries", "steps"]
+    assert here.table[cols].equals(dask.table[cols])
+    a = xr.open_zarr(here.store).load()
+    b = xr.open_zarr(dask.store).load()
+    assert "peak_pressure_exceedance_probability" in a and int(a.scenario_count.max()) == 8
+    for name in a.data_vars:
+        assert np.array_equal(a[name].values, b[name].values, equal_nan=True), name
