@@ -244,8 +244,11 @@ def build_parser() -> argparse.ArgumentParser:
     rp.set_defaults(func=_cmd_report)
     x = sub.add_parser("export", help="write the maps of a grid run, or the probability maps "
                                       "of an ensemble.nc, as GeoTIFF or ESRI ASCII rasters "
-                                      "(<stem>_<variable>.<ext>)", parents=[quiet])
-    x.add_argument("run_file", help="NetCDF written by avflow run, or OUTDIR/ensemble.nc")
+                                      "(<stem>_<variable>.<ext>); the maps of a region's "
+                                      "region.zarr as Cloud-Optimized GeoTIFFs",
+                       parents=[quiet])
+    x.add_argument("run_file", help="NetCDF written by avflow run, OUTDIR/ensemble.nc, or "
+                                    "a region's OUTDIR (or OUTDIR/region.zarr)")
     x.add_argument("--format", choices=("tif", "asc"), default="tif",
                    help="GeoTIFF (default) or ESRI ASCII grid + .prj")
     x.add_argument("-o", "--output", help="output folder (default: next to RUN_FILE)")
@@ -253,7 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
                                        "peak_speed, peak_pressure, peak_pressure_class, "
                                        "deposit_thickness, arrival_time, rest_time; of an "
                                        "ensemble.nc: every *_exceedance_probability, one "
-                                       "raster per threshold)")
+                                       "raster per threshold; of a region: every map, and "
+                                       "every *_exceedance_probability per threshold)")
     x.set_defaults(func=_cmd_export)
     pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness and peak-pressure "
                                      "classes over a hillshade; bed and snapshots on "
@@ -325,7 +329,9 @@ def _cmd_region(args) -> int:
               file=sys.stderr)
         return 130
     if not args.quiet:
-        print(f"{region.name}: {len(outcome.table)} releases, {outcome.ran} run, "
+        runs = (f"{outcome.table.id.nunique()} releases x {len(region.scenarios)} scenarios"
+                if region.with_scenarios else f"{len(outcome.table)} releases")
+        print(f"{region.name}: {runs}, {outcome.ran} run, "
               f"{outcome.reused} reused, {outcome.failed} not merged ({outcome.elapsed:.1f} s, "
               f"{outcome.where}); wrote {outcome.store} and "
               f"{Path(args.output) / 'releases.csv'}")
@@ -445,7 +451,16 @@ def _cmd_export(args) -> int:
     def warn(message):
         print(f"avflow: warning: {message}", file=sys.stderr)
 
-    for path in export_maps(args.run_file, args.format, args.output, names, warn=warn):
+    from avflow.region.export import export_region, find_store
+
+    if find_store(args.run_file) is not None:  # a region's Zarr store, or its folder
+        if args.format != "tif":
+            raise AvflowError(f"{args.run_file}: a region's maps are exported as "
+                              "Cloud-Optimized GeoTIFF only (--format tif)")
+        written = export_region(args.run_file, args.output, names)
+    else:
+        written = export_maps(args.run_file, args.format, args.output, names, warn=warn)
+    for path in written:
         if not args.quiet:
             print(f"wrote {path}")
     return 0

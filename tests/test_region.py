@@ -333,3 +333,26 @@ def test_external_scheduler_with_a_worker_killed(region_dir):
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(5)
+
+
+def test_a_flow_at_the_dem_border_is_not_grown_to_the_whole_dem(region_dir):
+    """A release on the southern border: its flow runs along the DEM's edge. Windows grow
+    while it reaches their inner sides, then stop (status dem_edge) without the whole DEM;
+    the maps equal the whole-DEM run's."""
+    _releases(region_dir / "border.gpkg", [(X0 + 200, Y0 - 800, X0 + 300, Y0 - 720)])
+    for name, buffer in (("border-small", 40.0), ("border-whole", 1.0e5)):
+        (region_dir / f"{name}.yaml").write_text(REGION.format(releases="border.gpkg",
+                                                               buffer=buffer))
+    small = run_region(load_region(region_dir / "border-small.yaml"),
+                       region_dir / "out-border-small", workers=0, quiet=True)
+    whole = run_region(load_region(region_dir / "border-whole.yaml"),
+                       region_dir / "out-border-whole", workers=0, quiet=True)
+    row = small.table.iloc[0]
+    assert row.status == "dem_edge" and whole.table.status.iloc[0] == "dem_edge"
+    assert 1 <= row.retries <= 6 and row.row1 == NY  # grown, to the border, not further
+    assert row.cells < 0.75 * NX * NY
+    a, b = xr.open_zarr(small.store).load(), xr.open_zarr(whole.store).load()
+    for name in ("peak_thickness", "peak_speed", "peak_pressure"):
+        assert np.array_equal(np.isfinite(a[name].values), np.isfinite(b[name].values))
+        scale = float(np.nanmax(b[name].values))
+        assert np.nanmax(np.abs(a[name].values - b[name].values)) <= 1e-5 * scale

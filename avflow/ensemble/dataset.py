@@ -275,6 +275,20 @@ def read_member_maps(ds: xr.Dataset, profile: bool) -> dict:
             "reached": reached, "shape": maps["peak_thickness"].shape}
 
 
+def exceedances(name: str, peak: np.ndarray, thresholds, reached: np.ndarray) -> list:
+    """Where ``peak`` (a peak map, or a stack of them, in the map's units) exceeds each
+    threshold (in :data:`THRESHOLD_UNITS`: kPa for pressure): one boolean array per
+    threshold. Speed and pressure count only where ``reached`` (the peak thickness passed
+    the runout threshold), so thin films do not. The ensembles' exceedance maps and the
+    regions' (:mod:`avflow.region.merge`) count with it."""
+    _, scale = THRESHOLD_DIMS[name]
+    with np.errstate(invalid="ignore"):
+        over = [peak > t * scale for t in thresholds]
+    if name != "peak_thickness":
+        over = [o & reached for o in over]
+    return over
+
+
 def _probabilities(ensemble: Ensemble, maps: dict, ok: np.ndarray, space: tuple, coords: dict,
                    data: dict) -> None:
     """Exceedance probability of each peak map at each of its thresholds, over the
@@ -285,7 +299,7 @@ def _probabilities(ensemble: Ensemble, maps: dict, ok: np.ndarray, space: tuple,
     for name, thresholds in ensemble.exceedance_thresholds().items():
         if maps.get(name) is None:
             continue
-        dim, scale = THRESHOLD_DIMS[name]
+        dim, _ = THRESHOLD_DIMS[name]
         what = name.replace("_", " ").replace("peak ", "peak flow " if name ==
                                               "peak_thickness" else "peak ")
         coords[dim] = (dim, np.asarray(thresholds, dtype=float), {
@@ -293,9 +307,7 @@ def _probabilities(ensemble: Ensemble, maps: dict, ok: np.ndarray, space: tuple,
         peak = maps[name][ok]
         with np.errstate(invalid="ignore"):
             if peak.shape[0]:
-                over = [peak > t * scale for t in thresholds]
-                if name != "peak_thickness":
-                    over = [o & reached for o in over]
+                over = exceedances(name, peak, thresholds, reached)
                 prob = np.stack([o.mean(axis=0) for o in over])
                 prob[:, np.isnan(peak).all(axis=0)] = np.nan
             else:

@@ -34,6 +34,7 @@ from avflow.region.windows import dem_info, read_releases
 
 #: Names of the outputs in OUTDIR.
 STORE, TABLE = "region.zarr", "releases.csv"
+PARQUET, SCENARIOS = "releases.parquet", "scenarios.csv"
 
 
 @dataclass
@@ -57,9 +58,11 @@ class RegionProgress:
     """``[####....] 12/40 releases, 1 failed, 3.2 km2 covered`` on one line; failures on
     their own lines (always, even when quiet)."""
 
-    def __init__(self, total: int, pixel_area: float, stream=None, quiet: bool = False):
+    def __init__(self, total: int, pixel_area: float, stream=None, quiet: bool = False,
+                 unit: str = "releases"):
         self.stream = stream if stream is not None else sys.stderr
-        self.total, self.quiet, self.pixel_area = total, quiet, pixel_area
+        self.total, self.quiet, self.pixel_area, self.unit = total, quiet, pixel_area, unit
+        self.said: set = set()  # (id, error) already on stderr: once per release
         self.live = self.stream.isatty() and not quiet
         self.done = self.failed = 0
         self.covered = 0.0
@@ -69,9 +72,11 @@ class RegionProgress:
         self.done += 1
         if row["status"] not in MERGED:
             self.failed += 1
-            if self.live:
-                self.stream.write("\r\033[K")
-            self.stream.write(f"release {row['id']}: {row['status']}: {row['error']}\n")
+            if (row["id"], row["error"]) not in self.said:
+                self.said.add((row["id"], row["error"]))
+                if self.live:
+                    self.stream.write("\r\033[K")
+                self.stream.write(f"release {row['id']}: {row['status']}: {row['error']}\n")
         elif row["status"] == "dem_edge":
             self.note(f"release {row['id']}: its flow reaches the DEM's border (runout "
                       "truncated, merged as a lower bound): extend the DEM there")
@@ -94,7 +99,7 @@ class RegionProgress:
         filled = int(30 * self.done / max(self.total, 1))
         wall = time.perf_counter() - self.started
         self.stream.write(f"\r  [{'#' * filled}{'.' * (30 - filled)}] {self.done}/{self.total}"
-                          f" releases, {self.failed} failed, {self.covered / 1e6:.2f} km2 of "
+                          f" {self.unit}, {self.failed} failed, {self.covered / 1e6:.2f} km2 of "
                           f"windows ({wall:5.1f} s)")
         self.stream.flush()
 
@@ -129,48 +134,75 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
     dem = dem_info(region.dem)
     releases = read_releases(region, dem)
     key = region.key()
-    progress = RegionProgress(len(releases), dem.dx * dem.dy, quiet=quiet)
-    rows: dict[int, dict] = {}
+    scenarios = region.scenarios
+    multi = region.with_scenarios  # file names <id>-<scenario>.nc
+    progress = RegionProgress(len(releases) * len(scenarios), dem.dx * dem.dy, quiet=quiet,
+                              unit="runs" if multi else "releases")
+    rows: dict[tuple[int, int], dict] = {}
     todo, reuse = [], []
     for rel in sorted(releases, key=lambda r: (-r.area, r.id)):  # largest first
-        rkey = release_key(key, rel.wkb, rel.thickness)
-        if rel.problem:
-            rows[rel.id] = _invalid_row(rel, rkey)
-            progress.update(rows[rel.id])
-            continue
-        row, _, why = read_result(result_path(outdir, rel.id), rkey, arrays=False)
-        if row is not None:
-            row["reused"] = True
-            reuse.append(row)
-            continue
-        if why:
-            progress.note(f"release {rel.id}: not reusing releases/{rel.id}.nc: {why}; "
-                          "running it again")
-        todo.append({"id": rel.id, "wkb": rel.wkb, "thickness": rel.thickness,
-                     "area": rel.area, "bbox": rel.bbox, "key": rkey, "region": region,
-                     "dem": dem, "outdir": str(outdir)})
+        for rs in scenarios:
+            thickness = _thickness(rel, rs)
+            rkey = release_key(key, rel.wkb, thickness if not hasattr(thickness, "d0")
+                               else None, rs.key() + rel.fingerprint)
+            if rel.problem:
+                rows[rel.id, rs.index] = _invalid_row(rel, rkey, rs)
+                progress.update(rows[rel.id, rs.index])
+                continue
+            fs = rs.index if multi else None
+            row, _, why = read_result(result_path(outdir, rel.id, fs), rkey, arrays=False)
+            if row is not None:
+                row["reused"] = True
+                reuse.append(row)
+                continue
+            if why:
+                progress.note(f"release {rel.id}{_of(rs, multi)}: not reusing "
+                              f"{result_path(outdir, rel.id, fs).name}: {why}; running it "
+                              "again")
+            todo.append({"id": rel.id, "wkb": rel.wkb, "thickness": thickness,
+                         "area": rel.area, "bbox": rel.bbox, "key": rkey, "region": region,
+                         "dem": dem, "outdir": str(outdir), "scenario": rs.index,
+                         "file_scenario": fs, "updates": rs.updates,
+                         "return_period": rs.return_period, "patch": rel.patch})
     timings["check"] = time.perf_counter() - started
 
     tmp_store = _fresh_store_path(outdir)
     from avflow.region.merge import RegionStore
 
     merging = 0.0
+    waiting: dict[int, dict[int, dict]] = {}  # release id -> its scenarios' rows so far
     try:
         merged = RegionStore(tmp_store, dem, region.merge.fields, region.merge.chunk,
                              {"title": f"avflow region {region.name}",
-                              "source": "avflow region", "region_key": key})
-
+                              "source": "avflow region", "region_key": key,
+                              **_scenario_attrs(region)},
+                             thresholds=region.thresholds, scenarios=len(scenarios)
+                             if region.with_scenarios or region.thresholds else None)
         def merge(row: dict) -> None:
+            """A row as it comes; a release is merged once all its scenarios are in (the
+            exceedance fractions are per release: associative only release by release)."""
             nonlocal merging
             clock = time.perf_counter()
-            rows[row["id"]] = row
-            if row["status"] in MERGED:
-                _, maps, why = read_result(result_path(outdir, row["id"]), row["key"])
-                if maps is None:
-                    raise RuntimeError(f"release {row['id']}: its result file cannot be "
-                                       f"read back ({why})")
-                merged.add(row["id"], (row["row0"], row["row1"], row["col0"], row["col1"]),
-                           maps, row["reach_threshold"])
+            rid, s = row["id"], int(row.get("scenario", 0) or 0)
+            rows[rid, s] = row
+            got = waiting.setdefault(rid, {})
+            got[s] = row
+            if len(got) == len(scenarios):
+                parts = []
+                for k in sorted(got):
+                    r = got[k]
+                    if r["status"] not in MERGED:
+                        continue
+                    path = result_path(outdir, rid, k if multi else None)
+                    _, maps, why = read_result(path, r["key"])
+                    if maps is None:
+                        raise RuntimeError(f"release {rid}{_of(scenarios[k], multi)}: its "
+                                           f"result file cannot be read back ({why})")
+                    parts.append(((r["row0"], r["row1"], r["col0"], r["col1"]), maps,
+                                  r["reach_threshold"]))
+                if parts:
+                    merged.add(rid, parts)
+                del waiting[rid]
             merging += time.perf_counter() - clock
             progress.update(row)
 
@@ -181,6 +213,10 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
         clock = time.perf_counter()
         table = _table(rows)
         atomic_write(outdir / TABLE, lambda tmp: table.to_csv(tmp, index=False))
+        if multi:
+            scen = _scenario_table(region)
+            atomic_write(outdir / SCENARIOS, lambda tmp: scen.to_csv(tmp, index=False))
+        _write_parquet(table, outdir / PARQUET, progress)
         _publish_store(tmp_store, outdir / STORE)
         timings["tables"] = time.perf_counter() - clock
     except BaseException:
@@ -194,10 +230,71 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
                          time.perf_counter() - started, where, n_workers, timings)
 
 
-def _invalid_row(rel, rkey: str) -> dict:
+def _thickness(rel, rs):
+    """The release thickness of ``rel`` in scenario ``rs``: m, or the rule (worked out on
+    the worker, from the DEM under the polygon)."""
+    if rs.thickness is None:
+        return rel.thickness
+    if isinstance(rs.thickness, str):
+        return (rel.attributes or {}).get(rs.thickness)
+    if isinstance(rs.thickness, (int, float)):
+        return float(rs.thickness)
+    return rs.thickness
+
+
+def _of(rs, multi: bool) -> str:
+    return f" scenario {rs.index}" if multi else ""
+
+
+def _scenario_attrs(region) -> dict:
+    if not region.with_scenarios:
+        return {}
+    import json
+
+    return {"scenarios": len(region.scenarios),
+            "scenario_labels": json.dumps([rs.label for rs in region.scenarios])}
+
+
+def _scenario_table(region):
+    """scenarios.csv: index, return period, the thickness rule, the varied values."""
+    import json
+
+    import pandas as pd
+
+    out = []
+    for rs in region.scenarios:
+        thick = rs.thickness
+        out.append({"scenario": rs.index, "return_period": rs.return_period,
+                    "thickness": (json.dumps(thick.model_dump(mode="json"), sort_keys=True)
+                                  if hasattr(thick, "d0") else thick),
+                    **{k: (json.dumps(v, sort_keys=True) if isinstance(v, (dict, list))
+                           else v) for k, v in rs.updates.items()},
+                    "label": rs.label})
+    table = pd.DataFrame(out)
+    table["return_period"] = table["return_period"].astype("Int64")
+    return table
+
+
+def _write_parquet(table, path: Path, progress) -> None:
+    """releases.parquet beside releases.csv, when pandas has a parquet engine (pyarrow or
+    fastparquet: an optional extra, ``avflow[parquet]``); else said once, not an error."""
+    import importlib.util
+
+    if not any(importlib.util.find_spec(m) for m in ("pyarrow", "fastparquet")):
+        path.unlink(missing_ok=True)  # a stale one would disagree with releases.csv
+        progress.note(f"no {path.name}: pandas needs pyarrow (pip install 'avflow[parquet]')"
+                      f"; {TABLE} has the same table")
+        return
+    atomic_write(path, lambda tmp: table.to_parquet(tmp, index=False))
+
+
+def _invalid_row(rel, rkey: str, rs=None) -> dict:
     row = {c: math.nan for c in COLUMNS}
-    row.update(id=rel.id, status="invalid", area=rel.area, retries=0, reused=False,
-               error=rel.problem, key=rkey, wall_time=0.0)
+    row.update(id=rel.id, scenario=rs.index if rs is not None else 0, status="invalid",
+               area=rel.area, retries=0, reused=False, error=rel.problem, key=rkey,
+               wall_time=0.0)
+    if rs is not None and rs.return_period:
+        row["return_period"] = rs.return_period
     return row
 
 
@@ -224,7 +321,8 @@ def _run(todo, workers, scheduler, client, merge, timings, progress) -> tuple[st
         timings["startup"] = time.perf_counter() - clock
         clock = time.perf_counter()
         futures = {cl.client.submit(run_release, {**task, "one_thread": True},
-                                    key=f"avflow-region-release-{task['id']}-{task['key']}",
+                                    key=f"avflow-region-release-{task['id']}-"
+                                        f"{task['scenario']}-{task['key']}",
                                     priority=len(todo) - k, pure=False, retries=1): task
                    for k, task in enumerate(todo)}  # largest first: highest priority
         # polled, as the ensembles do: a Ctrl-C is acted on between two polls
@@ -241,7 +339,9 @@ def _run(todo, workers, scheduler, client, merge, timings, progress) -> tuple[st
                     row = future.result()
                 except Exception as err:  # noqa: BLE001 - a lost task (KilledWorker)
                     row = _invalid_row(_Lost(task), task["key"])
-                    row.update(status="failed", error=f"{type(err).__name__}: "
+                    row.update(scenario=task.get("scenario", 0),
+                               return_period=task.get("return_period") or math.nan,
+                               status="failed", error=f"{type(err).__name__}: "
                                                       f"{' '.join(str(err).split())}")
                 finally:
                     future.release()
@@ -279,11 +379,13 @@ def _tiny_scenarios(task) -> list[str] | None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
         polygon = folder / "release.gpkg"
-        _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
+        # a polygon even for a raster's patch, a metre for a rule: two steps of the kernels
+        thickness = task["thickness"] if isinstance(task["thickness"], (int, float)) else 1.0
+        _write_polygon(polygon, task["wkb"], thickness, dem.crs_wkt)
         dem_file = folder / "dem.tif"
         write_window(dem, window_for(dem, task["bbox"], 2 * max(dem.dx, dem.dy)), dem_file)
-        sc = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon),
-                                 task["thickness"], "warm")
+        sc = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon), thickness,
+                                 "warm", task.get("updates"))
         sc = sc.with_updates({"time.end": 1e-3, "time.max_steps": 2, "output.every": 1e-3})
         texts = [sc.source_text]
         if sc.numerics.threads is None:
@@ -298,7 +400,8 @@ def _table(rows: dict):
 
     table = pd.DataFrame([{c: rows[i].get(c) for c in COLUMNS} for i in sorted(rows)],
                          columns=list(COLUMNS))
-    for c in ("retries", "row0", "row1", "col0", "col1", "cells", "steps"):
+    for c in ("scenario", "return_period", "retries", "row0", "row1", "col0", "col1",
+              "cells", "steps"):
         table[c] = table[c].astype("Int64")
     return table
 

@@ -1,7 +1,8 @@
 """One release of a region, on a worker: its window of the DEM, its run, re-run in grown
 windows while its flow reaches the window's edge, and its result file.
 
-The result file ``OUTDIR/releases/<id>.nc`` holds the release's peak maps on its last
+The result file ``OUTDIR/releases/<id>.nc`` (``<id>-<scenario>.nc`` when the region has
+scenarios) holds the release's peak maps on its last
 window (float32, north first) and its row of ``releases.csv`` as attributes; it is written
 atomically and its sha256 kept in ``OUTDIR/checksums/<id>.sha256`` (as ensemble members
 are), so that a rerun reuses it only when every byte is as written and its ``key`` (the
@@ -27,18 +28,24 @@ from avflow.files import atomic_write
 #: the DEM's own border (no larger window exists: the map is then a lower bound there).
 MERGED = ("ok", "dem_edge")
 #: Columns of releases.csv, in order.
-COLUMNS = ("id", "status", "volume", "runout", "travel_angle", "area", "retries",
+COLUMNS = ("id", "scenario", "return_period", "thickness", "status", "volume", "runout", "travel_angle", "area", "retries",
            "wall_time", "run_time", "buffer", "row0", "row1", "col0", "col1", "cells",
            "steps", "mass_balance_error", "reach_threshold", "reused", "error")
 
 
-def release_key(region_key: str, wkb: bytes, thickness) -> str:
-    digest = hashlib.sha256(f"{region_key}|{thickness!r}|".encode() + wkb)
+def release_key(region_key: str, wkb: bytes, thickness, scenario_key: str = "") -> str:
+    """16 hex chars: the region's key, the polygon, its thickness and the scenario's key
+    ("" without scenarios: the keys of a region without them stay as they were)."""
+    extra = f"{scenario_key}|" if scenario_key else ""
+    digest = hashlib.sha256(f"{region_key}|{thickness!r}|{extra}".encode() + wkb)
     return digest.hexdigest()[:16]
 
 
-def result_path(outdir, rid: int) -> Path:
-    return Path(outdir) / "releases" / f"{rid}.nc"
+def result_path(outdir, rid: int, scenario: int | None = None) -> Path:
+    """``releases/<id>.nc``, or ``releases/<id>-<scenario>.nc`` in a region with
+    scenarios (``scenario`` given)."""
+    name = f"{rid}.nc" if scenario is None else f"{rid}-{scenario}.nc"
+    return Path(outdir) / "releases" / name
 
 
 def read_result(path, key: str | None = None, arrays: bool = True):
@@ -94,22 +101,40 @@ def run_release(task: dict) -> dict:
     """Run one release (a task of :func:`avflow.region.orchestrate.run_region`); never
     raises for a model error: the row's status says ``invalid`` or ``failed`` and why.
 
-    ``task``: id, wkb, thickness, area, key, region (the :class:`Region`), dem
-    (:class:`DemInfo`), outdir, one_thread. Idempotent: a trusted result file is returned
-    as it is (a task run twice after a lost worker)."""
+    ``task``: id, wkb, thickness (m, or a :class:`~avflow.region.spec.ThicknessRule`),
+    area, key, region (the :class:`Region`), dem (:class:`DemInfo`), outdir, one_thread;
+    scenario (index), file_scenario (its index in file names, None without scenarios),
+    updates, return_period. Idempotent: a trusted result file is returned as it is (a task
+    run twice after a lost worker)."""
     started = time.perf_counter()
     rid, outdir = task["id"], Path(task["outdir"])
-    path = result_path(outdir, rid)
+    path = result_path(outdir, rid, task.get("file_scenario"))
     row, _, _ = read_result(path, task["key"], arrays=False)
     if row is not None:
         row.update(reused=True)
         return row
     region, dem = task["region"], task["dem"]
     row = {c: math.nan for c in COLUMNS}
-    row.update(id=rid, status="failed", area=task["area"], retries=0, reused=False, error="",
-               key=task["key"])
+    row.update(id=rid, scenario=task.get("scenario", 0), status="failed", area=task["area"],
+               retries=0, reused=False, error="", key=task["key"],
+               return_period=task.get("return_period") or math.nan)
     maps = None
     try:
+        if isinstance(task["thickness"], (int, float)) or task["thickness"] is None:
+            row["thickness"] = task["thickness"] if task["thickness"] else (
+                task["patch"].mean if task.get("patch") is not None else math.nan)
+        else:  # a rule: from the DEM under the polygon
+            from avflow.region.windows import rule_thickness
+
+            try:
+                thickness, _, _ = rule_thickness(dem, task["wkb"], task["thickness"])
+            except ValueError as err:
+                from avflow.errors import ScenarioError
+
+                raise ScenarioError(f"scenarios.return_periods.{task.get('return_period')}: "
+                                    f"{err}") from None
+            task = {**task, "thickness": thickness}
+            row["thickness"] = thickness
         maps = _run_growing(task, region, dem, row, outdir)
     except Exception as err:  # noqa: BLE001 - recorded; the other releases go on
         from avflow.errors import RunFailed, ScenarioError
@@ -141,7 +166,9 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
     run_time = 0.0
     with tempfile.TemporaryDirectory(prefix=f"release-{task['id']}-", dir=work) as folder:
         polygon = Path(folder) / "release.gpkg"
-        _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
+        patch = task.get("patch")
+        if patch is None:
+            _write_polygon(polygon, task["wkb"], task["thickness"], dem.crs_wkt)
         retries = 0
         while True:
             # after max_retries grown windows, the whole DEM
@@ -149,8 +176,15 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
                 else dem.whole
             dem_file = Path(folder) / f"dem-{retries}.tif"
             write_window(dem, window, dem_file)
-            scenario = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(polygon),
-                                           task["thickness"], f"{region.name}-{task['id']}")
+            name = f"{region.name}-{task['id']}" + (
+                f"-{task['file_scenario']}" if task.get("file_scenario") is not None else "")
+            release = polygon
+            if patch is not None:  # the patch's thickness on this window, as the DEM's cells
+                release = Path(folder) / f"release-{retries}.tif"
+                _write_patch(release, dem, window, patch, task["thickness"])
+            scenario = region.scenario_for(str(dem_file), dem.dx, dem.dy, str(release),
+                                           task["thickness"], name, task.get("updates"),
+                                           raster=patch is not None)
             if task.get("one_thread") and scenario.numerics.threads is None:
                 scenario = scenario.with_updates({"numerics.threads": 1})
             clock = time.perf_counter()
@@ -158,8 +192,11 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
             run_time += time.perf_counter() - clock
             truncated = bool(result.summary["runout_truncated"])
             dem_file.unlink(missing_ok=True)
-            if not truncated or window == dem.whole:
-                break
+            if patch is not None:
+                release.unlink(missing_ok=True)
+            if not truncated or window == dem.whole or not _inner_edge_reached(
+                    result, window, dem):
+                break  # a flow at the DEM's own border (or NODATA): no window is larger
             buffer *= rules.growth
             retries += 1
     s = result.summary
@@ -180,6 +217,31 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
             "peak_pressure": grid(rho * state.peak_speed ** 2)}
 
 
+def _inner_edge_reached(result, window, dem) -> bool:
+    """Whether the flow reached a side of its window that is not the DEM's own border, below
+    the lowest released cell (where ``runout_truncated`` looks): only then can a grown
+    window change the run. A flow truncated by the DEM's border or its NODATA alone is as
+    it would be on the whole DEM, which it would otherwise grow to for nothing
+    (docs/performance.md, "Regional maps")."""
+    terrain = result.terrain
+
+    def grid(values):  # north first, as the window's rows
+        return terrain.to_grid(np.asarray(values, dtype=float))[::-1]
+
+    peak, z, h0 = grid(result.state.peak_h), grid(terrain.bed_elevation), grid(result.h0)
+    r0, r1, c0, c1 = window
+    side = np.zeros(peak.shape, dtype=bool)
+    side[0, :] |= r0 > 0
+    side[-1, :] |= r1 < dem.height
+    side[:, 0] |= c0 > 0
+    side[:, -1] |= c1 < dem.width
+    released = np.nan_to_num(h0) > 0.0
+    low = np.nanmin(z[released]) if released.any() else np.inf
+    with np.errstate(invalid="ignore"):
+        below = np.nan_to_num(z, nan=np.inf) < low
+    return bool(np.any(side & below & (np.nan_to_num(peak) > result.thresholds["runout"])))
+
+
 def _write_polygon(path: Path, wkb: bytes, thickness, crs_wkt) -> None:
     """The release polygon as a GeoPackage of one feature, in the DEM's CRS, with its
     thickness as the attribute the run reads."""
@@ -197,3 +259,17 @@ def _write_polygon(path: Path, wkb: bytes, thickness, crs_wkt) -> None:
                               geometry_type="Unknown")
 
     atomic_write(path, write)
+
+
+def _write_patch(path: Path, dem, window, patch, thickness) -> None:
+    """A raster patch's thickness on a DEM window, as a GeoTIFF on the window's own cells
+    (so that the run samples each cell's value exactly); ``thickness`` (m), when given,
+    replaces its values (the raster then only marks the patch)."""
+    from avflow.terrain.raster import write_tif
+
+    r0, r1, c0, c1 = window
+    values = patch.values(dem, window)
+    if isinstance(thickness, (int, float)) and thickness:
+        values = np.where(values > 0, float(thickness), 0.0)
+    write_tif(path, values[::-1], dem.x(c0, c1), dem.y(r0, r1)[::-1], dem.crs_wkt,
+              dtype="float64")

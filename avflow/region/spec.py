@@ -19,6 +19,14 @@ merge rules; validated once, here, into a frozen :class:`Region`.
     merge:
       fields: [pressure, thickness, speed]
       chunk: 256
+      thresholds: {peak_pressure: [1.0, 3.0, 30.0]}   # kPa: exceedance maps (as ensembles)
+    scenarios:                         # optional: every release runs once per scenario
+      return_periods:                  # one scenario each, with its release thickness:
+        - {years: 30, thickness: d30}  #   a polygon attribute (m), or
+        - {years: 100, thickness: 1.2} #   m for every polygon, or
+        - {years: 300, thickness: {d0: 1.5}}  # the Swiss rule (d0 at 2000 m, +5 cm/100 m, f(slope))
+      vary: {rheology.delta_deg: [20.0, 24.0]}   # as in ensembles (cartesian product)
+      sample: {n: 8, seed: 1, ranges: {rheology.mu: [0.15, 0.25]}}   # as in ensembles
 
 Every problem is one :class:`RegionError` line naming the file, line:column and field, as
 scenario and ensemble files do. The scenario block is validated as a scenario would be
@@ -31,7 +39,7 @@ import hashlib
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -42,13 +50,17 @@ from avflow.errors import Problem, ScenarioError
 from avflow.scenario.schema import parse_scenario
 from avflow.scenario.yamlio import did_you_mean, position, read_text_file, read_yaml, show
 
-__all__ = ["RegionError", "Region", "load_region", "parse_region", "FIELD_NAMES"]
+__all__ = ["RegionError", "Region", "RegionScenario", "ThicknessRule", "load_region",
+           "parse_region", "FIELD_NAMES"]
 
 #: The merged maps a region can keep, and the per-run map each comes from.
 FIELD_NAMES = {"pressure": "peak_pressure", "thickness": "peak_thickness",
                "speed": "peak_speed"}
 #: Scenario blocks a region sets itself for each release.
 REGION_BLOCKS = ("name", "terrain", "grid", "release")
+#: Keys of ``scenarios:`` handed to the ensembles' parser (vary: cartesian product, sample:
+#: Latin hypercube or a calibration's posterior), and the region's own.
+ENSEMBLE_KEYS = ("vary", "sample")
 
 
 class RegionError(ScenarioError):
@@ -63,8 +75,15 @@ class _Model(BaseModel):
 
 
 class Releases(_Model):
-    path: Annotated[str, Field(strict=True, min_length=1)]
+    path: Annotated[str, Field(strict=True, min_length=1)] | None = None
     """Polygon layer (.shp, .gpkg, .geojson, .fgb...), relative to the region file."""
+    raster: Annotated[str, Field(strict=True, min_length=1)] | None = None
+    """Instead of ``path``: a release-thickness raster (m; any GDAL raster) on the DEM's
+    grid (same cell size, aligned, any part of it); each connected patch of cells above 0
+    is one release (ids in scan order, from the north-west), its cells' values its
+    thickness."""
+    connectivity: Literal[4, 8] = 8
+    """Cells of a raster patch touch by their sides (4) or their sides and corners (8)."""
     thickness: Positive | None = None
     """m, normal to the bed, for every polygon; null: the ``thickness_field`` attribute."""
     thickness_field: Annotated[str, Field(strict=True, min_length=1)] | None = None
@@ -97,6 +116,47 @@ class MergeRules(_Model):
     """Peak maps merged by their per-pixel maximum (with the id of the release that set it)."""
     chunk: Annotated[int, Field(strict=True, ge=16, le=8192)] = 256
     """Zarr chunk side (cells)."""
+    thresholds: Any = None
+    """Exceedance maps, as in ensemble files: a list (peak thickness, m) or a mapping
+    ``{peak_thickness: [m], peak_speed: [m/s], peak_pressure: [kPa]}``. Default with
+    ``scenarios:``: the ensembles' defaults for each merged field (0.1, 1, 5 m; 1, 5,
+    10 m/s; the scenario's ``output.pressure_classes``); without: none."""
+
+
+class ThicknessRule(_Model):
+    """Release thickness from the Swiss guidelines' rule (Salm, Burkard & Gubler 1990; as
+    RAMMS uses it): ``d = (d0 + gradient * (z - reference_elevation) / 100) * f(psi)``,
+    ``f(psi) = 0.291 / (sin psi - 0.202 cos psi)`` (1 at 28 degrees), with ``z`` and
+    ``psi`` the release's mean DEM elevation and slope."""
+
+    d0: Positive
+    """m, the three-day snowfall increase of the return period at ``reference_elevation``."""
+    reference_elevation: Annotated[float, Field(strict=False, allow_inf_nan=False)] = 2000.0
+    """m."""
+    gradient: Annotated[float, Field(strict=False, ge=0, allow_inf_nan=False)] = 0.05
+    """m per 100 m of elevation above (less below) ``reference_elevation``."""
+    slope_correction: Annotated[bool, Field(strict=True)] = True
+    """Times ``f(psi)``; false: the thickness is ``d0`` with the elevation gradient only."""
+
+
+
+class ReturnPeriod(_Model):
+    years: Annotated[int, Field(strict=True, gt=0)]
+    """The return period (years): a label of the scenario, in releases.csv and the store."""
+    thickness: Any
+    """The release thickness of its scenario: m for every polygon, the name of a polygon
+    attribute (m), or a :class:`ThicknessRule` (``{d0: 1.2}``)."""
+
+
+class ScenarioRules(_Model):
+    return_periods: Annotated[list[ReturnPeriod], Field(min_length=1)] | None = None
+    """One scenario per return period (crossed with vary and sample), each with its
+    release thickness."""
+    vary: dict[str, Any] | None = None
+    """As in ensemble files: dotted scenario fields -> lists of values (cartesian)."""
+    sample: dict[str, Any] | None = None
+    """As in ensemble files: a seeded Latin hypercube (n, seed, ranges) or a
+    calibration's posterior (calibration, n, seed, use)."""
 
 
 class _RegionFile(_Model):
@@ -109,6 +169,41 @@ class _RegionFile(_Model):
     """A scenario without name, terrain, grid and release (they are the region's)."""
     window: WindowRules = WindowRules()
     merge: MergeRules = MergeRules()
+    scenarios: ScenarioRules | None = None
+
+
+@dataclass(frozen=True)
+class RegionScenario:
+    """One scenario every release runs: its index, the dotted updates applied to the
+    scenario block (vary, sample), its return period and how its release thickness is
+    found (None: the releases' own, ``releases.thickness`` or ``thickness_field``)."""
+
+    index: int
+    updates: dict
+    return_period: int | None = None
+    thickness: float | str | ThicknessRule | None = None
+
+    @property
+    def label(self) -> str:
+        parts = [f"return_period={self.return_period}"] if self.return_period else []
+        for key, value in self.updates.items():
+            parts.append(f"{key}={value:.6g}" if isinstance(value, float)
+                         else f"{key}={json.dumps(value, sort_keys=True)}")
+        return " ".join(parts)
+
+    def key(self) -> str:
+        """What a release's result depends on in this scenario ("" for the one scenario of
+        a region without ``scenarios:``, so that its keys are as before)."""
+        if not self.updates and self.thickness is None:
+            return ""
+        thick = (self.thickness.model_dump(mode="json")
+                 if isinstance(self.thickness, ThicknessRule) else self.thickness)
+        return json.dumps({"updates": self.updates, "thickness": thick,
+                           "return_period": self.return_period}, sort_keys=True)
+
+
+#: The one scenario of a region without ``scenarios:``.
+SINGLE = (RegionScenario(0, {}),)
 
 
 @dataclass(frozen=True)
@@ -125,16 +220,32 @@ class Region:
     merge: MergeRules
     base_dir: str
     description: str = ""
+    #: the scenarios every release runs (one, without ``scenarios:``)
+    scenarios: tuple = SINGLE
+    #: peak map -> thresholds (units of :data:`avflow.ensemble.spec.THRESHOLD_UNITS`) of
+    #: the exceedance maps; empty: none
+    thresholds: dict = field(default_factory=dict)
+
+    @property
+    def with_scenarios(self) -> bool:
+        """True when releases run more than one scenario, or the file asks for them."""
+        return len(self.scenarios) > 1 or self.scenarios != SINGLE
 
     def scenario_for(self, dem_path: str, dx: float, dy: float, release_path: str,
-                     thickness: float | None, name: str):
+                     thickness: float | None, name: str, updates: dict | None = None,
+                     raster: bool = False):
         """The scenario of one release: its DEM window, the DEM's own spacing (so cells are
-        the DEM's pixels) and its polygon; output.every = time.end (only peaks are kept)."""
+        the DEM's pixels) and its polygon (or, ``raster``, its thickness raster on the
+        window), the scenario's ``updates`` (dotted fields, as an ensemble member's);
+        output.every = time.end (only peaks are kept)."""
         written = json.loads(json.dumps(self.scenario))  # a deep copy of plain data
+        for key, value in (updates or {}).items():
+            _set_dotted(written, key, json.loads(json.dumps(value)))
         written.update(name=name, terrain={"kind": "dem", "path": dem_path},
                        grid={"dx": dx, **({"dy": dy} if dy != dx else {})},
-                       release={"kind": "polygon", "path": release_path,
-                                **({"thickness": thickness} if thickness else {})})
+                       release={"kind": "raster", "path": release_path} if raster else
+                       {"kind": "polygon", "path": release_path,
+                        **({"thickness": thickness} if thickness else {})})
         output = dict(written.get("output") or {})
         output["every"] = written["time"]["end"]
         written["output"] = output
@@ -150,7 +261,17 @@ class Region:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def input_files(self) -> list[str]:
-        return [p for p in (self.path, self.dem, self.releases.path) if p]
+        return [p for p in (self.path, self.dem, self.releases.path, self.releases.raster)
+                if p]
+
+
+def _set_dotted(data: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    for key in keys[:-1]:
+        if not isinstance(data.get(key), dict):
+            data[key] = {}
+        data = data[key]
+    data[keys[-1]] = value
 
 
 def load_region(path: str | os.PathLike) -> Region:
@@ -181,8 +302,22 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
         raise _first_error(err, fail) from None
     dem = _existing(spec.dem, base_dir, fail, ("dem",))
     _check_dem(dem, fail)
+    given = [k for k in ("path", "raster") if getattr(spec.releases, k) is not None]
+    if len(given) != 1:
+        raise fail(("releases", given[-1]) if given else ("releases",),
+                   "give either path (a polygon layer) or raster (a release-thickness "
+                   "raster)" + (", not both" if given else ""))
     releases = spec.releases.model_copy(
-        update={"path": _existing(spec.releases.path, base_dir, fail, ("releases", "path"))})
+        update={given[0]: _existing(getattr(spec.releases, given[0]), base_dir, fail,
+                                    ("releases", given[0]))})
+    if releases.raster is not None:
+        for key in ("thickness_field", "id_field"):
+            if getattr(releases, key) is not None:
+                raise fail(("releases", key), "a release raster has no attributes: its "
+                           "values are the thickness, its patches numbered in scan order")
+        _check_release_raster(releases.raster, dem, fail)
+    elif "connectivity" in (data.get("releases") or {}):
+        raise fail(("releases", "connectivity"), "applies to a release raster only")
     if releases.thickness is not None and releases.thickness_field is not None:
         raise fail(("releases", "thickness_field"), "give either thickness (one for every "
                    "polygon) or thickness_field (an attribute), not both")
@@ -190,10 +325,125 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
         if key in REGION_BLOCKS:
             raise fail(("scenario", key), f"set by the region for each release ({key} comes "
                        "from dem: and releases:); leave it out")
-    _check_scenario_block(spec.scenario, path, positions, base_dir)
+    stand_in = _check_scenario_block(spec.scenario, path, positions, base_dir)
+    scenarios = SINGLE
+    if spec.scenarios is not None:
+        scenarios = _scenarios(spec.scenarios, stand_in, path, positions, fail)
+        if spec.scenarios.return_periods is not None and (
+                releases.thickness is not None or releases.thickness_field is not None):
+            which = "thickness" if releases.thickness is not None else "thickness_field"
+            raise fail(("releases", which), "the release thickness comes from "
+                       "scenarios.return_periods; leave releases." + which + " out")
+    if releases.raster is not None:
+        for k, rs in enumerate(spec.scenarios.return_periods or () if spec.scenarios else ()):
+            if isinstance(rs.thickness, str):
+                raise fail(("scenarios", "return_periods", k, "thickness"), "a release "
+                           "raster has no attributes: give metres or a rule ({d0: ...})")
+    thresholds = _region_thresholds(spec.merge, spec.scenarios is not None, stand_in, fail)
     return Region(name=spec.name.strip(), path=path, text=text, dem=dem, releases=releases,
                   scenario=spec.scenario, window=spec.window, merge=spec.merge,
-                  base_dir=base_dir, description=spec.description)
+                  base_dir=base_dir, description=spec.description, scenarios=scenarios,
+                  thresholds=thresholds)
+
+
+def _region_thresholds(merge: MergeRules, scenarios: bool, stand_in, fail) -> dict:
+    """The exceedance maps' thresholds: parsed by the ensembles' own rules (a list: peak
+    thickness; a mapping per peak map); by default, with scenarios, the ensembles' defaults
+    for each merged field."""
+    from avflow.ensemble.spec import DEFAULT_SPEED_THRESHOLDS, DEFAULT_THRESHOLDS
+    from avflow.ensemble.spec import _thresholds as parse_thresholds
+
+    if merge.thresholds is None:
+        if not scenarios:
+            return {}
+        defaults = {"peak_thickness": DEFAULT_THRESHOLDS, "peak_speed": DEFAULT_SPEED_THRESHOLDS,
+                    "peak_pressure": tuple(stand_in.output.pressure_classes)}
+        return {FIELD_NAMES[f]: tuple(float(t) for t in defaults[FIELD_NAMES[f]])
+                for f in FIELD_NAMES if f in merge.fields}
+    value = merge.thresholds
+    if isinstance(value, (list, dict)):
+        value = json.loads(json.dumps(value))
+    parsed = parse_thresholds(value, lambda keys, message: fail(("merge", *keys), message))
+    return {name: parsed[name] for name in FIELD_NAMES.values() if name in parsed}
+
+
+def _scenarios(rules: ScenarioRules, stand_in, path, positions, fail) -> tuple:
+    """The region's scenarios: each return period crossed with the members the ensembles'
+    parser makes of ``vary`` and ``sample`` (its own checks, with their place here)."""
+    from avflow.ensemble.spec import EnsembleError, parse_ensemble
+
+    members = [{}]
+    if rules.vary is not None or rules.sample is not None:
+        for block in ENSEMBLE_KEYS:
+            where = getattr(rules, block)
+            keys = (where or {}).get("ranges", {}) if block == "sample" else (where or {})
+            for key in keys if isinstance(keys, dict) else ():
+                head = str(key).split(".")[0]
+                if head in REGION_BLOCKS:
+                    at = ("scenarios", block, *(("ranges",) if block == "sample" else ()), key)
+                    raise fail(at, f"{head} is set by the region for each release; vary the "
+                                   "scenario block's own fields (rheology, physics, time...)")
+        data = {"name": "region", **{k: getattr(rules, k) for k in ENSEMBLE_KEYS
+                                     if getattr(rules, k) is not None}}
+        try:
+            ensemble = parse_ensemble(yaml.safe_dump(json.loads(json.dumps(data)),
+                                                     sort_keys=False),
+                                      source_path=path, base=stand_in)
+        except EnsembleError as err:
+            first = err.problems[0]
+            keys = _keys_of(("scenarios",), first.field or "", positions)
+            raise fail(keys, first.message) from None
+        members = [m.updates for m in ensemble.members]
+    periods = [(p.years, _thickness_spec(p.thickness, ("scenarios", "return_periods", k,
+                                                      "thickness"), fail))
+               for k, p in enumerate(rules.return_periods or ())] or [(None, None)]
+    seen = set()
+    for k, (years, _) in enumerate(periods):
+        if years is not None and years in seen:
+            raise fail(("scenarios", "return_periods", k, "years"), f"{years} years twice: "
+                       "give each return period once")
+        seen.add(years)
+    out = []
+    for period, thickness in periods:
+        for updates in members:
+            out.append(RegionScenario(len(out), dict(updates), period, thickness))
+    return tuple(out)
+
+
+def _thickness_spec(value, keys: tuple, fail):
+    """A return period's thickness: m (a positive number), a polygon attribute's name, or
+    a :class:`ThicknessRule` mapping."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not (math.isfinite(value) and value > 0):
+            raise fail(keys, f"must be a positive number of metres, got {show(value)}")
+        return float(value)
+    if isinstance(value, str) and value.strip():
+        return value.strip()
+    if isinstance(value, dict):
+        try:
+            return ThicknessRule.model_validate(value)
+        except ValidationError as err:
+            e = err.errors()[0]
+            inner = tuple(e["loc"])
+            if e["type"] == "extra_forbidden":
+                hint = did_you_mean(str(inner[-1]), list(ThicknessRule.model_fields))
+                raise fail((*keys, *inner), "unknown field" + (hint or "")) from None
+            if e["type"] == "missing":
+                raise fail((*keys, *inner), "required, but missing") from None
+            message = e["msg"].replace("Input should be", "must be")
+            raise fail((*keys, *inner), f"{message}, got {show(e.get('input'))}") from None
+    raise fail(keys, "must be metres (a positive number), a polygon attribute's name or a "
+                     f"rule ({{d0: 1.2, ...}}), got {show(value)}")
+
+
+def _keys_of(prefix: tuple, dotted: str, positions: dict) -> tuple:
+    """The key path of a dotted field an inner parser named (its keys may hold dots
+    themselves, as ``vary: {rheology.delta_deg: ...}``): the written one it spells."""
+    want = ".".join(map(str, prefix)) + ("." + dotted if dotted else "")
+    found = [k for k in positions if ".".join(map(str, k)) == want]
+    if found:
+        return max(found, key=len)
+    return (*prefix, *[p for p in dotted.split(".") if p])
 
 
 def _first_error(err: ValidationError, fail) -> RegionError:
@@ -201,7 +451,9 @@ def _first_error(err: ValidationError, fail) -> RegionError:
     keys = tuple(k for k in e["loc"] if not (isinstance(k, str) and k.startswith("function-")))
     if e["type"] == "extra_forbidden":
         choices = {(): _RegionFile, ("releases",): Releases, ("window",): WindowRules,
-                   ("merge",): MergeRules}.get(keys[:-1])
+                   ("merge",): MergeRules, ("scenarios",): ScenarioRules}.get(keys[:-1])
+        if choices is None and keys[:2] == ("scenarios", "return_periods"):
+            choices = ReturnPeriod if len(keys) == 4 else ThicknessRule
         hint = did_you_mean(str(keys[-1]), list(choices.model_fields)) if choices else ""
         return fail(keys, "unknown field" + (hint or ""))
     if e["type"] == "missing":
@@ -243,10 +495,40 @@ def _check_dem(dem: str, fail) -> None:
         raise fail(("dem",), f"{dem}: no cell size in its georeferencing")
 
 
+def _check_release_raster(raster: str, dem: str, fail) -> None:
+    """A release raster on the DEM's grid: same CRS, cell size and alignment (header only)."""
+    import rasterio
+
+    from avflow.terrain.raster import same_crs
+
+    keys = ("releases", "raster")
+    try:
+        with rasterio.open(raster) as src:
+            t, crs = src.transform, src.crs
+        with rasterio.open(dem) as src:
+            d, dem_crs = src.transform, src.crs
+    except Exception as err:  # noqa: BLE001 - GDAL's own error, in one line
+        raise fail(keys, f"{raster}: cannot be read as a raster ({type(err).__name__}: "
+                         f"{' '.join(str(err).split())[:120]})") from None
+    if crs is not None and dem_crs is not None and not same_crs(crs.to_wkt(),
+                                                                 dem_crs.to_wkt()):
+        raise fail(keys, f"{raster}: its CRS differs from the DEM's; reproject it onto the "
+                         "DEM's grid (gdalwarp -t_srs ... -tr ... -tap)")
+    off_c, off_r = (t.c - d.c) / d.a, (t.f - d.f) / d.e
+    if (t.b != 0 or t.d != 0 or not math.isclose(t.a, d.a, rel_tol=1e-9)
+            or not math.isclose(t.e, d.e, rel_tol=1e-9)
+            or abs(off_c - round(off_c)) > 1e-6 or abs(off_r - round(off_r)) > 1e-6):
+        raise fail(keys, f"{raster}: its cells are not the DEM's (cell {t.a:g} x {-t.e:g} m "
+                         f"at {t.c:.6g}, {t.f:.6g}; the DEM's {d.a:g} x {-d.e:g} m at "
+                         f"{d.c:.6g}, {d.f:.6g}); warp it onto the DEM's grid first "
+                         "(gdalwarp -tr -tap, or -te with the DEM's bounds)")
+
+
 def _check_scenario_block(block: dict, path: str | None, positions: dict,
-                          base_dir: str) -> None:
+                          base_dir: str):
     """The block validated as a scenario on a stand-in plane and release, so that its own
-    errors are found now (with their place in the region file) rather than per release."""
+    errors are found now (with their place in the region file) rather than per release;
+    returns that stand-in scenario (the base the ensembles' parser varies)."""
     written = json.loads(json.dumps(block))
     written.update(name="region-check", grid={"dx": 10.0},
                    terrain={"kind": "plane", "slope_deg": 30.0,
@@ -257,7 +539,7 @@ def _check_scenario_block(block: dict, path: str | None, positions: dict,
     from avflow.scenario.schema import _validate  # the scenario's own validation, positions
 
     try:
-        _validate(written, path=path, base_dir=base_dir, positions=inner)
+        return _validate(written, path=path, base_dir=base_dir, positions=inner)
     except ScenarioError as err:
         problems = [Problem(p.message, path, f"scenario.{p.field}" if p.field else "scenario",
                             p.line, p.column) for p in err.problems]

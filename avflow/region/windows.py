@@ -96,6 +96,103 @@ class ReleaseArea:
     area: float  #: m^2, of the polygon
     bbox: tuple  #: (xmin, ymin, xmax, ymax), m
     problem: str = ""
+    #: values of the attributes that ``scenarios.return_periods`` names (m)
+    attributes: dict | None = None
+    #: a patch of a release raster: :class:`Patch` (None: a polygon)
+    patch: "Patch | None" = None
+    #: what the result depends on besides the polygon and thickness (a patch's values)
+    fingerprint: str = ""
+
+
+@dataclass(frozen=True)
+class Patch:
+    """One connected patch of a release raster, found again on a worker from a window of
+    the raster: the component with the ``seed`` cell (rows, columns in the DEM's pixels)."""
+
+    raster: str
+    box: tuple  #: (r0, r1, c0, c1), DEM pixels, end exclusive: the patch's cells
+    seed: tuple  #: (row, col), DEM pixels: its first cell in scan order
+    offset: tuple  #: (rows, cols) of the raster's first pixel in the DEM's pixels
+    connectivity: int
+    mean: float = math.nan  #: m, the mean thickness of its cells
+
+    def values(self, dem: "DemInfo", window) -> np.ndarray:
+        """The patch's thickness on a DEM window (north first, 0 outside the patch)."""
+        import rasterio
+        from rasterio.windows import Window
+        from scipy import ndimage
+
+        r0, r1, c0, c1 = self.box
+        orow, ocol = self.offset
+        with rasterio.open(self.raster) as src:
+            band = src.read(1, window=Window(c0 - ocol, r0 - orow, c1 - c0, r1 - r0),
+                            masked=True)
+        h = band.astype(float).filled(0.0)
+        h = np.where(np.isfinite(h) & (h > 0), h, 0.0)
+        labels, _ = ndimage.label(h > 0, structure=_structure(self.connectivity))
+        mine = labels == labels[self.seed[0] - r0, self.seed[1] - c0]
+        w0, w1, v0, v1 = window
+        out = np.zeros((w1 - w0, v1 - v0))
+        out[r0 - w0:r1 - w0, c0 - v0:c1 - v0] = np.where(mine, h, 0.0)
+        return out
+
+
+def _structure(connectivity: int) -> np.ndarray:
+    return np.ones((3, 3), bool) if connectivity == 8 else np.array(
+        [[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+
+
+def read_raster_releases(region, dem: DemInfo) -> list[ReleaseArea]:
+    """Every connected patch of cells above 0 of the region's release raster, one release
+    each (ids 1, 2... in scan order of their first cell). The raster is read whole (its
+    labels: 4 bytes a cell); each release keeps only its box and first cell."""
+    import hashlib
+
+    import rasterio
+    import shapely
+    from rasterio.features import shapes
+    from rasterio.transform import from_origin
+    from scipy import ndimage
+
+    from avflow.region.spec import RegionError
+
+    spec = region.releases
+    with rasterio.open(spec.raster) as src:
+        t = src.transform
+        h = src.read(1, masked=True).astype(float).filled(0.0)
+    orow, ocol = round((t.f - dem.y0) / -dem.dy), round((t.c - dem.x0) / dem.dx)
+    h = np.where(np.isfinite(h) & (h > 0), h, 0.0)
+    labels, n = ndimage.label(h > 0, structure=_structure(spec.connectivity))
+    if n == 0:
+        raise RegionError(f"{spec.raster}: holds no cell above 0 (no release)", region.path,
+                          "releases.raster")
+    out = []
+    xmin, ymin, xmax, ymax = dem.bounds
+    for k, sl in enumerate(ndimage.find_objects(labels)):
+        rid = k + 1
+        mine = labels[sl] == rid
+        rows, cols = np.nonzero(mine)
+        first = (int(rows[0]) + sl[0].start + orow, int(cols[0]) + sl[1].start + ocol)
+        r0, r1 = sl[0].start + orow, sl[0].stop + orow
+        c0, c1 = sl[1].start + ocol, sl[1].stop + ocol
+        transform = from_origin(dem.x0 + c0 * dem.dx, dem.y0 - r0 * dem.dy, dem.dx, dem.dy)
+        geom = shapely.union_all([shapely.geometry.shape(g) for g, _ in shapes(
+            mine.astype(np.uint8), mask=mine, transform=transform, connectivity=8)])
+        values = np.where(mine, h[sl], 0.0)
+        thick = float(values[mine].mean())
+        box = tuple(float(v) for v in geom.bounds)
+        problem = ""
+        if r0 < 0 or c0 < 0 or r1 > dem.height or c1 > dem.width:
+            problem = (f"outside the DEM (its box {_box(box)} against the DEM's "
+                       f"{_box((xmin, ymin, xmax, ymax))})")
+        digest = hashlib.sha256(np.ascontiguousarray(values).tobytes()
+                                + repr(values.shape).encode()).hexdigest()[:16]
+        thickness = spec.thickness  # None: the raster's values
+        out.append(ReleaseArea(rid, k, shapely.to_wkb(geom), thickness,
+                               float(mine.sum()) * dem.dx * dem.dy, box, problem, None,
+                               Patch(spec.raster, (r0, r1, c0, c1), first, (orow, ocol),
+                                     spec.connectivity, thick), f"raster:{digest}"))
+    return out
 
 
 def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
@@ -107,6 +204,8 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
     from avflow.region.spec import RegionError
 
     spec = region.releases
+    if spec.raster is not None:
+        return read_raster_releases(region, dem)
     try:
         meta, _, wkb, columns = pyogrio.raw.read(spec.path)
     except Exception as err:  # noqa: BLE001 - GDAL's error: one line naming the file
@@ -122,7 +221,18 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
                               f"{', '.join(fields) or 'none'})", region.path,
                               "releases.id_field")
         ids = fields[lower[spec.id_field.lower()]]
-    thick_name = spec.thickness_field or ("thickness" if spec.thickness is None else None)
+    by_period = {rs.thickness for rs in region.scenarios if isinstance(rs.thickness, str)}
+    periods = any(rs.return_period is not None for rs in region.scenarios)
+    thick_name = spec.thickness_field or ("thickness" if spec.thickness is None
+                                          and not periods else None)
+    named = {}
+    for name in sorted(by_period):
+        if name.lower() not in lower:
+            rp = next(rs.return_period for rs in region.scenarios if rs.thickness == name)
+            raise RegionError(f"{spec.path} has no attribute {name!r} (it has: "
+                              f"{', '.join(fields) or 'none'}); the thickness of "
+                              f"{rp} years", region.path, "scenarios.return_periods")
+        named[name] = fields[lower[name.lower()]]
     thicknesses = None
     if thick_name is not None:
         if thick_name.lower() not in lower:
@@ -161,6 +271,11 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
             thickness = _number(thicknesses[k])
             if thickness is None or not thickness > 0:
                 problem = f"thickness {thicknesses[k]!r} is not a positive number of metres"
+        attributes = {name: _number(values[k]) for name, values in named.items()}
+        for name, value in attributes.items():
+            if value is None or not value > 0:
+                problem = (f"{name} {named[name][k]!r} is not a positive number of metres "
+                           "(scenarios.return_periods)")
         if geom is None or geom.is_empty:
             problem, area, box = "empty geometry", 0.0, (math.nan,) * 4
         else:
@@ -173,7 +288,7 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
                 problem = (f"outside the DEM (its box {_box(box)} against the DEM's "
                            f"{_box(dem.bounds)})")
         out.append(ReleaseArea(rid, k, b"" if geom is None else shapely.to_wkb(geom), thickness,
-                               area, box, crs_problem or problem))
+                               area, box, crs_problem or problem, attributes or None))
     if not out:
         raise RegionError(f"{spec.path}: holds no feature", region.path, "releases.path")
     return out
@@ -242,3 +357,40 @@ def estimate_buffer(dem: DemInfo, bbox, rules) -> float:
 
 def _has_data(dem: DemInfo, box) -> bool:
     return box[1] > box[0] and box[3] > box[2]
+
+
+def rule_thickness(dem: DemInfo, wkb: bytes, rule) -> tuple[float, float, float]:
+    """``(thickness, mean elevation, mean slope in degrees)`` of a release by a
+    :class:`~avflow.region.spec.ThicknessRule`, over the DEM cells whose centres lie in
+    the polygon (those a run releases), slopes by central differences."""
+    import shapely
+    from rasterio.features import rasterize
+    from rasterio.transform import from_origin
+
+    geom = shapely.from_wkb(wkb)
+    r0, r1, c0, c1 = pixel_box(dem, geom.bounds)
+    r0, r1, c0, c1 = max(r0 - 1, 0), min(r1 + 1, dem.height), max(c0 - 1, 0), \
+        min(c1 + 1, dem.width)
+    z = read_window(dem, (r0, r1, c0, c1))
+    inside = rasterize([(geom, 1)], out_shape=z.shape, fill=0, dtype="uint8",
+                       transform=from_origin(dem.x0 + c0 * dem.dx, dem.y0 - r0 * dem.dy,
+                                             dem.dx, dem.dy)).astype(bool)
+    inside &= np.isfinite(z)
+    if not inside.any():
+        raise ValueError("no DEM cell centre with data inside the polygon (for the "
+                         "thickness rule)")
+    gy, gx = np.gradient(z, dem.dy, dem.dx) if min(z.shape) > 1 else (z * 0, z * 0)
+    slope = np.degrees(np.arctan(np.hypot(gx, gy)))
+    elevation = float(np.mean(z[inside]))
+    psi = float(np.nanmean(slope[inside]))
+    d = rule.d0 + rule.gradient * (elevation - rule.reference_elevation) / 100.0
+    if rule.slope_correction:
+        s, c = math.sin(math.radians(psi)), math.cos(math.radians(psi))
+        if not s - 0.202 * c > 0.05:
+            raise ValueError(f"mean slope {psi:.1f} degrees: too gentle for the slope "
+                             "correction of the thickness rule (f(psi) needs psi > 14 deg)")
+        d *= 0.291 / (s - 0.202 * c)
+    if not d > 0:
+        raise ValueError(f"the thickness rule gives {d:.3g} m at a mean elevation of "
+                         f"{elevation:.0f} m")
+    return float(d), elevation, psi
