@@ -385,9 +385,6 @@ def test_velocity_weakening_mobility_grows_with_volume_coarse():
     assert h_over_l[0] > h_over_l[1] > h_over_l[2]  # mobility grows with volume
     measured = vm.slope(rows, "velocity_weakening")
     assert measured == pytest.approx(-0.037, abs=0.01)
-    # the target (-0.157 +- 0.05) is not met here: if this fails, it is, and the
-    # docs should say so
-    assert measured > -0.157 + 0.05
     # the same flows under Coulomb with mu_s go less far at every volume
     assert max(h_over_l) < vm.run_member(vm.law_members()[0], 1e6, cells=4)["H_over_L"]
 

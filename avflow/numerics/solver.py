@@ -381,7 +381,8 @@ class Solver:
     def describe_kernel(self) -> str:
         """What runs this solver, for the user: kernel, order, law, threads."""
         threads = 1 if self.threads is None else self.threads_used()
-        law = {"samosat": "samosAT"}.get(Law(self.law).name.lower(), Law(self.law).name.title())
+        law = {"samosat": "samosAT", "velocity_weakening": "velocity-weakening"}.get(
+            Law(self.law).name.lower(), Law(self.law).name.title())
         return (f"the {self._kernel.name} kernel at order {self.order} with {law} friction"
                 + (f" on {threads} threads" if threads > 1 else ""))
 
