@@ -95,7 +95,7 @@ def run(case):
             solver._gather_from = 1
             if order == 1:
                 m = ter.mesh
-                solver._sweep = (solver._sweep[0], face_sweep.work(
+                solver._sweep = solver._sweep._replace(work=face_sweep.work(
                     m.n_cells, m.n_faces, 2, min_piece=8, max_pieces=32, face_pieces=8))
     state = solver.new_state(_release(ter, kind))
     out = {f: [] for f in FIELDS}

@@ -130,7 +130,7 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                                  observers, when, lists, False, np.zeros((0, 2, 3)), True,
                                  emit)
             else:
-                step, sweep = step_new, (solver._sweep[0], works[kernel])
+                step, sweep = step_new, (solver._sweep.geometry, works[kernel])
                 if kernel in THREAD_KERNELS:
                     step = (face_sweep.STEP_PIECES_SERIAL[kind] if kernel == "pieces serially"
                             else face_sweep.STEP_THREADS[kind])
@@ -438,9 +438,8 @@ def test_one_and_two_threads_give_the_same_run(mesh_kind, law, params):
         if threads > 1:
             m = terrain.mesh
             solver._gather_from = 1
-            solver._sweep = (solver._sweep[0], face_sweep.work(m.n_cells, m.n_faces, 2,
-                                                                min_piece=8, max_pieces=32,
-                                                                face_pieces=8))
+            solver._sweep = solver._sweep._replace(work=face_sweep.work(
+                m.n_cells, m.n_faces, 2, min_piece=8, max_pieces=32, face_pieces=8))
         state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
         snapshots = []
         for t in (0.5, 3.0, 7.0, 12.0, 20.0, 30.0):

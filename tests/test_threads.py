@@ -60,7 +60,7 @@ def test_probes_and_switches_between_threads_leave_the_run_bit_for_bit(monkeypat
                 solver._gather_from = from_cells
                 if order == 1:  # pieces of a few cells, as tests/test_face_sweep.py
                     m = terrain.mesh
-                    solver._sweep = (solver._sweep[0], face_sweep.work(
+                    solver._sweep = solver._sweep._replace(work=face_sweep.work(
                         m.n_cells, m.n_faces, 2, min_piece=8, max_pieces=32, face_pieces=8))
         state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
         snapshots = []

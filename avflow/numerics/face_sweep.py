@@ -58,6 +58,8 @@ N_CELL_LINES = 4
 #: What the sweep reads of a mesh besides its frames and lengths (:func:`geometry`)
 SweepGeometry = namedtuple("SweepGeometry", "pairs inv_area curvature face_ptr face_idx "
                            "open_faces span near_edge edge_cells")
+#: What a solver keeps of the sweep: its geometry and its work arrays
+Sweep = namedtuple("Sweep", "geometry work")
 #: The sweep's work arrays (:func:`work`)
 SweepWork = namedtuple("SweepWork", "emit mass per_cell runs side pieces cut face_mark "
                        "shared_mark shared_cells cold")
@@ -143,15 +145,16 @@ def work(n_cells: int, n_faces: int, threads: int = 1, min_piece: int | None = N
 def unused():
     """The same tuples, empty: for the time loops that do not run this sweep (same types,
     so one compiled loop serves both)."""
-    return (SweepGeometry(np.empty((0, 2), dtype=np.int32), np.empty(0), np.empty((3, 0)),
-                          np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
-                          np.empty(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
-                          np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64)),
-            SweepWork(np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
-             np.empty(0, dtype=np.int64), np.empty((4, 0)), np.empty(0, dtype=np.int64),
-             np.zeros(N_CUT, dtype=np.int64), np.empty(0, dtype=np.int64),
-             np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64),
-             np.empty(0, dtype=np.int64)))
+    return Sweep(
+        SweepGeometry(np.empty((0, 2), dtype=np.int32), np.empty(0), np.empty((3, 0)),
+                      np.zeros(1, dtype=np.int64), np.empty(0, dtype=np.int64),
+                      np.empty(0, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                      np.empty(0, dtype=np.uint8), np.empty(0, dtype=np.int64)),
+        SweepWork(np.empty((N_EMIT, 0)), np.empty(0), np.empty((N_CELL_LINES, 0)),
+                  np.empty(0, dtype=np.int64), np.empty((4, 0)), np.empty(0, dtype=np.int64),
+                  np.zeros(N_CUT, dtype=np.int64), np.empty(0, dtype=np.int64),
+                  np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64),
+                  np.empty(0, dtype=np.int64)))
 
 
 @njit(error_model="numpy", cache=True)

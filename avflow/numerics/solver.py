@@ -227,7 +227,8 @@ class Solver:
             geo = face_sweep.geometry(m, 1.0 / m.cell_area, self.terrain.curvature,
                                       self._cell_face_ptr, self._cell_face_idx, threads > 1)
             on_threads = threads > 1 and face_sweep.pieces_stay_local(geo, m.n_faces, threads)
-            self._sweep = (geo, face_sweep.work(n, m.n_faces, threads if on_threads else 1))
+            self._sweep = face_sweep.Sweep(geo, face_sweep.work(n, m.n_faces,
+                                                                threads if on_threads else 1))
         else:
             self._sweep = face_sweep.unused()
         self._face_offset = (face_offsets(self.terrain) if self.order == 2 and not m.structured_1d
@@ -345,7 +346,7 @@ class Solver:
                 full[layout.place] = getattr(state, name)
         # ring buffers of the kernel's blocks, a set per thread, made once (each step made
         # its own before: 0.7-1 ms a step on a map 2000 cells wide)
-        if self._g_rings is None or self._g_rings[0].shape[0] < threads:
+        if self._g_rings is None or self._g_rings.emit.shape[0] < threads:
             self._g_rings = _rings(self.threads_used(), layout.nx)
         # the state's own flags: the kernel writes those of the cells it sweeps and keeps
         # the others (a flag buffer kept by the solver gave a second state the flags the

@@ -615,6 +615,11 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
 RING = 4
 
 
+#: A set of ring buffers per thread (:func:`_rings`): rows' emitted values, their x faces
+#: and the y faces below them, flags, scratch lines, trial momenta, a row's marks
+Rings = namedtuple("Rings", "emit x_faces y_faces flags scratch qx qy marks")
+
+
 @njit(error_model="numpy", cache=True)
 def _rings(n, nx):
     """``n`` sets of a block's ring buffers (:func:`_sweep_block`), one per thread: what rows
@@ -632,10 +637,10 @@ def _rings(n, nx):
     map's sides) decide nothing, a boundary face's ghost taking its cell's flag
     (tests/test_square_grid.py fills the sets with NaN and FLOWING flags between calls: the
     same bits)."""
-    return (np.zeros((n, RING, N_EMIT, nx)), np.zeros((n, RING, 5, nx + 1)),
-            np.zeros((n, RING, 5, nx)), np.full((n, RING, nx + 2), DRY, dtype=np.uint8),
-            np.zeros((n, N_SCRATCH, nx)), np.zeros((n, RING, nx)), np.zeros((n, RING, nx)),
-            np.zeros((n, nx), dtype=np.uint8))
+    return Rings(np.zeros((n, RING, N_EMIT, nx)), np.zeros((n, RING, 5, nx + 1)),
+                 np.zeros((n, RING, 5, nx)), np.full((n, RING, nx + 2), DRY, dtype=np.uint8),
+                 np.zeros((n, N_SCRATCH, nx)), np.zeros((n, RING, nx)),
+                 np.zeros((n, RING, nx)), np.zeros((n, nx), dtype=np.uint8))
 
 
 def _block_for(law, label):
@@ -679,9 +684,9 @@ def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, b
                 physics.law, physics.params, physics.g, physics.dirac, physics.h_dry,
                 physics.h_zero, dt, dt_decide, t_new, obs.peak_h, obs.peak_speed,
                 obs.arrival, obs.last_moved, r0, r1, band.lo, band.hi, band.rows,
-                band.wet_lo, band.wet_hi, rings[0][slot], rings[1][slot], rings[2][slot],
-                rings[3][slot], rings[4][slot], rings[5][slot], rings[6][slot],
-                rings[7][slot])
+                band.wet_lo, band.wet_hi, rings.emit[slot], rings.x_faces[slot],
+                rings.y_faces[slot], rings.flags[slot], rings.scratch[slot], rings.qx[slot],
+                rings.qy[slot], rings.marks[slot])
 
 
 #: Placeholder of the constant of the copies of :func:`_advance_grid` (whether it has the
@@ -821,7 +826,7 @@ def _advance_grid(threads, grid, fields, work, physics, run):
     cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
     stop_volume, stop_kinetic = run.stop_volume, run.stop_kinetic
     min_parallel_cells, min_block_rows = run.min_parallel_cells, run.min_block_rows
-    if threads > rings[0].shape[0]:
+    if threads > rings.emit.shape[0]:
         threads = 1  # fewer sets of ring buffers than threads: every step serial
     t = stats[ST_TIME]
     status = REACHED_TARGET
