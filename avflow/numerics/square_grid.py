@@ -32,6 +32,12 @@ fluxes, frames, curvature), boundary faces in a second, scalar pass, and a copy 
 sweep per friction law. The same arithmetic written with branches ran about twice as
 long a cell (docs/performance.md).
 
+Order 2 (Heun's two stages, :func:`_order2_step`) runs the same sweep twice, its faces fed
+each row's reconstructed sides (:func:`_recon_row`, the face kernel's limited linear
+reconstruction cell by cell) instead of the cells' emitted values, then merges the stages per
+row (:func:`_heun_rows`): the face kernel's answers at order 2, bit for bit, the grid-wide
+sums to round-off.
+
 ``prange`` runs serially when a function is compiled without ``parallel``: the sweep is
 compiled twice (serial and parallel), and one thread takes the serial one, which never
 touches Numba's thread pool (safe inside dask workers and any thread). The time loop is
@@ -48,13 +54,15 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, dt_from_inverse,
-                                 final_momentum, observe, observe_cell, open_mass, step_terms,
+from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, cell_moves,
+                                 dt_from_inverse, emitted_state, final_momentum, heun_average,
+                                 observe, observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
+from avflow.numerics.reconstruction import _bj_factor
 from avflow.numerics.sources import SRC_KIND, add_span
-from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                      ST_SOURCE, ST_TIME, Conserved, Observers, record_end,
-                                      record_step, step_size)
+from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FALLBACK,
+                                      ST_RETRIES, ST_SOURCE, ST_TIME, Conserved, Observers,
+                                      StepTime, record_end, record_step, step_size)
 from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
@@ -70,7 +78,13 @@ R_MOVING = 3
 R_FILM = 4
 R_KINETIC = 5
 R_CLAMPED = 6
-N_ROW = 7
+R_FALLBACK = 7  #: order 2: cells of the row where Heun's merge fell back to q = 0
+N_ROW = 8
+
+#: Whether a copy of the row passes runs a stage of order 2 (a constant in each copy,
+#: :func:`_block_for`): gravity and friction explicit in the stage (physics.trial_momentum),
+#: no observers, each cell's transport kept for Heun's merge
+ORDER2 = False
 
 
 #: Per-cell values of an emitted row (:func:`_emit_row`)
@@ -188,17 +202,21 @@ def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, kh
 
 @noalias
 @njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
-def _x_faces(k0, k1, codes, frames, lengths, emit, out):
+def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
     """x faces ``k0..k1`` of a row (face k between cells k - 1 and k) into ``out[:, k]``
-    (``frames``: the row's ``(4, nx + 1)`` normals).
+    (``frames``: the row's ``(4, nx + 1)`` normals; ``west``: what the west cell k - 1
+    emits through its east side, ``east``: what cell k emits through its west side, both
+    the row's emitted values at order 1, the reconstructed sides at order 2).
 
     Two passes: every face inside the map (``1 <= k < nx``) as an INNER face, in one
     branch-free loop that LLVM vectorises (:func:`_inner_select`), then the few others
     (walls, open sides, the map's two sides) again with
     :func:`_face_flux`, which overwrites them (a NO_FACE keeps values nobody reads)."""
-    nx = emit.shape[1]
-    e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
-    e_s, e_kh, e_k3 = emit[E_S], emit[E_KH], emit[E_K3]
+    nx = east.shape[1]
+    w_h, w_u1, w_u2, w_c = west[E_H], west[E_U1], west[E_U2], west[E_C]
+    w_s, w_kh, w_k3 = west[E_S], west[E_KH], west[E_K3]
+    e_h, e_u1, e_u2, e_c = east[E_H], east[E_U1], east[E_U2], east[E_C]
+    e_s, e_kh, e_k3 = east[E_S], east[E_KH], east[E_K3]
     n0x, n0y, n1x, n1y = frames[0], frames[1], frames[2], frames[3]
     o0, o1, o2, o3, o4 = out[0], out[1], out[2], out[3], out[4]
     a = max(k0, 1)
@@ -206,8 +224,8 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
     for j in range(b + 1 - a):
         k = a + j  # >= 1: the west cell k - 1 >= 0, no wraparound
         f0, f1, f2, f3, f4 = _inner_select(
-            codes[k], e_h[k - 1], e_u1[k - 1], e_u2[k - 1], e_c[k - 1], e_s[k - 1],
-            e_kh[k - 1], e_k3[k - 1], e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k],
+            codes[k], w_h[k - 1], w_u1[k - 1], w_u2[k - 1], w_c[k - 1], w_s[k - 1],
+            w_kh[k - 1], w_k3[k - 1], e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k],
             e_k3[k], n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
         o1[k] = f1
@@ -219,10 +237,15 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
         kind = code & KIND
         if kind == INNER or kind == NO_FACE:
             continue
-        m = k if kind >= HIGH_WALL else k - 1  # the owner: east cell for HIGH_*, else west
-        f0, f1, f2, f3, f4 = _face_flux(
-            code, e_h[m], e_u1[m], e_u2[m], e_c[m], e_s[m], e_kh[m], e_k3[m],
-            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
+        if kind >= HIGH_WALL:  # the owner: the east cell for HIGH_*, else the west one
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
+        else:
+            m = k - 1
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, w_h[m], w_u1[m], w_u2[m], w_c[m], w_s[m], w_kh[m], w_k3[m],
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
         o1[k] = f1
         o2[k] = f2
@@ -277,6 +300,162 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
         o2[c] = f2
         o3[c] = f3
         o4[c] = f4
+
+
+#: The sides of a cell in the reconstruction's lines (:func:`_recon_row`): W, E, S, N
+SIDE_W, SIDE_E, SIDE_S, SIDE_N = range(4)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _gg_face(hc, uc1, uc2, own, code, i, other, n_sx, n_sy, n_ox, n_oy, w, h, hu, hv, h_zero):
+    """One face of a wet cell in the Green-Gauss sums of
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` (the same operations, so the
+    same bits): ``own`` is the cell's side of the face (0: first cell), ``n_s``/``n_o`` the
+    frame normals of the cell's side and of the other (tangents ``t = s (-n_y, n_x)``, the
+    sign in the code's bits). Returns ``(wx, wy, ho, uo1, uo2, front)``: the weights of the
+    face's mean values, the neighbour's thickness and velocity in this cell's basis (the
+    cell's own beyond a boundary face: zero normal gradient), whether it is dry."""
+    s_s = -1.0 if code & (SIGN1 if own == 1 else SIGN0) else 1.0
+    s_o = -1.0 if code & (SIGN0 if own == 1 else SIGN1) else 1.0
+    nx = -n_sx if own == 1 else n_sx  # the frame's normal points from i to j
+    ny = -n_sy if own == 1 else n_sy
+    front = False
+    if (code & KIND) == INNER:
+        ho = h[other]
+        if ho > h_zero:  # its velocity, turned through the face into this cell's basis
+            v1 = hu[other] / ho
+            v2 = hv[other] / ho
+            un = v1 * n_ox + v2 * n_oy
+            ut = v1 * (s_o * -n_oy) + v2 * (s_o * n_ox)
+            uo1 = un * n_sx + ut * (s_s * -n_sy)
+            uo2 = un * n_sy + ut * (s_s * n_sx)
+        else:
+            uo1 = uc1
+            uo2 = uc2
+            front = True
+    else:  # the map's edge, a wall, a hole: zero normal gradient
+        ho = hc
+        uo1 = uc1
+        uo2 = uc2
+    return w * nx, w * ny, ho, uo1, uo2, front
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _put_side(out, c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front,
+              g_normal, dens):
+    """A wet cell's reconstructed state on one side (offset ``(rx, ry)`` in its basis), as
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` writes it, then what it emits
+    there (:func:`~avflow.numerics.physics.emitted_state`, as step_faces at order 2)."""
+    hf = hc + a0 * (g0 * rx + g1 * ry)
+    hf = max(hf, 0.0)
+    u1 = uc1
+    u2 = uc2
+    if not front:  # no velocity slope towards a dry neighbour
+        u1 += a1 * (g2 * rx + g3 * ry)
+        u2 += a2 * (g4 * rx + g5 * ry)
+    (out[E_H, c], out[E_U1, c], out[E_U2, c], out[E_C, c], out[E_S, c], out[E_KH, c],
+     out[E_K3, c]) = emitted_state(hf, hf * u1, hf * u2, 0.0, g_normal, dens)
+
+
+@noalias
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
+def _recon_row(r, c0, c1, nx, ny, x_code, ys_code, yn_code, x_frame, ys_frame, yn_frame,
+               x_len, ys_len, yn_len, x_off, ys_off, yn_off, cell_area, density, gamma_z, h,
+               hu, hv, h_zero, g, out):
+    """Order 2: what each cell ``c0..c1`` of row r emits through each of its sides
+    (``out[SIDE_*, E_*, c]``) from its limited linear reconstruction: Green-Gauss gradients
+    of h and of the velocity in the cell's basis over its faces W, E, S, N (their order of
+    index in the mesh), Barth-Jespersen factors, the state at each face's offset
+    (``x_off``, ``ys_off``, ``yn_off``: the row's offsets ``(rx0, ry0, rx1, ry1)`` of each
+    face's two sides, :func:`avflow.numerics.solver.face_offsets`). The face kernel's
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` and step_faces' emitted
+    states at order 2, the same operations, so the same bits. A cell at or below h_zero
+    emits nothing (and reads no neighbour: only wet cells' neighbours lie in the region
+    the work buffers hold, :func:`_sync_work`)."""
+    base = r * nx
+    for c in range(max(c0, 0), c1 + 1):
+        i = base + c
+        hc = h[i]
+        if not hc > h_zero:
+            for side in range(4):
+                for e in range(7):
+                    out[side, e, c] = 0.0
+            continue
+        uc1 = hu[i] / hc
+        uc2 = hv[i] / hc
+        inv_w = cell_area[i]
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        lo0 = hi0 = hc
+        lo1 = hi1 = uc1
+        lo2 = hi2 = uc2
+        front = False
+        # W (x face c: this cell its second side when inner), E (x face c + 1: its first),
+        # S (y face below: second when inner), N (y face above: first)
+        cw, ce, cs, cn = x_code[c], x_code[c + 1], ys_code[c], yn_code[c]
+        own_w = 1 if (cw & KIND) == INNER else 0
+        own_s = 1 if (cs & KIND) == INNER else 0
+        for f in range(4):
+            if f == SIDE_W:
+                code, own, other, length = cw, own_w, i - 1, x_len[c]
+                fr = x_frame
+                k = c
+            elif f == SIDE_E:
+                code, own, other, length = ce, 0, i + 1, x_len[c + 1]
+                fr = x_frame
+                k = c + 1
+            elif f == SIDE_S:
+                code, own, other, length = cs, own_s, i - nx, ys_len[c]
+                fr = ys_frame
+                k = c
+            else:
+                code, own, other, length = cn, 0, i + nx, yn_len[c]
+                fr = yn_frame
+                k = c
+            a = 2 * own
+            b = 2 - a
+            wx, wy, ho, uo1, uo2, dry = _gg_face(
+                hc, uc1, uc2, own, code, i, other, fr[a, k], fr[a + 1, k], fr[b, k],
+                fr[b + 1, k], length / inv_w, h, hu, hv, h_zero)
+            front = front or dry
+            mid = 0.5 * (hc + ho)
+            g0 += wx * mid
+            g1 += wy * mid
+            lo0 = ho if ho < lo0 else lo0
+            hi0 = ho if ho > hi0 else hi0
+            mid = 0.5 * (uc1 + uo1)
+            g2 += wx * mid
+            g3 += wy * mid
+            lo1 = uo1 if uo1 < lo1 else lo1
+            hi1 = uo1 if uo1 > hi1 else hi1
+            mid = 0.5 * (uc2 + uo2)
+            g4 += wx * mid
+            g5 += wy * mid
+            lo2 = uo2 if uo2 < lo2 else lo2
+            hi2 = uo2 if uo2 > hi2 else hi2
+        # the offsets of the cell's side of each face (zero on boundary faces)
+        a = 2 * own_w
+        rwx, rwy = x_off[a, c], x_off[a + 1, c]
+        rex, rey = x_off[0, c + 1], x_off[1, c + 1]
+        a = 2 * own_s
+        rsx, rsy = ys_off[a, c], ys_off[a + 1, c]
+        rnx, rny = yn_off[0, c], yn_off[1, c]
+        a0 = a1 = a2 = 1.0
+        for f in range(4):
+            rx = rwx if f == SIDE_W else rex if f == SIDE_E else rsx if f == SIDE_S else rnx
+            ry = rwy if f == SIDE_W else rey if f == SIDE_E else rsy if f == SIDE_S else rny
+            a0 = _bj_factor(a0, g0 * rx + g1 * ry, hc, lo0, hi0, True)
+            a1 = _bj_factor(a1, g2 * rx + g3 * ry, uc1, lo1, hi1, False)
+            a2 = _bj_factor(a2, g4 * rx + g5 * ry, uc2, lo2, hi2, False)
+        g_normal = g * gamma_z[i]
+        dens = density[i]
+        _put_side(out[SIDE_W], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rwx, rwy,
+                  front, g_normal, dens)
+        _put_side(out[SIDE_E], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rex, rey,
+                  front, g_normal, dens)
+        _put_side(out[SIDE_S], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rsx, rsy,
+                  front, g_normal, dens)
+        _put_side(out[SIDE_N], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rnx, rny,
+                  front, g_normal, dens)
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -342,7 +521,7 @@ def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
         qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[c], hu[i], hv[i],
                                      mh * ia, mx * ia, my * ia, dt,
                                      dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
-                                     centripetal, lw, p0, p1, p2, p3, p4, p5, p6, p7, g, False)
+                                     centripetal, lw, p0, p1, p2, p3, p4, p5, p6, p7, g, ORDER2)
         dry = h[i] <= h_zero  # no trial: the momentum sum itself
         qx_out[c] = mx if dry else qx
         qy_out[c] = my if dry else qy
@@ -362,7 +541,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
                  yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area, cfl_factor,
                  gamma_x, gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
                  params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
-                 last_moved, rows, wet_lo, wet_hi, marks, t_inv, t_kin, t_mov, t_film, t_out):
+                 last_moved, rows, wet_lo, wet_hi, marks, t_inv, t_kin, t_mov, t_film, t_out,
+                 em_s, em_n, transport):
     """Final update of row r, in two loops: (1) mass through the faces that keep the
     rectangular density, the projection; h, q and the flag of each cell, and ``marks[c]``
     (its Dirac faces and whether its update was kept, ``M_*``); (2) from what (1) wrote, the
@@ -378,7 +558,14 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
 
     Two loops, because one loop over the forty-odd lines of both kept most of their base
     pointers on the stack; in one function, because a call per loop cost every row a
-    fixed overhead (both measured: docs/performance.md)."""
+    fixed overhead (both measured: docs/performance.md).
+
+    In a stage of order 2 (``ORDER2``, a constant of the copy): friction with the stage's
+    own thickness (physics.final_momentum's ``explicit``), no observers (a stage's state is
+    not one of the run's), and ``transport[i]``, the largest mass flux per metre through
+    the cell's faces that are not Dirac, written where the face kernel's stage would touch
+    the cell (it or a neighbour across an inner face wet: ``em_s``, ``em``, ``em_n``, the
+    emitted thickness of the rows below, of this one and above) for Heun's merge."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
@@ -442,7 +629,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         qy = dt * (by / area + g * hn * gy) if dry else qy
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
         qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
-                                     p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
+                                     p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, ORDER2)
         # writes: the new value where the cell is updated, else what is there
         flag[i] = fi if inside else old_flag
         # (a cell outside the DEM keeps h = 0, q = 0; one that went below 0 writes what it
@@ -480,7 +667,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
                                 g)
         peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-            good, hn, speed, t_new, h_dry, old_peak_h, old_peak_speed, old_arrival, old_moved)
+            good & (not ORDER2), hn, speed, t_new, h_dry, old_peak_h, old_peak_speed,
+            old_arrival, old_moved)
         # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
         # per metre (physics.cell_moves; compared as |fh| > eps h |u^n| L: no division)
         limit = TRANSPORT_EPS * hn * speed_n
@@ -503,6 +691,15 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         out_s = -sm * dt if open_s else 0.0
         out_n = -nm * dt if open_n else 0.0
         t_out[c] = ((out_w + out_e) + out_s) + out_n if good else 0.0
+        if ORDER2:  # step_faces' transport: only faces that are not Dirac (eq. 53)
+            unit = max(max(max(0.0 if d_w else abs(wm) / len_w, 0.0 if d_e else abs(e_m) / len_e),
+                           0.0 if d_s else abs(sm) / len_s), 0.0 if d_n else abs(nm) / len_n)
+            e_h = em[E_H]
+            touched = ((e_h[c] > 0.0) | (((w_code & KIND) == INNER) & (e_h[max(c - 1, 0)] > 0.0))
+                       | (((e_code & KIND) == INNER) & (e_h[min(c + 1, e_h.size - 1)] > 0.0))
+                       | (((s_code & KIND) == INNER) & (em_s[E_H, c] > 0.0))
+                       | (((n_code & KIND) == INNER) & (em_n[E_H, c] > 0.0)))
+            transport[i] = unit if touched else transport[i]
         wet = good & (hn > h_zero)
         w_lo = min(w_lo, c) if wet else w_lo
         w_hi = max(w_hi, c) if wet else w_hi
@@ -538,7 +735,8 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y,
                  gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac,
                  h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
-                 r0, r1, lo, hi, rows, wet_lo, wet_hi, emit, xf, yf, fl, scratch, qx, qy, marks):
+                 r0, r1, lo, hi, rows, wet_lo, wet_hi, emit, xf, yf, fl, scratch, qx, qy, marks,
+                 x_off, y_off, transport, recon):
     """One step on the rows ``a..b`` of the swept band ``r0..r1``, as a wavefront: at stage
     k the faces of row k (its x faces, the y faces below it), the trial of row k - 1, the
     final update of row k - 2, so that a row's fluxes and flags are still in cache when they
@@ -548,7 +746,12 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
 
     Compiled once per friction law with that law's copies of the cell loops
     (:func:`~avflow.numerics.vectorize.by_law`): one call per block, rather than a layer
-    of dispatch per row (docs/performance.md)."""
+    of dispatch per row (docs/performance.md).
+
+    A stage of order 2 (``ORDER2``) is the same sweep, its faces fed the reconstructed
+    sides of each row (:func:`_recon_row`, into the ring ``recon``; ``x_off``, ``y_off``:
+    the faces' offsets) instead of the cells' emitted values, which the cell passes still
+    read for u^n and |u^n|."""
     ring = RING
     for k in range(a - 1, b + 3):
         # --- faces of row k: what rows k - 1 and k emit, computed once per cell
@@ -560,21 +763,42 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
             n1 = max(max(p1_, s1), q1) + 1
             _emit_row((k - 1) * nx, max(n0, 0), min(n1, nx - 1), h, hu, hv, gamma_z,
                       density, h_zero, g, emit[(k - 1) % ring])
+            if ORDER2:
+                _recon_row(k - 1, max(n0, 0), min(n1, nx - 1), nx, ny, x_code[k - 1],
+                           y_code[k - 1], y_code[k], x_frame[k - 1], y_frame[k - 1],
+                           y_frame[k], x_length[k - 1], y_length[k - 1], y_length[k],
+                           x_off[k - 1], y_off[k - 1], y_off[k], cell_area, density, gamma_z,
+                           h, hu, hv, h_zero, g, recon[(k - 1) % ring])
         if 0 <= k < ny:
             n_0, n_1 = _span(k + 1, r0, r1, lo, hi, nx)
             e0 = min(min(p0_, s0), n_0) - 1
             e1 = max(max(p1_, s1), n_1) + 1
             _emit_row(k * nx, max(e0, 0), min(e1, nx - 1), h, hu, hv, gamma_z, density,
                       h_zero, g, emit[k % ring])
+            if ORDER2:
+                _recon_row(k, max(e0, 0), min(e1, nx - 1), nx, ny, x_code[k], y_code[k],
+                           y_code[k + 1], x_frame[k], y_frame[k], y_frame[k + 1],
+                           x_length[k], y_length[k], y_length[k + 1], x_off[k], y_off[k],
+                           y_off[k + 1], cell_area, density, gamma_z, h, hu, hv, h_zero, g,
+                           recon[k % ring])
             if s0 <= s1 and k <= b + 1:
-                _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k], emit[k % ring],
-                         xf[k % ring])
+                if ORDER2:  # a face: the west cell's east side, the east cell's west side
+                    _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k],
+                             recon[k % ring][SIDE_E], recon[k % ring][SIDE_W], xf[k % ring])
+                else:
+                    _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k], emit[k % ring],
+                             emit[k % ring], xf[k % ring])
         if 0 <= k <= ny:
             c0 = min(s0, p0_)
             c1 = max(s1, p1_)
             if c0 <= c1:
-                _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k], emit[(k - 1) % ring],
-                         emit[k % ring], yf[k % ring])
+                if ORDER2:  # the lower row's north sides, the upper row's south sides
+                    _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k],
+                             recon[(k - 1) % ring][SIDE_N], recon[k % ring][SIDE_S],
+                             yf[k % ring])
+                else:
+                    _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k], emit[(k - 1) % ring],
+                             emit[k % ring], yf[k % ring])
         # --- trial of row k - 1
         t = k - 1
         if a - 1 <= t <= b + 1 and 0 <= t < ny:
@@ -598,7 +822,8 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                              gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
                              params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed,
                              arrival, last_moved, rows, wet_lo, wet_hi, marks, scratch[0],
-                             scratch[1], scratch[2], scratch[3], scratch[4])
+                             scratch[1], scratch[2], scratch[3], scratch[4],
+                             emit[(f - 1) % ring], emit[(f + 1) % ring], transport)
             else:
                 rows[f, R_OK] = 1.0
                 rows[f, R_OUT] = 0.0
@@ -607,6 +832,7 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                 rows[f, R_FILM] = 0.0
                 rows[f, R_KINETIC] = 0.0
                 rows[f, R_CLAMPED] = 0.0
+                rows[f, R_FALLBACK] = 0.0
                 wet_lo[f] = nx
                 wet_hi[f] = -1
 
@@ -616,7 +842,7 @@ RING = 4
 
 
 @njit(error_model="numpy", cache=True)
-def _rings(n, nx):
+def _rings(n, nx, order2):
     """``n`` sets of a block's ring buffers (:func:`_sweep_block`), one per thread: what rows
     emit, their x faces and the y faces below them, flags (cell c at c + 1), trial momenta,
     and lines of one row.
@@ -631,26 +857,31 @@ def _rings(n, nx):
     face carries nothing whatever the flag says; the flags' padding columns (beyond the
     map's sides) decide nothing, a boundary face's ghost taking its cell's flag
     (tests/test_square_grid.py fills the sets with NaN and FLOWING flags between calls: the
-    same bits)."""
+    same bits). ``order2``: with the ring of the reconstructed sides (:func:`_recon_row`),
+    empty at order 1."""
     return (np.zeros((n, RING, N_EMIT, nx)), np.zeros((n, RING, 5, nx + 1)),
             np.zeros((n, RING, 5, nx)), np.full((n, RING, nx + 2), DRY, dtype=np.uint8),
             np.zeros((n, N_SCRATCH, nx)), np.zeros((n, RING, nx)), np.zeros((n, RING, nx)),
-            np.zeros((n, nx), dtype=np.uint8))
+            np.zeros((n, nx), dtype=np.uint8),
+            np.zeros((n, RING, 4, N_EMIT, nx if order2 else 0)))
 
 
-def _block_for(law, label):
+def _block_for(law, label, order2=False):
     """:func:`_sweep_block` for one law (None: read at run time), calling that law's copies
-    of the cell loops; the block and the row passes it calls are compiled without
-    reference counting (:func:`~avflow.numerics.vectorize.by_law`'s ``nrt``), as they
-    allocate nothing: the buffers come from :func:`_rings`."""
-    return by_law(_sweep_block, law, label, nrt=False,
-                  _trial_cells=by_law(_trial_cells, law, label, nrt=False),
-                  _final_cells=by_law(_final_cells, law, label, nrt=False))
+    of the cell loops, for a step of order 1 or a stage of order 2 (``order2``); the block
+    and the row passes it calls are compiled without reference counting
+    (:func:`~avflow.numerics.vectorize.by_law`'s ``nrt``), as they allocate nothing: the
+    buffers come from :func:`_rings`."""
+    if order2:
+        label += "_order2"
+    return by_law(_sweep_block, law, label, nrt=False, ORDER2=order2,
+                  _trial_cells=by_law(_trial_cells, law, label, nrt=False, ORDER2=order2),
+                  _final_cells=by_law(_final_cells, law, label, nrt=False, ORDER2=order2))
 
 
-#: :func:`_sweep_block` per law kind
-_BLOCKS = {COULOMB: _block_for(COULOMB, "coulomb"), VOELLMY: _block_for(VOELLMY, "voellmy"),
-           ANY_LAW: _block_for(None, "any")}
+#: :func:`_sweep_block` per (law kind, order 2)
+_BLOCKS = {(kind, order2): _block_for(None if kind == ANY_LAW else kind, law_label(kind), order2)
+           for kind in (COULOMB, VOELLMY, ANY_LAW) for order2 in (False, True)}
 
 
 #: The rows a step sweeps: ``r0..r1``, each row's columns ``lo..hi``, the rows' sums
@@ -658,10 +889,12 @@ _BLOCKS = {COULOMB: _block_for(COULOMB, "coulomb"), VOELLMY: _block_for(VOELLMY,
 Band = namedtuple("Band", "r0 r1 lo hi rows wet_lo wet_hi")
 
 
-def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, band, rings):
+def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, band, rings,
+           transport):
     """One step on the band ``r0..r1`` (``band``: :data:`Band`), from ``cur`` into ``nxt``
     (:data:`~avflow.numerics.stepping.Conserved`), cut in ``n_blocks`` blocks of rows, one
-    per task; ``rings``: the ring buffers (:func:`_rings`), a set per thread. The block
+    per task; ``rings``: the ring buffers (:func:`_rings`), a set per thread; ``transport``:
+    each cell's transport, kept by a stage of order 2 (empty at order 1). The block
     sweep takes its arrays one by one: LLVM knows only arguments not to overlap
     (:func:`~avflow.numerics.vectorize.noalias`)."""
     r0, r1 = band.r0, band.r1
@@ -681,15 +914,164 @@ def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, b
                 obs.arrival, obs.last_moved, r0, r1, band.lo, band.hi, band.rows,
                 band.wet_lo, band.wet_hi, rings[0][slot], rings[1][slot], rings[2][slot],
                 rings[3][slot], rings[4][slot], rings[5][slot], rings[6][slot],
-                rings[7][slot])
+                rings[7][slot], grid.x_offset, grid.y_offset, transport, rings[8][slot])
+
+
+@njit(error_model="numpy", cache=True)
+def _heun_rows(r0, r1, lo, hi, lo1, hi1, nx, valid, cell_area, cfl_factor, gamma_z, physics,
+               start, stage2, flag1, transport, new, obs, t_new, rows, wet_lo, wet_hi):
+    """Order 2: Heun's merge (:func:`~avflow.numerics.physics.heun_average`) of the swept
+    rows ``r0..r1`` (columns ``lo..hi``) from ``start`` and ``stage2`` into ``new``, with
+    the step's observers and each row's sums (``rows``: R_INV, R_MOVING, R_FILM,
+    R_KINETIC, R_FALLBACK) and wet columns, as :func:`~avflow.numerics.kernels.heun_faces`
+    per cell (the same bits; the sums added per row, then over the rows: round-off).
+    ``flag1``: the first stage's flags, read where it swept (``lo1..hi1``), DRY beyond
+    (the face kernel's stage-1 flags outside its lists)."""
+    g, h_dry, h_zero = physics.g, physics.h_dry, physics.h_zero
+    for r in range(r0, r1 + 1):
+        inv_lim = moving = film = kinetic = 0.0
+        fallbacks = 0
+        w_lo = nx
+        w_hi = -1
+        for c in range(lo[r], hi[r] + 1):
+            i = r * nx + c
+            f1 = flag1[i] if lo1[r] <= c <= hi1[r] else DRY
+            h0 = start.h[i]
+            hn, qx, qy, fell_back = heun_average(h0, start.hu[i], start.hv[i], stage2.h[i],
+                                                 stage2.hu[i], stage2.hv[i], f1, h_zero)
+            new.h[i] = hn
+            new.hu[i] = qx
+            new.hv[i] = qy
+            inside = valid[i] != 0
+            speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i],
+                                        gamma_z[i], g)
+            (obs.peak_h[i], obs.peak_speed[i], obs.arrival[i],
+             obs.last_moved[i]) = observe(inside, hn, speed, t_new, h_dry, obs.peak_h[i],
+                                          obs.peak_speed[i], obs.arrival[i],
+                                          obs.last_moved[i])
+            moves = cell_moves(speed, speed_of(h0, start.hu[i], start.hv[i]), transport[i],
+                               hn)
+            kin, mov, fil = step_terms(hn, cell_area[i], speed, moves, h_dry)
+            inv_lim = max(inv_lim, inv_i)
+            kinetic += kin
+            moving += mov
+            film += fil
+            fallbacks += fell_back
+            if inside and hn > h_zero:
+                w_lo = min(w_lo, c)
+                w_hi = max(w_hi, c)
+        rows[r, R_INV] = inv_lim
+        rows[r, R_MOVING] = moving
+        rows[r, R_FILM] = film
+        rows[r, R_KINETIC] = kinetic
+        rows[r, R_FALLBACK] = fallbacks
+        wet_lo[r] = w_lo
+        wet_hi[r] = w_hi
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _row_sums(rows, r0, r1):
+    """The step's sums from the rows' (in row order): ``(ok, outflow, inverse CFL limit,
+    moving, film, kinetic, clamped, fallbacks)``."""
+    ok = True
+    outflow = 0.0
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    clamped = 0
+    fallbacks = 0
+    for r in range(r0, r1 + 1):
+        if rows[r, R_OK] == 0.0:
+            ok = False
+        outflow += rows[r, R_OUT]
+        inv_lim = max(inv_lim, rows[r, R_INV])
+        moving += rows[r, R_MOVING]
+        film += rows[r, R_FILM]
+        kinetic += rows[r, R_KINETIC]
+        clamped += int(rows[r, R_CLAMPED])
+        fallbacks += int(rows[r, R_FALLBACK])
+    return ok, outflow, inv_lim, moving, film, kinetic, clamped, fallbacks
+
+
+#: The order-2 step's regions (:func:`_order2_step`): the second stage's spans (``lo2``,
+#: ``hi2``), what it needs (``need2_*``), and the first stage's spans on its rows (``prev2_*``)
+Region2 = namedtuple("Region2", "lo2 hi2 need2_lo need2_hi prev2_lo prev2_hi")
+
+
+def _order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs, when, band, reg,
+                 sync_lo, sync_hi):
+    """One step of order 2 on the grid: stage 1 (``cur`` -> ``nxt``, flags into the work's
+    ``flag1``) on the swept band ``band``; stage 2 (``nxt`` -> the work's ``s_*``) on that
+    band joined with what the first stage's wet cells need (:func:`_swept_columns`, so every
+    cell stage 1 changed is swept again: the face kernel's stage 2 keeps stage 1's state on
+    the cells it does not touch, which are dry and unchanged here); Heun's merge of ``cur``
+    and stage 2 into ``nxt`` over the second band (:func:`_heun_rows`). Each stage is the
+    order-1 sweep with reconstructed sides (:func:`_sweep_block`'s ``ORDER2`` copy).
+    Returns ``(ok, outflow, inverse CFL limit, moving, film, kinetic, clamped, fallbacks,
+    r0, r1)`` (the second band's rows)."""
+    nx, ny = grid.nx, grid.ny
+    s = Conserved(work.s_h, work.s_hu, work.s_hv)
+    dt, dt_decide, t_new = when.dt, when.dt_decide, when.t_new
+    r0, r1, lo, hi = band.r0, band.r1, band.lo, band.hi
+    rows, wet_lo, wet_hi = band.rows, band.wet_lo, band.wet_hi
+    fail = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, r0, r1)
+    if r1 < r0:  # nothing wet: nothing moves
+        return (True, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, r0, r1)
+    _stage(threads, grid, physics, cur, nxt, work.flag1, obs, when, band, work.rings,
+           work.transport, run)
+    ok, out1, _, _, _, _, clamped1, _ = _row_sums(rows, r0, r1)
+    if not ok:
+        return fail
+    for r in range(max(r0 - 1, 0), min(r1 + 2, ny)):  # stage 1's spans, none off its band
+        inside = r0 <= r <= r1
+        reg.prev2_lo[r] = lo[r] if inside else nx
+        reg.prev2_hi[r] = hi[r] if inside else -1
+    q0, q1, _ = _swept_columns(nx, ny, wet_lo, wet_hi, reg.need2_lo, reg.need2_hi,
+                               reg.prev2_lo, reg.prev2_hi, reg.lo2, reg.hi2, r0, r1)
+    _sync_work(nx, ny, q0, q1, reg.lo2, reg.hi2, sync_lo, sync_hi, fields.h, fields.hu,
+               fields.hv, work.h_work, work.hu_work, work.hv_work)
+    band2 = Band(q0, q1, reg.lo2, reg.hi2, rows, wet_lo, wet_hi)
+    _stage(threads, grid, physics, nxt, s, fields.flag, obs, when, band2, work.rings,
+           work.transport, run)
+    ok, out2, _, _, _, _, clamped2, _ = _row_sums(rows, q0, q1)
+    if not ok:
+        return fail
+    _heun_rows(q0, q1, reg.lo2, reg.hi2, lo, hi, nx, grid.valid, grid.cell_area,
+               grid.cfl_factor, grid.gamma_z, physics, cur, s, work.flag1, work.transport,
+               nxt, obs, t_new, rows, wet_lo, wet_hi)
+    _, _, inv_lim, moving, film, kinetic, _, fallbacks = _row_sums(rows, q0, q1)
+    return (True, 0.5 * (out1 + out2), inv_lim, moving, film, kinetic, clamped1 + clamped2,
+            fallbacks, q0, q1)
+
+
+def _stage(threads, grid, physics, cur, nxt, flag, obs, when, band, rings, transport, run):
+    """A step of the seed's scheme (a stage at order 2) on ``band``: on Numba's threads
+    where it sweeps at least ``min_parallel_cells`` cells and two blocks of
+    ``min_block_rows`` rows (in the copies with threads), else on the serial sweep."""
+    n_cells = 0
+    for r in range(band.r0, band.r1 + 1):
+        n_cells += max(band.hi[r] - band.lo[r] + 1, 0)
+    n_blocks = min(8 * threads, (band.r1 - band.r0 + 1) // run.min_block_rows)
+    if threads == 1 or n_cells < run.min_parallel_cells:
+        n_blocks = 1
+    if band.r1 < band.r0:
+        return
+    if PARALLEL and n_blocks > 1:
+        sweep_parallel(n_blocks, grid, physics, cur, nxt, flag, obs, when.dt, when.dt_decide,
+                       when.t_new, band, rings, transport)
+    else:
+        sweep_serial(1, grid, physics, cur, nxt, flag, obs, when.dt, when.dt_decide,
+                     when.t_new, band, rings, transport)
 
 
 #: Placeholder of the constant of the copies of :func:`_advance_grid` (whether it has the
 #: parallel sweep): see :func:`grid_loop`
 PARALLEL = True
-#: Placeholders of the sweeps :func:`_advance_grid`'s copies call, and of the block sweep
-#: (its law's copy) a copy of :func:`_sweep` calls
-sweep_serial = sweep_parallel = sweep_block = None
+#: Placeholders of the sweeps the copies of :func:`_stage` call, of the block sweep (its
+#: law's copy) a copy of :func:`_sweep` calls, and of the order-2 step (:func:`_order2_step`)
+#: of the copies of :func:`_advance_grid` at order 2
+sweep_serial = sweep_parallel = sweep_block = order2_step = None
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -703,34 +1085,43 @@ def _first_slot():
 thread_slot = _first_slot
 
 
-def _sweep_for(kind: int, parallel: bool):
-    """:func:`_sweep` for one law kind, compiled serial or parallel (``prange`` runs
-    serially without Numba's ``parallel``), each under its own name."""
-    return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
-                      parallel=parallel, sweep_block=_BLOCKS[kind],
+def _sweep_for(kind: int, parallel: bool, order2: bool):
+    """:func:`_sweep` for one law kind and order, compiled serial or parallel (``prange``
+    runs serially without Numba's ``parallel``), each under its own name."""
+    return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}"
+                      + ("_order2" if order2 else ""),
+                      parallel=parallel, sweep_block=_BLOCKS[kind, order2],
                       thread_slot=numba.get_thread_id if parallel else _first_slot)
 
 
 def _loops() -> dict:
-    """:func:`_advance_grid` per (law kind, with the parallel sweep): the serial copy never
-    compiles the parallel sweep, and each its law's cell loops alone."""
+    """:func:`_advance_grid` per (law kind, with the parallel sweep, order 2): the serial
+    copy never compiles the parallel sweep, each its law's cell loops alone, and the
+    order-1 copies never the order-2 passes."""
     loops = {}
     for kind in (COULOMB, VOELLMY, ANY_LAW):
-        serial = _sweep_for(kind, False)
-        for parallel in (False, True):
-            loops[kind, parallel] = specialize(
-                _advance_grid, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
-                PARALLEL=parallel, sweep_serial=serial,
-                sweep_parallel=_sweep_for(kind, True) if parallel else serial)
+        for order2 in (False, True):
+            serial = _sweep_for(kind, False, order2)
+            for parallel in (False, True):
+                suffix = (f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}"
+                          + ("_order2" if order2 else ""))
+                stage = specialize(_stage, suffix, PARALLEL=parallel, sweep_serial=serial,
+                                   sweep_parallel=(_sweep_for(kind, True, order2) if parallel
+                                                   else serial))
+                heun = (specialize(_order2_step, suffix, _stage=stage) if order2 else None)
+                loops[kind, parallel, order2] = specialize(
+                    _advance_grid, suffix, PARALLEL=parallel, ORDER2=order2, _stage=stage,
+                    order2_step=heun)
     return loops
 
 
-def grid_loop(law: int, parallel: bool):
+def grid_loop(law: int, parallel: bool, order: int = 1):
     """The time loop (:func:`_advance_grid`: its arguments, its status codes) for one
-    friction law, with the parallel sweep (``threads`` > 1) or without: each copy compiles
-    only its law's cell loops, and the serial one never the parallel sweep (compiling every
-    law's, serial and parallel, made the first run slow: docs/performance.md)."""
-    return _LOOPS[law_kind(law), bool(parallel)]
+    friction law and order, with the parallel sweep (``threads`` > 1) or without: each copy
+    compiles only its law's cell loops, and the serial one never the parallel sweep
+    (compiling every law's, serial and parallel, made the first run slow:
+    docs/performance.md)."""
+    return _LOOPS[law_kind(law), bool(parallel), order == 2]
 
 
 #: Cells a vector iteration of the row passes takes (8 doubles, AVX-512), and the shortest
@@ -789,7 +1180,7 @@ MIN_BLOCK_ROWS = 16
 
 
 def _advance_grid(threads, grid, fields, work, physics, run):
-    """:func:`avflow.numerics.timeloop.time_loop` for a square grid at order 1 (same arguments
+    """:func:`avflow.numerics.timeloop.time_loop` for a square grid (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
     least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
@@ -845,6 +1236,10 @@ def _advance_grid(threads, grid, fields, work, physics, run):
             if h[r * nx + c] > h_zero:
                 wet_lo[r] = min(wet_lo[r], c)
                 wet_hi[r] = max(wet_hi[r], c)
+    m2 = ny if ORDER2 else 0  # order 2's second band
+    reg = Region2(np.full(m2, nx, dtype=np.int64), np.full(m2, -1, dtype=np.int64),
+                  np.full(m2, nx, dtype=np.int64), np.full(m2, -1, dtype=np.int64),
+                  np.full(m2, nx, dtype=np.int64), np.full(m2, -1, dtype=np.int64))
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     band0, band1 = 0, ny - 1  # the first step looks at every row
@@ -854,9 +1249,6 @@ def _advance_grid(threads, grid, fields, work, physics, run):
                                          prev_hi, lo, hi, band0, band1)
         _sync_work(nx, ny, r0, r1, lo, hi, sync_lo, sync_hi, h, hu, hv, h_work, hu_work,
                    hv_work)
-        n_blocks = min(8 * threads, (r1 - r0 + 1) // min_block_rows)
-        if threads == 1 or n_cells < min_parallel_cells:
-            n_blocks = 1
         ok = False
         outflow = 0.0
         inv_lim = 0.0
@@ -864,34 +1256,23 @@ def _advance_grid(threads, grid, fields, work, physics, run):
         film = 0.0
         kinetic = 0.0
         clamped = 0
+        fallbacks = 0
+        q0, q1 = r0, r1  # the rows the step swept last (order 2: its second stage's)
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
-            if r1 >= r0:
-                cur = Conserved(cur_h, cur_hu, cur_hv)
-                nxt = Conserved(nxt_h, nxt_hu, nxt_hv)
-                band = Band(r0, r1, lo, hi, rows, wet_lo, wet_hi)
-                if PARALLEL and n_blocks > 1:  # blocks of at least 16 rows, 8 per thread
-                    sweep_parallel(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide,
-                                   t_new, band, rings)
-                else:
-                    sweep_serial(1, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new,
-                                 band, rings)
-            ok = True
-            outflow = 0.0
-            inv_lim = 0.0
-            moving = 0.0
-            film = 0.0
-            kinetic = 0.0
-            clamped = 0
-            for r in range(r0, r1 + 1):  # the rows' sums, in row order
-                if rows[r, R_OK] == 0.0:
-                    ok = False
-                outflow += rows[r, R_OUT]
-                inv_lim = max(inv_lim, rows[r, R_INV])
-                moving += rows[r, R_MOVING]
-                film += rows[r, R_FILM]
-                kinetic += rows[r, R_KINETIC]
-                clamped += int(rows[r, R_CLAMPED])
+            cur = Conserved(cur_h, cur_hu, cur_hv)
+            nxt = Conserved(nxt_h, nxt_hu, nxt_hv)
+            band = Band(r0, r1, lo, hi, rows, wet_lo, wet_hi)
+            when = StepTime(dt, dt_decide, t_new)
+            if ORDER2:  # Heun's two stages and merge
+                (ok, outflow, inv_lim, moving, film, kinetic, clamped, fallbacks, q0,
+                 q1) = order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs,
+                                   when, band, reg, sync_lo, sync_hi)
+            else:
+                _stage(threads, grid, physics, cur, nxt, flag, obs, when, band, rings,
+                       work.transport, run)
+                ok, outflow, inv_lim, moving, film, kinetic, clamped, _ = _row_sums(rows, r0,
+                                                                                   r1)
             if ok:
                 break
             dt *= 0.5
@@ -900,9 +1281,11 @@ def _advance_grid(threads, grid, fields, work, physics, run):
         if not ok:
             status = FAILED
             break
+        s_lo = reg.lo2 if ORDER2 else lo  # the columns swept last
+        s_hi = reg.hi2 if ORDER2 else hi
         if source[SRC_KIND] != SOURCE_NONE:  # only wet cells gain: wet_lo/hi still hold
-            for r in range(r0, r1 + 1):
-                gained, inv = add_span(r * nx + lo[r], r * nx + hi[r] + 1, nxt_h, nxt_hu,
+            for r in range(q0, q1 + 1):
+                gained, inv = add_span(r * nx + s_lo[r], r * nx + s_hi[r] + 1, nxt_h, nxt_hu,
                                        nxt_hv, erodible, source, dt, h_zero, h_dry, t_new,
                                        cell_area, cfl_factor, gamma_z, g, peak_h, arrival)
                 stats[ST_SOURCE] += gained
@@ -912,7 +1295,13 @@ def _advance_grid(threads, grid, fields, work, physics, run):
         for r in range(max(band0 - 1, 0), min(band1 + 2, ny)):
             prev_lo[r] = need_lo[r]
             prev_hi[r] = need_hi[r]
-        band0, band1 = r0, r1
+        if ORDER2 and r1 >= r0:  # the cells stage 2 needed changed too
+            for r in range(max(r0 - 1, 0), min(r1 + 2, ny)):
+                known = band0 - 1 <= r <= band1 + 1
+                prev_lo[r] = min(prev_lo[r], reg.need2_lo[r]) if known else reg.need2_lo[r]
+                prev_hi[r] = max(prev_hi[r], reg.need2_hi[r]) if known else reg.need2_hi[r]
+        stats[ST_FALLBACK] += fallbacks
+        band0, band1 = q0, q1
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv
