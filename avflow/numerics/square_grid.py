@@ -58,7 +58,6 @@ from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, cell_
                                  dt_from_inverse, emitted_state, final_momentum, heun_average,
                                  observe, observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
-from avflow.numerics.reconstruction import _bj_factor
 from avflow.numerics.sources import SRC_KIND, add_span
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FALLBACK,
                                       ST_RETRIES, ST_SOURCE, ST_TIME, Conserved, Observers,
@@ -307,57 +306,194 @@ SIDE_W, SIDE_E, SIDE_S, SIDE_N = range(4)
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _gg_face(hc, uc1, uc2, own, code, i, other, n_sx, n_sy, n_ox, n_oy, w, h, hu, hv, h_zero):
-    """One face of a wet cell in the Green-Gauss sums of
-    :func:`~avflow.numerics.reconstruction.reconstruct_cells` (the same operations, so the
-    same bits): ``own`` is the cell's side of the face (0: first cell), ``n_s``/``n_o`` the
-    frame normals of the cell's side and of the other (tangents ``t = s (-n_y, n_x)``, the
-    sign in the code's bits). Returns ``(wx, wy, ho, uo1, uo2, front)``: the weights of the
-    face's mean values, the neighbour's thickness and velocity in this cell's basis (the
-    cell's own beyond a boundary face: zero normal gradient), whether it is dry."""
-    s_s = -1.0 if code & (SIGN1 if own == 1 else SIGN0) else 1.0
-    s_o = -1.0 if code & (SIGN0 if own == 1 else SIGN1) else 1.0
-    nx = -n_sx if own == 1 else n_sx  # the frame's normal points from i to j
-    ny = -n_sy if own == 1 else n_sy
-    front = False
-    if (code & KIND) == INNER:
-        ho = h[other]
-        if ho > h_zero:  # its velocity, turned through the face into this cell's basis
-            v1 = hu[other] / ho
-            v2 = hv[other] / ho
-            un = v1 * n_ox + v2 * n_oy
-            ut = v1 * (s_o * -n_oy) + v2 * (s_o * n_ox)
-            uo1 = un * n_sx + ut * (s_s * -n_sy)
-            uo2 = un * n_sy + ut * (s_s * n_sx)
-        else:
-            uo1 = uc1
-            uo2 = uc2
-            front = True
-    else:  # the map's edge, a wall, a hole: zero normal gradient
-        ho = hc
-        uo1 = uc1
-        uo2 = uc2
-    return w * nx, w * ny, ho, uo1, uo2, front
+def _gg_face(hc, uc1, uc2, inner, second, code, n_0x, n_0y, n_1x, n_1y, w, ho_raw, huo, hvo,
+             h_zero):
+    """One face of a cell in the Green-Gauss sums of
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells`, without branches (the same
+    operations on every value kept, so the same bits): ``second``, the cell is the face's
+    second side (an inner W or S face); ``n_0``, ``n_1`` the frame normals of the face's two
+    sides (tangents ``t = s (-n_y, n_x)``, the signs in the code's bits). Returns ``(wx, wy,
+    ho, uo1, uo2, front)``: the weights of the face's mean values, the neighbour's thickness
+    and velocity in this cell's basis (the cell's own beyond a boundary face: zero normal
+    gradient), whether the neighbour is dry."""
+    n_sx = n_1x if second else n_0x
+    n_sy = n_1y if second else n_0y
+    n_ox = n_0x if second else n_1x
+    n_oy = n_0y if second else n_1y
+    s_s = -1.0 if (code & (SIGN1 if second else SIGN0)) != 0 else 1.0
+    s_o = -1.0 if (code & (SIGN0 if second else SIGN1)) != 0 else 1.0
+    nx = -n_sx if second else n_sx  # the frame's normal points from the first side
+    ny = -n_sy if second else n_sy
+    wet = ho_raw > h_zero
+    hs = ho_raw if wet else 1.0
+    v1 = huo / hs
+    v2 = hvo / hs
+    un = v1 * n_ox + v2 * n_oy  # its velocity, turned through the face into this basis
+    ut = v1 * (s_o * -n_oy) + v2 * (s_o * n_ox)
+    t1 = un * n_sx + ut * (s_s * -n_sy)
+    t2 = un * n_sy + ut * (s_s * n_sx)
+    return (w * nx, w * ny, (ho_raw if inner else hc), (t1 if inner & wet else uc1),
+            (t2 if inner & wet else uc2), inner & (not wet))
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _put_side(out, c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front,
-              g_normal, dens):
+def _range(centre, a, b, c, d):
+    """The least and largest of a cell's value and its four neighbours', each kept unless a
+    value is strictly beyond it (as reconstruct_cells, in face order)."""
+    lo = centre
+    hi = centre
+    lo = a if a < lo else lo
+    hi = a if a > hi else hi
+    lo = b if b < lo else lo
+    hi = b if b > hi else hi
+    lo = c if c < lo else lo
+    hi = c if c > hi else hi
+    lo = d if d < lo else lo
+    hi = d if d > hi else hi
+    return lo, hi
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _bj_select(alpha, d, centre, lo, hi, thickness):
+    """:func:`~avflow.numerics.reconstruction._bj_factor` without branches."""
+    up = (hi - centre) / d
+    up = min(up, centre / d) if thickness else up
+    ratio = up if d > 0.0 else (lo - centre) / d
+    return ratio if (d != 0.0) & (ratio < alpha) else alpha
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front, g_normal, dens):
     """A wet cell's reconstructed state on one side (offset ``(rx, ry)`` in its basis), as
-    :func:`~avflow.numerics.reconstruction.reconstruct_cells` writes it, then what it emits
-    there (:func:`~avflow.numerics.physics.emitted_state`, as step_faces at order 2)."""
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` makes it, and what it emits
+    there as step_faces at order 2 (:func:`emitted_cell`, emitted_state without branches):
+    ``(h, u1, u2, c, sqrt(3) c, k / 2, k / 3)``."""
     hf = hc + a0 * (g0 * rx + g1 * ry)
     hf = max(hf, 0.0)
-    u1 = uc1
-    u2 = uc2
-    if not front:  # no velocity slope towards a dry neighbour
-        u1 += a1 * (g2 * rx + g3 * ry)
-        u2 += a2 * (g4 * rx + g5 * ry)
-    (out[E_H, c], out[E_U1, c], out[E_U2, c], out[E_C, c], out[E_S, c], out[E_KH, c],
-     out[E_K3, c]) = emitted_state(hf, hf * u1, hf * u2, 0.0, g_normal, dens)
+    u1 = uc1 + a1 * (g2 * rx + g3 * ry)
+    u2 = uc2 + a2 * (g4 * rx + g5 * ry)
+    u1 = uc1 if front else u1  # no velocity slope towards a dry neighbour
+    u2 = uc2 if front else u2
+    e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3, _ = emitted_cell(hf, hf * u1, hf * u2, g_normal,
+                                                             dens, 0.0)
+    return e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3
 
 
 @noalias
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
+def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame, ys_frame,
+                 yn_frame, x_len, ys_len, yn_len, x_off, ys_off, yn_off, cell_area, density,
+                 gamma_z, h, hu, hv, h_zero, g,
+                 w_h, w_u1, w_u2, w_c, w_s, w_kh, w_k3, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3,
+                 s_h, s_u1, s_u2, s_c, s_s, s_kh, s_k3, n_h, n_u1, n_u2, n_c, n_s, n_kh, n_k3):
+    """:func:`_recon_row`'s loop over the cells ``c0..c1`` of a row (``base``: its first
+    place, ``base_s`` / ``base_n``: the rows below and above, clamped to the map), each
+    output line its own argument, without branches so that LLVM vectorises it (the
+    neighbours' values loaded whatever the faces are, in the map: indices clamped)."""
+    xf0, xf1, xf2, xf3 = x_frame[0], x_frame[1], x_frame[2], x_frame[3]
+    sf0, sf1, sf2, sf3 = ys_frame[0], ys_frame[1], ys_frame[2], ys_frame[3]
+    nf0, nf1, nf2, nf3 = yn_frame[0], yn_frame[1], yn_frame[2], yn_frame[3]
+    xo0, xo1, xo2, xo3 = x_off[0], x_off[1], x_off[2], x_off[3]
+    so0, so1, so2, so3 = ys_off[0], ys_off[1], ys_off[2], ys_off[3]
+    no0, no1 = yn_off[0], yn_off[1]
+    last = h.size - 1
+    c0 = max(c0, 0)
+    i0 = max(base + c0, 0)
+    for j in range(c1 + 1 - c0):
+        c = c0 + j
+        i = i0 + j
+        hc = h[i]
+        wet = hc > h_zero
+        hs = hc if wet else 1.0
+        uc1 = hu[i] / hs
+        uc2 = hv[i] / hs
+        area = cell_area[i]
+        cw, ce, cs, cn = x_code[c], x_code[c + 1], ys_code[c], yn_code[c]
+        w_in = (cw & KIND) == INNER
+        e_in = (ce & KIND) == INNER
+        s_in = (cs & KIND) == INNER
+        n_in = (cn & KIND) == INNER
+        iw = max(i - 1, 0)
+        ie = min(i + 1, last)
+        i_s = base_s + c
+        i_n = base_n + c
+        # W (x face c: the cell its second side when inner), E (x face c + 1: its first),
+        # S (y face below: second when inner), N (y face above: first)
+        wx0, wy0, ho0, uo10, uo20, fr0 = _gg_face(
+            hc, uc1, uc2, w_in, w_in, cw, xf0[c], xf1[c], xf2[c], xf3[c], x_len[c] / area,
+            h[iw], hu[iw], hv[iw], h_zero)
+        wx1, wy1, ho1, uo11, uo21, fr1 = _gg_face(
+            hc, uc1, uc2, e_in, False, ce, xf0[c + 1], xf1[c + 1], xf2[c + 1], xf3[c + 1],
+            x_len[c + 1] / area, h[ie], hu[ie], hv[ie], h_zero)
+        wx2, wy2, ho2, uo12, uo22, fr2 = _gg_face(
+            hc, uc1, uc2, s_in, s_in, cs, sf0[c], sf1[c], sf2[c], sf3[c], ys_len[c] / area,
+            h[i_s], hu[i_s], hv[i_s], h_zero)
+        wx3, wy3, ho3, uo13, uo23, fr3 = _gg_face(
+            hc, uc1, uc2, n_in, False, cn, nf0[c], nf1[c], nf2[c], nf3[c], yn_len[c] / area,
+            h[i_n], hu[i_n], hv[i_n], h_zero)
+        front = (fr0 | fr1) | (fr2 | fr3)
+        # Green-Gauss sums (the mean of both sides on each face), in face order
+        m0, m1, m2, m3 = 0.5 * (hc + ho0), 0.5 * (hc + ho1), 0.5 * (hc + ho2), 0.5 * (hc + ho3)
+        g0 = _in_face_order(0.0, wx0 * m0, wx1 * m1, wx2 * m2, wx3 * m3)
+        g1 = _in_face_order(0.0, wy0 * m0, wy1 * m1, wy2 * m2, wy3 * m3)
+        m0, m1, m2, m3 = (0.5 * (uc1 + uo10), 0.5 * (uc1 + uo11), 0.5 * (uc1 + uo12),
+                          0.5 * (uc1 + uo13))
+        g2 = _in_face_order(0.0, wx0 * m0, wx1 * m1, wx2 * m2, wx3 * m3)
+        g3 = _in_face_order(0.0, wy0 * m0, wy1 * m1, wy2 * m2, wy3 * m3)
+        m0, m1, m2, m3 = (0.5 * (uc2 + uo20), 0.5 * (uc2 + uo21), 0.5 * (uc2 + uo22),
+                          0.5 * (uc2 + uo23))
+        g4 = _in_face_order(0.0, wx0 * m0, wx1 * m1, wx2 * m2, wx3 * m3)
+        g5 = _in_face_order(0.0, wy0 * m0, wy1 * m1, wy2 * m2, wy3 * m3)
+        # the neighbours' range, as reconstruct_cells keeps it (the same zero's sign)
+        lo0, hi0 = _range(hc, ho0, ho1, ho2, ho3)
+        lo1, hi1 = _range(uc1, uo10, uo11, uo12, uo13)
+        lo2, hi2 = _range(uc2, uo20, uo21, uo22, uo23)
+        # the offsets of the cell's side of each face (zero on boundary faces)
+        rwx = xo2[c] if w_in else xo0[c]
+        rwy = xo3[c] if w_in else xo1[c]
+        rex, rey = xo0[c + 1], xo1[c + 1]
+        rsx = so2[c] if s_in else so0[c]
+        rsy = so3[c] if s_in else so1[c]
+        rnx, rny = no0[c], no1[c]
+        # Barth-Jespersen factors over the faces
+        a0 = a1 = a2 = 1.0
+        a0 = _bj_select(a0, g0 * rwx + g1 * rwy, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rwx + g3 * rwy, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rwx + g5 * rwy, uc2, lo2, hi2, False)
+        a0 = _bj_select(a0, g0 * rex + g1 * rey, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rex + g3 * rey, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rex + g5 * rey, uc2, lo2, hi2, False)
+        a0 = _bj_select(a0, g0 * rsx + g1 * rsy, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rsx + g3 * rsy, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rsx + g5 * rsy, uc2, lo2, hi2, False)
+        a0 = _bj_select(a0, g0 * rnx + g1 * rny, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rnx + g3 * rny, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rnx + g5 * rny, uc2, lo2, hi2, False)
+        gn = g * gamma_z[i]
+        dens = density[i]
+        # each side, zero where the cell is dry (it emits nothing)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rwx, rwy, front, gn, dens)
+        w_h[c], w_u1[c], w_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        w_c[c], w_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        w_kh[c], w_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rex, rey, front, gn, dens)
+        e_h[c], e_u1[c], e_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        e_c[c], e_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        e_kh[c], e_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rsx, rsy, front, gn, dens)
+        s_h[c], s_u1[c], s_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        s_c[c], s_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        s_kh[c], s_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rnx, rny, front, gn, dens)
+        n_h[c], n_u1[c], n_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        n_c[c], n_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        n_kh[c], n_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+
+
 @njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
 def _recon_row(r, c0, c1, nx, ny, x_code, ys_code, yn_code, x_frame, ys_frame, yn_frame,
                x_len, ys_len, yn_len, x_off, ys_off, yn_off, cell_area, density, gamma_z, h,
@@ -367,95 +503,19 @@ def _recon_row(r, c0, c1, nx, ny, x_code, ys_code, yn_code, x_frame, ys_frame, y
     of h and of the velocity in the cell's basis over its faces W, E, S, N (their order of
     index in the mesh), Barth-Jespersen factors, the state at each face's offset
     (``x_off``, ``ys_off``, ``yn_off``: the row's offsets ``(rx0, ry0, rx1, ry1)`` of each
-    face's two sides, :func:`avflow.numerics.solver.face_offsets`). The face kernel's
-    :func:`~avflow.numerics.reconstruction.reconstruct_cells` and step_faces' emitted
-    states at order 2, the same operations, so the same bits. A cell at or below h_zero
-    emits nothing (and reads no neighbour: only wet cells' neighbours lie in the region
-    the work buffers hold, :func:`_sync_work`)."""
-    base = r * nx
-    for c in range(max(c0, 0), c1 + 1):
-        i = base + c
-        hc = h[i]
-        if not hc > h_zero:
-            for side in range(4):
-                for e in range(7):
-                    out[side, e, c] = 0.0
-            continue
-        uc1 = hu[i] / hc
-        uc2 = hv[i] / hc
-        inv_w = cell_area[i]
-        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
-        lo0 = hi0 = hc
-        lo1 = hi1 = uc1
-        lo2 = hi2 = uc2
-        front = False
-        # W (x face c: this cell its second side when inner), E (x face c + 1: its first),
-        # S (y face below: second when inner), N (y face above: first)
-        cw, ce, cs, cn = x_code[c], x_code[c + 1], ys_code[c], yn_code[c]
-        own_w = 1 if (cw & KIND) == INNER else 0
-        own_s = 1 if (cs & KIND) == INNER else 0
-        for f in range(4):
-            if f == SIDE_W:
-                code, own, other, length = cw, own_w, i - 1, x_len[c]
-                fr = x_frame
-                k = c
-            elif f == SIDE_E:
-                code, own, other, length = ce, 0, i + 1, x_len[c + 1]
-                fr = x_frame
-                k = c + 1
-            elif f == SIDE_S:
-                code, own, other, length = cs, own_s, i - nx, ys_len[c]
-                fr = ys_frame
-                k = c
-            else:
-                code, own, other, length = cn, 0, i + nx, yn_len[c]
-                fr = yn_frame
-                k = c
-            a = 2 * own
-            b = 2 - a
-            wx, wy, ho, uo1, uo2, dry = _gg_face(
-                hc, uc1, uc2, own, code, i, other, fr[a, k], fr[a + 1, k], fr[b, k],
-                fr[b + 1, k], length / inv_w, h, hu, hv, h_zero)
-            front = front or dry
-            mid = 0.5 * (hc + ho)
-            g0 += wx * mid
-            g1 += wy * mid
-            lo0 = ho if ho < lo0 else lo0
-            hi0 = ho if ho > hi0 else hi0
-            mid = 0.5 * (uc1 + uo1)
-            g2 += wx * mid
-            g3 += wy * mid
-            lo1 = uo1 if uo1 < lo1 else lo1
-            hi1 = uo1 if uo1 > hi1 else hi1
-            mid = 0.5 * (uc2 + uo2)
-            g4 += wx * mid
-            g5 += wy * mid
-            lo2 = uo2 if uo2 < lo2 else lo2
-            hi2 = uo2 if uo2 > hi2 else hi2
-        # the offsets of the cell's side of each face (zero on boundary faces)
-        a = 2 * own_w
-        rwx, rwy = x_off[a, c], x_off[a + 1, c]
-        rex, rey = x_off[0, c + 1], x_off[1, c + 1]
-        a = 2 * own_s
-        rsx, rsy = ys_off[a, c], ys_off[a + 1, c]
-        rnx, rny = yn_off[0, c], yn_off[1, c]
-        a0 = a1 = a2 = 1.0
-        for f in range(4):
-            rx = rwx if f == SIDE_W else rex if f == SIDE_E else rsx if f == SIDE_S else rnx
-            ry = rwy if f == SIDE_W else rey if f == SIDE_E else rsy if f == SIDE_S else rny
-            a0 = _bj_factor(a0, g0 * rx + g1 * ry, hc, lo0, hi0, True)
-            a1 = _bj_factor(a1, g2 * rx + g3 * ry, uc1, lo1, hi1, False)
-            a2 = _bj_factor(a2, g4 * rx + g5 * ry, uc2, lo2, hi2, False)
-        g_normal = g * gamma_z[i]
-        dens = density[i]
-        _put_side(out[SIDE_W], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rwx, rwy,
-                  front, g_normal, dens)
-        _put_side(out[SIDE_E], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rex, rey,
-                  front, g_normal, dens)
-        _put_side(out[SIDE_S], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rsx, rsy,
-                  front, g_normal, dens)
-        _put_side(out[SIDE_N], c, hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rnx, rny,
-                  front, g_normal, dens)
+    face's two sides, :func:`avflow.numerics.solver.grid_offsets`). The face kernel's
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` and step_faces' emitted states
+    at order 2, the same operations, so the same bits. A cell at or below h_zero emits
+    nothing (what it read of its neighbours is dropped: only a wet cell's neighbours lie
+    where the work buffers hold the state, :func:`_sync_work`)."""
+    w, e, s, n = out[SIDE_W], out[SIDE_E], out[SIDE_S], out[SIDE_N]
+    _recon_cells(r * nx, max(r - 1, 0) * nx, min(r + 1, ny - 1) * nx, c0, c1, x_code, ys_code,
+                 yn_code, x_frame, ys_frame, yn_frame, x_len, ys_len, yn_len, x_off, ys_off,
+                 yn_off, cell_area, density, gamma_z, h, hu, hv, h_zero, g,
+                 w[E_H], w[E_U1], w[E_U2], w[E_C], w[E_S], w[E_KH], w[E_K3],
+                 e[E_H], e[E_U1], e[E_U2], e[E_C], e[E_S], e[E_KH], e[E_K3],
+                 s[E_H], s[E_U1], s[E_U2], s[E_C], s[E_S], s[E_KH], s[E_K3],
+                 n[E_H], n[E_U1], n[E_U2], n[E_C], n[E_S], n[E_KH], n[E_K3])
 
 
 @njit(error_model="numpy", cache=True, inline="always")
