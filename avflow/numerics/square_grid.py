@@ -355,10 +355,13 @@ def _range(centre, a, b, c, d):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _bj_select(alpha, d, centre, lo, hi, thickness):
-    """:func:`~avflow.numerics.reconstruction._bj_factor` without branches."""
-    up = (hi - centre) / d
-    up = min(up, centre / d) if thickness else up
-    ratio = up if d > 0.0 else (lo - centre) / d
+    """:func:`~avflow.numerics.reconstruction._bj_factor` without branches, with one
+    division (the vector loop is bound by its divisions): the numerator chosen first, and
+    for a thickness ``min(a / d, c / d) == min(a, c) / d`` exactly, d > 0 (a rounded
+    division is monotone)."""
+    up = hi - centre
+    up = min(up, centre) if thickness else up
+    ratio = (up if d > 0.0 else (lo - centre)) / d
     return ratio if (d != 0.0) & (ratio < alpha) else alpha
 
 
@@ -396,9 +399,11 @@ def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame
     xo0, xo1, xo2, xo3 = x_off[0], x_off[1], x_off[2], x_off[3]
     so0, so1, so2, so3 = ys_off[0], ys_off[1], ys_off[2], ys_off[3]
     no0, no1 = yn_off[0], yn_off[1]
-    last = h.size - 1
+    last = max(h.size - 1, 0)
     c0 = max(c0, 0)
     i0 = max(base + c0, 0)
+    is0 = max(base_s + c0, 0)  # (starts clamped at 0: no wraparound of negative indices)
+    in0 = max(base_n + c0, 0)
     for j in range(c1 + 1 - c0):
         c = c0 + j
         i = i0 + j
@@ -415,8 +420,8 @@ def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame
         n_in = (cn & KIND) == INNER
         iw = max(i - 1, 0)
         ie = min(i + 1, last)
-        i_s = base_s + c
-        i_n = base_n + c
+        i_s = is0 + j
+        i_n = in0 + j
         # W (x face c: the cell its second side when inner), E (x face c + 1: its first),
         # S (y face below: second when inner), N (y face above: first)
         wx0, wy0, ho0, uo10, uo20, fr0 = _gg_face(
