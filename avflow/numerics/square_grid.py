@@ -982,56 +982,76 @@ def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, b
                 rings[7][slot], grid.x_offset, grid.y_offset, transport, rings[8][slot])
 
 
-@njit(error_model="numpy", cache=True)
+@noalias
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
+def _heun_cells(r, base, c0, c1, lo1, hi1, valid, h0, hu0, hv0, h2, hu2, hv2, flag1,
+                transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new, h_new,
+                hu_new, hv_new, peak_h, peak_speed, arrival, last_moved, rows, wet_lo, wet_hi,
+                t_inv, t_kin, t_mov, t_film, t_fb):
+    """Heun's merge of the cells ``c0..c1`` of row r (:func:`_heun_rows`), one loop without
+    jumps (every value loaded whichever is kept), each cell's terms of the row's sums kept
+    in ``t_*`` and added line by line, as :func:`_final_cells` does."""
+    c0 = max(c0, 0)
+    i0 = max(base + c0, 0)
+    w_lo = h_new.size
+    w_hi = -1
+    for j in range(c1 + 1 - c0):
+        c = c0 + j
+        i = i0 + j
+        f = flag1[i]
+        f1 = f if (lo1 <= c) & (c <= hi1) else DRY  # stage 1's flag where it swept
+        a = h0[i]
+        qa, qb = hu0[i], hv0[i]
+        hn, qx, qy, fell_back = heun_average(a, qa, qb, h2[i], hu2[i], hv2[i], f1, h_zero)
+        h_new[i] = hn
+        hu_new[i] = qx
+        hv_new[i] = qy
+        inside = valid[i] != 0
+        speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i],
+                                    gamma_z[i], g)
+        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
+            inside, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
+            last_moved[i])
+        moves = cell_moves(speed, speed_of(a, qa, qb), transport[i], hn)
+        t_kin[c], t_mov[c], t_film[c] = step_terms(hn, cell_area[i], speed, moves, h_dry)
+        t_inv[c] = inv_i
+        t_fb[c] = fell_back
+        wet = inside & (hn > h_zero)
+        w_lo = min(w_lo, c) if wet else w_lo
+        w_hi = max(w_hi, c) if wet else w_hi
+    rows[r, R_INV] = line_max(t_inv, c0, c1)
+    rows[r, R_KINETIC] = line_sum(t_kin, c0, c1)
+    rows[r, R_MOVING] = line_sum(t_mov, c0, c1)
+    rows[r, R_FILM] = line_sum(t_film, c0, c1)
+    rows[r, R_FALLBACK] = line_sum(t_fb, c0, c1)
+    wet_lo[r] = w_lo  # (none wet: lo > hi)
+    wet_hi[r] = w_hi
+
+
+@njit(error_model="numpy", cache=True, _nrt=False)
 def _heun_rows(r0, r1, lo, hi, lo1, hi1, nx, valid, cell_area, cfl_factor, gamma_z, physics,
-               start, stage2, flag1, transport, new, obs, t_new, rows, wet_lo, wet_hi):
+               start, stage2, flag1, transport, new, obs, t_new, rows, wet_lo, wet_hi,
+               scratch):
     """Order 2: Heun's merge (:func:`~avflow.numerics.physics.heun_average`) of the swept
     rows ``r0..r1`` (columns ``lo..hi``) from ``start`` and ``stage2`` into ``new``, with
     the step's observers and each row's sums (``rows``: R_INV, R_MOVING, R_FILM,
     R_KINETIC, R_FALLBACK) and wet columns, as :func:`~avflow.numerics.kernels.heun_faces`
     per cell (the same bits; the sums added per row, then over the rows: round-off).
     ``flag1``: the first stage's flags, read where it swept (``lo1..hi1``), DRY beyond
-    (the face kernel's stage-1 flags outside its lists)."""
-    g, h_dry, h_zero = physics.g, physics.h_dry, physics.h_zero
+    (the face kernel's stage-1 flags outside its lists). ``scratch``: five lines of a row."""
     for r in range(r0, r1 + 1):
-        inv_lim = moving = film = kinetic = 0.0
-        fallbacks = 0
-        w_lo = nx
-        w_hi = -1
-        for c in range(lo[r], hi[r] + 1):
-            i = r * nx + c
-            f1 = flag1[i] if lo1[r] <= c <= hi1[r] else DRY
-            h0 = start.h[i]
-            hn, qx, qy, fell_back = heun_average(h0, start.hu[i], start.hv[i], stage2.h[i],
-                                                 stage2.hu[i], stage2.hv[i], f1, h_zero)
-            new.h[i] = hn
-            new.hu[i] = qx
-            new.hv[i] = qy
-            inside = valid[i] != 0
-            speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i],
-                                        gamma_z[i], g)
-            (obs.peak_h[i], obs.peak_speed[i], obs.arrival[i],
-             obs.last_moved[i]) = observe(inside, hn, speed, t_new, h_dry, obs.peak_h[i],
-                                          obs.peak_speed[i], obs.arrival[i],
-                                          obs.last_moved[i])
-            moves = cell_moves(speed, speed_of(h0, start.hu[i], start.hv[i]), transport[i],
-                               hn)
-            kin, mov, fil = step_terms(hn, cell_area[i], speed, moves, h_dry)
-            inv_lim = max(inv_lim, inv_i)
-            kinetic += kin
-            moving += mov
-            film += fil
-            fallbacks += fell_back
-            if inside and hn > h_zero:
-                w_lo = min(w_lo, c)
-                w_hi = max(w_hi, c)
-        rows[r, R_INV] = inv_lim
-        rows[r, R_MOVING] = moving
-        rows[r, R_FILM] = film
-        rows[r, R_KINETIC] = kinetic
-        rows[r, R_FALLBACK] = fallbacks
-        wet_lo[r] = w_lo
-        wet_hi[r] = w_hi
+        if lo[r] > hi[r]:
+            rows[r, R_INV] = rows[r, R_KINETIC] = rows[r, R_MOVING] = 0.0
+            rows[r, R_FILM] = rows[r, R_FALLBACK] = 0.0
+            wet_lo[r] = nx
+            wet_hi[r] = -1
+            continue
+        _heun_cells(r, r * nx, lo[r], hi[r], lo1[r], hi1[r], valid, start.h, start.hu,
+                    start.hv, stage2.h, stage2.hu, stage2.hv, flag1, transport, cell_area,
+                    cfl_factor, gamma_z, physics.g, physics.h_dry, physics.h_zero, t_new,
+                    new.h, new.hu, new.hv, obs.peak_h, obs.peak_speed, obs.arrival,
+                    obs.last_moved, rows, wet_lo, wet_hi, scratch[0], scratch[1],
+                    scratch[2], scratch[3], scratch[4])
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -1104,7 +1124,7 @@ def _order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs, when,
         return fail
     _heun_rows(q0, q1, reg.lo2, reg.hi2, lo, hi, nx, grid.valid, grid.cell_area,
                grid.cfl_factor, grid.gamma_z, physics, cur, s, work.flag1, work.transport,
-               nxt, obs, t_new, rows, wet_lo, wet_hi)
+               nxt, obs, t_new, rows, wet_lo, wet_hi, work.rings[4][0])
     _, _, inv_lim, moving, film, kinetic, _, fallbacks = _row_sums(rows, q0, q1)
     return (True, 0.5 * (out1 + out2), inv_lim, moving, film, kinetic, clamped1 + clamped2,
             fallbacks, q0, q1)
