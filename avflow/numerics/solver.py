@@ -170,7 +170,7 @@ class Solver:
     #: Numba's thread pool. Profiles run on one.
     threads: int | None = None
     #: "auto": the square-grid kernel (:mod:`avflow.numerics.square_grid`) on square grids
-    #: at order 1, the face kernel elsewhere; "faces": the face kernel everywhere (the
+    #: (both orders), the face kernel elsewhere; "faces": the face kernel everywhere (the
     #: reference); "grid": the square-grid kernel, an error where it does not apply.
     kernel: str = "auto"
     #: where the kernels run: "cpu" (the kernels registered in :mod:`avflow.numerics.registry`)
