@@ -3,6 +3,7 @@ orders, the four friction laws, 1 and 2 threads, on small scenes with walls, an 
 NODATA hole, curvature and a deposit at rest.
 
     python tests/reference_states.py      # record tests/data/reference_states.npz anew
+    python tests/reference_states.py --missing  # add the cases it lacks, keep the others
 
 Record only from a commit whose answers are the reference (the tests then compare every
 later kernel with these states, not one kernel with another). The file notes the machine's
@@ -47,9 +48,12 @@ def cases():
         out.append((f"grid-faces-voellmy-o{order}", "grid", "grid", "voellmy", order, "faces", 1))
         out.append((f"triangles-coulomb-o{order}", "triangles", "triangles", "coulomb", order,
                     "auto", 1))
-        for kind in ("grid", "triangles"):
+        for kind in ("grid", "triangles"):  # (order 2 on a grid: recorded on the face kernel)
             out.append((f"{kind}-threads-coulomb-o{order}", kind, kind, "coulomb", order,
-                        "auto", 2))
+                        "faces" if order == 2 else "auto", 2))
+    # order 2 on the square-grid kernel, 1 and 2 threads
+    out.append(("grid-coulomb-o2", "grid", "grid", "coulomb", 2, "grid", 1))
+    out.append(("grid-kernel-threads-coulomb-o2", "grid", "grid", "coulomb", 2, "grid", 2))
     return out
 
 
@@ -116,9 +120,17 @@ def vector_width() -> str:
     return "avx512" if "avx512f" in flags else ("avx2" if "avx2" in flags else platform.machine())
 
 
-def record() -> None:
+def record(missing_only: bool = False) -> None:
+    """Record every case (``missing_only``: only the cases the file lacks, the others kept
+    as recorded; the file's vector width must be this machine's)."""
     data = {"vector_width": np.array(vector_width())}
+    if missing_only:
+        with np.load(FILE) as old:
+            assert str(old["vector_width"]) == vector_width(), "recorded on another CPU"
+            data = {k: old[k] for k in old.files}
     for case in cases():
+        if missing_only and f"{case[0]}/h/0" in data:
+            continue
         states = run(case)
         for f, arrays in states.items():
             for k, a in enumerate(arrays):
@@ -131,4 +143,4 @@ def record() -> None:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(HERE.parent))
-    record()
+    record(missing_only="--missing" in sys.argv)

@@ -128,7 +128,7 @@ def test_the_cell_reconstruction_is_the_face_reconstruction(mesh):
     from avflow.numerics.reconstruction import N_WORK, reconstruct_cells, reconstruct_faces
 
     terrain = bump_on_a_slope(mesh)
-    solver = coulomb(terrain, 20.0, h_zero=1e-6, order=2)
+    solver = coulomb(terrain, 20.0, h_zero=1e-6, order=2, kernel="faces")  # its lists, offsets
     state = solver.new_state(cylinder(terrain, (60.0, 100.0), radius=40.0, thickness=6.0))
     m = terrain.mesh
     n, n_faces = m.n_cells, m.n_faces

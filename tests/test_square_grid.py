@@ -219,12 +219,12 @@ def test_contract_plane_cylinder_agrees(contract_dir):
     assert a.summary["mass_balance_error"] < 1e-12 and b.summary["mass_balance_error"] < 1e-12
 
 
-def test_grid_is_the_default_on_square_grids_at_order_1():
+def test_grid_is_the_default_on_square_grids_at_both_orders():
     plane = load_scenario(SCENARIOS / "plane_box_2d.yaml")
     ter_solver = simulate(plane.with_updates({"time.end": 1.0})).solver
     assert ter_solver.kernel_used == "grid"
     assert simulate(plane.with_updates({"time.end": 1.0, "numerics.order": 2})
-                    ).solver.kernel_used == "faces"
+                    ).solver.kernel_used == "grid"
     tri = load_scenario(SCENARIOS / "plane_cylinder_triangles.yaml")
     with pytest.raises(ScenarioError, match="numerics.kernel.*square grids"):
         simulate(tri.with_updates({"time.end": 1.0, "numerics.kernel": "grid"}))

@@ -13,8 +13,8 @@ the 1D and all-wet cases the fastest of three windows (``WINDOWS``):
   every cell wet; Coulomb): the square-grid kernel on 1, 2 and all threads, and the face kernel;
 - triangles: the face kernel on the median dual mesh of the same plane (401 x 401 nodes),
   on 1, 2 and all threads (its step in gather form on threads);
-- order 2 on the all-wet 1D, grid and triangle cases (the face kernel runs order 2 on grids,
-  on 1 and 2 threads);
+- order 2 on the all-wet 1D, grid and triangle cases (on grids the square-grid kernel, and
+  the face kernel for comparison, on 1 and 2 threads);
 - the cylinder alone (most of the map dry): map cells per second, what the active region buys;
 - the seed's section 6 (880 cells), wall time of its time loop;
 - the yardstick: a plain Numba 2D kinetic kernel (``plain_kernel.py``: flat bed, no frames,
@@ -174,8 +174,10 @@ CASES = [
     ("grid 400x400, square-grid kernel, 2 threads", "grid", 2, "grid"),
     ("grid 400x400, square-grid kernel, all threads", "grid", None, "grid"),
     ("grid 400x400, face kernel", "grid-faces", 1, "faces-grid"),
-    ("grid 400x400, order 2 (face kernel)", "grid-order2", 1, None),
-    ("grid 400x400, order 2 (face kernel), 2 threads", "grid-order2", 2, None),
+    ("grid 400x400, order 2, square-grid kernel", "grid-order2", 1, None),
+    ("grid 400x400, order 2, square-grid kernel, 2 threads", "grid-order2", 2, None),
+    ("grid 400x400, order 2, face kernel", "grid-faces-order2", 1, None),
+    ("grid 400x400, order 2, face kernel, 2 threads", "grid-faces-order2", 2, None),
     ("grid 400x400, cylinder only (map cells/s)", "grid-cylinder", 1, None),
     ("grid 1000x1000, square-grid kernel, 1 thread", "grid-1000", 1, "grid"),
     ("grid 1000x1000, square-grid kernel, 2 threads", "grid-1000", 2, "grid"),

@@ -36,7 +36,7 @@ import math
 
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, UNDER_THRESHOLD, cell_moves, centripetal_accel,
+from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_average,
                                  dirac_face, dt_from_inverse, emitted_state, final_momentum,
                                  observe, observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
@@ -240,16 +240,8 @@ def heun_cells(cells, n_cells, mesh, physics, start, stage2, flag1, transport, o
         i = cells[c]
         # U^{n+1} = (U^n + U**) / 2, the first-order answer q = 0 where the first stage
         # put the cell under the Coulomb threshold (see heun_faces)
-        hn = 0.5 * (h0[i] + h2[i])
-        qx = 0.5 * (hu0[i] + hu2[i])
-        qy = 0.5 * (hv0[i] + hv2[i])
-        stopped = flag1[i] == UNDER_THRESHOLD
-        fell_back = 0
-        if hn <= h_zero or stopped:
-            if stopped and (qx != 0.0 or qy != 0.0):
-                fell_back = 1
-            qx = 0.0
-            qy = 0.0
+        hn, qx, qy, fell_back = heun_average(h0[i], hu0[i], hv0[i], h2[i], hu2[i], hv2[i],
+                                             flag1[i], h_zero)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

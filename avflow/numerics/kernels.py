@@ -36,7 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.cpu import (DRY, UNDER_THRESHOLD, cell_moves, centripetal_accel,
+from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_average,
                                  dirac_face, dt_from_inverse, emitted_state, emitting,
                                  final_momentum, half_flux_in, half_flux_out, half_fluxes,
                                  observe, observe_cell, open_mass, side_fluxes, sound_speed,
@@ -465,19 +465,9 @@ def heun_faces(cells, n_cells, mesh, physics, start, stage2, flag1, transport, o
     fallbacks = 0
     for c in range(n_cells):
         i = cells[c]
-        # U^{n+1} = (U^n + U**) / 2. A cell that the first stage (a first-order step from
-        # U^n) put under the Coulomb threshold takes the first-order answer q = 0: the
-        # average would give it q^n / 2, and a mass that stops would never quite stop.
-        # Mass is always averaged (each stage conserves it, so their average does).
-        hn = 0.5 * (h0[i] + h2[i])
-        qx = 0.5 * (hu0[i] + hu2[i])
-        qy = 0.5 * (hv0[i] + hv2[i])
-        stopped = flag1[i] == UNDER_THRESHOLD
-        if hn <= h_zero or stopped:
-            if stopped and (qx != 0.0 or qy != 0.0):
-                fallbacks += 1
-            qx = 0.0
-            qy = 0.0
+        hn, qx, qy, fell_back = heun_average(h0[i], hu0[i], hv0[i], h2[i], hu2[i], hv2[i],
+                                             flag1[i], h_zero)
+        fallbacks += fell_back
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

@@ -128,6 +128,27 @@ def final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, la
     return qx, qy, clamped
 
 
+def heun_average(h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero):
+    """Order 2: Heun's average ``U^{n+1} = (U^n + U**) / 2`` of a cell's state at the step's
+    start and after its second stage. A cell that the first stage (a step of the seed's
+    scheme from ``U^n``) put under the Coulomb threshold (``flag1``) takes the first-order
+    answer q = 0 (eq. 56): the average would give it q^n / 2, and a mass that stops would
+    never quite stop. Mass is always averaged (each stage conserves it, so their average
+    does). Returns ``(h, qx, qy, fallback)``, fallback 1 where q = 0 replaced a nonzero
+    average."""
+    hn = 0.5 * (h0 + h2)
+    qx = 0.5 * (hu0 + hu2)
+    qy = 0.5 * (hv0 + hv2)
+    stopped = flag1 == UNDER_THRESHOLD
+    fallback = 0
+    if hn <= h_zero or stopped:
+        if stopped and (qx != 0.0 or qy != 0.0):
+            fallback = 1
+        qx = 0.0
+        qy = 0.0
+    return hn, qx, qy, fallback
+
+
 def emitting(h, h_zero):
     """Thickness that emits particles: a cell at or below ``h_zero`` is dry for the scheme.
 

@@ -63,13 +63,13 @@ def _face_loop(structured, order, law, parallel):
 def _grid_loop(structured, order, law, parallel):
     from avflow.numerics.square_grid import grid_loop
 
-    return grid_loop(law, parallel)
+    return grid_loop(law, parallel, order)
 
 
 KERNELS: dict[tuple[str, str], Kernel] = {
     ("profile", "cpu"): Kernel("profile", "cpu", (1, 2), "a profile's cells in line order",
                                _profile_refuses, _face_loop),
-    ("grid", "cpu"): Kernel("grid", "cpu", (1,), "square grids (planes, DEMs) by rows, on threads",
+    ("grid", "cpu"): Kernel("grid", "cpu", (1, 2), "square grids (planes, DEMs) by rows, on threads",
                             _grid_refuses, _grid_loop),
     ("faces", "cpu"): Kernel("faces", "cpu", (1, 2), "any mesh by face lists, on threads",
                              _faces_refuses, _face_loop),

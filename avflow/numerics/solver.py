@@ -25,6 +25,7 @@ from avflow.numerics.rheology import N_PARAMS, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
 from avflow.terrain.bed import Terrain
+from avflow.terrain.mesh import EAST, NORTH, WEST
 from avflow.terrain.squaregrid import SquareGrid, square_grid
 
 STATUS_NAMES = {
@@ -97,6 +98,23 @@ def face_offsets(terrain: Terrain) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
+def grid_offsets(layout: SquareGrid, mesh, face_offset: np.ndarray) -> tuple:
+    """:func:`face_offsets` on a square grid's layout: ``(ny, 4, nx + 1)`` for its x faces
+    and ``(ny + 1, 4, nx)`` for its y faces, ``(rx, ry)`` of side 0 then of side 1."""
+    ny, nx = layout.ny, layout.nx
+    x_off = np.zeros((ny, 4, nx + 1))
+    y_off = np.zeros((ny + 1, 4, nx))
+    d = mesh.face_direction
+    r, c = np.divmod(layout.place[mesh.face_cells[:, 0]], nx)
+    r = r + (d == NORTH)
+    c = c + (d == EAST)
+    on_x = (d == EAST) | (d == WEST)
+    both = face_offset.reshape(-1, 4)
+    x_off[r[on_x], :, c[on_x]] = both[on_x]
+    y_off[r[~on_x], :, c[~on_x]] = both[~on_x]
+    return x_off, y_off
+
+
 @dataclass
 class ThreadChoice:
     """Which threads the next steps of a solver with ``threads`` None run on: all of them
@@ -152,7 +170,7 @@ class Solver:
     #: Numba's thread pool. Profiles run on one.
     threads: int | None = None
     #: "auto": the square-grid kernel (:mod:`avflow.numerics.square_grid`) on square grids
-    #: at order 1, the face kernel elsewhere; "faces": the face kernel everywhere (the
+    #: (both orders), the face kernel elsewhere; "faces": the face kernel everywhere (the
     #: reference); "grid": the square-grid kernel, an error where it does not apply.
     kernel: str = "auto"
     #: where the kernels run: "cpu" (the kernels registered in :mod:`avflow.numerics.registry`)
@@ -270,13 +288,21 @@ class Solver:
             "curvature": np.ascontiguousarray(full(t.curvature).T),
         }
         c = self._g_cells
+        if self.order == 2:  # where order 2 evaluates its slopes, per face side
+            x_offset, y_offset = grid_offsets(layout, m, face_offsets(t))
+        else:
+            x_offset, y_offset = np.zeros((0, 4, 0)), np.zeros((0, 4, 0))
         self._g_mesh = GridMesh(layout.nx, layout.ny, layout.valid, layout.x_code,
                                 layout.x_frame, layout.x_length, layout.y_code,
                                 layout.y_frame, layout.y_length, c["cell_area"],
                                 c["inv_area"], c["cfl_factor"], c["density"], c["gamma_x"],
-                                c["gamma_y"], c["gamma_z"], c["curvature"])
+                                c["gamma_y"], c["gamma_z"], c["curvature"], x_offset,
+                                y_offset)
         n = layout.n_places
         self._h_work, self._hu_work, self._hv_work = np.zeros(n), np.zeros(n), np.zeros(n)
+        m2 = n if self.order == 2 else 0  # order 2: stage 2, stage 1's flags, transport
+        self._g_order2 = (np.zeros(m2), np.zeros(m2), np.zeros(m2),
+                          np.full(m2, DRY, dtype=np.uint8), np.zeros(m2))
         self._g_flag = np.zeros(n, dtype=np.uint8)
         self._g_rings = None  # the kernel's ring buffers, a set per thread (_advance_grid)
         if not layout.compact:  # state and observers on the full grid, copied in and out
@@ -298,7 +324,7 @@ class Solver:
         them again. Nothing happens for the other kernels."""
         if self._grid is not None:
             self._grid = self._g_cells = self._g_state = self._g_flag = None
-            self._g_rings = self._g_mesh = None
+            self._g_rings = self._g_mesh = self._g_order2 = None
             self._h_work = self._hu_work = self._hv_work = None
             self._released = True
 
@@ -347,7 +373,7 @@ class Solver:
         # ring buffers of the kernel's blocks, a set per thread, made once (each step made
         # its own before: 0.7-1 ms a step on a map 2000 cells wide)
         if self._g_rings is None or self._g_rings.emit.shape[0] < threads:
-            self._g_rings = _rings(self.threads_used(), layout.nx)
+            self._g_rings = _rings(self.threads_used(), layout.nx, self.order == 2)
         # the state's own flags: the kernel writes those of the cells it sweeps and keeps
         # the others (a flag buffer kept by the solver gave a second state the flags the
         # first had left where the second never swept)
@@ -358,7 +384,8 @@ class Solver:
         fields = self._fields(state, dict(arrays, flag=flag))
         run = self._control(t_target, max_steps, stop_volume, stop_kinetic,
                             *self._parallel_from)
-        work = GridWork(self._h_work, self._hu_work, self._hv_work, self._g_rings)
+        work = GridWork(self._h_work, self._hu_work, self._hv_work, self._g_rings,
+                        *self._g_order2)
         status = self._loop(threads)(threads, self._g_mesh, fields, work, self._physics(),
                                      run)
         if chunk is not None:

@@ -32,6 +32,12 @@ fluxes, frames, curvature), boundary faces in a second, scalar pass, and a copy 
 sweep per friction law. The same arithmetic written with branches ran about twice as
 long a cell (docs/performance.md).
 
+Order 2 (Heun's two stages, :func:`_order2_step`) runs the same sweep twice, its faces fed
+each row's reconstructed sides (:func:`_recon_row`, the face kernel's limited linear
+reconstruction cell by cell) instead of the cells' emitted values, then merges the stages per
+row (:func:`_heun_rows`): the face kernel's answers at order 2, bit for bit, the grid-wide
+sums to round-off.
+
 ``prange`` runs serially when a function is compiled without ``parallel``: the sweep is
 compiled twice (serial and parallel), and one thread takes the serial one, which never
 touches Numba's thread pool (safe inside dask workers and any thread). The time loop is
@@ -48,13 +54,14 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, dt_from_inverse,
-                                 final_momentum, observe, observe_cell, open_mass, step_terms,
+from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, cell_moves,
+                                 dt_from_inverse, final_momentum, heun_average,
+                                 observe, observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
 from avflow.numerics.sources import SRC_KIND, add_span
-from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                      ST_SOURCE, ST_TIME, Conserved, Observers, record_end,
-                                      record_step, step_size)
+from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FALLBACK,
+                                      ST_RETRIES, ST_SOURCE, ST_TIME, Conserved, Observers,
+                                      StepTime, record_end, record_step, step_size)
 from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
@@ -70,7 +77,13 @@ R_MOVING = 3
 R_FILM = 4
 R_KINETIC = 5
 R_CLAMPED = 6
-N_ROW = 7
+R_FALLBACK = 7  #: order 2: cells of the row where Heun's merge fell back to q = 0
+N_ROW = 8
+
+#: Whether a copy of the row passes runs a stage of order 2 (a constant in each copy,
+#: :func:`_block_for`): gravity and friction explicit in the stage (physics.trial_momentum),
+#: no observers, each cell's transport kept for Heun's merge
+ORDER2 = False
 
 
 #: Per-cell values of an emitted row (:func:`_emit_row`)
@@ -188,17 +201,21 @@ def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, kh
 
 @noalias
 @njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
-def _x_faces(k0, k1, codes, frames, lengths, emit, out):
+def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
     """x faces ``k0..k1`` of a row (face k between cells k - 1 and k) into ``out[:, k]``
-    (``frames``: the row's ``(4, nx + 1)`` normals).
+    (``frames``: the row's ``(4, nx + 1)`` normals; ``west``: what the west cell k - 1
+    emits through its east side, ``east``: what cell k emits through its west side, both
+    the row's emitted values at order 1, the reconstructed sides at order 2).
 
     Two passes: every face inside the map (``1 <= k < nx``) as an INNER face, in one
     branch-free loop that LLVM vectorises (:func:`_inner_select`), then the few others
     (walls, open sides, the map's two sides) again with
     :func:`_face_flux`, which overwrites them (a NO_FACE keeps values nobody reads)."""
-    nx = emit.shape[1]
-    e_h, e_u1, e_u2, e_c = emit[E_H], emit[E_U1], emit[E_U2], emit[E_C]
-    e_s, e_kh, e_k3 = emit[E_S], emit[E_KH], emit[E_K3]
+    nx = east.shape[1]
+    w_h, w_u1, w_u2, w_c = west[E_H], west[E_U1], west[E_U2], west[E_C]
+    w_s, w_kh, w_k3 = west[E_S], west[E_KH], west[E_K3]
+    e_h, e_u1, e_u2, e_c = east[E_H], east[E_U1], east[E_U2], east[E_C]
+    e_s, e_kh, e_k3 = east[E_S], east[E_KH], east[E_K3]
     n0x, n0y, n1x, n1y = frames[0], frames[1], frames[2], frames[3]
     o0, o1, o2, o3, o4 = out[0], out[1], out[2], out[3], out[4]
     a = max(k0, 1)
@@ -206,8 +223,8 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
     for j in range(b + 1 - a):
         k = a + j  # >= 1: the west cell k - 1 >= 0, no wraparound
         f0, f1, f2, f3, f4 = _inner_select(
-            codes[k], e_h[k - 1], e_u1[k - 1], e_u2[k - 1], e_c[k - 1], e_s[k - 1],
-            e_kh[k - 1], e_k3[k - 1], e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k],
+            codes[k], w_h[k - 1], w_u1[k - 1], w_u2[k - 1], w_c[k - 1], w_s[k - 1],
+            w_kh[k - 1], w_k3[k - 1], e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k],
             e_k3[k], n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
         o1[k] = f1
@@ -219,10 +236,15 @@ def _x_faces(k0, k1, codes, frames, lengths, emit, out):
         kind = code & KIND
         if kind == INNER or kind == NO_FACE:
             continue
-        m = k if kind >= HIGH_WALL else k - 1  # the owner: east cell for HIGH_*, else west
-        f0, f1, f2, f3, f4 = _face_flux(
-            code, e_h[m], e_u1[m], e_u2[m], e_c[m], e_s[m], e_kh[m], e_k3[m],
-            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
+        if kind >= HIGH_WALL:  # the owner: the east cell for HIGH_*, else the west one
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
+        else:
+            m = k - 1
+            f0, f1, f2, f3, f4 = _face_flux(
+                code, w_h[m], w_u1[m], w_u2[m], w_c[m], w_s[m], w_kh[m], w_k3[m],
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
         o1[k] = f1
         o2[k] = f2
@@ -277,6 +299,228 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
         o2[c] = f2
         o3[c] = f3
         o4[c] = f4
+
+
+#: The sides of a cell in the reconstruction's lines (:func:`_recon_row`): W, E, S, N
+SIDE_W, SIDE_E, SIDE_S, SIDE_N = range(4)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _gg_face(hc, uc1, uc2, inner, second, code, n_0x, n_0y, n_1x, n_1y, w, ho_raw, huo, hvo,
+             h_zero):
+    """One face of a cell in the Green-Gauss sums of
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells`, without branches (the same
+    operations on every value kept, so the same bits): ``second``, the cell is the face's
+    second side (an inner W or S face); ``n_0``, ``n_1`` the frame normals of the face's two
+    sides (tangents ``t = s (-n_y, n_x)``, the signs in the code's bits). Returns ``(wx, wy,
+    ho, uo1, uo2, front)``: the weights of the face's mean values, the neighbour's thickness
+    and velocity in this cell's basis (the cell's own beyond a boundary face: zero normal
+    gradient), whether the neighbour is dry."""
+    n_sx = n_1x if second else n_0x
+    n_sy = n_1y if second else n_0y
+    n_ox = n_0x if second else n_1x
+    n_oy = n_0y if second else n_1y
+    s_s = -1.0 if (code & (SIGN1 if second else SIGN0)) != 0 else 1.0
+    s_o = -1.0 if (code & (SIGN0 if second else SIGN1)) != 0 else 1.0
+    nx = -n_sx if second else n_sx  # the frame's normal points from the first side
+    ny = -n_sy if second else n_sy
+    wet = ho_raw > h_zero
+    hs = ho_raw if wet else 1.0
+    v1 = huo / hs
+    v2 = hvo / hs
+    un = v1 * n_ox + v2 * n_oy  # its velocity, turned through the face into this basis
+    ut = v1 * (s_o * -n_oy) + v2 * (s_o * n_ox)
+    t1 = un * n_sx + ut * (s_s * -n_sy)
+    t2 = un * n_sy + ut * (s_s * n_sx)
+    return (w * nx, w * ny, (ho_raw if inner else hc), (t1 if inner & wet else uc1),
+            (t2 if inner & wet else uc2), inner & (not wet))
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _range(centre, a, b, c, d):
+    """The least and largest of a cell's value and its four neighbours', each kept unless a
+    value is strictly beyond it (as reconstruct_cells, in face order)."""
+    lo = centre
+    hi = centre
+    lo = a if a < lo else lo
+    hi = a if a > hi else hi
+    lo = b if b < lo else lo
+    hi = b if b > hi else hi
+    lo = c if c < lo else lo
+    hi = c if c > hi else hi
+    lo = d if d < lo else lo
+    hi = d if d > hi else hi
+    return lo, hi
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _bj_select(alpha, d, centre, lo, hi, thickness):
+    """:func:`~avflow.numerics.reconstruction._bj_factor` without branches, with one
+    division (the vector loop is bound by its divisions): the numerator chosen first, and
+    for a thickness ``min(a / d, c / d) == min(a, c) / d`` exactly, d > 0 (a rounded
+    division is monotone)."""
+    up = hi - centre
+    up = min(up, centre) if thickness else up
+    ratio = (up if d > 0.0 else (lo - centre)) / d
+    return ratio if (d != 0.0) & (ratio < alpha) else alpha
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front, g_normal, dens):
+    """A wet cell's reconstructed state on one side (offset ``(rx, ry)`` in its basis), as
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` makes it, and what it emits
+    there as step_faces at order 2 (:func:`emitted_cell`, emitted_state without branches):
+    ``(h, u1, u2, c, sqrt(3) c, k / 2, k / 3)``."""
+    hf = hc + a0 * (g0 * rx + g1 * ry)
+    hf = max(hf, 0.0)
+    u1 = uc1 + a1 * (g2 * rx + g3 * ry)
+    u2 = uc2 + a2 * (g4 * rx + g5 * ry)
+    u1 = uc1 if front else u1  # no velocity slope towards a dry neighbour
+    u2 = uc2 if front else u2
+    e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3, _ = emitted_cell(hf, hf * u1, hf * u2, g_normal,
+                                                             dens, 0.0)
+    return e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3
+
+
+@noalias
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
+def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame, ys_frame,
+                 yn_frame, x_len, ys_len, yn_len, x_off, ys_off, yn_off, cell_area, density,
+                 gamma_z, h, hu, hv, h_zero, g,
+                 w_h, w_u1, w_u2, w_c, w_s, w_kh, w_k3, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3,
+                 s_h, s_u1, s_u2, s_c, s_s, s_kh, s_k3, n_h, n_u1, n_u2, n_c, n_s, n_kh, n_k3):
+    """:func:`_recon_row`'s loop over the cells ``c0..c1`` of a row (``base``: its first
+    place, ``base_s`` / ``base_n``: the rows below and above, clamped to the map), each
+    output line its own argument, without branches so that LLVM vectorises it (the
+    neighbours' values loaded whatever the faces are, in the map: indices clamped)."""
+    xf0, xf1, xf2, xf3 = x_frame[0], x_frame[1], x_frame[2], x_frame[3]
+    sf0, sf1, sf2, sf3 = ys_frame[0], ys_frame[1], ys_frame[2], ys_frame[3]
+    nf0, nf1, nf2, nf3 = yn_frame[0], yn_frame[1], yn_frame[2], yn_frame[3]
+    xo0, xo1, xo2, xo3 = x_off[0], x_off[1], x_off[2], x_off[3]
+    so0, so1, so2, so3 = ys_off[0], ys_off[1], ys_off[2], ys_off[3]
+    no0, no1 = yn_off[0], yn_off[1]
+    last = max(h.size - 1, 0)
+    c0 = max(c0, 0)
+    i0 = max(base + c0, 0)
+    is0 = max(base_s + c0, 0)  # (starts clamped at 0: no wraparound of negative indices)
+    in0 = max(base_n + c0, 0)
+    for j in range(c1 + 1 - c0):
+        c = c0 + j
+        i = i0 + j
+        hc = h[i]
+        wet = hc > h_zero
+        hs = hc if wet else 1.0
+        uc1 = hu[i] / hs
+        uc2 = hv[i] / hs
+        area = cell_area[i]
+        cw, ce, cs, cn = x_code[c], x_code[c + 1], ys_code[c], yn_code[c]
+        w_in = (cw & KIND) == INNER
+        e_in = (ce & KIND) == INNER
+        s_in = (cs & KIND) == INNER
+        n_in = (cn & KIND) == INNER
+        iw = max(i - 1, 0)
+        ie = min(i + 1, last)
+        i_s = is0 + j
+        i_n = in0 + j
+        # W (x face c: the cell its second side when inner), E (x face c + 1: its first),
+        # S (y face below: second when inner), N (y face above: first)
+        wx0, wy0, ho0, uo10, uo20, fr0 = _gg_face(
+            hc, uc1, uc2, w_in, w_in, cw, xf0[c], xf1[c], xf2[c], xf3[c], x_len[c] / area,
+            h[iw], hu[iw], hv[iw], h_zero)
+        wx1, wy1, ho1, uo11, uo21, fr1 = _gg_face(
+            hc, uc1, uc2, e_in, False, ce, xf0[c + 1], xf1[c + 1], xf2[c + 1], xf3[c + 1],
+            x_len[c + 1] / area, h[ie], hu[ie], hv[ie], h_zero)
+        wx2, wy2, ho2, uo12, uo22, fr2 = _gg_face(
+            hc, uc1, uc2, s_in, s_in, cs, sf0[c], sf1[c], sf2[c], sf3[c], ys_len[c] / area,
+            h[i_s], hu[i_s], hv[i_s], h_zero)
+        wx3, wy3, ho3, uo13, uo23, fr3 = _gg_face(
+            hc, uc1, uc2, n_in, False, cn, nf0[c], nf1[c], nf2[c], nf3[c], yn_len[c] / area,
+            h[i_n], hu[i_n], hv[i_n], h_zero)
+        front = (fr0 | fr1) | (fr2 | fr3)
+        # Green-Gauss sums (the mean of both sides on each face), in face order
+        m0, m1, m2, m3 = 0.5 * (hc + ho0), 0.5 * (hc + ho1), 0.5 * (hc + ho2), 0.5 * (hc + ho3)
+        g0 = _in_face_order(0.0, wx0 * m0, wx1 * m1, wx2 * m2, wx3 * m3)
+        g1 = _in_face_order(0.0, wy0 * m0, wy1 * m1, wy2 * m2, wy3 * m3)
+        m0, m1, m2, m3 = (0.5 * (uc1 + uo10), 0.5 * (uc1 + uo11), 0.5 * (uc1 + uo12),
+                          0.5 * (uc1 + uo13))
+        g2 = _in_face_order(0.0, wx0 * m0, wx1 * m1, wx2 * m2, wx3 * m3)
+        g3 = _in_face_order(0.0, wy0 * m0, wy1 * m1, wy2 * m2, wy3 * m3)
+        m0, m1, m2, m3 = (0.5 * (uc2 + uo20), 0.5 * (uc2 + uo21), 0.5 * (uc2 + uo22),
+                          0.5 * (uc2 + uo23))
+        g4 = _in_face_order(0.0, wx0 * m0, wx1 * m1, wx2 * m2, wx3 * m3)
+        g5 = _in_face_order(0.0, wy0 * m0, wy1 * m1, wy2 * m2, wy3 * m3)
+        # the neighbours' range, as reconstruct_cells keeps it (the same zero's sign)
+        lo0, hi0 = _range(hc, ho0, ho1, ho2, ho3)
+        lo1, hi1 = _range(uc1, uo10, uo11, uo12, uo13)
+        lo2, hi2 = _range(uc2, uo20, uo21, uo22, uo23)
+        # the offsets of the cell's side of each face (zero on boundary faces)
+        rwx = xo2[c] if w_in else xo0[c]
+        rwy = xo3[c] if w_in else xo1[c]
+        rex, rey = xo0[c + 1], xo1[c + 1]
+        rsx = so2[c] if s_in else so0[c]
+        rsy = so3[c] if s_in else so1[c]
+        rnx, rny = no0[c], no1[c]
+        # Barth-Jespersen factors over the faces
+        a0 = a1 = a2 = 1.0
+        a0 = _bj_select(a0, g0 * rwx + g1 * rwy, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rwx + g3 * rwy, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rwx + g5 * rwy, uc2, lo2, hi2, False)
+        a0 = _bj_select(a0, g0 * rex + g1 * rey, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rex + g3 * rey, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rex + g5 * rey, uc2, lo2, hi2, False)
+        a0 = _bj_select(a0, g0 * rsx + g1 * rsy, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rsx + g3 * rsy, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rsx + g5 * rsy, uc2, lo2, hi2, False)
+        a0 = _bj_select(a0, g0 * rnx + g1 * rny, hc, lo0, hi0, True)
+        a1 = _bj_select(a1, g2 * rnx + g3 * rny, uc1, lo1, hi1, False)
+        a2 = _bj_select(a2, g4 * rnx + g5 * rny, uc2, lo2, hi2, False)
+        gn = g * gamma_z[i]
+        dens = density[i]
+        # each side, zero where the cell is dry (it emits nothing)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rwx, rwy, front, gn, dens)
+        w_h[c], w_u1[c], w_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        w_c[c], w_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        w_kh[c], w_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rex, rey, front, gn, dens)
+        e_h[c], e_u1[c], e_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        e_c[c], e_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        e_kh[c], e_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rsx, rsy, front, gn, dens)
+        s_h[c], s_u1[c], s_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        s_c[c], s_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        s_kh[c], s_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+        v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
+                                           rnx, rny, front, gn, dens)
+        n_h[c], n_u1[c], n_u2[c] = (v0 if wet else 0.0), (v1 if wet else 0.0), (v2 if wet else 0.0)
+        n_c[c], n_s[c] = (v3 if wet else 0.0), (v4 if wet else 0.0)
+        n_kh[c], n_k3[c] = (v5 if wet else 0.0), (v6 if wet else 0.0)
+
+
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
+def _recon_row(r, c0, c1, nx, ny, x_code, ys_code, yn_code, x_frame, ys_frame, yn_frame,
+               x_len, ys_len, yn_len, x_off, ys_off, yn_off, cell_area, density, gamma_z, h,
+               hu, hv, h_zero, g, out):
+    """Order 2: what each cell ``c0..c1`` of row r emits through each of its sides
+    (``out[SIDE_*, E_*, c]``) from its limited linear reconstruction: Green-Gauss gradients
+    of h and of the velocity in the cell's basis over its faces W, E, S, N (their order of
+    index in the mesh), Barth-Jespersen factors, the state at each face's offset
+    (``x_off``, ``ys_off``, ``yn_off``: the row's offsets ``(rx0, ry0, rx1, ry1)`` of each
+    face's two sides, :func:`avflow.numerics.solver.grid_offsets`). The face kernel's
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` and step_faces' emitted states
+    at order 2, the same operations, so the same bits. A cell at or below h_zero emits
+    nothing (what it read of its neighbours is dropped: only a wet cell's neighbours lie
+    where the work buffers hold the state, :func:`_sync_work`)."""
+    w, e, s, n = out[SIDE_W], out[SIDE_E], out[SIDE_S], out[SIDE_N]
+    _recon_cells(r * nx, max(r - 1, 0) * nx, min(r + 1, ny - 1) * nx, c0, c1, x_code, ys_code,
+                 yn_code, x_frame, ys_frame, yn_frame, x_len, ys_len, yn_len, x_off, ys_off,
+                 yn_off, cell_area, density, gamma_z, h, hu, hv, h_zero, g,
+                 w[E_H], w[E_U1], w[E_U2], w[E_C], w[E_S], w[E_KH], w[E_K3],
+                 e[E_H], e[E_U1], e[E_U2], e[E_C], e[E_S], e[E_KH], e[E_K3],
+                 s[E_H], s[E_U1], s[E_U2], s[E_C], s[E_S], s[E_KH], s[E_K3],
+                 n[E_H], n[E_U1], n[E_U2], n[E_C], n[E_S], n[E_KH], n[E_K3])
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -342,7 +586,7 @@ def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
         qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[c], hu[i], hv[i],
                                      mh * ia, mx * ia, my * ia, dt,
                                      dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
-                                     centripetal, lw, p0, p1, p2, p3, p4, p5, p6, p7, g, False)
+                                     centripetal, lw, p0, p1, p2, p3, p4, p5, p6, p7, g, ORDER2)
         dry = h[i] <= h_zero  # no trial: the momentum sum itself
         qx_out[c] = mx if dry else qx
         qy_out[c] = my if dry else qy
@@ -362,7 +606,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
                  yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area, cfl_factor,
                  gamma_x, gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
                  params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
-                 last_moved, rows, wet_lo, wet_hi, marks, t_inv, t_kin, t_mov, t_film, t_out):
+                 last_moved, rows, wet_lo, wet_hi, marks, t_inv, t_kin, t_mov, t_film, t_out,
+                 em_s, em_n, transport):
     """Final update of row r, in two loops: (1) mass through the faces that keep the
     rectangular density, the projection; h, q and the flag of each cell, and ``marks[c]``
     (its Dirac faces and whether its update was kept, ``M_*``); (2) from what (1) wrote, the
@@ -378,7 +623,14 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
 
     Two loops, because one loop over the forty-odd lines of both kept most of their base
     pointers on the stack; in one function, because a call per loop cost every row a
-    fixed overhead (both measured: docs/performance.md)."""
+    fixed overhead (both measured: docs/performance.md).
+
+    In a stage of order 2 (``ORDER2``, a constant of the copy): friction with the stage's
+    own thickness (physics.final_momentum's ``explicit``), no observers (a stage's state is
+    not one of the run's), and ``transport[i]``, the largest mass flux per metre through
+    the cell's faces that are not Dirac, written where the face kernel's stage would touch
+    the cell (it or a neighbour across an inner face wet: ``em_s``, ``em``, ``em_n``, the
+    emitted thickness of the rows below, of this one and above) for Heun's merge."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
     p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
@@ -442,7 +694,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         qy = dt * (by / area + g * hn * gy) if dry else qy
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
         qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
-                                     p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
+                                     p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, ORDER2)
         # writes: the new value where the cell is updated, else what is there
         flag[i] = fi if inside else old_flag
         # (a cell outside the DEM keeps h = 0, q = 0; one that went below 0 writes what it
@@ -480,7 +732,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
                                 g)
         peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-            good, hn, speed, t_new, h_dry, old_peak_h, old_peak_speed, old_arrival, old_moved)
+            good & (not ORDER2), hn, speed, t_new, h_dry, old_peak_h, old_peak_speed,
+            old_arrival, old_moved)
         # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
         # per metre (physics.cell_moves; compared as |fh| > eps h |u^n| L: no division)
         limit = TRANSPORT_EPS * hn * speed_n
@@ -503,6 +756,15 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         out_s = -sm * dt if open_s else 0.0
         out_n = -nm * dt if open_n else 0.0
         t_out[c] = ((out_w + out_e) + out_s) + out_n if good else 0.0
+        if ORDER2:  # step_faces' transport: only faces that are not Dirac (eq. 53)
+            unit = max(max(max(0.0 if d_w else abs(wm) / len_w, 0.0 if d_e else abs(e_m) / len_e),
+                           0.0 if d_s else abs(sm) / len_s), 0.0 if d_n else abs(nm) / len_n)
+            e_h = em[E_H]
+            touched = ((e_h[c] > 0.0) | (((w_code & KIND) == INNER) & (e_h[max(c - 1, 0)] > 0.0))
+                       | (((e_code & KIND) == INNER) & (e_h[min(c + 1, e_h.size - 1)] > 0.0))
+                       | (((s_code & KIND) == INNER) & (em_s[E_H, c] > 0.0))
+                       | (((n_code & KIND) == INNER) & (em_n[E_H, c] > 0.0)))
+            transport[i] = unit if touched else transport[i]
         wet = good & (hn > h_zero)
         w_lo = min(w_lo, c) if wet else w_lo
         w_hi = max(w_hi, c) if wet else w_hi
@@ -538,7 +800,8 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y,
                  gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac,
                  h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
-                 r0, r1, lo, hi, rows, wet_lo, wet_hi, emit, xf, yf, fl, scratch, qx, qy, marks):
+                 r0, r1, lo, hi, rows, wet_lo, wet_hi, emit, xf, yf, fl, scratch, qx, qy, marks,
+                 x_off, y_off, transport, recon):
     """One step on the rows ``a..b`` of the swept band ``r0..r1``, as a wavefront: at stage
     k the faces of row k (its x faces, the y faces below it), the trial of row k - 1, the
     final update of row k - 2, so that a row's fluxes and flags are still in cache when they
@@ -548,7 +811,12 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
 
     Compiled once per friction law with that law's copies of the cell loops
     (:func:`~avflow.numerics.vectorize.by_law`): one call per block, rather than a layer
-    of dispatch per row (docs/performance.md)."""
+    of dispatch per row (docs/performance.md).
+
+    A stage of order 2 (``ORDER2``) is the same sweep, its faces fed the reconstructed
+    sides of each row (:func:`_recon_row`, into the ring ``recon``; ``x_off``, ``y_off``:
+    the faces' offsets) instead of the cells' emitted values, which the cell passes still
+    read for u^n and |u^n|."""
     ring = RING
     for k in range(a - 1, b + 3):
         # --- faces of row k: what rows k - 1 and k emit, computed once per cell
@@ -560,21 +828,42 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
             n1 = max(max(p1_, s1), q1) + 1
             _emit_row((k - 1) * nx, max(n0, 0), min(n1, nx - 1), h, hu, hv, gamma_z,
                       density, h_zero, g, emit[(k - 1) % ring])
+            if ORDER2:
+                _recon_row(k - 1, max(n0, 0), min(n1, nx - 1), nx, ny, x_code[k - 1],
+                           y_code[k - 1], y_code[k], x_frame[k - 1], y_frame[k - 1],
+                           y_frame[k], x_length[k - 1], y_length[k - 1], y_length[k],
+                           x_off[k - 1], y_off[k - 1], y_off[k], cell_area, density, gamma_z,
+                           h, hu, hv, h_zero, g, recon[(k - 1) % ring])
         if 0 <= k < ny:
             n_0, n_1 = _span(k + 1, r0, r1, lo, hi, nx)
             e0 = min(min(p0_, s0), n_0) - 1
             e1 = max(max(p1_, s1), n_1) + 1
             _emit_row(k * nx, max(e0, 0), min(e1, nx - 1), h, hu, hv, gamma_z, density,
                       h_zero, g, emit[k % ring])
+            if ORDER2:
+                _recon_row(k, max(e0, 0), min(e1, nx - 1), nx, ny, x_code[k], y_code[k],
+                           y_code[k + 1], x_frame[k], y_frame[k], y_frame[k + 1],
+                           x_length[k], y_length[k], y_length[k + 1], x_off[k], y_off[k],
+                           y_off[k + 1], cell_area, density, gamma_z, h, hu, hv, h_zero, g,
+                           recon[k % ring])
             if s0 <= s1 and k <= b + 1:
-                _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k], emit[k % ring],
-                         xf[k % ring])
+                if ORDER2:  # a face: the west cell's east side, the east cell's west side
+                    _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k],
+                             recon[k % ring][SIDE_E], recon[k % ring][SIDE_W], xf[k % ring])
+                else:
+                    _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k], emit[k % ring],
+                             emit[k % ring], xf[k % ring])
         if 0 <= k <= ny:
             c0 = min(s0, p0_)
             c1 = max(s1, p1_)
             if c0 <= c1:
-                _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k], emit[(k - 1) % ring],
-                         emit[k % ring], yf[k % ring])
+                if ORDER2:  # the lower row's north sides, the upper row's south sides
+                    _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k],
+                             recon[(k - 1) % ring][SIDE_N], recon[k % ring][SIDE_S],
+                             yf[k % ring])
+                else:
+                    _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k], emit[(k - 1) % ring],
+                             emit[k % ring], yf[k % ring])
         # --- trial of row k - 1
         t = k - 1
         if a - 1 <= t <= b + 1 and 0 <= t < ny:
@@ -598,7 +887,8 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                              gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
                              params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed,
                              arrival, last_moved, rows, wet_lo, wet_hi, marks, scratch[0],
-                             scratch[1], scratch[2], scratch[3], scratch[4])
+                             scratch[1], scratch[2], scratch[3], scratch[4],
+                             emit[(f - 1) % ring], emit[(f + 1) % ring], transport)
             else:
                 rows[f, R_OK] = 1.0
                 rows[f, R_OUT] = 0.0
@@ -607,6 +897,7 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                 rows[f, R_FILM] = 0.0
                 rows[f, R_KINETIC] = 0.0
                 rows[f, R_CLAMPED] = 0.0
+                rows[f, R_FALLBACK] = 0.0
                 wet_lo[f] = nx
                 wet_hi[f] = -1
 
@@ -616,12 +907,13 @@ RING = 4
 
 
 #: A set of ring buffers per thread (:func:`_rings`): rows' emitted values, their x faces
-#: and the y faces below them, flags, scratch lines, trial momenta, a row's marks
-Rings = namedtuple("Rings", "emit x_faces y_faces flags scratch qx qy marks")
+#: and the y faces below them, flags, scratch lines, trial momenta, a row's marks, and
+#: at order 2 the reconstructed sides of each face of a row
+Rings = namedtuple("Rings", "emit x_faces y_faces flags scratch qx qy marks sides")
 
 
 @njit(error_model="numpy", cache=True)
-def _rings(n, nx):
+def _rings(n, nx, order2):
     """``n`` sets of a block's ring buffers (:func:`_sweep_block`), one per thread: what rows
     emit, their x faces and the y faces below them, flags (cell c at c + 1), trial momenta,
     and lines of one row.
@@ -636,26 +928,31 @@ def _rings(n, nx):
     face carries nothing whatever the flag says; the flags' padding columns (beyond the
     map's sides) decide nothing, a boundary face's ghost taking its cell's flag
     (tests/test_square_grid.py fills the sets with NaN and FLOWING flags between calls: the
-    same bits)."""
+    same bits). ``order2``: with the ring of the reconstructed sides (:func:`_recon_row`),
+    empty at order 1."""
     return Rings(np.zeros((n, RING, N_EMIT, nx)), np.zeros((n, RING, 5, nx + 1)),
                  np.zeros((n, RING, 5, nx)), np.full((n, RING, nx + 2), DRY, dtype=np.uint8),
                  np.zeros((n, N_SCRATCH, nx)), np.zeros((n, RING, nx)),
-                 np.zeros((n, RING, nx)), np.zeros((n, nx), dtype=np.uint8))
+                 np.zeros((n, RING, nx)), np.zeros((n, nx), dtype=np.uint8),
+                 np.zeros((n, RING, 4, N_EMIT, nx if order2 else 0)))
 
 
-def _block_for(law, label):
+def _block_for(law, label, order2=False):
     """:func:`_sweep_block` for one law (None: read at run time), calling that law's copies
-    of the cell loops; the block and the row passes it calls are compiled without
-    reference counting (:func:`~avflow.numerics.vectorize.by_law`'s ``nrt``), as they
-    allocate nothing: the buffers come from :func:`_rings`."""
-    return by_law(_sweep_block, law, label, nrt=False,
-                  _trial_cells=by_law(_trial_cells, law, label, nrt=False),
-                  _final_cells=by_law(_final_cells, law, label, nrt=False))
+    of the cell loops, for a step of order 1 or a stage of order 2 (``order2``); the block
+    and the row passes it calls are compiled without reference counting
+    (:func:`~avflow.numerics.vectorize.by_law`'s ``nrt``), as they allocate nothing: the
+    buffers come from :func:`_rings`."""
+    if order2:
+        label += "_order2"
+    return by_law(_sweep_block, law, label, nrt=False, ORDER2=order2,
+                  _trial_cells=by_law(_trial_cells, law, label, nrt=False, ORDER2=order2),
+                  _final_cells=by_law(_final_cells, law, label, nrt=False, ORDER2=order2))
 
 
-#: :func:`_sweep_block` per law kind
-_BLOCKS = {COULOMB: _block_for(COULOMB, "coulomb"), VOELLMY: _block_for(VOELLMY, "voellmy"),
-           ANY_LAW: _block_for(None, "any")}
+#: :func:`_sweep_block` per (law kind, order 2)
+_BLOCKS = {(kind, order2): _block_for(None if kind == ANY_LAW else kind, law_label(kind), order2)
+           for kind in (COULOMB, VOELLMY, ANY_LAW) for order2 in (False, True)}
 
 
 #: The rows a step sweeps: ``r0..r1``, each row's columns ``lo..hi``, the rows' sums
@@ -663,10 +960,12 @@ _BLOCKS = {COULOMB: _block_for(COULOMB, "coulomb"), VOELLMY: _block_for(VOELLMY,
 Band = namedtuple("Band", "r0 r1 lo hi rows wet_lo wet_hi")
 
 
-def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, band, rings):
+def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, band, rings,
+           transport):
     """One step on the band ``r0..r1`` (``band``: :data:`Band`), from ``cur`` into ``nxt``
     (:data:`~avflow.numerics.stepping.Conserved`), cut in ``n_blocks`` blocks of rows, one
-    per task; ``rings``: the ring buffers (:func:`_rings`), a set per thread. The block
+    per task; ``rings``: the ring buffers (:func:`_rings`), a set per thread; ``transport``:
+    each cell's transport, kept by a stage of order 2 (empty at order 1). The block
     sweep takes its arrays one by one: LLVM knows only arguments not to overlap
     (:func:`~avflow.numerics.vectorize.noalias`)."""
     r0, r1 = band.r0, band.r1
@@ -686,15 +985,185 @@ def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, b
                 obs.arrival, obs.last_moved, r0, r1, band.lo, band.hi, band.rows,
                 band.wet_lo, band.wet_hi, rings.emit[slot], rings.x_faces[slot],
                 rings.y_faces[slot], rings.flags[slot], rings.scratch[slot], rings.qx[slot],
-                rings.qy[slot], rings.marks[slot])
+                rings.qy[slot], rings.marks[slot], grid.x_offset, grid.y_offset, transport,
+                rings.sides[slot])
+
+
+@noalias
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
+def _heun_cells(r, base, c0, c1, lo1, hi1, valid, h0, hu0, hv0, h2, hu2, hv2, flag1,
+                transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new, h_new,
+                hu_new, hv_new, peak_h, peak_speed, arrival, last_moved, rows, wet_lo, wet_hi,
+                t_inv, t_kin, t_mov, t_film, t_fb):
+    """Heun's merge of the cells ``c0..c1`` of row r (:func:`_heun_rows`), one loop without
+    jumps (every value loaded whichever is kept), each cell's terms of the row's sums kept
+    in ``t_*`` and added line by line, as :func:`_final_cells` does."""
+    c0 = max(c0, 0)
+    i0 = max(base + c0, 0)
+    w_lo = h_new.size
+    w_hi = -1
+    for j in range(c1 + 1 - c0):
+        c = c0 + j
+        i = i0 + j
+        f = flag1[i]
+        f1 = f if (lo1 <= c) & (c <= hi1) else DRY  # stage 1's flag where it swept
+        a = h0[i]
+        qa, qb = hu0[i], hv0[i]
+        hn, qx, qy, fell_back = heun_average(a, qa, qb, h2[i], hu2[i], hv2[i], f1, h_zero)
+        h_new[i] = hn
+        hu_new[i] = qx
+        hv_new[i] = qy
+        inside = valid[i] != 0
+        speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i],
+                                    gamma_z[i], g)
+        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
+            inside, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
+            last_moved[i])
+        moves = cell_moves(speed, speed_of(a, qa, qb), transport[i], hn)
+        t_kin[c], t_mov[c], t_film[c] = step_terms(hn, cell_area[i], speed, moves, h_dry)
+        t_inv[c] = inv_i
+        t_fb[c] = fell_back
+        wet = inside & (hn > h_zero)
+        w_lo = min(w_lo, c) if wet else w_lo
+        w_hi = max(w_hi, c) if wet else w_hi
+    rows[r, R_INV] = line_max(t_inv, c0, c1)
+    rows[r, R_KINETIC] = line_sum(t_kin, c0, c1)
+    rows[r, R_MOVING] = line_sum(t_mov, c0, c1)
+    rows[r, R_FILM] = line_sum(t_film, c0, c1)
+    rows[r, R_FALLBACK] = line_sum(t_fb, c0, c1)
+    wet_lo[r] = w_lo  # (none wet: lo > hi)
+    wet_hi[r] = w_hi
+
+
+@njit(error_model="numpy", cache=True, _nrt=False)
+def _heun_rows(r0, r1, lo, hi, lo1, hi1, nx, valid, cell_area, cfl_factor, gamma_z, physics,
+               start, stage2, flag1, transport, new, obs, t_new, rows, wet_lo, wet_hi,
+               scratch):
+    """Order 2: Heun's merge (:func:`~avflow.numerics.physics.heun_average`) of the swept
+    rows ``r0..r1`` (columns ``lo..hi``) from ``start`` and ``stage2`` into ``new``, with
+    the step's observers and each row's sums (``rows``: R_INV, R_MOVING, R_FILM,
+    R_KINETIC, R_FALLBACK) and wet columns, as :func:`~avflow.numerics.kernels.heun_faces`
+    per cell (the same bits; the sums added per row, then over the rows: round-off).
+    ``flag1``: the first stage's flags, read where it swept (``lo1..hi1``), DRY beyond
+    (the face kernel's stage-1 flags outside its lists). ``scratch``: five lines of a row."""
+    for r in range(r0, r1 + 1):
+        if lo[r] > hi[r]:
+            rows[r, R_INV] = rows[r, R_KINETIC] = rows[r, R_MOVING] = 0.0
+            rows[r, R_FILM] = rows[r, R_FALLBACK] = 0.0
+            wet_lo[r] = nx
+            wet_hi[r] = -1
+            continue
+        _heun_cells(r, r * nx, lo[r], hi[r], lo1[r], hi1[r], valid, start.h, start.hu,
+                    start.hv, stage2.h, stage2.hu, stage2.hv, flag1, transport, cell_area,
+                    cfl_factor, gamma_z, physics.g, physics.h_dry, physics.h_zero, t_new,
+                    new.h, new.hu, new.hv, obs.peak_h, obs.peak_speed, obs.arrival,
+                    obs.last_moved, rows, wet_lo, wet_hi, scratch[0], scratch[1],
+                    scratch[2], scratch[3], scratch[4])
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _row_sums(rows, r0, r1):
+    """The step's sums from the rows' (in row order): ``(ok, outflow, inverse CFL limit,
+    moving, film, kinetic, clamped, fallbacks)``."""
+    ok = True
+    outflow = 0.0
+    inv_lim = 0.0
+    moving = 0.0
+    film = 0.0
+    kinetic = 0.0
+    clamped = 0
+    fallbacks = 0
+    for r in range(r0, r1 + 1):
+        if rows[r, R_OK] == 0.0:
+            ok = False
+        outflow += rows[r, R_OUT]
+        inv_lim = max(inv_lim, rows[r, R_INV])
+        moving += rows[r, R_MOVING]
+        film += rows[r, R_FILM]
+        kinetic += rows[r, R_KINETIC]
+        clamped += int(rows[r, R_CLAMPED])
+        fallbacks += int(rows[r, R_FALLBACK])
+    return ok, outflow, inv_lim, moving, film, kinetic, clamped, fallbacks
+
+
+#: The order-2 step's regions (:func:`_order2_step`): the second stage's spans (``lo2``,
+#: ``hi2``), what it needs (``need2_*``), and the first stage's spans on its rows (``prev2_*``)
+Region2 = namedtuple("Region2", "lo2 hi2 need2_lo need2_hi prev2_lo prev2_hi")
+
+
+def _order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs, when, band, reg,
+                 sync_lo, sync_hi):
+    """One step of order 2 on the grid: stage 1 (``cur`` -> ``nxt``, flags into the work's
+    ``flag1``) on the swept band ``band``; stage 2 (``nxt`` -> the work's ``s_*``) on that
+    band joined with what the first stage's wet cells need (:func:`_swept_columns`, so every
+    cell stage 1 changed is swept again: the face kernel's stage 2 keeps stage 1's state on
+    the cells it does not touch, which are dry and unchanged here); Heun's merge of ``cur``
+    and stage 2 into ``nxt`` over the second band (:func:`_heun_rows`). Each stage is the
+    order-1 sweep with reconstructed sides (:func:`_sweep_block`'s ``ORDER2`` copy).
+    Returns ``(ok, outflow, inverse CFL limit, moving, film, kinetic, clamped, fallbacks,
+    r0, r1)`` (the second band's rows)."""
+    nx, ny = grid.nx, grid.ny
+    s = Conserved(work.s_h, work.s_hu, work.s_hv)
+    t_new = when.t_new
+    r0, r1, lo, hi = band.r0, band.r1, band.lo, band.hi
+    rows, wet_lo, wet_hi = band.rows, band.wet_lo, band.wet_hi
+    fail = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, r0, r1)
+    if r1 < r0:  # nothing wet: nothing moves
+        return (True, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, r0, r1)
+    _stage(threads, grid, physics, cur, nxt, work.flag1, obs, when, band, work.rings,
+           work.transport, run)
+    ok, out1, _, _, _, _, clamped1, _ = _row_sums(rows, r0, r1)
+    if not ok:
+        return fail
+    for r in range(max(r0 - 1, 0), min(r1 + 2, ny)):  # stage 1's spans, none off its band
+        inside = r0 <= r <= r1
+        reg.prev2_lo[r] = lo[r] if inside else nx
+        reg.prev2_hi[r] = hi[r] if inside else -1
+    q0, q1, _ = _swept_columns(nx, ny, wet_lo, wet_hi, reg.need2_lo, reg.need2_hi,
+                               reg.prev2_lo, reg.prev2_hi, reg.lo2, reg.hi2, r0, r1)
+    _sync_work(nx, ny, q0, q1, reg.lo2, reg.hi2, sync_lo, sync_hi, fields.h, fields.hu,
+               fields.hv, work.h_work, work.hu_work, work.hv_work)
+    band2 = Band(q0, q1, reg.lo2, reg.hi2, rows, wet_lo, wet_hi)
+    _stage(threads, grid, physics, nxt, s, fields.flag, obs, when, band2, work.rings,
+           work.transport, run)
+    ok, out2, _, _, _, _, clamped2, _ = _row_sums(rows, q0, q1)
+    if not ok:
+        return fail
+    _heun_rows(q0, q1, reg.lo2, reg.hi2, lo, hi, nx, grid.valid, grid.cell_area,
+               grid.cfl_factor, grid.gamma_z, physics, cur, s, work.flag1, work.transport,
+               nxt, obs, t_new, rows, wet_lo, wet_hi, work.rings.scratch[0])
+    _, _, inv_lim, moving, film, kinetic, _, fallbacks = _row_sums(rows, q0, q1)
+    return (True, 0.5 * (out1 + out2), inv_lim, moving, film, kinetic, clamped1 + clamped2,
+            fallbacks, q0, q1)
+
+
+def _stage(threads, grid, physics, cur, nxt, flag, obs, when, band, rings, transport, run):
+    """A step of the seed's scheme (a stage at order 2) on ``band``: on Numba's threads
+    where it sweeps at least ``min_parallel_cells`` cells and two blocks of
+    ``min_block_rows`` rows (in the copies with threads), else on the serial sweep."""
+    n_cells = 0
+    for r in range(band.r0, band.r1 + 1):
+        n_cells += max(band.hi[r] - band.lo[r] + 1, 0)
+    n_blocks = min(8 * threads, (band.r1 - band.r0 + 1) // run.min_block_rows)
+    if threads == 1 or n_cells < run.min_parallel_cells:
+        n_blocks = 1
+    if band.r1 < band.r0:
+        return
+    if PARALLEL and n_blocks > 1:
+        sweep_parallel(n_blocks, grid, physics, cur, nxt, flag, obs, when.dt, when.dt_decide,
+                       when.t_new, band, rings, transport)
+    else:
+        sweep_serial(1, grid, physics, cur, nxt, flag, obs, when.dt, when.dt_decide,
+                     when.t_new, band, rings, transport)
 
 
 #: Placeholder of the constant of the copies of :func:`_advance_grid` (whether it has the
 #: parallel sweep): see :func:`grid_loop`
 PARALLEL = True
-#: Placeholders of the sweeps :func:`_advance_grid`'s copies call, and of the block sweep
-#: (its law's copy) a copy of :func:`_sweep` calls
-sweep_serial = sweep_parallel = sweep_block = None
+#: Placeholders of the sweeps the copies of :func:`_stage` call, of the block sweep (its
+#: law's copy) a copy of :func:`_sweep` calls, and of the order-2 step (:func:`_order2_step`)
+#: of the copies of :func:`_advance_grid` at order 2
+sweep_serial = sweep_parallel = sweep_block = order2_step = None
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -708,34 +1177,43 @@ def _first_slot():
 thread_slot = _first_slot
 
 
-def _sweep_for(kind: int, parallel: bool):
-    """:func:`_sweep` for one law kind, compiled serial or parallel (``prange`` runs
-    serially without Numba's ``parallel``), each under its own name."""
-    return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
-                      parallel=parallel, sweep_block=_BLOCKS[kind],
+def _sweep_for(kind: int, parallel: bool, order2: bool):
+    """:func:`_sweep` for one law kind and order, compiled serial or parallel (``prange``
+    runs serially without Numba's ``parallel``), each under its own name."""
+    return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}"
+                      + ("_order2" if order2 else ""),
+                      parallel=parallel, sweep_block=_BLOCKS[kind, order2],
                       thread_slot=numba.get_thread_id if parallel else _first_slot)
 
 
 def _loops() -> dict:
-    """:func:`_advance_grid` per (law kind, with the parallel sweep): the serial copy never
-    compiles the parallel sweep, and each its law's cell loops alone."""
+    """:func:`_advance_grid` per (law kind, with the parallel sweep, order 2): the serial
+    copy never compiles the parallel sweep, each its law's cell loops alone, and the
+    order-1 copies never the order-2 passes."""
     loops = {}
     for kind in (COULOMB, VOELLMY, ANY_LAW):
-        serial = _sweep_for(kind, False)
-        for parallel in (False, True):
-            loops[kind, parallel] = specialize(
-                _advance_grid, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}",
-                PARALLEL=parallel, sweep_serial=serial,
-                sweep_parallel=_sweep_for(kind, True) if parallel else serial)
+        for order2 in (False, True):
+            serial = _sweep_for(kind, False, order2)
+            for parallel in (False, True):
+                suffix = (f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}"
+                          + ("_order2" if order2 else ""))
+                stage = specialize(_stage, suffix, PARALLEL=parallel, sweep_serial=serial,
+                                   sweep_parallel=(_sweep_for(kind, True, order2) if parallel
+                                                   else serial))
+                heun = (specialize(_order2_step, suffix, _stage=stage) if order2 else None)
+                loops[kind, parallel, order2] = specialize(
+                    _advance_grid, suffix, PARALLEL=parallel, ORDER2=order2, _stage=stage,
+                    order2_step=heun)
     return loops
 
 
-def grid_loop(law: int, parallel: bool):
+def grid_loop(law: int, parallel: bool, order: int = 1):
     """The time loop (:func:`_advance_grid`: its arguments, its status codes) for one
-    friction law, with the parallel sweep (``threads`` > 1) or without: each copy compiles
-    only its law's cell loops, and the serial one never the parallel sweep (compiling every
-    law's, serial and parallel, made the first run slow: docs/performance.md)."""
-    return _LOOPS[law_kind(law), bool(parallel)]
+    friction law and order, with the parallel sweep (``threads`` > 1) or without: each copy
+    compiles only its law's cell loops, and the serial one never the parallel sweep
+    (compiling every law's, serial and parallel, made the first run slow:
+    docs/performance.md)."""
+    return _LOOPS[law_kind(law), bool(parallel), order == 2]
 
 
 #: Cells a vector iteration of the row passes takes (8 doubles, AVX-512), and the shortest
@@ -794,7 +1272,7 @@ MIN_BLOCK_ROWS = 16
 
 
 def _advance_grid(threads, grid, fields, work, physics, run):
-    """:func:`avflow.numerics.timeloop.time_loop` for a square grid at order 1 (same arguments
+    """:func:`avflow.numerics.timeloop.time_loop` for a square grid (same arguments
     where they mean the same, same status codes and ``stats`` slots), on ``ny x nx`` arrays
     (:class:`~avflow.terrain.squaregrid.SquareGrid`). ``threads`` > 1: steps that sweep at
     least ``min_parallel_cells`` cells and two blocks of ``min_block_rows`` rows run on
@@ -825,7 +1303,6 @@ def _advance_grid(threads, grid, fields, work, physics, run):
     g, h_dry, h_zero, source = physics.g, physics.h_dry, physics.h_zero, physics.source
     cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
     stop_volume, stop_kinetic = run.stop_volume, run.stop_kinetic
-    min_parallel_cells, min_block_rows = run.min_parallel_cells, run.min_block_rows
     if threads > rings.emit.shape[0]:
         threads = 1  # fewer sets of ring buffers than threads: every step serial
     t = stats[ST_TIME]
@@ -850,6 +1327,10 @@ def _advance_grid(threads, grid, fields, work, physics, run):
             if h[r * nx + c] > h_zero:
                 wet_lo[r] = min(wet_lo[r], c)
                 wet_hi[r] = max(wet_hi[r], c)
+    m2 = ny if ORDER2 else 0  # order 2's second band
+    reg = Region2(np.full(m2, nx, dtype=np.int64), np.full(m2, -1, dtype=np.int64),
+                  np.full(m2, nx, dtype=np.int64), np.full(m2, -1, dtype=np.int64),
+                  np.full(m2, nx, dtype=np.int64), np.full(m2, -1, dtype=np.int64))
     cur_h, cur_hu, cur_hv = h, hu, hv
     nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
     band0, band1 = 0, ny - 1  # the first step looks at every row
@@ -859,9 +1340,6 @@ def _advance_grid(threads, grid, fields, work, physics, run):
                                          prev_hi, lo, hi, band0, band1)
         _sync_work(nx, ny, r0, r1, lo, hi, sync_lo, sync_hi, h, hu, hv, h_work, hu_work,
                    hv_work)
-        n_blocks = min(8 * threads, (r1 - r0 + 1) // min_block_rows)
-        if threads == 1 or n_cells < min_parallel_cells:
-            n_blocks = 1
         ok = False
         outflow = 0.0
         inv_lim = 0.0
@@ -869,34 +1347,23 @@ def _advance_grid(threads, grid, fields, work, physics, run):
         film = 0.0
         kinetic = 0.0
         clamped = 0
+        fallbacks = 0
+        q0, q1 = r0, r1  # the rows the step swept last (order 2: its second stage's)
         for attempt in range(MAX_RETRIES):
             t_new = t_target if last else t + dt
-            if r1 >= r0:
-                cur = Conserved(cur_h, cur_hu, cur_hv)
-                nxt = Conserved(nxt_h, nxt_hu, nxt_hv)
-                band = Band(r0, r1, lo, hi, rows, wet_lo, wet_hi)
-                if PARALLEL and n_blocks > 1:  # blocks of at least 16 rows, 8 per thread
-                    sweep_parallel(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide,
-                                   t_new, band, rings)
-                else:
-                    sweep_serial(1, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new,
-                                 band, rings)
-            ok = True
-            outflow = 0.0
-            inv_lim = 0.0
-            moving = 0.0
-            film = 0.0
-            kinetic = 0.0
-            clamped = 0
-            for r in range(r0, r1 + 1):  # the rows' sums, in row order
-                if rows[r, R_OK] == 0.0:
-                    ok = False
-                outflow += rows[r, R_OUT]
-                inv_lim = max(inv_lim, rows[r, R_INV])
-                moving += rows[r, R_MOVING]
-                film += rows[r, R_FILM]
-                kinetic += rows[r, R_KINETIC]
-                clamped += int(rows[r, R_CLAMPED])
+            cur = Conserved(cur_h, cur_hu, cur_hv)
+            nxt = Conserved(nxt_h, nxt_hu, nxt_hv)
+            band = Band(r0, r1, lo, hi, rows, wet_lo, wet_hi)
+            when = StepTime(dt, dt_decide, t_new)
+            if ORDER2:  # Heun's two stages and merge
+                (ok, outflow, inv_lim, moving, film, kinetic, clamped, fallbacks, q0,
+                 q1) = order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs,
+                                   when, band, reg, sync_lo, sync_hi)
+            else:
+                _stage(threads, grid, physics, cur, nxt, flag, obs, when, band, rings,
+                       work.transport, run)
+                ok, outflow, inv_lim, moving, film, kinetic, clamped, _ = _row_sums(rows, r0,
+                                                                                   r1)
             if ok:
                 break
             dt *= 0.5
@@ -905,9 +1372,11 @@ def _advance_grid(threads, grid, fields, work, physics, run):
         if not ok:
             status = FAILED
             break
+        s_lo = reg.lo2 if ORDER2 else lo  # the columns swept last
+        s_hi = reg.hi2 if ORDER2 else hi
         if source[SRC_KIND] != SOURCE_NONE:  # only wet cells gain: wet_lo/hi still hold
-            for r in range(r0, r1 + 1):
-                gained, inv = add_span(r * nx + lo[r], r * nx + hi[r] + 1, nxt_h, nxt_hu,
+            for r in range(q0, q1 + 1):
+                gained, inv = add_span(r * nx + s_lo[r], r * nx + s_hi[r] + 1, nxt_h, nxt_hu,
                                        nxt_hv, erodible, source, dt, h_zero, h_dry, t_new,
                                        cell_area, cfl_factor, gamma_z, g, peak_h, arrival)
                 stats[ST_SOURCE] += gained
@@ -917,7 +1386,13 @@ def _advance_grid(threads, grid, fields, work, physics, run):
         for r in range(max(band0 - 1, 0), min(band1 + 2, ny)):
             prev_lo[r] = need_lo[r]
             prev_hi[r] = need_hi[r]
-        band0, band1 = r0, r1
+        if ORDER2 and r1 >= r0:  # the cells stage 2 needed changed too
+            for r in range(max(r0 - 1, 0), min(r1 + 2, ny)):
+                known = band0 - 1 <= r <= band1 + 1
+                prev_lo[r] = min(prev_lo[r], reg.need2_lo[r]) if known else reg.need2_lo[r]
+                prev_hi[r] = max(prev_hi[r], reg.need2_hi[r]) if known else reg.need2_hi[r]
+        stats[ST_FALLBACK] += fallbacks
+        band0, band1 = q0, q1
         cur_h, nxt_h = nxt_h, cur_h
         cur_hu, nxt_hu = nxt_hu, cur_hu
         cur_hv, nxt_hv = nxt_hv, cur_hv

@@ -34,12 +34,14 @@ FaceWork = namedtuple("FaceWork", "h_work hu_work hv_work flux transport face_st
 
 #: What the square-grid kernel's time loop reads of its ``ny x nx`` grid
 #: (:class:`~avflow.terrain.squaregrid.SquareGrid`: faces by row and column, per-cell factors
-#: on the full grid)
+#: on the full grid; order 2's offsets of each face's two sides, ``(ny, 4, nx + 1)`` and
+#: ``(ny + 1, 4, nx)``, empty at order 1)
 GridMesh = namedtuple("GridMesh", "nx ny valid x_code x_frame x_length y_code y_frame "
                       "y_length cell_area inv_area cfl_factor density gamma_x gamma_y gamma_z "
-                      "curvature")
-#: its work buffers and the ring buffers of its blocks, a set per thread
-GridWork = namedtuple("GridWork", "h_work hu_work hv_work rings")
+                      "curvature x_offset y_offset")
+#: its work buffers and the ring buffers of its blocks, a set per thread; order 2's second
+#: stage (``s_*``), first stage's flags and each cell's transport (empty at order 1)
+GridWork = namedtuple("GridWork", "h_work hu_work hv_work rings s_h s_hu s_hv flag1 transport")
 #: one buffer of the conserved variables (the time loops swap two each step)
 Conserved = namedtuple("Conserved", "h hu hv")
 #: the running observers, changed in place by every step

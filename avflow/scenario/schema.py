@@ -659,7 +659,7 @@ class Numerics(_Model):
     same, bit for bit, whatever the number. Ensemble members run on one thread each unless this is set: members are the
     better parallelism there."""
     kernel: Literal["auto", "grid", "faces"] = "auto"
-    """auto: the structured square-grid kernel on square grids at order 1, the face kernel
+    """auto: the structured square-grid kernel on square grids (both orders), the face kernel
     elsewhere; faces: the general face kernel everywhere (the reference it is tested
     against); grid: the square-grid kernel, an error where it does not apply."""
 
