@@ -30,17 +30,19 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     if os.environ.get("NUMBA_CACHE_DIR"):
         pytest.skip("NUMBA_CACHE_DIR is set: the kernels use the user's folder")
     folder = numerics.kernel_cache_dir()
-    loops = [square_grid.grid_loop(law, parallel) for law in (rheology.COULOMB, -1)
-             for parallel in (False, True)]
-    sweeps = [loop.py_func.__globals__[name] for loop in loops
+    loops = [square_grid.grid_loop(law, parallel, order) for law in (rheology.COULOMB, -1)
+             for parallel in (False, True) for order in (1, 2)]
+    stages = [loop.py_func.__globals__["_stage"] for loop in loops]
+    sweeps = [stage.py_func.__globals__[name] for stage in stages
               for name in ("sweep_serial", "sweep_parallel")]
+    heuns = [loop.py_func.__globals__["order2_step"] for loop in loops[1::2]]
     for dispatcher in (*timeloop.ADVANCE.values(), *face_sweep.STEP.values(),
                        *face_sweep.STEP_THREADS.values(), *face_sweep.STEP_PIECES_SERIAL.values(),
                        kernels.step_faces,
                        kernels.step_profile,
                        cpu.half_fluxes, cpu.trial_momentum, rheology.friction, reconstruction.reconstruct_faces,
                        reconstruction.reconstruct_cells,
-                       *loops, *sweeps):
+                       *loops, *stages, *sweeps, *heuns):
         assert Path(dispatcher._cache._cache_path).is_relative_to(folder), dispatcher
     assert config.CACHE_DIR != str(folder)  # other packages' caches stay where Numba puts them
 
@@ -70,7 +72,8 @@ def test_the_square_grid_loops_can_be_cached():
     for parallel in (False, True):
         loop = square_grid.grid_loop(rheology.COULOMB, parallel)
         assert loop.overloads, parallel
-        for sweep in (loop.py_func.__globals__["sweep_serial"],
-                      loop.py_func.__globals__["sweep_parallel"], loop):
+        stage = loop.py_func.__globals__["_stage"]
+        for sweep in (stage.py_func.__globals__["sweep_serial"],
+                      stage.py_func.__globals__["sweep_parallel"], stage, loop):
             for compiled in sweep.overloads.values():
                 assert not compiled.library.has_dynamic_globals, (sweep, parallel)
