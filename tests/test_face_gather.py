@@ -82,7 +82,7 @@ def test_a_stage_in_gather_form_is_step_faces(mesh_kind, law, params):
             transport = np.full(n, np.nan)
             flag = state.flag.copy()
             obs = {name: getattr(state, name).copy() for name in OBSERVERS}
-            phys = stepping.Physics(int(law), solver.params, solver.gravity, True,
+            phys = stepping.Physics(int(law), solver._rows, solver.gravity, True,
                                     solver.h_dry, solver.h_zero, solver._source)
             observers = stepping.Observers(*[obs[name] for name in OBSERVERS])
             if kind == "step_faces":

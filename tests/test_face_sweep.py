@@ -119,7 +119,7 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
             ob = {name: obs[name].copy() for name in OBSERVERS}
             flux = np.zeros((n_faces, 5))
             transport = np.zeros(n)
-            phys = stepping.Physics(int(law), solver.params, G, dirac, h_dry, h_zero,
+            phys = stepping.Physics(int(law), solver._rows, G, dirac, h_dry, h_zero,
                                     solver._source)
             cur, nxt = stepping.Conserved(h, hu, hv), stepping.Conserved(*new)
             observers = stepping.Observers(*[ob[name] for name in OBSERVERS])

@@ -27,8 +27,9 @@ def _lake(order):
 
 
 def test_pointwise_rate_and_cap():
-    assert source_rate(SOURCE_CONSTANT, 0.02, 0.0, 0.0, 0.0, 1.0, 5.0) == 0.02
-    assert source_rate(0, 0.02, 0.0, 0.0, 0.0, 1.0, 5.0) == 0.0
+    assert source_rate(SOURCE_CONSTANT, 0.02, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 5.0, 0.0) == 0.02
+    assert source_rate(SOURCE_CONSTANT, 0.02, 0.0, 0.0, 0.0, 1.0, 9.0, 1.0, 0.0, 0.0) == 0.02
+    assert source_rate(0, 0.02, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 5.0, 0.0) == 0.0
     assert take_erodible(0.02, 0.5, 1.0) == 0.02 * 0.5
     assert take_erodible(0.02, 0.5, 0.004) == 0.004  # never more than the layer holds
     assert take_erodible(0.02, 0.5, 0.0) == 0.0

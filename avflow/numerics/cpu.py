@@ -64,6 +64,7 @@ heun_average = _POINTWISE["heun_average"]
 side_fluxes = _POINTWISE["side_fluxes"]
 source_rate = _POINTWISE["source_rate"]
 take_erodible = _POINTWISE["take_erodible"]
+basal_shear = _POINTWISE["basal_shear"]
 
 #: the constants the traversals share with the pointwise functions
 SQRT3 = kinetic.SQRT3

@@ -42,7 +42,7 @@ from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_averag
                                  trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.cpu import half_flux_in, half_flux_out
-from avflow.numerics.vectorize import specialize
+from avflow.numerics.vectorize import cell_law, specialize
 
 #: A stage (or Heun's merge) that sweeps fewer cells than this runs serially, on step_faces
 #: and heun_faces (the measured break-even: docs/performance.md, Order 2 on every core)
@@ -68,8 +68,8 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
     dt_decide, active_faces, n_active = when.dt_decide, lists.active_faces, lists.n_active
     touched, n_touched, cell_face_ptr = lists.touched, lists.n_touched, mesh.cell_face_ptr
     cell_face_idx = mesh.cell_face_idx
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
 
     # --- 1: each active face's fluxes, each side in its own cell's basis
     for a in prange(n_active):
@@ -140,11 +140,13 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
             hv_new[i] = rate_y
             continue
         inv_area = 1.0 / cell_area[i]
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, i, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, qy, fi = trial_momentum(h[i], h_zero, speed_of(h[i], hu[i], hv[i]), hu[i], hv[i],
                                      rate_h * inv_area, rate_x * inv_area, rate_y * inv_area,
                                      dt, dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, True)
+                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, True)
         hu_new[i] = qx
         hv_new[i] = qy
         flag[i] = fi
@@ -201,9 +203,11 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
         if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
             qx = dt * (qx / area + g * hn * gamma_x[i])
             qy = dt * (qy / area + g * hn * gamma_y[i])
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, i, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, qy, cl = final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[i], True)
+                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h[i], True)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

@@ -48,7 +48,8 @@ from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
-from avflow.numerics.vectorize import friction_law, law_copies, law_label, noalias, specialize
+from avflow.numerics.vectorize import (cell_law, friction_law, law_copies, law_label, noalias,
+                                       specialize)
 
 # Lines of the per-cell work array (N_CELL_LINES, n): what the step's sums need
 C_INV, C_KIN, C_MOV, C_FILM = range(4)
@@ -366,8 +367,8 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
     :func:`_add_masses`. Returns how many are at zero temperature (under the threshold or
     dry): with none, no face is Dirac and that pass has nothing to do."""
     lw = friction_law(law)  # a constant in the copies of by_law
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     n_cold = 0
     for r in range(n_runs):
         a = max(runs[2 * r], 0)  # (no wraparound of a negative index: the loop vectorises)
@@ -378,10 +379,12 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
             u1 = e_u1[i]
             u2 = e_u2[i]
             centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2
+            pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
+                                                              p4, p5, p6, p7)
             qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[i], hu[i], hv[i], mh * ia, mx * ia,
                                          my * ia, dt, dt_decide, gamma_x[i], gamma_y[i],
-                                         gamma_z[i], centripetal, lw, p0, p1, p2, p3, p4, p5, p6,
-                                         p7, g, False)
+                                         gamma_z[i], centripetal, lw, pc0, pc1, pc2, pc3,
+                                         pc4, pc5, pc6, pc7, g, False)
             dry = h[i] <= h_zero
             flowing = (fi == FLOWING) & (not dry)
             x_sum[i] = mx if dry else qx
@@ -402,8 +405,8 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
     0, clamped, cells that became wet or dry)``: a cell below 0 makes the step be redone,
     whatever it wrote; with none wet or dry anew, the wet cells and the lists hold."""
     lw = friction_law(law)
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     n_bad = 0
     clamped = 0
     flips = 0
@@ -429,8 +432,10 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             u2 = e_u2[i]
             centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2
             gz = gamma_z[i]
+            pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
+                                                              p4, p5, p6, p7)
             qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
-                                         p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, False)
+                                         pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_old, False)
             speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gz, g)
             old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
             old_arrival, old_moved = arrival[i], last_moved[i]

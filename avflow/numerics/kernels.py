@@ -41,6 +41,7 @@ from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_averag
                                  final_momentum, half_flux_in, half_flux_out, half_fluxes,
                                  observe, observe_cell, open_mass, side_fluxes, sound_speed,
                                  speed_of, step_terms, trial_momentum)
+from avflow.numerics.vectorize import cell_law
 from avflow.terrain.mesh import OUTFLOW, WALL
 
 
@@ -119,8 +120,8 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
     r = dt / dx
     left = face_cells[0, 1]
     right = face_cells[n, 1]
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
 
     # --- sweep 1: fluxes (every normal along +x), trial state, threshold flags
     if order2:
@@ -128,12 +129,14 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
         for k in range(n):
             hk = emitting(h[k], h_zero)
             uk = abs(hu[k] / hk) if hk > 0.0 else 0.0
+            pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, k, p0, p1, p2, p3,
+                                                              p4, p5, p6, p7)
             qx, _, fk = trial_momentum(h[k], h_zero, uk, hu[k], 0.0,
                                         (flux[k, 0] - flux[k + 1, 0]) / dx,
                                         (flux[k, 1] - flux[k + 1, 1]) / dx, 0.0, dt, dt_decide,
                                         gamma_x[k], 0.0, gamma_z[k],
                                         curvature[k, 0] * (uk * uk),
-                                        law, p0, p1, p2, p3, p4, p5, p6, p7, g, order2)
+                                        law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, order2)
             hu_new[k] = qx
             hv_new[k] = uk  # scratch: |u^n| for sweep 2
             flag[k] = fk
@@ -176,10 +179,12 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
             flux[i, 0] = fr_h
             flux[i, 1] = fr_q
             k = i - 1  # cell k is complete: faces k (left) and k + 1 (right)
+            pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, k, p0, p1, p2, p3,
+                                                              p4, p5, p6, p7)
             qx, _, fk = trial_momentum(h[k], h_zero, abs(u_prev), hu[k], 0.0, (fl_h - fr_h) / dx,
                                         (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
                                         gamma_z[k], curvature[k, 0] * (u_prev * u_prev),
-                                        law, p0, p1, p2, p3, p4, p5, p6, p7, g, order2)
+                                        law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, order2)
             hu_new[k] = qx
             hv_new[k] = abs(u_prev)  # scratch: |u^n| for sweep 2 (hv is identically 0 on a line)
             flag[k] = fk
@@ -215,9 +220,11 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
         if k == n - 1 and right == OUTFLOW:
             outflow += max(fr, 0.0) * dt
         speed_n = hv_new[k]
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, k, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, _, cl = final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt, gamma_z[k],
                                     curvature[k, 0] * (speed_n * speed_n),
-                                    law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[k], order2)
+                                    law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h[k], order2)
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0
@@ -268,8 +275,8 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
     peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
     active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
     n_touched = lists.n_touched
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     for c in range(n_touched):
         i = touched[c]
         h_new[i] = 0.0
@@ -355,12 +362,14 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
             h_new[i] = 0.0
             continue
         inv_area = 1.0 / cell_area[i]
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, i, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, qy, fi = trial_momentum(h[i], h_zero, speed_of(h[i], hu[i], hv[i]), hu[i], hv[i],
                                      h_new[i] * inv_area, hu_new[i] * inv_area,
                                      hv_new[i] * inv_area, dt, dt_decide, gamma_x[i],
                                      gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, order2)
+                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, order2)
         hu_new[i] = qx
         hv_new[i] = qy
         flag[i] = fi
@@ -412,9 +421,11 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
         if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
             qx = dt * (qx / area + g * hn * gamma_x[i])
             qy = dt * (qy / area + g * hn * gamma_y[i])
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, i, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, qy, cl = final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
-                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, h[i], order2)
+                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h[i], order2)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

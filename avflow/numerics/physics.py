@@ -247,18 +247,48 @@ def side_fluxes(hf, uf, wet, dens, g_normal):
 
 
 
-# Mass sources (issue 27's seam for entrainment, issue 30): what a law takes from the
+# Mass sources (issue 27's seam, entrainment of issue 30): what a law takes from the
 # erodible layer, applied by numerics.sources once per step after the seed's step.
 SOURCE_NONE = 0  #: no source: the pass is not run at all
 SOURCE_CONSTANT = 1  #: a fixed rate s0 (m/s of erodible depth) wherever the flow lies
+#: Hungr and McDougall (2009): the flow grows as ``dh/dt = E_s h |u|`` (s0 = E_s, 1/m), so a
+#: volume travelling a distance s grows as ``exp(E_s s)``
+SOURCE_EXPONENTIAL = 2
+#: AvaFrame com1DFA's erosion energy: ``dm/dt = tau_b |u| / e_b`` per unit area (s0 = e_b,
+#: J/kg; its default 5000), the basal shear tau_b of the cell's friction law
+SOURCE_EROSION_ENERGY = 3
+#: RAMMS::DEBRISFLOW's shear threshold in rate form: ``de/dt = k (tau_b - tau_c)`` above
+#: tau_c (s0 = k, m/(s Pa); s1 = tau_c, Pa; s2 = the flow's density, kg/m^3)
+SOURCE_SHEAR_THRESHOLD = 4
 
 
-def source_rate(kind, s0, s1, s2, s3, h, speed):
+def source_rate(kind, s0, s1, s2, s3, ratio, u_min, h, speed, shear):
     """Rate (m/s) at which a wet cell of thickness ``h`` and speed ``speed`` takes from its
-    erodible layer, for the source law ``kind`` with its parameters ``s0 .. s3``."""
+    erodible layer, for the source law ``kind`` with its parameters ``s0 .. s3``.
+
+    ``shear``: the basal shear stress over the flow's density (m^2/s^2), ``ratio``: the
+    layer's density over the flow's (a depth ``e`` taken adds ``ratio e`` of flow). The
+    entrainment laws take nothing at or below the speed ``u_min``, so nothing at rest."""
     if kind == SOURCE_CONSTANT:
         return s0
+    if speed <= u_min:
+        return 0.0
+    if kind == SOURCE_EXPONENTIAL:  # dh/dt = E_s h |u| of flow, ratio times the layer's
+        return s0 * h * speed / ratio
+    if kind == SOURCE_EROSION_ENERGY:  # rho_f shear |u| / (rho_e e_b)
+        return shear * speed / (ratio * s0)
+    if kind == SOURCE_SHEAR_THRESHOLD:
+        excess = s2 * shear - s1  # Pa
+        return s0 * excess if excess > 0.0 else 0.0
     return 0.0
+
+
+def basal_shear(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g):
+    """The basal shear stress over the density (m^2/s^2) of a cell moving at ``speed``:
+    the law's threshold ``tau`` plus its drag ``drag h |u|`` (Voellmy's ``g |u|^2 / xi``,
+    samosAT's turbulent term, the forest's), what the erosion laws read."""
+    tau, drag = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g)
+    return tau + drag * h * speed
 
 
 def take_erodible(rate, dt, erodible):

@@ -29,8 +29,8 @@ from numba import njit
 from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
                                  observe, observe_cell, open_mass, step_terms, trial_momentum)
 from avflow.numerics.cpu import SQRT3, half_fluxes, sound_speed
-from avflow.numerics.vectorize import (friction_law, in_select, law_copies, law_kind, law_label,
-                                       line_sum, noalias, out_select, specialize)
+from avflow.numerics.vectorize import (cell_law, friction_law, in_select, law_copies, law_kind,
+                                       law_label, line_sum, noalias, out_select, specialize)
 from avflow.terrain.mesh import OUTFLOW, WALL
 
 #: Lines of :func:`step`'s work array, ``(N_WORK, n + 2)``: per cell the half fluxes up
@@ -110,15 +110,17 @@ def _trial(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params
     """Pass 3: per cell, the trial momentum of eq. 47 and the flag of eq. 49
     (``flag_out[k + 1]``: the flag line is padded by one cell at each end)."""
     lw = friction_law(law)  # a constant in the copies of by_law
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     for k in range(n):
         u = speed[k]
         fl_h, fr_h, fl_q, fr_q = flux_h[k], flux_h[k + 1], flux_q[k], flux_q[k + 1]
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, k, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, _, fk = trial_momentum(h[k], h_zero, u, hu[k], 0.0, (fl_h - fr_h) / dx,
                                     (fl_q - fr_q) / dx, 0.0, dt, dt_decide, gamma_x[k], 0.0,
-                                    gamma_z[k], kappa[k] * (u * u), lw, p0, p1, p2, p3, p4, p5,
-                                    p6, p7, g, False)
+                                    gamma_z[k], kappa[k] * (u * u), lw, pc0, pc1, pc2, pc3,
+                                    pc4, pc5, pc6, pc7, g, False)
         qx_out[k] = qx
         flag_out[k + 1] = fk
 
@@ -131,8 +133,8 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
     Returns ``(cells below 0, clamped)``; a cell below 0 makes the step be redone,
     whatever it wrote."""
     lw = friction_law(law)
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     r = dt / dx
     n_bad = 0
     clamped = 0
@@ -162,9 +164,11 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         qr = 0.0 if dirac_r else qr
         dry_q = dt * ((ql - qr) / dx + g * hn * gx)
         q = dry_q if (fk == DRY) & (dirac_l | dirac_r) else q
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, k, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, _, cl = final_momentum(fk, speed_n, hn, h_zero, q, 0.0, dt, gz,
-                                    kap * (speed_n * speed_n), lw, p0, p1, p2, p3, p4, p5, p6,
-                                    p7, g, h_old, False)
+                                    kap * (speed_n * speed_n), lw, pc0, pc1, pc2, pc3,
+                                    pc4, pc5, pc6, pc7, g, h_old, False)
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0

@@ -187,8 +187,42 @@ def samosat_drag_factor(h, kappa, r, b):
     return 1.0 / (d * d)
 
 
+#: Added to a law's code when its parameters are per cell (friction maps, forest: issue 30):
+#: the kernels then read a row of parameters per cell, and the forest's resistance
+#: coefficient in the slot :data:`FOREST_SLOT` (no law uses it; 0 outside forest). Such a
+#: run takes the kernels' copy that reads the law at run time; the law-constant copies
+#: (Coulomb, Voellmy) never compile either
+PER_CELL = 16
+#: the parameter slot of the forest's resistance coefficient ``c_f`` (dimensionless)
+FOREST_SLOT = 7
+#: AvaFrame com1DFA's default resistance coefficient in its resistance ("res") areas
+#: (``cResH`` of com1DFACfg.ini, AvaFrame 1.x-2.x: force ``rho A c_f |u|^2``)
+FOREST_CRES_AVAFRAME = 0.01
+
+
+def base_law(law: int) -> int:
+    """The friction law of a code that may carry :data:`PER_CELL`."""
+    return law - PER_CELL if law >= PER_CELL else law
+
+
 @njit(error_model="numpy", cache=True, inline="always")
 def friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g):
+    """Basal friction of one cell, :func:`law_friction`, plus the forest's drag where the
+    law's code carries :data:`PER_CELL`: a resistance ``c_f |u|^2`` per unit area and
+    density (AvaFrame com1DFA's resistance areas, ``computeResForce``; ``c_f = p7``, 0
+    outside forest, where it adds exactly 0), implicit on ``q = h u`` like Voellmy's
+    turbulent term: ``drag += c_f |u| / h``."""
+    if law >= PER_CELL:  # never true in the law-constant copies: folded away there
+        tau, drag = law_friction(law - PER_CELL, p0, p1, p2, p3, p4, p5, p6, p7, h, speed,
+                                 normal_accel, g)
+        if h > 0.0:
+            drag += p7 * speed / h
+        return tau, drag
+    return law_friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g)
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def law_friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g):
     """Basal friction of one cell: ``(tau, drag)`` as described in the module docstring.
 
     ``tau`` (m^2/s^2) is compared with ``|q~| / dt`` in the threshold test of eq. 49 and

@@ -21,7 +21,7 @@ from avflow.numerics.sources import MassSource, no_source
 from avflow.numerics.physics import DRY, UNDER_THRESHOLD
 from avflow.numerics.stepping import (ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, FaceMesh,
                                       FaceWork, GridMesh, GridWork, Statistics)
-from avflow.numerics.rheology import N_PARAMS, Law
+from avflow.numerics.rheology import FOREST_SLOT, N_PARAMS, PER_CELL, Law
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
 from avflow.terrain.bed import Terrain
@@ -177,6 +177,9 @@ class Solver:
     backend: str = "cpu"
     #: a mass source and its erodible layer (:mod:`avflow.numerics.sources`); None: none
     source: MassSource | None = None
+    #: forest: the resistance coefficient ``c_f`` per cell (drag ``c_f |u|^2``, AvaFrame's
+    #: resistance areas; 0 outside forest), or None
+    forest: np.ndarray | None = None
 
     def __post_init__(self):
         if self.order not in (1, 2):
@@ -185,13 +188,7 @@ class Solver:
             raise ValueError(f"limiter must be one of {', '.join(LIMITERS)}, got {self.limiter!r}")
         if not 0.0 < self.cfl <= 1.0:
             raise ValueError("cfl must be in (0, 1]: positivity of h needs it (eq. 41)")
-        # The kernels read N_PARAMS slots: a shorter vector (e.g. [tan(delta), 0, 0, 0]) is
-        # padded with zeros, never read past its end.
-        given = np.asarray(self.params, dtype=float).ravel()
-        if given.size > N_PARAMS:
-            raise ValueError(f"params holds at most {N_PARAMS} values, got {given.size}")
-        self.params = np.zeros(N_PARAMS)
-        self.params[:given.size] = given
+        self._set_params()
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be at least 1, got {self.threads}")
         m = self.terrain.mesh
@@ -268,6 +265,36 @@ class Solver:
                                    self._transport, self._face_stamp, self._cell_stamp,
                                    self._cell_sync, self._synced, self._clock)
 
+    def _set_params(self) -> None:
+        """The law's parameters as the kernels read them: ``(1, N_PARAMS)``, or a row per
+        cell where they vary in space (a map given as ``(n_cells, k)``, or forest), the
+        forest's coefficient in :data:`~avflow.numerics.rheology.FOREST_SLOT`, and the
+        law's code marked :data:`~avflow.numerics.rheology.PER_CELL` then."""
+        # The kernels read N_PARAMS slots: a shorter vector (e.g. [tan(delta), 0, 0, 0]) is
+        # padded with zeros, never read past its end.
+        given = np.asarray(self.params, dtype=float)
+        n = self.terrain.mesh.n_cells
+        per_cell = given.ndim == 2 or self.forest is not None
+        if given.ndim > 2 or (given.ndim == 2 and given.shape[0] != n):
+            raise ValueError(f"a parameter map has a row per cell ({n}), got {given.shape}")
+        width = given.shape[-1] if given.ndim else 1
+        most = FOREST_SLOT if self.forest is not None else N_PARAMS
+        if width > most:
+            raise ValueError(f"params holds at most {most} values, got {width}")
+        rows = np.zeros((n if per_cell else 1, N_PARAMS))
+        rows[:, :width] = given.reshape(-1, width) if given.ndim else given
+        if self.forest is not None:
+            forest = np.asarray(self.forest, dtype=float)
+            if forest.shape != (n,) or not np.all(np.isfinite(forest)) or np.any(forest < 0):
+                raise ValueError(f"the forest's coefficient is one finite value >= 0 per cell "
+                                 f"({n}), got shape {forest.shape}")
+            rows[:, FOREST_SLOT] = forest
+        if not np.all(np.isfinite(rows)):
+            raise ValueError("the friction parameters must be finite")
+        self.params = rows if per_cell else rows[0].copy()
+        self._rows = rows
+        self._law_code = int(self.law) + (PER_CELL if per_cell else 0)
+
     def _setup_grid(self, layout: SquareGrid) -> None:
         """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
         by place, work buffers. The face kernel's face buffers are not allocated."""
@@ -287,6 +314,8 @@ class Solver:
             # (3, places): one contiguous line per component, for the kernel's vector loops
             "curvature": np.ascontiguousarray(full(t.curvature).T),
         }
+        if self._rows.shape[0] > 1:  # the parameters per cell, on the full grid's places
+            self._rows = np.ascontiguousarray(layout.full(self._rows))
         c = self._g_cells
         if self.order == 2:  # where order 2 evaluates its slopes, per face side
             x_offset, y_offset = grid_offsets(layout, m, face_offsets(t))
@@ -398,7 +427,7 @@ class Solver:
 
     def _loop(self, threads: int):
         """The compiled time loop of this solver's kernel, law and threads."""
-        return self._kernel.loop(self.terrain.mesh.structured_1d, self.order, int(self.law),
+        return self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
                                  threads > 1 and self._kernel.name != "profile")
 
     def kernels_cached(self) -> bool:
@@ -554,7 +583,7 @@ class Solver:
 
     def _physics(self) -> stepping.Physics:
         """The friction law, gravity, the Dirac flux, the thresholds and the source."""
-        return stepping.Physics(int(self.law), self.params, float(self.gravity),
+        return stepping.Physics(self._law_code, self._rows, float(self.gravity),
                                 bool(self.dirac), float(self.h_dry), float(self.h_zero),
                                 self._source)
 

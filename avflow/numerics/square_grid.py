@@ -64,8 +64,9 @@ from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FA
                                       StepTime, record_end, record_step, step_size)
 from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
-from avflow.numerics.vectorize import (ANY_LAW, by_law, friction_law, in_select, law_label,
-                                       law_kind, line_max, line_sum, noalias, out_select, specialize)
+from avflow.numerics.vectorize import (ANY_LAW, by_law, cell_law, friction_law, in_select,
+                                       law_kind, law_label, line_max, line_sum, noalias,
+                                       out_select, specialize)
 from avflow.terrain.squaregrid import (HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -562,8 +563,8 @@ def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
     the laws without transcendental functions (Coulomb, Voellmy): the face kernel's
     operations on every value kept, so the same bits."""
     lw = friction_law(law)  # a constant in the copies of by_law
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     e_u1, e_u2, e_speed = em[E_U1], em[E_U2], em[E_SPEED]
     xf0, xf1, xf2, xf3, xf4 = xf[0], xf[1], xf[2], xf[3], xf[4]
     ys0, ys1, ys2, ys3, ys4 = ys[0], ys[1], ys[2], ys[3], ys[4]
@@ -583,10 +584,13 @@ def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
         u1 = e_u1[c]
         u2 = e_u2[c]
         centripetal = k11[i] * u1 * u1 + 2.0 * k12[i] * u1 * u2 + k22[i] * u2 * u2  # u.K.u, as physics.centripetal_accel
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, qy, fi = trial_momentum(h[i], h_zero, e_speed[c], hu[i], hv[i],
                                      mh * ia, mx * ia, my * ia, dt,
                                      dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
-                                     centripetal, lw, p0, p1, p2, p3, p4, p5, p6, p7, g, ORDER2)
+                                     centripetal, lw, pc0, pc1, pc2, pc3,
+                                     pc4, pc5, pc6, pc7, g, ORDER2)
         dry = h[i] <= h_zero  # no trial: the momentum sum itself
         qx_out[c] = mx if dry else qx
         qy_out[c] = my if dry else qy
@@ -632,8 +636,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
     the cell (it or a neighbour across an inner face wet: ``em_s``, ``em``, ``em_n``, the
     emitted thickness of the rows below, of this one and above) for Heun's merge."""
     lw = friction_law(law)  # a constant in the copies of by_law
-    p0, p1, p2, p3 = params[0], params[1], params[2], params[3]
-    p4, p5, p6, p7 = params[4], params[5], params[6], params[7]
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     e_u1, e_u2, e_speed = em[E_U1], em[E_U2], em[E_SPEED]
     xf0, xf1, xf2, xf3, xf4 = xf[0], xf[1], xf[2], xf[3], xf[4]
     ys0, ys1, ys2, ys3, ys4 = ys[0], ys[1], ys[2], ys[3], ys[4]
@@ -693,8 +697,10 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         qx = dt * (bx / area + g * hn * gx) if dry else qx
         qy = dt * (by / area + g * hn * gy) if dry else qy
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
         qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
-                                     p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, ORDER2)
+                                     pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_old, ORDER2)
         # writes: the new value where the cell is updated, else what is there
         flag[i] = fi if inside else old_flag
         # (a cell outside the DEM keeps h = 0, q = 0; one that went below 0 writes what it
@@ -1300,7 +1306,7 @@ def _advance_grid(threads, grid, fields, work, physics, run):
     peak_h, arrival, erodible = fields.peak_h, fields.arrival, fields.erodible
     obs = Observers(fields.peak_h, fields.peak_speed, fields.arrival, fields.last_moved)
     h_work, hu_work, hv_work, rings = work.h_work, work.hu_work, work.hv_work, work.rings
-    g, h_dry, h_zero, source = physics.g, physics.h_dry, physics.h_zero, physics.source
+    h_zero, source = physics.h_zero, physics.source
     cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
     stop_volume, stop_kinetic = run.stop_volume, run.stop_kinetic
     if threads > rings.emit.shape[0]:
@@ -1377,8 +1383,8 @@ def _advance_grid(threads, grid, fields, work, physics, run):
         if source[SRC_KIND] != SOURCE_NONE:  # only wet cells gain: wet_lo/hi still hold
             for r in range(q0, q1 + 1):
                 gained, inv = add_span(r * nx + s_lo[r], r * nx + s_hi[r] + 1, nxt_h, nxt_hu,
-                                       nxt_hv, erodible, source, dt, h_zero, h_dry, t_new,
-                                       cell_area, cfl_factor, gamma_z, g, peak_h, arrival)
+                                       nxt_hv, erodible, physics, dt, t_new, cell_area,
+                                       cfl_factor, gamma_z, peak_h, arrival)
                 stats[ST_SOURCE] += gained
                 inv_lim = max(inv_lim, inv)
         t = t_target if last else t + dt

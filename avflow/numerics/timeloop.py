@@ -167,7 +167,7 @@ def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
     flux, transport, face_stamp, cell_stamp = (work.flux, work.transport, work.face_stamp,
                                                work.cell_stamp)
     cell_sync, synced, clock = work.cell_sync, work.synced, work.clock
-    g, h_dry, h_zero, source = physics.g, physics.h_dry, physics.h_zero, physics.source
+    h_zero, source = physics.h_zero, physics.source
     cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
     stop_volume, stop_kinetic, limiter = run.stop_volume, run.stop_kinetic, run.limiter
     min_parallel_cells = run.min_parallel_cells
@@ -304,14 +304,13 @@ def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
             break
         if source[SRC_KIND] != SOURCE_NONE:  # only wet cells gain: the wet lists still hold
             if STRUCTURED:
-                src_volume, inv = add_span(0, n, nxt_h, nxt_hu, nxt_hv, erodible, source, dt,
-                                           h_zero, h_dry, t_new, cell_area, cfl_factor,
-                                           gamma_z, g, peak_h, arrival)
+                src_volume, inv = add_span(0, n, nxt_h, nxt_hu, nxt_hv, erodible, physics,
+                                           dt, t_new, cell_area, cfl_factor, gamma_z, peak_h,
+                                           arrival)
             else:  # the cells the step touched (order 2: either stage), every wet one
                 src_volume, inv = add_listed(union if ORDER2 else touched, n_changed, nxt_h,
-                                             nxt_hu, nxt_hv, erodible, source, dt, h_zero,
-                                             h_dry, t_new, cell_area, cfl_factor, gamma_z, g,
-                                             peak_h, arrival)
+                                             nxt_hu, nxt_hv, erodible, physics, dt, t_new,
+                                             cell_area, cfl_factor, gamma_z, peak_h, arrival)
             stats[ST_SOURCE] += src_volume
             lim = min(lim, dt_from_inverse(inv))
         t = t_target if last else t + dt

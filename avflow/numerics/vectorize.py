@@ -24,6 +24,8 @@ import types
 
 from numba import njit
 
+from avflow.numerics.rheology import PER_CELL
+
 
 def noalias(dispatcher):
     """Compile ``dispatcher`` telling LLVM that its array arguments never overlap (Numba's
@@ -112,6 +114,18 @@ def friction_law(law):
     return law
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def cell_law(law, params, i, p0, p1, p2, p3, p4, p5, p6, p7):
+    """The law's parameters at cell ``i``: its row of ``params`` where the law's code says
+    they are per cell (:data:`~avflow.numerics.rheology.PER_CELL`: friction maps, forest),
+    else the run's own ``p0..p7`` (row 0, loaded once per pass). Never per cell in the
+    copies for one law (:func:`by_law`): the law is a constant there, the branch folds."""
+    if law >= PER_CELL:
+        return (params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4],
+                params[i, 5], params[i, 6], params[i, 7])
+    return p0, p1, p2, p3, p4, p5, p6, p7
+
+
 #: The law of a copy made by :func:`by_law` (each copy's globals hold its own)
 LAW = -1
 
@@ -127,7 +141,8 @@ ANY_LAW = -1
 
 
 def law_kind(law: int) -> int:
-    """The copy that runs ``law``: its own for Coulomb and Voellmy, :data:`ANY_LAW` else."""
+    """The copy that runs ``law``: its own for Coulomb and Voellmy, :data:`ANY_LAW` else
+    (Pouliquen, samosAT, velocity weakening, and every law with parameters per cell)."""
     from avflow.numerics.rheology import COULOMB, VOELLMY
 
     return law if law in (COULOMB, VOELLMY) else ANY_LAW
