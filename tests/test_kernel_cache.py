@@ -6,8 +6,8 @@ from pathlib import Path
 import pytest
 
 import avflow.numerics as numerics
-from avflow.numerics import (cpu, face_sweep, kernels, reconstruction, rheology, square_grid,
-                             timeloop)
+from avflow.numerics import (cpu, face_sweep, kernels, reconstruction, rheology, sources,
+                             square_grid, timeloop)
 
 
 def test_a_change_to_any_kernel_source_is_a_new_cache_folder(monkeypatch):
@@ -42,7 +42,8 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
                        kernels.step_profile,
                        cpu.half_fluxes, cpu.trial_momentum, rheology.friction, reconstruction.reconstruct_faces,
                        reconstruction.reconstruct_cells,
-                       *loops, *stages, *sweeps, *heuns):
+                       *loops, *stages, *sweeps, *heuns, *sources.SPAN.values(),
+                       sources.add_span, sources.add_listed):
         assert Path(dispatcher._cache._cache_path).is_relative_to(folder), dispatcher
     assert config.CACHE_DIR != str(folder)  # other packages' caches stay where Numba puts them
 

@@ -292,7 +292,7 @@ class Solver:
         if not np.all(np.isfinite(rows)):
             raise ValueError("the friction parameters must be finite")
         self.params = rows if per_cell else rows[0].copy()
-        self._rows = rows
+        self._rows = self._cell_rows = rows
         self._law_code = int(self.law) + (PER_CELL if per_cell else 0)
 
     def _setup_grid(self, layout: SquareGrid) -> None:
@@ -314,8 +314,8 @@ class Solver:
             # (3, places): one contiguous line per component, for the kernel's vector loops
             "curvature": np.ascontiguousarray(full(t.curvature).T),
         }
-        if self._rows.shape[0] > 1:  # the parameters per cell, on the full grid's places
-            self._rows = np.ascontiguousarray(layout.full(self._rows))
+        if self._cell_rows.shape[0] > 1:  # the parameters per cell, on the grid's places
+            self._rows = np.ascontiguousarray(layout.full(self._cell_rows))
         c = self._g_cells
         if self.order == 2:  # where order 2 evaluates its slopes, per face side
             x_offset, y_offset = grid_offsets(layout, m, face_offsets(t))

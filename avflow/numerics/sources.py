@@ -22,8 +22,9 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.cpu import basal_shear, observe_cell, source_rate, speed_of, take_erodible
-from avflow.numerics.vectorize import cell_law
+from avflow.numerics.cpu import basal_shear, observe_cell, source_rate, take_erodible
+from avflow.numerics.rheology import COULOMB, VOELLMY
+from avflow.numerics.vectorize import ANY_LAW, by_law, cell_law, friction_law, law_label
 
 #: slots of the ``source`` vector: the law, the layer's density over the flow's, the speed
 #: at or below which the entrainment laws take nothing, then the law's parameters
@@ -40,67 +41,88 @@ def no_source() -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _gain(i, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_factor, gamma_z, peak_h,
-          arrival):
-    """Cell i takes from its layer: ``(volume added, its new inverse CFL limit)``."""
+def _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, t_new, cell_area, cfl_factor,
+          gamma_z, peak_h, arrival):
+    """Cell i takes from its layer: ``(volume added, its new inverse CFL limit)``.
+    ``law_row``: the run's own parameters (``p0..p7``), ``src``: the source's scalars
+    ``(kind, ratio, u_min, s0..s3, h_zero, h_dry, g)``, both loaded once per span.
+
+    Without jumps (every value computed, the one that applies selected, every array
+    written, with what it holds where nothing is taken), so that a row's loop vectorises
+    in the law-constant copies (:data:`SPAN`)."""
+    kind, ratio, u_min, s0, s1, s2, s3, h_zero, h_dry, g = src
+    p0, p1, p2, p3, p4, p5, p6, p7 = law_row
     hi = h[i]
-    source, g = physics.source, physics.g
-    if hi <= physics.h_zero:  # a dry cell: nothing flows over its bed
-        return 0.0, 0.0
-    speed = speed_of(hi, hu[i], hv[i])
-    params = physics.params
-    p0, p1, p2, p3, p4, p5, p6, p7 = cell_law(physics.law, params, i, params[0, 0],
-                                              params[0, 1], params[0, 2], params[0, 3],
-                                              params[0, 4], params[0, 5], params[0, 6],
-                                              params[0, 7])
+    e = erodible[i]
+    q_norm = math.sqrt(hu[i] * hu[i] + hv[i] * hv[i])
+    wet = hi > h_zero  # a dry cell: nothing flows over its bed
+    speed = q_norm / hi if wet else 0.0
+    p0, p1, p2, p3, p4, p5, p6, p7 = cell_law(law, params, i, p0, p1, p2, p3, p4, p5, p6, p7)
     # the shear at time n + 1 on g cos(theta) (the curvature term left out: a small part of
     # an uncertain erosion law, and it would need the cell's curvature here)
-    shear = basal_shear(physics.law, p0, p1, p2, p3, p4, p5, p6, p7, hi, speed,
-                        g * gamma_z[i], g)
-    ratio = source[SRC_RATIO]
-    rate = source_rate(int(source[SRC_KIND]), source[SRC_PARAMS], source[SRC_PARAMS + 1],
-                       source[SRC_PARAMS + 2], source[SRC_PARAMS + 3], ratio,
-                       source[SRC_UMIN], hi, speed, shear)
-    take = take_erodible(rate, dt, erodible[i])
-    if take <= 0.0:
-        return 0.0, 0.0
-    erodible[i] -= take  # exactly 0 where the layer is used up (take == erodible)
-    hn = hi + ratio * take
+    shear = basal_shear(law, p0, p1, p2, p3, p4, p5, p6, p7, hi, speed, g * gamma_z[i], g)
+    rate = source_rate(kind, s0, s1, s2, s3, ratio, u_min, hi, speed, shear)
+    take = take_erodible(rate, dt, e)
+    take = take if wet & (take > 0.0) else 0.0
+    erodible[i] = e - take if take > 0.0 else e  # exactly 0 where the layer is used up
+    hn = hi + ratio * take if take > 0.0 else hi
     h[i] = hn
-    if hn > peak_h[i]:
-        peak_h[i] = hn
-    if hn > physics.h_dry and math.isnan(arrival[i]):
-        arrival[i] = t_new
-    _, inv = observe_cell(hn, math.sqrt(hu[i] * hu[i] + hv[i] * hv[i]), cfl_factor[i],
-                          gamma_z[i], g)
-    return ratio * take * cell_area[i], inv
+    peak = peak_h[i]
+    peak_h[i] = hn if hn > peak else peak
+    first = arrival[i]
+    arrival[i] = t_new if (take > 0.0) & (hn > h_dry) & math.isnan(first) else first
+    _, inv = observe_cell(hn, q_norm, cfl_factor[i], gamma_z[i], g)
+    return ratio * take * cell_area[i], (inv if take > 0.0 else 0.0)
 
 
-@njit(error_model="numpy", cache=True)
-def add_span(a, b, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_factor, gamma_z,
+@njit(error_model="numpy", cache=True, inline="always")
+def _scalars(physics):
+    """What every cell of a span reads: the law's own row and the source's scalars."""
+    source, params = physics.source, physics.params
+    law_row = (params[0, 0], params[0, 1], params[0, 2], params[0, 3], params[0, 4],
+               params[0, 5], params[0, 6], params[0, 7])
+    src = (int(source[SRC_KIND]), source[SRC_RATIO], source[SRC_UMIN], source[SRC_PARAMS],
+           source[SRC_PARAMS + 1], source[SRC_PARAMS + 2], source[SRC_PARAMS + 3],
+           physics.h_zero, physics.h_dry, physics.g)
+    return law_row, src
+
+
+def _add_span(a, b, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_factor, gamma_z,
              peak_h, arrival):
     """The source over cells ``a .. b - 1`` (a profile, a square grid's row): the volume
     added and the largest inverse CFL limit of the cells it changed."""
+    law_row, src = _scalars(physics)
+    law, params = friction_law(physics.law), physics.params  # a constant in SPAN's copies
     added = 0.0
     inv_lim = 0.0
     for i in range(a, b):
-        v, inv = _gain(i, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_factor,
-                       gamma_z, peak_h, arrival)
+        v, inv = _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, t_new,
+                       cell_area, cfl_factor, gamma_z, peak_h, arrival)
         added += v
-        inv_lim = max(inv_lim, inv)
+        inv_lim = inv if inv > inv_lim else inv_lim
     return added, inv_lim
 
 
-@njit(error_model="numpy", cache=True)
+#: :func:`_add_span` per law kind (:func:`~avflow.numerics.vectorize.by_law`): the
+#: square-grid loop of each law calls its own, whose row loop vectorises for Coulomb and
+#: Voellmy; :data:`add_span` reads the law (the profile kernel's loop calls it)
+SPAN = {kind: by_law(_add_span, None if kind == ANY_LAW else kind, law_label(kind), nrt=False)
+        for kind in (COULOMB, VOELLMY, ANY_LAW)}
+add_span = SPAN[ANY_LAW]
+
+
+@njit(error_model="numpy", cache=True, _nrt=False)
 def add_listed(cells, n, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_factor,
                gamma_z, peak_h, arrival):
     """The source over the ``n`` listed ``cells`` (the face kernel's touched cells, a
     superset of the wet ones): as :func:`add_span`."""
+    law_row, src = _scalars(physics)
+    law, params = physics.law, physics.params
     added = 0.0
     inv_lim = 0.0
     for c in range(n):
-        v, inv = _gain(cells[c], h, hu, hv, erodible, physics, dt, t_new, cell_area,
-                       cfl_factor, gamma_z, peak_h, arrival)
+        v, inv = _gain(cells[c], h, hu, hv, erodible, law, params, law_row, src, dt, t_new,
+                       cell_area, cfl_factor, gamma_z, peak_h, arrival)
         added += v
         inv_lim = max(inv_lim, inv)
     return added, inv_lim

@@ -58,7 +58,7 @@ from avflow.numerics.cpu import (DRY, FLOWING, SOURCE_NONE, TRANSPORT_EPS, cell_
                                  dt_from_inverse, final_momentum, heun_average,
                                  observe, observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
-from avflow.numerics.sources import SRC_KIND, add_span
+from avflow.numerics.sources import SPAN, SRC_KIND, add_span  # noqa: F401 (each copy's own)
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FALLBACK,
                                       ST_RETRIES, ST_SOURCE, ST_TIME, Conserved, Observers,
                                       StepTime, record_end, record_step, step_size)
@@ -1209,7 +1209,7 @@ def _loops() -> dict:
                 heun = (specialize(_order2_step, suffix, _stage=stage) if order2 else None)
                 loops[kind, parallel, order2] = specialize(
                     _advance_grid, suffix, PARALLEL=parallel, ORDER2=order2, _stage=stage,
-                    order2_step=heun)
+                    order2_step=heun, add_span=SPAN[kind])
     return loops
 
 
