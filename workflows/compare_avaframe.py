@@ -113,6 +113,10 @@ def run(job):
     rel = pathlib.Path(job["release"])
     for f in rel.parent.glob(rel.stem + ".*"):  # .shp with its .shx, .dbf, .prj, .cpg
         shutil.copy(f, ava / "Inputs" / "REL" / f.name)
+    if job.get("entrainment"):  # an entrainment area (thickness attribute) and its runs
+        ent = pathlib.Path(job["entrainment"])
+        for f in ent.parent.glob(ent.stem + ".*"):
+            shutil.copy(f, ava / "Inputs" / "ENT" / f.name)
 
     cfgMain = cfgUtils.getGeneralConfig()
     cfgMain["MAIN"]["avalancheDir"] = str(ava)
@@ -132,6 +136,11 @@ def run(job):
     for key, value in job.get("extra", {}).items():  # --avaframe-set, for studies
         g[key] = value
     cfg["EXPORTS"]["exportRasters"] = "True"
+    if job.get("entrainment"):
+        g["simTypeList"] = "ent"
+        g["entThFromFile"] = "True"
+        g["rhoEnt"] = repr(float(job.get("rho_ent", 100.0)))
+        g["entEroEnergy"] = repr(float(job.get("e_b", 5000.0)))
     law = job["law"]
     if law == "coulomb":
         g["frictModel"] = "Coulomb"
@@ -169,9 +178,15 @@ def run(job):
         "n_particles": int(row["nPart"]),
         "released_volume_m3": float(sp["Initial mass [kg]"]) / float(job["rho"]),
         "final_volume_m3": float(sp["Final mass [kg]"]) / float(job["rho"]),
-        "pft": str(peak / f"{name}_pft.asc"),
-        "pfv": str(peak / f"{name}_pfv.asc"),
+        # .asc or .tif, as the DEM was given
+        "pft": str(next(peak.glob(f"{name}_pft.*"), peak / f"{name}_pft.asc")),
+        "pfv": str(next(peak.glob(f"{name}_pfv.*"), peak / f"{name}_pfv.asc")),
         "dem": str(next((ava / "Inputs" / "remeshedRasters").glob("*.asc"), dem)),
+        # time, current mass, entrained in the step (kg): com1DFA's mass log
+        "mass_log": str(next((ava / "Outputs" / "com1DFA").glob("mass_*.txt"), "")),
+        "entrained_volume_m3": (float(rd["Simulation Parameters"].get("Entrained volume [m3]",
+                                                                       "nan"))
+                                if "Simulation Parameters" in rd else float("nan")),
     }
     pathlib.Path(job["json_out"]).write_text(json.dumps(out, indent=1))
     return out
@@ -188,7 +203,19 @@ if __name__ == "__main__":
 
 
 def read_asc(path):
-    """``(values, x, y)`` of an ESRI ASCII grid: rows from south to north, cell centres."""
+    """``(values, x, y)`` of an ESRI ASCII grid (or a GeoTIFF: AvaFrame writes its peak maps
+    in the DEM's format): rows from south to north, cell centres."""
+    if str(path).lower().endswith((".tif", ".tiff")):
+        import rasterio
+
+        with rasterio.open(path) as src:
+            values = src.read(1, masked=True).filled(np.nan).astype(float)
+            t = src.transform
+            x = t.c + t.a * (np.arange(src.width) + 0.5)
+            y = t.f + t.e * (np.arange(src.height) + 0.5)
+        if y[0] > y[-1]:
+            values, y = np.flipud(values), y[::-1]
+        return values, x, y
     header = {}
     with open(path) as f:
         for _ in range(6):
@@ -314,9 +341,12 @@ def avaframe_runner(args):
                         "$AVAFRAME_PYTHON, no --avaframe-results): avflow rows only")
 
 
-def run_avaframe(how, where, path, law, scenario, dx, out_dir, curvature=True, extra=None):
-    """AvaFrame's run of one case: its info dict, with ``pft``, ``pfv``, ``dem`` raster paths."""
-    case = law if curvature else f"{law}_nocurv"
+def run_avaframe(how, where, path, law, scenario, dx, out_dir, curvature=True, extra=None,
+                 entrainment=None):
+    """AvaFrame's run of one case: its info dict, with ``pft``, ``pfv``, ``dem`` raster paths.
+    ``entrainment``: a dict ``{"path": ENT shapefile, "rho_ent": kg/m^3, "e_b": J/kg}``
+    (com1DFA's ``ent`` run, its mass log in ``mass_log``)."""
+    case = (law if curvature else f"{law}_nocurv") + ("_ent" if entrainment else "")
     if how == "stored":
         return stored_avaframe(where, path, case, dx)
     work = out_dir / "avaframe"
@@ -328,6 +358,9 @@ def run_avaframe(how, where, path, law, scenario, dx, out_dir, curvature=True, e
                   else params.get("mu")),
            "xi": params.get("xi"), "curvature": curvature, "extra": dict(extra or {}),
            "json_out": str(work / f"{path}_{case}_{dx:g}m.json")}
+    if entrainment:
+        job.update(entrainment=str(entrainment["path"]), rho_ent=entrainment["rho_ent"],
+                   e_b=entrainment["e_b"])
     if how == "inprocess":
         namespace = {"__name__": "compare_avaframe_com1dfa"}
         exec(compile(AVAFRAME_SCRIPT, "run_com1dfa.py", "exec"), namespace)
