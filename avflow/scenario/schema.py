@@ -498,7 +498,15 @@ def field_bounds(model: type[BaseModel] | BaseModel, name: str) -> Bounds | None
     """The range of a field that may be a map (None: none known)."""
     cls = model if isinstance(model, type) else type(model)
     info = cls.model_fields[name]
-    return next((m.bounds for m in info.metadata if isinstance(m, _MapMarker)), None)
+    marker = next((m for m in info.metadata if isinstance(m, _MapMarker)), None)
+    todo = [info.annotation]
+    while marker is None and todo:  # an optional field: the marker is inside its union
+        kind = todo.pop()
+        args = get_args(kind)
+        if get_origin(kind) is Annotated:
+            marker = next((m for m in args[1:] if isinstance(m, _MapMarker)), None)
+        todo += list(args)
+    return None if marker is None else marker.bounds
 
 
 class _MapsChecked(_Model):
