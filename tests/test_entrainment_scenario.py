@@ -166,6 +166,16 @@ def test_the_summary_line_states_the_balance(written, capsys):
     assert " + out " in line and "m3)" in line
 
 
+def test_export_writes_the_bed_change_and_the_layer(written, tmp_path, capsys):
+    import rasterio
+
+    _, out, _ = written
+    assert main(["export", str(out), "-o", str(tmp_path)]) == 0
+    with rasterio.open(tmp_path / "run_bed_change.tif") as src:
+        assert src.units == ("m",) and src.read(1).min() < -0.01
+    assert (tmp_path / "run_erodible_depth.tif").is_file()
+
+
 def test_a_run_without_entrainment_says_nothing_of_it(tmp_path, capsys):
     path = plane(tmp_path, "{law: coulomb, delta_deg: 20}")
     assert main(["run", str(path), "-o", str(tmp_path / "o.nc")]) == 0
