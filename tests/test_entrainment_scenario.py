@@ -157,6 +157,18 @@ def test_the_file_of_a_run_holds_what_was_entrained_and_the_balance(written, cap
     assert 0.5 * area * -change.values.sum() == pytest.approx(entrained, rel=1e-5)
 
 
+def test_the_file_of_a_run_with_entrainment_is_cf_compliant(written):
+    """The IOOS checker's strict messages are its known ones only (tests/test_cli_output.py),
+    the new series on time counted with the other series."""
+    from test_cli_output import SCALAR_BOUNDS, TIME_BY_NAME, compliance_errors, strict_messages
+
+    _, out, _ = written
+    assert compliance_errors(out) == []
+    on_time = ("h", "u", "v", "moving_volume", "center_of_mass_x", "center_of_mass_y",
+               "center_of_mass_z", "entrained_volume_series")
+    assert strict_messages(out) == sorted([SCALAR_BOUNDS] + [TIME_BY_NAME] * len(on_time))
+
+
 def test_the_summary_line_states_the_balance(written, capsys):
     path, out, _ = written
     code = main(["run", str(path), "-o", str(out.with_name("again.nc"))])
@@ -202,6 +214,22 @@ def test_a_profile_with_entrainment_and_forest_balances_per_metre(tmp_path, caps
                                              "deposit_volume", "outflow_volume"))
         assert e > 0.1 * r and abs(r + e - d - o) <= 1e-12 * (r + e)
         assert "per metre of width" in ds.attrs["mass_balance"]
+
+
+def test_a_triangle_mesh_run_writes_the_layer_on_its_nodes(tmp_path):
+    path = plane(tmp_path, "{law: voellmy, mu: 0.25, xi: 1000}",
+                 "entrainment: {law: exponential, growth_rate: 0.005, "
+                 "layer: {depth: 0.5, x: [100, 250]}}\nforest: {x: [250, 280], c_f: 0.05}\n"
+                 "boundary: {x_max: outflow}\n", slope=30.0,
+                 release="{kind: box, x: [20, 80], y: [30, 70], thickness: 3.0}", end=12.0)
+    text = path.read_text().replace("grid: {dx: 10.0}", "grid: {dx: 10.0, mesh: triangles}")
+    path.write_text(text)
+    assert main(["run", str(path), "-q", "-o", str(tmp_path / "t.nc")]) == 0
+    with xr.open_dataset(tmp_path / "t.nc") as ds:
+        assert ds["bed_change"].dims == ("node",) and ds["bed_change"].attrs["mesh"] == "mesh"
+        r, e, d, o = (float(ds[n]) for n in ("release_volume", "entrained_volume",
+                                             "deposit_volume", "outflow_volume"))
+        assert e > 0.0 and abs(r + e - d - o) <= 1e-12 * (r + e)
 
 
 # ---------------------------------------------------------------------------- ensembles
