@@ -55,6 +55,8 @@ def test_every_form_of_the_layer_is_sampled_at_the_cell_centres(tmp_path):
     polygons(tmp_path / "ent.gpkg", [(100, 0, 200, 100), (150, 50, 250, 100)], [0.3, 0.6],
              field="thickness")
     polygons(tmp_path / "snow.geojson", [(100, 0, 200, 100)], [0.8], field="hs")
+    # a 'thickness' of 0 that one thickness for all replaces: not read, not refused
+    polygons(tmp_path / "zero.gpkg", [(100, 0, 200, 100)], [0.0], field="thickness")
     path = plane(tmp_path, "{law: voellmy, mu: 0.2, xi: 1000}", ENTRAINMENT)
     source, terrain, _ = layer_of(path)
     cx, cy = terrain.cell_xy()
@@ -67,6 +69,7 @@ def test_every_form_of_the_layer_is_sampled_at_the_cell_centres(tmp_path):
         ({"raster": "depth.asc", "default": 0.0}, np.where(cx > 150, 0.0, 0.1 * (cy > 50))),
         ({"polygon": "ent.gpkg"}, np.where(in_second, 0.6, np.where(in_ent, 0.3, 0.0))),
         ({"polygon": "ent.gpkg", "thickness": 0.2}, np.where(in_ent | in_second, 0.2, 0.0)),
+        ({"polygon": "zero.gpkg", "thickness": 0.2}, np.where(in_ent, 0.2, 0.0)),
         ({"polygon": "snow.geojson", "attribute": "hs"}, np.where(in_ent, 0.8, 0.0)),
     ]
     for layer, want in cases:

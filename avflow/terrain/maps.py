@@ -100,7 +100,7 @@ def polygon_values(path: str, terrain: Terrain, field: str, attribute: str | Non
     (None: such a cell is an error naming the file)."""
     _need_2d(terrain, path, field)
     try:
-        areas, wkt = read_polygons(path, attribute=attribute if value is None else None)
+        areas, wkt = read_polygons(path, attribute=attribute if value is None else False)
         _check_crs(path, wkt, terrain)
     except (PolygonError, ReleaseError) as err:
         raise MapError(field, str(err)) from None

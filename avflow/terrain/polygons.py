@@ -40,13 +40,14 @@ class Area:
     name: str = ""
 
 
-def read_polygons(path, attribute: str | None = None) -> tuple[list[Area], str | None]:
+def read_polygons(path, attribute: str | bool | None = None) -> tuple[list[Area], str | None]:
     """The polygon areas of a vector file and its CRS (WKT, or None when it has none).
 
     Each area's ``thickness`` is its ``thickness`` attribute (a positive number of metres),
     or with ``attribute`` the value of that attribute (any finite number; a file without
     it is an error, naming the attributes it has): a map's values
-    (:mod:`avflow.terrain.maps`). A NULL value is None."""
+    (:mod:`avflow.terrain.maps`); ``attribute=False``: no attribute is read (None). A NULL
+    value is None."""
     path = Path(path)
     if not path.is_file():
         raise PolygonError(f"{path}: no such file")
@@ -71,10 +72,11 @@ def read_polygons(path, attribute: str | None = None) -> tuple[list[Area], str |
                            f"({type(err).__name__}: {str(err).strip()})") from None
     fields = {str(n).lower(): c for n, c in zip(meta["fields"], columns)}
     names = next((fields[k] for k in ("name", "name_ezg", "id") if k in fields), None)
-    if attribute is not None and attribute.lower() not in fields:
+    if isinstance(attribute, str) and attribute.lower() not in fields:
         have = ", ".join(str(n) for n in meta["fields"]) or "none"
         raise PolygonError(f"{path}: has no attribute {attribute!r} (its attributes: {have})")
-    thicknesses = fields.get(THICKNESS_FIELD if attribute is None else attribute.lower())
+    thicknesses = (None if attribute is False else
+                   fields.get(THICKNESS_FIELD if attribute is None else attribute.lower()))
     areas = []
     for k, geom in enumerate(geometries):
         if geom is None or geom.is_empty:
