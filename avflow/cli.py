@@ -75,8 +75,22 @@ def summary_line(ds) -> str:
             f", deposit max {f('deposit_max_thickness', '.2f')} m"
             f", length {f('deposit_length', '.1f')} m"
             f", mass error {f('mass_balance_error', '.1e')}"
-            f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s"
+            + _entrained_note(ds)
+            + f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s"
             + _compile_note(ds))
+
+
+def _entrained_note(ds) -> str:
+    """`` (released 1.2e+04 + entrained 3.4e+03 = on the map 1.5e+04 + out 0 m3)``: the
+    balance of a run with entrainment; nothing for the others."""
+    if "entrainment_law" not in ds.attrs or "entrained_volume" not in ds:
+        return ""
+    units = ds["release_volume"].attrs.get("units", "m3")
+    v = {name: float(ds[name]) for name in ("release_volume", "entrained_volume",
+                                            "deposit_volume", "outflow_volume")}
+    return (f" (released {v['release_volume']:.4g} + entrained {v['entrained_volume']:.4g}"
+            f" = on the map {v['deposit_volume']:.4g} + out {v['outflow_volume']:.4g} "
+            f"{units})")
 
 
 def _compile_note(ds) -> str:

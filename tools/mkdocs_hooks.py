@@ -20,8 +20,8 @@ import re
 from pathlib import Path
 
 #: Blocks of a scenario file, in the order of the file; each gets its own page.
-BLOCKS = ("name", "terrain", "grid", "release", "rheology", "time", "output", "boundary",
-          "physics", "numerics")
+BLOCKS = ("name", "terrain", "grid", "release", "rheology", "entrainment", "forest", "time",
+          "output", "boundary", "physics", "numerics")
 #: Top-level scalar fields documented on the "name" page.
 TOP_SCALARS = ("name", "description")
 
@@ -213,8 +213,10 @@ def scenario_pages() -> dict[str, str]:
         if prop.get("description"):
             lines += [_cell(prop["description"]), ""]
         lines += ["Required." if block in required else
-                  "Optional: every field has a default.", ""]
-        disc = prop.get("discriminator")
+                  "Optional: leave it out (null) for none." if prop.get("default", 0) is None
+                  else "Optional: every field has a default.", ""]
+        disc = prop.get("discriminator") or next(  # an optional block: in its anyOf
+            (o["discriminator"] for o in prop.get("anyOf", ()) if "discriminator" in o), None)
         if disc:
             key = disc["propertyName"]
             kinds = ", ".join(f"[`{k}`](#{_ref_name(v).lower()})"

@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from avflow.ensemble.spec import OK_STATUSES, SUMMARY_FIELDS, Ensemble, Member
+from avflow.ensemble.spec import (OK_STATUSES, SUMMARY_DEFAULTS, SUMMARY_FIELDS, Ensemble,
+                                  Member)
 from avflow.errors import AvflowError
 from avflow.files import atomic_text, atomic_write
 
@@ -113,7 +114,8 @@ def check_member_file(path: str | os.PathLike,
         import netCDF4
 
         with netCDF4.Dataset(path) as nc:
-            row = {name: float(nc.variables[name][...]) for name in SUMMARY_FIELDS}
+            row = {name: float(nc.variables[name][...]) if name in nc.variables
+                   else SUMMARY_DEFAULTS[name] for name in SUMMARY_FIELDS}
             row["status"] = str(nc.getncattr("status"))
             row["scenario_hash"] = str(nc.getncattr("scenario_hash"))
             row["steps"] = int(nc.getncattr("steps"))

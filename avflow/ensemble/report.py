@@ -206,6 +206,23 @@ def write_report(outdir: str | os.PathLike) -> Path:
                      float(np.nanmax(t)) if np.isfinite(t).any() else math.nan])
     md += [_md_table(["law", "members", "runout min (m)", "median", "max",
                       "time to stop min (s)", "median", "max"], rows), ""]
+    entrained = ds["entrained_volume"].values if "entrained_volume" in ds else None
+    if entrained is not None and np.any(entrained[ok] > 0.0):
+        units = ds["entrained_volume"].attrs.get("units", "m3")
+        md += ["## Entrainment", "", "Volume the flow took from the erodible layer, and the "
+               "growth it made (released + entrained over released), per law:", ""]
+        rows = []
+        for law in colors:
+            sel = ok & (laws == law)
+            if not sel.any():
+                continue
+            e = entrained[sel]
+            growth = (ds["release_volume"].values[sel] + e) / ds["release_volume"].values[sel]
+            rows.append([law, int(sel.sum()), float(np.min(e)), float(np.median(e)),
+                         float(np.max(e)), float(np.min(growth)), float(np.median(growth)),
+                         float(np.max(growth))])
+        md += [_md_table(["law", "members", f"entrained min ({units})", "median", "max",
+                          "growth min", "median", "max"], rows), ""]
 
     md += ["## Failed members", ""]
     failed = np.flatnonzero(~ok)
@@ -223,6 +240,8 @@ def write_report(outdir: str | os.PathLike) -> Path:
         md += ["## All members", ""]
         names = ["runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
                  "mass_balance_error", "wall_time"]
+        if entrained is not None and np.any(entrained[ok] > 0.0):
+            names.insert(4, "entrained_volume")
         md += [_md_table(["realization", "law", *params, "status", *names],
                          [[int(i), laws[i], *[float(ds[p].values[i]) for p in params],
                            status[i], *[float(ds[m].values[i]) for m in names]]

@@ -29,6 +29,7 @@ __all__ = [
     "Law",
     "friction",
     "friction_parameters",
+    "PARAMETER_SLOTS",
     "law_reference",
     "pouliquen_mu",
     "h_stop",
@@ -87,7 +88,47 @@ def law_reference(law: Law) -> str:
     return _REFERENCES[Law(law)]
 
 
-def friction_parameters(rheology, density: float | None = None) -> tuple[Law, np.ndarray]:
+def _tan_deg(angle: float) -> float:
+    return math.tan(math.radians(angle))
+
+
+#: The parameter vector's slots, per law: which field of the scenario's rheology block fills
+#: each slot, and the transform from its units to the kernels' (None: as written; "tan": an
+#: angle in degrees to its tangent; "per_density": a stress in Pa over the density). What
+#: :func:`friction_parameters` packs for a number, and cell by cell for a map. Voellmy's
+#: slot 0 is mu, or tan(delta_deg) when delta_deg is given instead. samosAT's slot 3 is
+#: fixed (``SAMOSAT_P_EPS / density``), no field's.
+PARAMETER_SLOTS = {
+    Law.COULOMB: {"delta_deg": (0, "tan")},
+    Law.POULIQUEN: {"delta1_deg": (0, "tan"), "delta2_deg": (1, "tan"), "d": (2, None),
+                    "beta": (3, None)},
+    Law.VOELLMY: {"mu": (0, None), "delta_deg": (0, "tan"), "xi": (1, None)},
+    Law.SAMOSAT: {"mu": (0, None), "tau0": (1, "per_density"), "Rs0": (2, None),
+                  "kappa": (4, None), "R": (5, None), "B": (6, None)},
+    Law.VELOCITY_WEAKENING: {"mu_s": (0, None), "mu_w": (1, None), "U_w": (2, None)},
+}
+
+
+def _transform(how: str | None, value: float, density: float | None) -> float:
+    """One value from the scenario's units to the kernels' (:data:`PARAMETER_SLOTS`)."""
+    if how == "tan":
+        return _tan_deg(value)
+    if how == "per_density":
+        return value / density
+    return float(value)
+
+
+def _transform_map(how: str | None, values: np.ndarray, density: float | None) -> np.ndarray:
+    """:func:`_transform` of every cell's value, with the same scalar arithmetic (math's
+    tan, not numpy's), once per distinct value: a map equal to a number packs that
+    number's bits in every cell."""
+    distinct, where = np.unique(np.asarray(values, dtype=float), return_inverse=True)
+    packed = np.array([_transform(how, float(v), density) for v in distinct])
+    return packed[where.reshape(-1)]
+
+
+def friction_parameters(rheology, density: float | None = None,
+                        maps: dict | None = None) -> tuple[Law, np.ndarray]:
     """Map a validated rheology block (``scenario.rheology``) to ``(Law, params)``.
 
     ``density`` (kg/m^3, ``scenario.physics.density``) is needed by samosAT only, whose
@@ -98,31 +139,44 @@ def friction_parameters(rheology, density: float | None = None) -> tuple[Law, np
     - Voellmy: ``[mu, xi (m/s^2)]``
     - samosAT: ``[mu, tau0 / rho (m^2/s^2), Rs0, 0.001 Pa / rho (m^2/s^2), kappa, R (m), B]``
     - velocity weakening: ``[mu_s, mu_w, U_w (m/s)]``
+
+    ``maps``: fields of the block that vary in space, ``{field: values per cell}`` in the
+    field's own units (degrees, Pa, ...; sampled by :mod:`avflow.terrain.maps`, their range
+    checked there). ``params`` is then a map of shape ``(n_cells, N_PARAMS)``, a row per
+    cell (:class:`~avflow.numerics.solver.Solver` takes it as it is); each mapped field's
+    slot holds its transformed values (:data:`PARAMETER_SLOTS`), every other slot the
+    number's, the same bits in every row.
     """
-    params = np.zeros(N_PARAMS)
     law = Law[rheology.law.upper()]
-    if law is Law.COULOMB:
-        params[0] = math.tan(math.radians(rheology.delta_deg))
-    elif law is Law.POULIQUEN:
-        params[:4] = (
-            math.tan(math.radians(rheology.delta1_deg)),
-            math.tan(math.radians(rheology.delta2_deg)),
-            rheology.d,
-            rheology.beta,
-        )
-    elif law is Law.VOELLMY:
-        mu = rheology.mu if rheology.mu is not None else math.tan(math.radians(rheology.delta_deg))
-        params[0] = mu
-        params[1] = rheology.xi
-    elif law is Law.SAMOSAT:
-        if density is None or not density > 0.0:
-            raise ValueError("samosAT needs the density (kg/m^3, physics.density), "
-                             f"got {density!r}")
-        params[:7] = (rheology.mu, rheology.tau0 / density, rheology.Rs0,
-                      SAMOSAT_P_EPS / density, rheology.kappa, rheology.R, rheology.B)
-    elif law is Law.VELOCITY_WEAKENING:
-        params[:3] = (rheology.mu_s, rheology.mu_w, rheology.U_w)
-    return law, params
+    maps = dict(maps or {})
+    slots = PARAMETER_SLOTS[law]
+    unknown = sorted(set(maps) - set(slots))
+    if unknown:
+        raise ValueError(f"{law.name.lower()} has no parameter {unknown[0]!r} to map; its "
+                         f"parameters: {', '.join(slots)}")
+    if law is Law.SAMOSAT and (density is None or not density > 0.0):
+        raise ValueError("samosAT needs the density (kg/m^3, physics.density), "
+                         f"got {density!r}")
+    params = np.zeros(N_PARAMS)
+    for name, (slot, how) in slots.items():
+        value = getattr(rheology, name)
+        if value is None or name in maps:  # Voellmy's friction not given this way; a map
+            continue
+        if not isinstance(value, (int, float)):
+            raise ValueError(f"{name} is a map: give its values per cell in maps")
+        params[slot] = _transform(how, value, density)
+    if law is Law.SAMOSAT:
+        params[3] = SAMOSAT_P_EPS / density
+    if not maps:
+        return law, params
+    sizes = {np.size(v) for v in maps.values()}
+    if len(sizes) != 1:
+        raise ValueError(f"the maps hold different numbers of cells: {sorted(sizes)}")
+    rows = np.tile(params, (sizes.pop(), 1))
+    for name, values in maps.items():
+        slot, how = slots[name]
+        rows[:, slot] = _transform_map(how, values, density)
+    return law, rows
 
 
 @njit(error_model="numpy", cache=True, inline="always")

@@ -72,6 +72,24 @@ FIELDS = {
     "center_of_mass_y": dict(kind="series", long_name="centre of mass, y", units="m"),
     "center_of_mass_z": dict(kind="series", long_name="centre of mass, bed elevation",
                              units="m"),
+    # entrainment (runs with an entrainment block only)
+    "entrained_volume_series": dict(
+        kind="series", long_name="volume entrained so far", units="m3",
+        comment="flow volume the flow has taken from the erodible layer from the release to "
+                "each snapshot (the layer's depth taken times its density over the "
+                "flow's), from what the layer lost; entrainment runs only"),
+    "erodible_depth": dict(
+        kind="reduced", long_name="erodible layer left at the end of the run", units="m",
+        cell_methods=f"{RUN}: point",
+        comment="depth of the erodible layer still in place, measured normal to the bed, at "
+                "the last time of the run; entrainment runs only"),
+    "bed_change": dict(
+        kind="reduced", long_name="change of the bed surface by erosion", units="m",
+        cell_methods=f"{RUN}: sum",
+        comment="final minus initial erodible depth, measured normal to the bed: negative "
+                "where the bed was eroded (lowered), 0 elsewhere, never positive (no "
+                "deposition onto the bed). The bed elevation the run used was not changed "
+                "(bed_elevation is the initial bed); entrainment runs only"),
 }
 
 SUMMARIES = {
@@ -86,9 +104,13 @@ SUMMARIES = {
     "deposit_length": ("m", "extent of the deposit (h > runout_threshold) along the flow"),
     "deposit_volume": ("m3", "material on the mesh at the end, film included"),
     "release_volume": ("m3", "released volume"),
+    "entrained_volume": ("m3", "flow volume taken from the erodible layer over the run (the "
+                               "layer's depth taken times its density over the flow's), "
+                               "from what the layer lost; 0 without entrainment"),
     "outflow_volume": ("m3", "volume that left through open boundaries"),
     "film_volume": ("m3", "volume still moving at the end with h <= dry_threshold"),
-    "mass_balance_error": ("1", "|V_end + V_out - V_0| / V_0"),
+    "mass_balance_error": ("1", "|V_end + V_out - V_0 - V_ent| / (V_0 + V_ent): released "
+                                "plus entrained against on the map plus outflow"),
     "moving_volume_end": ("m3", "volume still moving (u != 0, h > dry_threshold) at the end"),
     "kinetic_energy_end": ("J", "kinetic energy sum rho h A |u|^2 / 2 at the end"),
     "kinetic_energy_peak": ("J", "largest kinetic energy of the run (after a step)"),
@@ -183,14 +205,51 @@ def link_coordinates(ds) -> None:
         var.encoding["coordinates"] = " ".join(linked) if linked else None
 
 
+def mass_balance_text(summary: dict, units: str = "m3") -> str:
+    """``released V0 + entrained Ve = on the map Vend + outflow Vout (m3)``, each volume to
+    the digits that read back the float (repr): the balance a file states."""
+    return (f"released {summary['release_volume']!r} + entrained "
+            f"{summary['entrained_volume']!r} = on the map {summary['deposit_volume']!r} + "
+            f"outflow {summary['outflow_volume']!r} ({units}); relative error "
+            f"{summary['mass_balance_error']:.3g}")
+
+
+#: Reference of each entrainment law, for the files' ``references``.
+ENTRAINMENT_REFERENCES = {
+    "exponential": "Hungr and McDougall (2009), Two numerical models for landslide dynamic "
+                   "analysis, Comput. Geosci. 35, 978-992 (exponential entrainment)",
+    "erosion_energy": "AvaFrame com1DFA entrainment by erosion energy (entEroEnergy); Tonnel "
+                      "et al. (2023), Geosci. Model Dev. 16, 7013-7035",
+    "shear_threshold": "RAMMS::DEBRISFLOW erosion above a critical shear stress (Frank et al. "
+                       "2015, Nat. Hazards Earth Syst. Sci. 15, 2569-2583), in rate form",
+}
+FOREST_REFERENCE = ("forest: AvaFrame com1DFA resistance areas (computeResForce, cResH); "
+                    "Tonnel et al. (2023), Geosci. Model Dev. 16, 7013-7035")
+
+
 def global_attributes(result) -> dict:
+    sc, s = result.scenario, result.summary
+    references = f"{SEED_REFERENCE}; friction law: {law_reference(result.solver.law)}"
+    extra = {}
+    if getattr(sc, "entrainment", None) is not None:
+        references += f"; entrainment: {ENTRAINMENT_REFERENCES[sc.entrainment.law]}"
+        extra["entrainment_law"] = sc.entrainment.law
+    if getattr(sc, "forest", None) is not None:
+        references += f"; {FOREST_REFERENCE}"
+    if "entrained_volume" in s:
+        units = "m2 per metre of width" if result.terrain.kind == "profile" else "m3"
+        extra["mass_balance"] = mass_balance_text(s, units)
+    return {**_attributes(result, references), **extra}
+
+
+def _attributes(result, references: str) -> dict:
     sc, s = result.scenario, result.summary
     th = result.thresholds
     return {
         "Conventions": "CF-1.11",
         "title": f"avflow run of scenario {sc.name}",
         "source": f"avflow {__version__}: kinetic scheme with Dirac stopping (seed eqs. 26-56)",
-        "references": f"{SEED_REFERENCE}; friction law: {law_reference(result.solver.law)}",
+        "references": references,
         "history": "created by avflow " + __version__,
         "scenario_name": sc.name,
         "scenario_hash": sc.scenario_hash(),

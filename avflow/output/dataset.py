@@ -12,7 +12,8 @@ import xarray as xr
 
 from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, grid_mapping,
                               link_coordinates, per_width, run_bounds, time_coords)
-from avflow.output.fields import cell_values, horizontal_basis, snapshot_fields
+from avflow.output.fields import (cell_values, entrainment_variables, horizontal_basis,
+                                  snapshot_fields)
 from avflow.output.ugrid import to_ugrid_dataset
 from avflow.simulation.runner import RunResult, flags_of, wet_cells
 
@@ -206,6 +207,10 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                                  {**attrs("moving_volume"),
                                   "units": per_width("m3", profile)})
+        for name, (values, is_map) in entrainment_variables(result).items():
+            data[name] = ((space if is_map else "time"), grid(values) if is_map else values,
+                          {**attrs(name), "units": attrs(name)["units"] if is_map
+                           else per_width("m3", profile)})
     crs_attrs = None if profile else grid_mapping(terrain.crs_wkt)
     if crs_attrs:  # CF 5.6: every map names the CRS; GDAL reads crs_wkt / spatial_ref
         for name, (dims, _, attributes) in list(data.items()):

@@ -40,3 +40,17 @@ def cell_values(h, hu, hv, flag, basis) -> dict:
     # Velocity along the bed, as the components of its horizontal projection.
     e1x, e2x, e1y, e2y = basis
     return {"h": h, "u": ua * e1x + va * e2x, "v": ua * e1y + va * e2y, "flow_state": flags}
+
+
+def entrainment_variables(result) -> dict:
+    """``{name: (values per cell or per snapshot, is_map)}`` of a run with entrainment
+    (empty without): the layer left at the end, the bed's change (final minus initial
+    layer, <= 0) and the volume entrained at each snapshot."""
+    source = getattr(result.solver, "source", None)
+    if source is None:
+        return {}
+    state = result.state
+    return {"erodible_depth": (state.erodible, True),
+            "bed_change": (state.erodible - source.erodible, True),
+            "entrained_volume_series": (np.asarray(result.snapshots.entrained_volume,
+                                                   dtype=float), False)}

@@ -35,6 +35,8 @@ __all__ = ["DEFAULT_EXPORT", "MapsError", "export_maps", "plot_run", "scene_kind
 #: Maps exported when no ``--variables`` are given.
 DEFAULT_EXPORT = ("peak_thickness", "peak_speed", "peak_pressure", "peak_pressure_class",
                   "deposit_thickness", "arrival_time", "rest_time")
+#: Maps exported as well when the run has them (entrainment: the bed's change, the layer).
+EXPORT_IF_PRESENT = ("bed_change", "erodible_depth")
 
 #: The class map derived from ``peak_pressure`` (not a variable of the file).
 PRESSURE_CLASS = "peak_pressure_class"
@@ -275,7 +277,7 @@ def _run_rasters(ds, path: Path, variables):
     """``(name, values, write_tif options)`` of the maps of a run file to export."""
     _need_grid(ds, path, "run")
     available = _map_names(ds)
-    names = [n for n in (variables or DEFAULT_EXPORT)
+    names = [n for n in (variables or DEFAULT_EXPORT + EXPORT_IF_PRESENT)
              if variables or n in available]  # files before a map existed: skip it
     unknown = [n for n in names if n not in available]
     if unknown:

@@ -120,6 +120,11 @@ def _add_rest(data, result, space, attrs, on_node, named_crs) -> None:
                       {k2: v for k2, v in FIELDS[name].items() if k2 != "kind"})
     data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                              {k: v for k, v in FIELDS["moving_volume"].items() if k != "kind"})
+    from avflow.output.fields import entrainment_variables
+
+    for name, (values, is_map) in entrainment_variables(result).items():
+        data[name] = ((space, values, attrs(name)) if is_map else
+                      ("time", values, {k: v for k, v in FIELDS[name].items() if k != "kind"}))
     s = result.summary
     for name, (units, description) in SUMMARIES.items():
         data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),

@@ -23,14 +23,15 @@ import hashlib
 import json
 import os
 import re
+import types
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Mapping, Union, get_args
+from typing import Annotated, Any, Literal, Mapping, Union, get_args, get_origin
 
 import yaml
-from pydantic import (BaseModel, ConfigDict, Field, PrivateAttr, StringConstraints,
-                      ValidationError, ValidationInfo, WrapValidator, field_validator,
-                      model_validator)
+from pydantic import (BaseModel, ConfigDict, Discriminator, Field, PrivateAttr,
+                      StringConstraints, Tag, ValidationError, ValidationInfo, WrapValidator,
+                      field_validator, model_validator)
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticCustomError
 
@@ -62,6 +63,36 @@ Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]  # ints accep
 _BOUND_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
 
 
+@dataclass(frozen=True)
+class Bounds:
+    """The range of a number field, carried by its type (:func:`_interval`): what a map of
+    that field (:class:`ParameterMap`) must hold in every cell (checked when it is sampled,
+    :mod:`avflow.terrain.maps`)."""
+
+    lo: float | None
+    hi: float | None
+    lo_open: bool
+    hi_open: bool
+    wanted: str  #: "must be in [0, 90) degrees"
+
+    def inside(self, values: Any) -> Any:
+        """Element-wise: finite and within the range (numpy arrays or floats)."""
+        import numpy as np
+
+        v = np.asarray(values, dtype=float)
+        ok = np.isfinite(v)
+        if self.lo is not None:
+            ok &= (v > self.lo) if self.lo_open else (v >= self.lo)
+        if self.hi is not None:
+            ok &= (v < self.hi) if self.hi_open else (v <= self.hi)
+        return ok
+
+
+def bounds_of(kind: Any) -> Bounds | None:
+    """The :class:`Bounds` a number type of :func:`_interval` carries (None: unbounded)."""
+    return next((m for m in get_args(kind)[1:] if isinstance(m, Bounds)), None)
+
+
 def _interval(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
               hi_open: bool = False, unit: str = "", why: str = "") -> Any:
     """A finite float within bounds (ints accepted; strings and booleans are not).
@@ -91,7 +122,7 @@ def _interval(lo: float | None = None, hi: float | None = None, *, lo_open: bool
             raise
 
     return Annotated[float, Field(strict=True, allow_inf_nan=False, **bounds),
-                     WrapValidator(explain)]
+                     WrapValidator(explain), Bounds(lo, hi, lo_open, hi_open, wanted)]
 
 
 def _pair(what: str, increasing: bool) -> Any:
@@ -363,48 +394,185 @@ MAX_EXTENT = 1e7
 MAX_SNAPSHOTS = 100_000
 
 # =========================================================================================
+# Maps: values that vary in space, sampled at the cell centres (avflow.terrain.maps)
+# =========================================================================================
+
+
+class _Where(_Model):
+    """Fields shared by the maps: a raster, or polygons, sampled at the cell centres."""
+
+    raster: Text | None = None
+    """Raster file (.asc, .tif, .tiff or .nc), relative to the scenario file; stored
+    absolute. Each cell takes the value of the raster cell its centre lies in (no
+    interpolation: zones stay zones, a mask stays 0 or 1). Same CRS as the DEM."""
+    polygon: Text | None = None
+    """Polygon file (.shp with its .dbf, .gpkg, .geojson, .fgb), relative to the scenario
+    file; stored absolute. A cell is inside when its centre is (where polygons overlap,
+    the larger value wins, as for releases). Same CRS as the DEM."""
+
+    @field_validator("raster")
+    @classmethod
+    def _existing_raster(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else _data_file(value, info, DEM_SUFFIXES)
+
+    @field_validator("polygon")
+    @classmethod
+    def _existing_polygons(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else _data_file(value, info, POLYGON_SUFFIXES)
+
+    def files(self) -> list[str]:
+        """The data files this map reads."""
+        return [f for f in (self.raster, self.polygon) if f]
+
+
+class ParameterMap(_Where):
+    """A friction parameter that varies in space (2D terrains), in the parameter's own
+    units, e.g. ``mu: {raster: mu.tif}`` or ``mu: {polygon: zones.gpkg, attribute: mu,
+    default: 0.2}``. Every cell's value must lie in the parameter's range (the bounds of
+    the number it replaces), checked before the run."""
+
+    attribute: Text | None = None
+    """Polygons: the attribute that holds each polygon's value (give this or value)."""
+    value: Number | None = None
+    """Polygons: one value inside every polygon (give this or attribute)."""
+    default: Number | None = None
+    """The value of the cells the map says nothing of: outside every polygon, outside the
+    raster or on its NODATA cells; null: such a cell is an error."""
+
+    @model_validator(mode="after")
+    def _one_source(self) -> ParameterMap:
+        if (self.raster is None) == (self.polygon is None):
+            raise _problem("give raster or polygon, not both"
+                           if self.raster else "needs raster (a file) or polygon (a file)")
+        if self.raster is not None:
+            for name in ("attribute", "value"):
+                if getattr(self, name) is not None:
+                    raise _problem("applies to polygon maps only (a raster holds its values)",
+                                   name)
+        elif (self.attribute is None) == (self.value is None):
+            raise _problem("give attribute (each polygon's value) or value (one for all), "
+                           "not both" if self.value is not None else
+                           "needs attribute (the polygons' attribute holding the value) or "
+                           "value (one value inside every polygon)", "attribute")
+        return self
+
+
+class _MapMarker:
+    """Marks a field that takes a number or a :class:`ParameterMap` (:func:`_mappable`);
+    ``bounds``: the number's range, what every cell of a map must hold."""
+
+    def __init__(self, bounds: Bounds | None):
+        self.bounds = bounds
+
+
+def _number_or_map(value: Any) -> str:
+    return "map" if isinstance(value, (dict, BaseModel)) else "number"
+
+
+def _mappable(kind: Any) -> Any:
+    """A number of type ``kind`` (:func:`_interval`), or a map of it (:class:`ParameterMap`):
+    chosen by the value written (a mapping is a map), so a bad value gets one message."""
+
+    def number(value: Any, handler: Any) -> float:
+        try:
+            return handler(value)
+        except ValidationError as err:
+            if err.errors()[0]["type"] in ("float_type", "float_parsing"):
+                raise _problem(f"must be a number, or a map such as {{raster: FILE}} or "
+                               f"{{polygon: FILE, attribute: NAME}}, got {show(value)}"
+                               ) from None
+            raise
+
+    return Annotated[Union[Annotated[kind, WrapValidator(number), Tag("number")],
+                           Annotated[ParameterMap, Tag("map")]],
+                     Discriminator(_number_or_map), _MapMarker(bounds_of(kind))]
+
+
+def map_fields(model: BaseModel) -> dict[str, ParameterMap]:
+    """The fields of ``model`` given as maps, by name."""
+    return {name: value for name in type(model).model_fields
+            if isinstance(value := getattr(model, name), ParameterMap)}
+
+
+def field_bounds(model: type[BaseModel] | BaseModel, name: str) -> Bounds | None:
+    """The range of a field that may be a map (None: none known)."""
+    cls = model if isinstance(model, type) else type(model)
+    info = cls.model_fields[name]
+    marker = next((m for m in info.metadata if isinstance(m, _MapMarker)), None)
+    todo = [info.annotation]
+    while marker is None and todo:  # an optional field: the marker is inside its union
+        kind = todo.pop()
+        args = get_args(kind)
+        if get_origin(kind) is Annotated:
+            marker = next((m for m in args[1:] if isinstance(m, _MapMarker)), None)
+        todo += list(args)
+    return None if marker is None else marker.bounds
+
+
+class _MapsChecked(_Model):
+    """A model whose map fields' ``value`` and ``default`` must lie in the field's range."""
+
+    @model_validator(mode="after")
+    def _map_values_in_range(self) -> _MapsChecked:
+        for name, spec in map_fields(self).items():
+            bounds = field_bounds(self, name)
+            for key in ("value", "default"):
+                v = getattr(spec, key)
+                if v is not None and bounds is not None and not bounds.inside(v):
+                    raise _problem(f"{bounds.wanted}, got {show(v)}", f"{name}.{key}")
+        return self
+
+
+def _numbers(*values: Any) -> bool:
+    """True when every value is a number (not a map): cross-field checks then apply here;
+    with maps they apply cell by cell when the maps are sampled."""
+    return all(isinstance(v, (int, float)) for v in values)
+
+
+# =========================================================================================
 # Rheology: basal friction laws (parameters are turned into numbers in avflow.numerics.rheology)
 # =========================================================================================
 
 
-class Coulomb(_Model):
+class Coulomb(_MapsChecked):
     """Coulomb friction with a constant friction angle (seed eq. 12)."""
 
     law: Literal["coulomb"]
-    delta_deg: Angle
+    delta_deg: _mappable(Angle)
     """Friction angle (degrees)."""
 
 
-class Pouliquen(_Model):
+class Pouliquen(_MapsChecked):
     """Pouliquen's flow law (seed eq. 15): friction between tan(delta1) and tan(delta2)."""
 
     law: Literal["pouliquen"]
-    delta1_deg: Angle
+    delta1_deg: _mappable(Angle)
     """Friction angle of thick or fast layers (degrees), smaller than delta2_deg."""
-    delta2_deg: Angle
+    delta2_deg: _mappable(Angle)
     """Friction angle of thin or slow layers (degrees)."""
-    d: Positive
+    d: _mappable(Positive)
     """Length scale of the law (m, a multiple of the grain size)."""
-    beta: Positive = 0.136
+    beta: _mappable(Positive) = 0.136
     """Dimensionless constant of the law (Froude number scale)."""
 
     @model_validator(mode="after")
     def _ordered_angles(self) -> Pouliquen:
-        if not self.delta1_deg < self.delta2_deg:
+        if (_numbers(self.delta1_deg, self.delta2_deg)
+                and not self.delta1_deg < self.delta2_deg):
             raise _problem(f"must be smaller than delta2_deg ({self.delta2_deg!r}), "
                            f"got {self.delta1_deg!r}", "delta1_deg")
         return self
 
 
-class Voellmy(_Model):
+class Voellmy(_MapsChecked):
     """Voellmy friction: Coulomb plus a turbulent drag ``g |u|^2 / xi``."""
 
     law: Literal["voellmy"]
-    delta_deg: Angle | None = None
+    delta_deg: _mappable(Angle) | None = None
     """Friction angle (degrees); give this or mu."""
-    mu: NonNegative | None = None
+    mu: _mappable(NonNegative) | None = None
     """Friction coefficient tan(delta); give this or delta_deg."""
-    xi: Positive
+    xi: _mappable(Positive)
     """Turbulent coefficient (m/s^2)."""
 
     @model_validator(mode="after")
@@ -416,7 +584,7 @@ class Voellmy(_Model):
         return self
 
 
-class SamosAT(_Model):
+class SamosAT(_MapsChecked):
     """samosAT, AvaFrame com1DFA's standard snow friction law (Sampl and Zwinger 2004).
 
     Basal shear stress (Pa), with ``sigma = rho h N`` the basal normal stress (N the normal
@@ -434,23 +602,23 @@ class SamosAT(_Model):
     """
 
     law: Literal["samosat"]
-    mu: NonNegative = 0.155
+    mu: _mappable(NonNegative) = 0.155
     """Coulomb friction coefficient (-), the fast-flow limit; 0.22 samosATSmall, 0.17
     samosATMedium."""
-    tau0: NonNegative = 0.0
+    tau0: _mappable(NonNegative) = 0.0
     """Minimum shear stress, a yield stress (Pa)."""
-    Rs0: Positive = 0.222
+    Rs0: _mappable(Positive) = 0.222
     """Scale of Rs = rho |u|^2 / sigma (-): the Coulomb factor 1 + Rs0 / (Rs0 + Rs) is 2 at
     rest, 1.5 at Rs = Rs0, tends to 1 in fast flow."""
-    kappa: Positive = 0.43
+    kappa: _mappable(Positive) = 0.43
     """Von Karman constant of the turbulent term (-)."""
-    R: Positive = 0.05
+    R: _mappable(Positive) = 0.05
     """Roughness length of the turbulent term (m): flows thinner than R have D = B."""
-    B: Positive = 4.13
+    B: _mappable(Positive) = 4.13
     """Offset of the turbulent term's logarithmic profile (-)."""
 
 
-class VelocityWeakening(_Model):
+class VelocityWeakening(_MapsChecked):
     """Velocity-weakening friction of Lucas, Mangeney and Ampuero (2014, Nat. Commun. 5, 3417)::
 
         mu(|u|) = mu_w + (mu_s - mu_w) / (1 + |u| / U_w)
@@ -461,22 +629,186 @@ class VelocityWeakening(_Model):
     """
 
     law: Literal["velocity_weakening"]
-    mu_s: NonNegative
+    mu_s: _mappable(NonNegative)
     """Friction coefficient at rest (-), tan of the static friction angle."""
-    mu_w: NonNegative
+    mu_w: _mappable(NonNegative)
     """Weakened friction coefficient (-), the fast-flow limit; at most mu_s."""
-    U_w: Positive
+    U_w: _mappable(Positive)
     """Weakening speed (m/s): mu is half way from mu_s to mu_w at |u| = U_w."""
 
     @model_validator(mode="after")
     def _weakens(self) -> VelocityWeakening:
-        if not self.mu_w <= self.mu_s:
+        if _numbers(self.mu_w, self.mu_s) and not self.mu_w <= self.mu_s:
             raise _problem(f"must be at most mu_s ({self.mu_s!r}), got {self.mu_w!r}", "mu_w")
         return self
 
 
 Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy, SamosAT, VelocityWeakening],
                      Field(discriminator="law")]
+
+# =========================================================================================
+# Entrainment and forest (issue 30; the laws are avflow.numerics.physics.source_rate)
+# =========================================================================================
+
+#: Densest erodible layer or flow accepted (kg/m^3), as physics.density.
+Density = _interval(0.0, 1e5, lo_open=True, unit=" kg/m^3", why=" (4x the densest element)")
+
+
+class ErodibleLayer(_Where):
+    """The erodible layer at the start (m, normal to the bed, like the flow's thickness):
+    give one of ``depth`` (uniform: over the whole map, or over an x [and y] range),
+    ``raster`` (a raster of depths) or ``polygon`` (each polygon's ``thickness`` attribute,
+    or one ``thickness``). Cells outside the polygons or the range have no layer."""
+
+    depth: NonNegative | None = None
+    """Uniform depth (m): over the whole map, or the cells within x (and y) when given."""
+    x: Range | None = None
+    """With depth: [xmin, xmax] (m; along the bed on a profile) of the cells with a layer."""
+    y: Range | None = None
+    """With depth, 2D terrains: [ymin, ymax] (m) of the cells with a layer."""
+    thickness: NonNegative | None = None
+    """Polygons: one depth (m) inside every polygon; null: each polygon's attribute."""
+    attribute: Text | None = None
+    """Polygons: the attribute that holds each polygon's depth (m), when thickness is null;
+    null: 'thickness' (as for releases)."""
+    default: NonNegative | None = None
+    """Raster: the depth (m) of cells outside the raster or on its NODATA; null: such a
+    cell is an error (write 0 for no layer there)."""
+
+    @model_validator(mode="after")
+    def _one_form(self) -> ErodibleLayer:
+        given = [k for k in ("depth", "raster", "polygon") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise _problem(f"give one of depth, raster or polygon, got {len(given)}"
+                           + (f" ({', '.join(given)})" if given else ""))
+        form = given[0]
+        for name, owner in (("x", "depth"), ("y", "depth"), ("thickness", "polygon"),
+                            ("attribute", "polygon"), ("default", "raster")):
+            if getattr(self, name) is not None and form != owner:
+                raise _problem(f"applies with {owner} only, not with {form}", name)
+        if self.thickness is not None and self.attribute is not None:
+            raise _problem("give thickness (one depth) or attribute, not both", "attribute")
+        return self
+
+
+class _Entrainment(_Model):
+    law: str  # narrowed to a Literal by each law (declared here so that it dumps first)
+    layer: ErodibleLayer
+    """Where the erodible layer lies, and its depth (m, normal to the bed)."""
+    density: Density | None = None
+    """Density of the erodible layer (kg/m^3); null: the flow's (physics.density), a bed
+    of the flow's own material (debris over debris): a depth e taken adds e of flow
+    thickness. Set it for snow: AvaFrame's rhoEnt is 100 kg/m^3 (snow cover) against a
+    flow of 200 (physics.density); a depth e then adds e * 100 / 200."""
+    u_min: NonNegative = 0.0
+    """Speed (m/s) at or below which nothing is entrained (0: only material at rest takes
+    nothing)."""
+
+
+class ExponentialEntrainment(_Entrainment):
+    """Hungr and McDougall (2009, Comput. Geosci. 35, 978-992): the flow grows as
+    ``dh/dt = E_s h |u|``, so a volume travelling a distance s over an erodible bed grows
+    as ``V0 exp(E_s s)``. Give growth_rate (E_s), or growth_factor and path_length
+    (``E_s = ln(growth_factor) / path_length``, Hungr and McDougall's growth rate: the
+    volume multiplies by growth_factor over path_length of erodible path)."""
+
+    law: Literal["exponential"]
+    growth_rate: NonNegative | None = None
+    """E_s (1/m): growth of the flow's thickness per metre travelled."""
+    growth_factor: _interval(1.0) | None = None
+    """Final over initial volume (-) over path_length of erodible path, >= 1."""
+    path_length: Positive | None = None
+    """Length (m) of erodible path over which the volume grows by growth_factor."""
+
+    @model_validator(mode="after")
+    def _one_rate(self) -> ExponentialEntrainment:
+        factor = self.growth_factor is not None or self.path_length is not None
+        if self.growth_rate is not None and factor:
+            raise _problem("give growth_rate, or growth_factor and path_length, not both",
+                           "growth_rate")
+        if self.growth_rate is None and not factor:
+            raise _problem("needs growth_rate (E_s, 1/m), or growth_factor and path_length")
+        if factor and (self.growth_factor is None or self.path_length is None):
+            missing = "growth_factor" if self.growth_factor is None else "path_length"
+            raise _problem("required with " + ("path_length" if missing == "growth_factor"
+                                               else "growth_factor"), missing)
+        return self
+
+    @property
+    def e_s(self) -> float:
+        """E_s (1/m)."""
+        import math
+
+        if self.growth_rate is not None:
+            return self.growth_rate
+        return math.log(self.growth_factor) / self.path_length
+
+
+class ErosionEnergyEntrainment(_Entrainment):
+    """AvaFrame com1DFA's entrainment by erosion energy (entEroEnergy; Tonnel et al. 2023,
+    Geosci. Model Dev. 16, 7013-7035): ``dm/dt = tau_b |u| / e_b`` per unit area, with
+    tau_b the basal shear stress of the friction law (its Coulomb part and its drag, and
+    forest's): the work of the basal shear erodes the bed."""
+
+    law: Literal["erosion_energy"]
+    e_b: Positive = 5000.0
+    """Specific erosion energy (J/kg); AvaFrame's default entEroEnergy, 5000."""
+
+
+class ShearThresholdEntrainment(_Entrainment):
+    """RAMMS::DEBRISFLOW's idea (Frank, McArdell et al. 2015, Nat. Hazards Earth Syst. Sci.
+    15, 2569-2583; ramms.slf.ch, debris-flow module, erosion) in rate form: the bed erodes
+    at ``de/dt = k (tau_b - tau_c)`` where the basal shear stress tau_b exceeds tau_c, not
+    below. RAMMS itself caps the depth eroded at ``dz/dtau (tau_b - tau_c)`` (dz/dtau =
+    0.1 m/kPa, tau_c = 1 kPa), eroded at 0.025 m/s; avflow's law is the rate, with no cap
+    but the layer's depth."""
+
+    law: Literal["shear_threshold"]
+    k: NonNegative
+    """Erosion rate per shear stress above tau_c, m/(s kPa): e.g. 0.025 erodes 2.5 cm/s
+    under 1 kPa of excess shear."""
+    tau_c: NonNegative = 1000.0
+    """Critical shear stress (Pa) below which nothing erodes; RAMMS's 1 kPa."""
+
+
+Entrainment = Annotated[Union[ExponentialEntrainment, ErosionEnergyEntrainment,
+                              ShearThresholdEntrainment], Field(discriminator="law")]
+
+
+class Forest(_Where):
+    """Forest: a resistance ``c_f |u|^2`` per unit area and density on the flow where it
+    stands (AvaFrame com1DFA's resistance areas, computeResForce; its cResH), added to the
+    friction law's drag. Where: polygons, a raster, or an x [and y] range."""
+
+    c_f: NonNegative = 0.01
+    """Resistance coefficient (-); AvaFrame's default cResH, 0.01. With a raster of
+    values 'coefficient' or polygons with an attribute, the file's values instead."""
+    attribute: Text | None = None
+    """Polygons: the attribute holding each polygon's c_f; null: c_f inside all."""
+    values: Literal["mask", "coefficient"] | None = None
+    """Raster: 'mask' (cells > 0 are forest, with c_f) or 'coefficient' (the raster's
+    values are c_f); null: mask."""
+    default: NonNegative | None = None
+    """Raster: the value of cells outside the raster or on its NODATA (a mask's 0 or 1,
+    or a c_f); null: such a cell is an error (write 0 for no forest there)."""
+    x: Range | None = None
+    """[xmin, xmax] (m; along the bed on a profile) of the forest, instead of a file."""
+    y: Range | None = None
+    """With x, 2D terrains: [ymin, ymax] (m) of the forest."""
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Forest:
+        given = [k for k in ("raster", "polygon", "x") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise _problem("give one of polygon, raster or x (and y): where the forest "
+                           f"stands, got {len(given)}" + (f" ({', '.join(given)})"
+                                                         if given else ""))
+        form = given[0]
+        for name, owner in (("attribute", "polygon"), ("default", "raster"), ("y", "x"),
+                            ("values", "raster")):
+            if getattr(self, name) is not None and form != owner:
+                raise _problem(f"applies with {owner} only, not with {form}", name)
+        return self
 
 # =========================================================================================
 # Grid, time, output, boundaries, physics
@@ -700,7 +1032,11 @@ class Scenario(_Model):
     release: Release
     """The mass at rest at t = 0 (thickness normal to the bed)."""
     rheology: Rheology
-    """Basal friction law, chosen by ``law``."""
+    """Basal friction law, chosen by ``law``. Any of its parameters may be a map."""
+    entrainment: Entrainment | None = None
+    """Mass the flow takes from an erodible layer on its way, by ``law``; null: none."""
+    forest: Forest | None = None
+    """Forest's resistance to the flow, where it stands; null: none."""
     time: Time
     output: Output = Output()
     boundary: Boundaries = Boundaries()
@@ -755,12 +1091,42 @@ class Scenario(_Model):
                            "output.path.line")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
+        self._maps_fit(terrain)
         if terrain != "profile" and self.numerics.limiter == "mc":
             # the 2D reconstruction has one limiter, Barth-Jespersen's: mc would be a no-op
             raise _problem("'mc' applies to profiles only; on grids and triangles order 2 "
                            "uses the Barth-Jespersen limiter (minmod's multidimensional "
                            "form): leave limiter out or write minmod", "numerics.limiter")
         return self
+
+    def _maps_fit(self, terrain: str) -> None:
+        """Maps, layers and forests from files need a 2D terrain; y ranges too."""
+        if terrain != "profile":
+            return
+        mapped = list(map_fields(self.rheology))
+        if mapped:
+            raise _problem("a map needs a 2D terrain ('plane' or 'dem'); a profile takes a "
+                           "number", f"rheology.{mapped[0]}")
+        for block, what in (("entrainment", "layer"), ("forest", None)):
+            where = getattr(self, block)
+            where = getattr(where, what) if where is not None and what else where
+            prefix = f"{block}.{what}" if what else block
+            for name in ("raster", "polygon", "y"):
+                if where is not None and getattr(where, name) is not None:
+                    raise _problem(f"not on a 'profile' terrain (1D: give x, a range along "
+                                   "the bed" + (", or a uniform depth" if what else "")
+                                   + ")", f"{prefix}.{name}")
+
+    def data_maps(self) -> dict[str, _Where]:
+        """Every map of this scenario that may read a file, by its dotted field: the
+        friction maps, the erodible layer, the forest."""
+        maps: dict[str, _Where] = {f"rheology.{name}": spec
+                                   for name, spec in map_fields(self.rheology).items()}
+        if self.entrainment is not None:
+            maps["entrainment.layer"] = self.entrainment.layer
+        if self.forest is not None:
+            maps["forest"] = self.forest
+        return maps
 
     @model_validator(mode="after")
     def _physical_sense(self) -> Scenario:
@@ -815,6 +1181,8 @@ class Scenario(_Model):
         files = [self._source_path]
         for block in (self.terrain, self.release):
             files += [getattr(block, name, None) for name in ("path", "domain")]
+        for spec in self.data_maps().values():
+            files += spec.files()
         if self.output.path is not None:
             files.append(self.output.path.line)
         return [f for f in files if f]
@@ -858,6 +1226,20 @@ class Scenario(_Model):
                     data[block]["path"] = "sha256:" + _content_digest(data[block]["path"])
                 except OSError as err:
                     raise ScenarioError.at(self, f"{block}.path", f"cannot read: {err}") from None
+        for block in ("entrainment", "forest"):  # none: hashes as before the blocks
+            if data.get(block) is None:
+                data.pop(block, None)
+        for field, spec in self.data_maps().items():  # maps count by their files' content
+            node = data
+            for key in field.split("."):
+                node = node[key]
+            for key in ("raster", "polygon"):
+                if node.get(key):
+                    try:
+                        node[key] = "sha256:" + _content_digest(node[key])
+                    except OSError as err:
+                        raise ScenarioError.at(self, f"{field}.{key}",
+                                               f"cannot read: {err}") from None
         canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
@@ -904,14 +1286,31 @@ SchemaNode = Union[type[BaseModel], _Union, None]  # None: a value, not a block
 
 def _schema_node(field: FieldInfo) -> SchemaNode:
     """What a field holds: a model, a discriminated union of models, or a plain value."""
-    annotation = field.annotation
+    return _node_of(field.annotation, field.discriminator, tuple(field.metadata))
+
+
+def _node_of(annotation: Any, discriminator: Any = None, metadata: tuple = ()) -> SchemaNode:
+    """:func:`_schema_node` of a type: optional blocks (``X | None``) are their block; a
+    number-or-map field (:func:`_mappable`) a union whose tags are "number" and "map"."""
+    if any(isinstance(m, _MapMarker) for m in metadata):
+        return _Union("", {"number": None, "map": ParameterMap})
+    if get_origin(annotation) is Annotated:
+        inner, *extra = get_args(annotation)
+        found = next((m.discriminator for m in extra
+                      if isinstance(m, FieldInfo) and m.discriminator), None)
+        return _node_of(inner, found or discriminator, tuple(extra))
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return annotation
-    if field.discriminator:
-        members = [m for m in get_args(annotation) if issubclass(m, BaseModel)]
-        return _Union(field.discriminator, {
-            tag: m for m in members
-            for tag in get_args(m.model_fields[field.discriminator].annotation)})
+    args = get_args(annotation)
+    if get_origin(annotation) in (Union, types.UnionType):
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) == 1:  # optional: the block it holds when written
+            return _node_of(rest[0], discriminator)
+        if isinstance(discriminator, str):
+            members = [m for m in rest if isinstance(m, type) and issubclass(m, BaseModel)]
+            return _Union(discriminator, {
+                tag: m for m in members
+                for tag in get_args(m.model_fields[discriminator].annotation)})
     return None
 
 
@@ -1030,6 +1429,7 @@ def _set_dotted(written: dict[str, Any], path: str, value: Any, scenario: Scenar
         if isinstance(node, _Union):
             tag = block.get(node.discriminator) if isinstance(block, dict) else None
             models = [node.members[tag]] if tag in node.members else list(node.members.values())
+            models = [m for m in models if m is not None]  # a number is no block
         else:
             models = [node] if isinstance(node, type) else []
         model = next((m for m in models if key in m.model_fields), None)

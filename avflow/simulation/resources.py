@@ -36,6 +36,13 @@ ENV_MAX_MEMORY = "AVFLOW_MAX_MEMORY"
 
 #: Bytes per cell for the mesh, the terrain, the solver and the state, by mesh kind.
 BYTES_PER_CELL = {"profile": 2000, "grid": 1000, "triangles": 2500}
+#: Bytes per cell added by parameters per cell (friction maps, forest): a row of 8 float64
+#: per cell, its copy on the square-grid kernel's layout, the sampled values (counted from
+#: the arrays, not measured)
+BYTES_PER_CELL_MAPS = 160
+#: Bytes per cell added by entrainment: the layer at the start, in the state, on the
+#: square-grid kernel's layout, the layer and bed-change maps of the output (counted)
+BYTES_PER_CELL_ENTRAINMENT = 48
 #: Bytes per cell and stored snapshot (the snapshot lists, then the output Dataset).
 BYTES_PER_CELL_SNAPSHOT = 80
 #: Bytes per cell and snapshot in the file before compression: h, u, v as float32, flow_state.
@@ -185,8 +192,18 @@ def estimate(scenario, streamed: bool = False) -> Estimate:
             kind, shape, n = "grid", (nx, ny), nx * ny
     snaps = snapshot_count(scenario)
     held = 1 if streamed else snaps
-    return Estimate(kind, shape, n, snaps, float(n) * BYTES_PER_CELL[kind],
+    per_cell = BYTES_PER_CELL[kind] + _extra_per_cell(scenario)
+    return Estimate(kind, shape, n, snaps, float(n) * per_cell,
                     float(n) * held * BYTES_PER_CELL_SNAPSHOT, what, streamed)
+
+
+def _extra_per_cell(scenario) -> int:
+    """Bytes per cell of friction maps, forest and entrainment (0 without them)."""
+    from avflow.scenario.schema import map_fields
+
+    maps = bool(map_fields(scenario.rheology)) or getattr(scenario, "forest", None) is not None
+    return ((BYTES_PER_CELL_MAPS if maps else 0)
+            + (BYTES_PER_CELL_ENTRAINMENT if getattr(scenario, "entrainment", None) else 0))
 
 
 def check_resources(scenario, max_memory: int | str | None = None, *,

@@ -19,13 +19,17 @@ import numpy as np
 from avflow.terrain.raster import RasterError
 from avflow.errors import AvflowWarning, Problem, RunFailed, ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
-from avflow.numerics.rheology import friction_parameters
+from avflow.numerics.physics import (SOURCE_EROSION_ENERGY, SOURCE_EXPONENTIAL,
+                                     SOURCE_SHEAR_THRESHOLD)
+from avflow.numerics.rheology import FOREST_SLOT, friction_parameters
 from avflow.numerics.solver import Solver, State
+from avflow.numerics.sources import MassSource
 from avflow.numerics.stepping import MAX_RETRIES
 from avflow.simulation.resources import check_resources, release_freed_memory
 from avflow.simulation.summary import deposit_extent, runout_truncated, travel_angle
 from avflow.terrain.bed import Terrain
 from avflow.terrain.build import build_terrain
+from avflow.terrain.maps import MapError, erodible_depth, forest_coefficient, friction_maps
 from avflow.terrain.trimesh import MeshTooLarge
 
 #: Default dry threshold and runout threshold, relative to the largest released thickness.
@@ -75,6 +79,9 @@ class Snapshots:
     flag: list = field(default_factory=list)
     moving_volume: list = field(default_factory=list)
     center_of_mass: list = field(default_factory=list)  #: (x, y, z) per snapshot, m
+    #: volume entrained so far per snapshot, m^3 (runs with entrainment; recorded by
+    #: :func:`simulate`, from the erodible layer: :meth:`Solver.entrained_volume`)
+    entrained_volume: list = field(default_factory=list)
 
     def record(self, state: State, moving: float, terrain: Terrain) -> None:
         self.record_series(state, moving, terrain)
@@ -283,7 +290,17 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
     except ReleaseError as err:
         raise ScenarioError.at(scenario, "release", str(err)) from None
     _check_release_size(scenario, terrain, h0)
-    law, params = friction_parameters(scenario.rheology, scenario.physics.density)
+    try:  # maps, layer and forest sampled at the cell centres, each checked
+        maps = friction_maps(scenario.rheology, terrain)
+        source = mass_source(scenario, terrain)
+        forest = (forest_coefficient(scenario.forest, terrain)
+                  if scenario.forest is not None else None)
+    except MapError as err:
+        raise ScenarioError.at(scenario, err.field, str(err)) from None
+    _warn_empty(scenario, source, forest)
+    law, params = friction_parameters(scenario.rheology, scenario.physics.density, maps)
+    if forest is not None:  # the forest's c_f takes the slot no law uses
+        params = params[..., :FOREST_SLOT]
     h_max = float(h0.max())
     out = scenario.output
     thresholds = {
@@ -298,19 +315,57 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
     thresholds["min_flow"] = (min(DEFAULT_MIN_FLOW, thresholds["dry"]) if min_flow is None
                               else min_flow)
     try:
-        solver = _solver(scenario, terrain, law, params, thresholds, h_max)
+        solver = _solver(scenario, terrain, law, params, thresholds, h_max, source, forest)
     except ValueError as err:  # numerics.kernel: grid where it does not apply
         raise ScenarioError.at(scenario, "numerics.kernel", str(err)) from None
     return terrain, h0, solver, thresholds
 
 
-def _solver(scenario, terrain, law, params, thresholds, h_max) -> Solver:
+def _solver(scenario, terrain, law, params, thresholds, h_max, source=None,
+            forest=None) -> Solver:
     return Solver(terrain, law, params, gravity=scenario.physics.gravity,
                     cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
                     order=scenario.numerics.order, limiter=scenario.numerics.limiter,
                     threads=scenario.numerics.threads, kernel=scenario.numerics.kernel,
                     h_dry=thresholds["dry"],
-                    h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]))
+                    h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]),
+                    source=source, forest=forest)
+
+
+#: The source kind of each entrainment law (avflow.numerics.physics.source_rate).
+ENTRAINMENT_KINDS = {"exponential": SOURCE_EXPONENTIAL, "erosion_energy": SOURCE_EROSION_ENERGY,
+                     "shear_threshold": SOURCE_SHEAR_THRESHOLD}
+
+
+def mass_source(scenario, terrain: Terrain) -> MassSource | None:
+    """The scenario's entrainment as the solver's :class:`MassSource` (None without one):
+    its law's parameters in the kernels' units, the erodible depth per cell, the layer's
+    density over the flow's (the flow's own when the layer's is not given: exactly 1)."""
+    e = scenario.entrainment
+    if e is None:
+        return None
+    rho_flow = scenario.physics.density
+    ratio = 1.0 if e.density is None else e.density / rho_flow
+    if e.law == "exponential":
+        params = (e.e_s,)  # 1/m
+    elif e.law == "erosion_energy":
+        params = (e.e_b,)  # J/kg
+    else:  # k in m/(s kPa) -> m/(s Pa); tau_c in Pa; the flow's density turns tau/rho to Pa
+        params = (e.k / 1000.0, e.tau_c, rho_flow)
+    return MassSource(ENTRAINMENT_KINDS[e.law], erodible_depth(e.layer, terrain), params,
+                      density_ratio=ratio, u_min=e.u_min)
+
+
+def _warn_empty(scenario, source, forest) -> None:
+    """One warning line for a layer or a forest that lies on no cell (a file off the map,
+    a range beside it): the run is then the run without it."""
+    where = scenario.source_path or scenario.name
+    if source is not None and not np.any(source.erodible > 0.0):
+        warnings.warn(f"{where}: entrainment.layer: no cell of the terrain has an erodible "
+                      "depth: nothing will be entrained", AvflowWarning, stacklevel=3)
+    if forest is not None and not np.any(forest > 0.0):
+        warnings.warn(f"{where}: forest: no cell of the terrain is in the forest",
+                      AvflowWarning, stacklevel=3)
 
 
 #: Bed area over map area of a release past which a warning says so: 2 is a mean slope of
@@ -384,6 +439,9 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             "stop_kinetic": -1.0 if by_volume else thresholds["stop_fraction"]}
     t_end, every = scenario.time.end, scenario.output.every
     snaps.record(state, 0.0, terrain)
+    entraining = solver.source is not None
+    if entraining:
+        snaps.entrained_volume.append(0.0)
     if on_compile is not None and not solver.kernels_cached():
         on_compile(solver.describe_kernel())
     compile_time = first_use + warm_up(solver, state, scenario.time.max_steps, **stop)
@@ -396,6 +454,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
         status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
         before = _time.perf_counter()
         snaps.record(state, state.statistics.moving_volume, terrain)
+        if entraining:
+            snaps.entrained_volume.append(solver.entrained_volume(state))
         recording += _time.perf_counter() - before
         failure = _non_finite(state, terrain)
         if status == "failed" and failure is None:
@@ -423,7 +483,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
     if failure is None:
         result.summary = summarize(result, v0)
         if not math.isfinite(result.summary["mass_balance_error"]):
-            failure = (f"the mass balance is not finite (released {v0:.6g}, on the map "
+            failure = (f"the mass balance is not finite (released {v0:.6g}, entrained "
+                       f"{result.summary['entrained_volume']:.6g}, on the map "
                        f"{result.summary['deposit_volume']:.6g}, out "
                        f"{result.summary['outflow_volume']:.6g})")
     if failure is not None:
@@ -453,6 +514,7 @@ def summarize(result: RunResult, v0: float) -> dict:
         "deposit_length": length,
         "deposit_volume": v_end,
         "release_volume": v0,
+        "entrained_volume": v_src,
         "outflow_volume": v_out,
         "film_volume": state.statistics.film_volume,
         "moving_volume": state.statistics.moving_volume,

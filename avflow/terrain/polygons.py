@@ -40,8 +40,14 @@ class Area:
     name: str = ""
 
 
-def read_polygons(path) -> tuple[list[Area], str | None]:
-    """The polygon areas of a vector file and its CRS (WKT, or None when it has none)."""
+def read_polygons(path, attribute: str | bool | None = None) -> tuple[list[Area], str | None]:
+    """The polygon areas of a vector file and its CRS (WKT, or None when it has none).
+
+    Each area's ``thickness`` is its ``thickness`` attribute (a positive number of metres),
+    or with ``attribute`` the value of that attribute (any finite number; a file without
+    it is an error, naming the attributes it has): a map's values
+    (:mod:`avflow.terrain.maps`); ``attribute=False``: no attribute is read (None). A NULL
+    value is None."""
     path = Path(path)
     if not path.is_file():
         raise PolygonError(f"{path}: no such file")
@@ -66,7 +72,11 @@ def read_polygons(path) -> tuple[list[Area], str | None]:
                            f"({type(err).__name__}: {str(err).strip()})") from None
     fields = {str(n).lower(): c for n, c in zip(meta["fields"], columns)}
     names = next((fields[k] for k in ("name", "name_ezg", "id") if k in fields), None)
-    thicknesses = fields.get(THICKNESS_FIELD)
+    if isinstance(attribute, str) and attribute.lower() not in fields:
+        have = ", ".join(str(n) for n in meta["fields"]) or "none"
+        raise PolygonError(f"{path}: has no attribute {attribute!r} (its attributes: {have})")
+    thicknesses = (None if attribute is False else
+                   fields.get(THICKNESS_FIELD if attribute is None else attribute.lower()))
     areas = []
     for k, geom in enumerate(geometries):
         if geom is None or geom.is_empty:
@@ -80,7 +90,8 @@ def read_polygons(path) -> tuple[list[Area], str | None]:
             continue
         thickness = None
         if thicknesses is not None:
-            thickness = _thickness(thicknesses[k], k, path)
+            thickness = (_thickness(thicknesses[k], k, path) if attribute is None
+                         else _number(thicknesses[k], k, path, attribute))
         name = "" if names is None or names[k] is None else str(names[k])
         areas.append(Area(rings, thickness, name))
     if not areas:
@@ -118,6 +129,22 @@ def _thickness(value, k: int, path: Path) -> float | None:
         raise PolygonError(f"{path}: polygon {k} has thickness {value!r}; "
                            "it must be a positive number of metres")
     return thickness
+
+
+def _number(value, k: int, path: Path, attribute: str) -> float | None:
+    """A polygon's value of a map's attribute: a finite number, or None (NULL)."""
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return None
+    if isinstance(value, float) and math.isnan(value):  # a NULL in a numeric column
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if not math.isfinite(number):
+        raise PolygonError(f"{path}: polygon {k} has {attribute} {value!r}; it must be a "
+                           "finite number")
+    return number
 
 
 #: Files already warned about (one line per file and process, not one per ensemble member).
