@@ -98,12 +98,15 @@ def test_every_form_of_a_map_is_sampled_at_the_cell_centres(tmp_path):
         np.testing.assert_array_equal(solver.params[:, :2], np.stack([want, delta], axis=1))
 
 
-def test_maps_are_inputs_and_their_content_counts_in_the_hash(tmp_path):
+def test_maps_are_inputs_and_their_content_counts_in_the_hash(tmp_path, capsys):
     xr, yr = centres(0, 300, 0, 100, 10.0)
-    write_asc(tmp_path / "mu.asc", np.full((yr.size, xr.size), 0.3), xr, yr)
+    write_asc(tmp_path / "mu.asc", np.full((yr.size, xr.size), 0.3), xr, yr, LAMBERT)
     path = plane(tmp_path, "{law: voellmy, xi: 1000, mu: {raster: mu.asc}}")
     sc = load_scenario(path)
     assert str(tmp_path / "mu.asc") in sc.input_files()
+    for name in ("mu.asc", "mu.prj"):  # no run writes over a map or its sidecar
+        assert main(["run", str(path), "-o", str(tmp_path / name)]) == 2
+        assert "is an input of this command" in one_line(capsys.readouterr().err)
     before = sc.scenario_hash()
     write_asc(tmp_path / "mu.asc", np.full((yr.size, xr.size), 0.35), xr, yr)
     assert load_scenario(path).scenario_hash() != before

@@ -1176,8 +1176,9 @@ class Scenario(_Model):
 
     def input_files(self) -> list[str]:
         """Every file a run of this scenario reads: the scenario file and its data files
-        (DEM, domain, release, path line; their sidecars are found by
-        :func:`avflow.files.protected`). What no command may write over."""
+        (DEM, domain, release, path line, friction maps, erodible layer, forest; their
+        sidecars are found by :func:`avflow.files.protected`). What no command may write
+        over."""
         files = [self._source_path]
         for block in (self.terrain, self.release):
             files += [getattr(block, name, None) for name in ("path", "domain")]
@@ -1208,7 +1209,9 @@ class Scenario(_Model):
         """16 hex chars of sha256 over the resolved scenario, as canonical JSON.
 
         Comments, formatting and key order do not count, nor where the file lies: data
-        files count by their content (with their companion files), not by their path.
+        files count by their content (with their companion files), not by their path (maps
+        too: :meth:`data_maps`). A scenario without entrainment or forest hashes as it did
+        before those blocks existed.
         """
         data = self.model_dump(mode="json")
         data["output"].pop("path", None)  # post-processing: the run does not depend on it

@@ -81,10 +81,10 @@ def raster_values(path: str, terrain: Terrain, default: float | None,
     values[inside] = raster.values[iy[inside], ix[inside]]
     if default is None:
         if not inside.all():
-            raise MapError(field, f"{path}: does not cover the terrain: {int((~inside).sum())} "
-                                  f"of its {x.size} cells lie outside the raster (the first at "
-                                  f"{_where(terrain, ~inside)}); give a raster that covers it, "
-                                  "or a default")
+            raise MapError(field, f"{path}: does not cover the terrain: "
+                                  f"{int((~inside).sum())} of the terrain's {x.size} cells lie "
+                                  f"outside the raster (the first at {_where(terrain, ~inside)}); "
+                                  "give a raster that covers it, or a default")
         nodata = np.isnan(values)
         if nodata.any():
             raise MapError(field, f"{path}: NODATA in {int(nodata.sum())} of the terrain's "
