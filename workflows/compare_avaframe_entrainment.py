@@ -1,19 +1,16 @@
 """avflow's erosion-energy entrainment beside AvaFrame com1DFA's, on AvaFrame's avaAlr (issue 30).
 
-    python workflows/compare_avaframe_entrainment.py --ent AvaFrame/avaframe/data/avaAlr/Inputs/ENT/entAlr.shp \\
-        --avaframe-python /work/avaframe_venv/bin/python
+    python workflows/compare_avaframe_entrainment.py --avaframe-python /work/avaframe_venv/bin/python
 
-AvaFrame's own test path with an entrainment area: avaAlr (its DEM and release from
-``../shared/data/avaframe/avaAlr``, or ``--dem`` / ``--release``), the ENT polygon of
-AvaFrame's source tree (``avaframe/data/avaAlr/Inputs/ENT/entAlr.shp``, 0.3 m, not in the
-pip wheel: clone https://github.com/avaframe/AvaFrame). The same parameters on both sides:
+AvaFrame's own test path with an entrainment area: avaAlr (its DEM, release and ENT
+polygon ``entAlr.shp``, 0.3 m, from ``data/avaframe/avaAlr``: AvaFrame's
+``avaframe/data/avaAlr/Inputs``; ``--ent`` for another). The same parameters on both sides:
 samosAT with AvaFrame's standard parameters, snow 200 kg/m^3, entrained snow
 ``rhoEnt`` = 100 kg/m^3 (AvaFrame's default), erosion energy ``e_b`` = 5000 J/kg
 (``entEroEnergy``), cells of 5 m, tEnd 400 s. AvaFrame runs as in
 ``compare_avaframe.py`` (its defaults otherwise: SPH, dt 0.1 s, stop at 1% of the peak
-kinetic energy); avflow runs the scenario ``scenarios/avaalr_samosat.yaml`` with a
-:class:`~avflow.numerics.sources.MassSource` on the solver (the scenario's ``entrainment:``
-block is not written yet), to the time AvaFrame stopped.
+kinetic energy); avflow runs the scenario ``scenarios/avaalr_samosat.yaml`` with an
+``entrainment:`` block of the same law and layer, to the time AvaFrame stopped.
 
 Prints and writes (``--out``, default ``out/compare_avaframe_entrainment``) the entrained
 volume over time on both sides (m^3 of flowing snow at 200 kg/m^3: AvaFrame's mass log
@@ -25,10 +22,8 @@ and > 0.01 m, intersection over union on avflow's cells) and a figure
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -44,36 +39,35 @@ TIMES = (10, 25, 45, 65, 85, 105, 145, 185)
 
 
 def avflow_run(scenario, ent_path, t_end):
-    """avflow with AvaFrame's erosion energy over the ENT polygon's thickness: the series
-    ``(t, volume, entrained, outflow)`` every 5 s, the peak thickness per cell, the layer
-    left, and the cells' centres."""
-    from avflow.numerics.physics import SOURCE_EROSION_ENERGY
-    from avflow.numerics.solver import Solver
-    from avflow.numerics.sources import MassSource
-    from avflow.simulation.runner import prepare
-    from avflow.terrain.polygons import read_polygons, rasterize
+    """avflow with AvaFrame's erosion energy over the ENT polygon's thickness, the
+    scenario's ``entrainment:`` block, to ``t_end``: the series ``(t, entrained)`` at the
+    snapshots (every 5 s), the peak thickness, the layer at the start and left, the cells'
+    centres and areas, and the balance's terms."""
+    from avflow.output.dataset import to_dataset
+    from avflow.simulation.runner import simulate
 
-    terrain, h0, solver, _ = prepare(scenario)
-    areas, _ = read_polygons(ent_path)
-    xx, yy = terrain.cell_xy()
-    layer = np.nan_to_num(rasterize(areas, xx, yy, None, source=str(ent_path)))
-    source = MassSource(SOURCE_EROSION_ENERGY, layer, (E_B,),
-                        density_ratio=RHO_ENT / scenario.physics.density)
-    kw = {f.name: getattr(solver, f.name) for f in dataclasses.fields(solver) if f.init}
-    kw.update(source=source, threads=1)
-    solver = Solver(**kw)
-    state = solver.new_state(h0)
-    solver.advance(state, 0.01)  # compile before timing
-    state = solver.new_state(h0)
-    rows, t0 = [], time.perf_counter()
-    for t in np.arange(5.0, t_end + 4.99, 5.0):
-        solver.advance(state, float(min(t, t_end)))
-        rows.append((state.t, solver.volume(state), solver.entrained_volume(state),
-                     state.statistics.outflow_volume))
-    wall = time.perf_counter() - t0
-    return {"series": np.array(rows), "peak_h": state.peak_h.copy(), "layer": layer,
-            "left": state.erodible.copy(), "x": xx, "y": yy,
-            "area": terrain.mesh.cell_area, "wall_s": wall, "v0": solver.volume(solver.new_state(h0))}
+    run = scenario.with_updates({
+        "entrainment": {"law": "erosion_energy", "e_b": E_B, "density": RHO_ENT,
+                        "layer": {"polygon": str(ent_path)}},
+        "time.end": float(t_end), "output.every": 5.0, "numerics.threads": 1})
+    simulate(run.with_updates({"time.end": 1.0, "output.every": 1.0}))  # compile first
+    result = simulate(run)
+    ds = to_dataset(result)
+    s = result.summary
+    xx, yy = np.meshgrid(ds["x"].values, ds["y"].values)
+    dx = abs(float(ds["x"][1] - ds["x"][0])) * abs(float(ds["y"][1] - ds["y"][0]))
+    peak = np.nan_to_num(ds["peak_thickness"].values)
+    left = np.nan_to_num(ds["erodible_depth"].values)
+    layer = left - np.nan_to_num(ds["bed_change"].values)
+    # the bed's area per map cell (the layer is a depth normal to the bed: its volume is
+    # what entrained_volume counts)
+    area = dx / np.cos(np.radians(np.nan_to_num(ds["slope_angle"].values)))
+    series = np.stack([ds["time"].values, ds["entrained_volume_series"].values], axis=1)
+    return {"series": series, "peak_h": peak.ravel(), "layer": layer.ravel(),
+            "left": left.ravel(), "x": xx.ravel(), "y": yy.ravel(), "area": area.ravel(),
+            "wall_s": float(s["wall_time"]), "released": float(s["release_volume"]),
+            "on_map": float(s["deposit_volume"]), "outflow": float(s["outflow_volume"]),
+            "entrained": float(ds["entrained_volume"])}
 
 
 def sample(values, x, y, px, py):
@@ -94,7 +88,7 @@ def figure(png, af_t, af_v, fl, af_on_fl, title):
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 7), gridspec_kw={"width_ratios": [1.6, 1]})
     a.plot(af_t, af_v, label="AvaFrame com1DFA (mass log / rho)")
-    a.plot(fl["series"][:, 0], fl["series"][:, 2], label="avflow (the layer's books)")
+    a.plot(fl["series"][:, 0], fl["series"][:, 1], label="avflow (the layer's books)")
     a.set_xlabel("time (s)")
     a.set_ylabel("entrained volume (m$^3$ of flowing snow)")
     a.legend()
@@ -118,7 +112,8 @@ def figure(png, af_t, af_v, fl, af_on_fl, title):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--ent", required=True, help="AvaFrame's avaAlr ENT shapefile")
+    ap.add_argument("--ent", default=str(ROOT / "data" / "avaframe" / "avaAlr" / "entAlr.shp"),
+                    help="AvaFrame's avaAlr ENT shapefile (default: the copy in data/)")
     ap.add_argument("--avaframe-python", default=None)
     ap.add_argument("--avaframe-results", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--dx", type=float, default=5.0)
@@ -159,17 +154,17 @@ def main(argv=None):
         if t > t_stop:
             continue
         a = float(np.interp(t, af_t, af_v))
-        f = float(np.interp(t, fl["series"][:, 0], fl["series"][:, 2]))
+        f = float(np.interp(t, fl["series"][:, 0], fl["series"][:, 1]))
         lines.append(f"| {t} | {a:.0f} | {f:.0f} | {f / a if a else float('nan'):.2f} |")
-    a_end, f_end = float(af_v[-1]), float(fl["series"][-1, 2])
+    a_end, f_end = float(af_v[-1]), fl["entrained"]
     lines.append(f"| {t_stop:.1f} (end) | {a_end:.0f} | {f_end:.0f} | {f_end / a_end:.2f} |")
     eroded_af = a_end * ca.RHO / RHO_ENT
-    eroded_fl = float(((fl["layer"] - fl["left"]) * area).sum())
+    eroded_fl = f_end * ca.RHO / RHO_ENT
     layer = float((fl["layer"] * area).sum())
     lines += ["", f"- layer eroded: AvaFrame {eroded_af:.0f} m^3 ({eroded_af / layer:.0%} "
               f"of it), avflow {eroded_fl:.0f} m^3 ({eroded_fl / layer:.0%})",
               f"- avflow's balance: released + entrained - on the map - outflow = "
-              f"{fl['v0'] + f_end - fl['series'][-1, 1] - fl['series'][-1, 3]:.2e} m^3"]
+              f"{fl['released'] + f_end - fl['on_map'] - fl['outflow']:.2e} m^3"]
     for thr in (0.1, 0.01):
         a, b = af_on_fl > thr, fl["peak_h"] > thr
         iou = (a & b).sum() / max((a | b).sum(), 1)

@@ -278,9 +278,12 @@ class Solver:
         if given.ndim > 2 or (given.ndim == 2 and given.shape[0] != n):
             raise ValueError(f"a parameter map has a row per cell ({n}), got {given.shape}")
         width = given.shape[-1] if given.ndim else 1
-        most = FOREST_SLOT if self.forest is not None else N_PARAMS
-        if width > most:
-            raise ValueError(f"params holds at most {most} values, got {width}")
+        if width > N_PARAMS:
+            raise ValueError(f"params holds at most {N_PARAMS} values, got {width}")
+        if (self.forest is not None and width > FOREST_SLOT
+                and np.any(given.reshape(-1, width)[:, FOREST_SLOT] != 0.0)):
+            raise ValueError(f"with forest, the slot {FOREST_SLOT} of params is the forest's "
+                             "coefficient: give the law's parameters only")
         rows = np.zeros((n if per_cell else 1, N_PARAMS))
         rows[:, :width] = given.reshape(-1, width) if given.ndim else given
         if self.forest is not None:
