@@ -365,3 +365,26 @@ def test_maps_need_a_2d_terrain_and_their_values_their_range(tmp_path):
         with pytest.raises(Exception) as err:
             parse_scenario(base + text, source_path=tmp_path / "p.yaml")
         assert words in str(err.value), str(err.value)
+
+
+def test_a_map_scaled_by_a_factor_for_ensembles_and_calibration(tmp_path):
+    """``scale`` multiplies every cell's value (the default's too) before the range check:
+    an ensemble or a calibration varies ``rheology.mu.scale`` like any number; 1 is the map
+    itself to the bit, and a factor that pushes a cell out of the law's range is one line."""
+    from avflow.errors import ScenarioError
+
+    polygons(tmp_path / "zones.gpkg", [(0, 0, 150, 100)], [0.3], field="mu")
+    path = plane(tmp_path, "{law: voellmy, mu: {polygon: zones.gpkg, attribute: mu, "
+                           "default: 0.2}, xi: 2000}")
+    sc = load_scenario(path)
+    terrain = build_terrain(sc)
+    cx, _ = terrain.cell_xy()
+    base = friction_maps(sc.rheology, terrain)["mu"]
+    np.testing.assert_array_equal(base, np.where(cx < 150, 0.3, 0.2))
+    assert sc.rheology.mu.scale == 1.0
+    scaled = sc.with_updates({"rheology.mu.scale": 1.5})
+    np.testing.assert_array_equal(friction_maps(scaled.rheology, terrain)["mu"], base * 1.5)
+    _, _, solver, _ = prepare(scaled)
+    np.testing.assert_array_equal(solver.params[:, 0], base * 1.5)
+    with pytest.raises(ScenarioError, match="scale"):
+        sc.with_updates({"rheology.mu.scale": 0.0})

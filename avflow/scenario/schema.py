@@ -438,6 +438,10 @@ class ParameterMap(_Where):
     default: Number | None = None
     """The value of the cells the map says nothing of: outside every polygon, outside the
     raster or on its NODATA cells; null: such a cell is an error."""
+    scale: Positive = 1.0
+    """A factor on every cell's value (the default's too), before the range check: an
+    ensemble or a calibration moves the whole map up or down by varying it
+    (``rheology.mu.scale``); 1 leaves the map's values as they are, to the bit."""
 
     @model_validator(mode="after")
     def _one_source(self) -> ParameterMap:

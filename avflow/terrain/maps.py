@@ -152,6 +152,8 @@ def friction_maps(rheology, terrain: Terrain, prefix: str = "rheology") -> dict:
         field = f"{prefix}.{name}"
         values, path = _map(spec, terrain, field, attribute=spec.attribute, value=spec.value,
                             default=spec.default)
+        if spec.scale != 1.0:  # (1: the values as read, to the bit)
+            values = values * spec.scale
         _check(values, field_bounds(rheology, name), path, name, field + (
             ".raster" if spec.raster else ".polygon"), terrain)
         out[name], files[name] = values, path
