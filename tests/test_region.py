@@ -356,3 +356,46 @@ def test_a_flow_at_the_dem_border_is_not_grown_to_the_whole_dem(region_dir):
         assert np.array_equal(np.isfinite(a[name].values), np.isfinite(b[name].values))
         scale = float(np.nanmax(b[name].values))
         assert np.nanmax(np.abs(a[name].values - b[name].values)) <= 1e-5 * scale
+
+
+def test_the_key_follows_the_files_of_the_scenarios_maps(tmp_path):
+    """A release's result depends on the scenario's maps (a friction map, the erodible
+    layer, forest): their files count in the region's key by size and time, so an edited
+    map is run again; a region without maps keeps its key."""
+    import os
+
+    _dem(tmp_path)
+    _releases(tmp_path / "releases.gpkg", BOXES[:1])
+    plain = REGION.format(releases="releases.gpkg", buffer=40.0)
+    (tmp_path / "plain.yaml").write_text(plain)
+    _releases(tmp_path / "layer.gpkg", BOXES[:2], thickness=[0.3, 0.5])
+    with_map = plain.replace(
+        "  numerics: {order: 1}\n",
+        "  numerics: {order: 1}\n  entrainment: {law: erosion_energy, layer: "
+        "{polygon: layer.gpkg}}\n")
+    (tmp_path / "maps.yaml").write_text(with_map)
+    region = load_region(tmp_path / "maps.yaml")
+    assert region._map_files() and region._map_files()[0][0].endswith("layer.gpkg")
+    before = region.key()
+    assert load_region(tmp_path / "plain.yaml")._map_files() == []
+    _releases(tmp_path / "layer.gpkg", BOXES[:2], thickness=[0.3, 0.9])  # edited
+    st = os.stat(tmp_path / "layer.gpkg")
+    os.utime(tmp_path / "layer.gpkg", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert load_region(tmp_path / "maps.yaml").key() != before
+
+
+def test_a_region_runs_with_entrainment(tmp_path):
+    """The scenario block may carry an entrainment layer (a depth here): each release runs
+    with it on its window, and its balance, entrained mass included, holds."""
+    _dem(tmp_path)
+    _releases(tmp_path / "releases.gpkg", BOXES[:1])
+    text = REGION.format(releases="releases.gpkg", buffer=1.0e5).replace(
+        "  numerics: {order: 1}\n",
+        "  numerics: {order: 1}\n  entrainment: {law: erosion_energy, layer: {depth: 0.5}}\n")
+    (tmp_path / "ent.yaml").write_text(text)
+    result = run_region(load_region(tmp_path / "ent.yaml"), tmp_path / "out", workers=0,
+                        quiet=True)
+    row = result.table.set_index("id").loc[1]
+    assert row["status"] == "ok"
+    assert abs(row["mass_balance_error"]) < 1e-12
+    assert row["entrained_volume"] > 0.0  # the layer was eroded, and the balance holds

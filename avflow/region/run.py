@@ -28,7 +28,8 @@ from avflow.files import atomic_write
 #: the DEM's own border (no larger window exists: the map is then a lower bound there).
 MERGED = ("ok", "dem_edge")
 #: Columns of releases.csv, in order.
-COLUMNS = ("id", "scenario", "return_period", "thickness", "status", "volume", "runout", "travel_angle", "area", "retries",
+COLUMNS = ("id", "scenario", "return_period", "thickness", "status", "volume",
+           "entrained_volume", "runout", "travel_angle", "area", "retries",
            "wall_time", "run_time", "buffer", "row0", "row1", "col0", "col1", "cells",
            "steps", "mass_balance_error", "reach_threshold", "reused", "error")
 
@@ -202,7 +203,8 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
     s = result.summary
     r0, r1, c0, c1 = window
     row.update(status="dem_edge" if truncated else "ok", retries=retries,
-               volume=s["release_volume"], runout=s["runout"], travel_angle=s["travel_angle"],
+               volume=s["release_volume"], entrained_volume=s.get("entrained_volume", 0.0),
+               runout=s["runout"], travel_angle=s["travel_angle"],
                steps=int(s["steps"]), mass_balance_error=s["mass_balance_error"],
                run_time=run_time, buffer=buffer, row0=r0, row1=r1, col0=c0, col1=c1,
                cells=int(result.terrain.n_cells),

@@ -253,12 +253,46 @@ class Region:
 
     def key(self) -> str:
         """16 hex chars over what every release's result depends on besides its polygon:
-        the scenario block, the window rules and the DEM (path, size, modification time)."""
+        the scenario block, the window rules and the DEM (path, size, modification time),
+        and the files of the scenario's maps (friction maps, the erodible layer, forest:
+        the same for each of them and its companions), so that an edited map is run again."""
         st = os.stat(self.dem)
         data = {"scenario": self.scenario, "window": self.window.model_dump(mode="json"),
                 "dem": [self.dem, st.st_size, st.st_mtime_ns]}
+        maps = self._map_files()
+        if maps:  # none: the keys of regions without maps stay as they were
+            data["maps"] = maps
         text = json.dumps(data, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def _map_files(self) -> list:
+        """``[path, size, mtime]`` of every file a ``raster:`` or ``polygon:`` of the
+        scenario block names (relative to the region file's folder), with a shapefile's
+        companions."""
+        found = []
+
+        def walk(node):
+            if isinstance(node, dict):
+                for k, v in node.items():
+                    if k in ("raster", "polygon") and isinstance(v, str):
+                        found.append(v)
+                    else:
+                        walk(v)
+            elif isinstance(node, list):
+                for v in node:
+                    walk(v)
+
+        walk(self.scenario)
+        out = []
+        for name in sorted(set(found)):
+            path = Path(name) if Path(name).is_absolute() else Path(self.base_dir) / name
+            for f in sorted(path.parent.glob(path.stem + ".*")) or [path]:
+                try:
+                    st = os.stat(f)
+                    out.append([str(f), st.st_size, st.st_mtime_ns])
+                except OSError:
+                    out.append([str(f), None, None])
+        return out
 
     def input_files(self) -> list[str]:
         return [p for p in (self.path, self.dem, self.releases.path, self.releases.raster)
