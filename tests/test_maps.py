@@ -319,3 +319,18 @@ def test_ensemble_report_maps_over_the_hillshade(dem_ensemble):
 def test_plot_and_export_of_an_ensemble_file_say_what_it_is(dem_ensemble, capsys):
     assert main(["plot", str(dem_ensemble / "ensemble.nc")]) == 2
     assert "avflow report" in capsys.readouterr().err
+
+
+def test_the_plot_outlines_where_an_entrainment_runs_layer_lay():
+    """An entrainment run's file: the layer at the start is what is left minus the bed's
+    change (negative where eroded); a run without entrainment has no such outline."""
+    import xarray as xr
+
+    from avflow.output.maps import _erodible_at_start
+
+    left = np.array([[0.0, 0.1], [0.3, 0.0]])
+    change = np.array([[0.0, -0.2], [0.0, -0.3]])  # the last cell eroded to nothing
+    ds = xr.Dataset({"erodible_depth": (("y", "x"), left),
+                     "bed_change": (("y", "x"), change)})
+    np.testing.assert_array_equal(_erodible_at_start(ds), [[False, True], [True, True]])
+    assert _erodible_at_start(xr.Dataset()) is None

@@ -648,13 +648,29 @@ def _titles(fig, axes, ds) -> None:
     axes[1].set_title("peak pressure classes", fontsize=9)
 
 
+def _erodible_at_start(ds):
+    """Where an entrainment run's erodible layer lay at the start (``erodible_depth`` minus
+    ``bed_change``), or None for a run without one."""
+    if "erodible_depth" not in ds.variables or "bed_change" not in ds.variables:
+        return None
+    start = (np.nan_to_num(np.asarray(ds["erodible_depth"].values, dtype=float))
+             - np.nan_to_num(np.asarray(ds["bed_change"].values, dtype=float)))
+    return start > 0.0
+
+
 def _finish_map(ds, fig, ax, contour, released, deposited, threshold, where):
-    """Release and deposit outlines with their legend, equal-aspect axes in m (with the CRS
-    name); ``contour(values, **kw)`` draws on the scene's own geometry (grid or
-    triangles)."""
+    """Release and deposit outlines (and an entrainment run's erodible layer) with their
+    legend, equal-aspect axes in m (with the CRS name); ``contour(values, **kw)`` draws on
+    the scene's own geometry (grid or triangles)."""
     from matplotlib.lines import Line2D
 
     handles = []
+    layer = _erodible_at_start(ds)
+    if layer is not None and layer.any() and not layer.all():
+        contour(layer.astype(float), levels=[0.5], colors="tab:green", linewidths=1.2,
+                linestyles="-.")
+        handles.append(Line2D([], [], color="tab:green", ls="-.", lw=1.2,
+                              label="erodible layer"))
     if released.any():
         contour(released.astype(float), levels=[0.5], colors="tab:blue", linewidths=1.4,
                 linestyles="--")
