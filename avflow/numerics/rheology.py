@@ -249,14 +249,6 @@ def samosat_drag_factor(h, kappa, r, b):
 PER_CELL = 16
 #: the parameter slot of the forest's resistance coefficient ``c_f`` (dimensionless)
 FOREST_SLOT = 7
-#: AvaFrame com1DFA's default resistance coefficient in its resistance ("res") areas
-#: (``cResH`` of com1DFACfg.ini, AvaFrame 1.x-2.x: force ``rho A c_f |u|^2``)
-FOREST_CRES_AVAFRAME = 0.01
-
-
-def base_law(law: int) -> int:
-    """The friction law of a code that may carry :data:`PER_CELL`."""
-    return law - PER_CELL if law >= PER_CELL else law
 
 
 @njit(error_model="numpy", cache=True, inline="always")

@@ -48,8 +48,9 @@ def _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, t_new, cell_are
     ``(kind, ratio, u_min, s0..s3, h_zero, h_dry, g)``, both loaded once per span.
 
     Without jumps (every value computed, the one that applies selected, every array
-    written, with what it holds where nothing is taken), so that a row's loop vectorises
-    in the law-constant copies (:data:`SPAN`)."""
+    written, with what it holds where nothing is taken), so that LLVM may vectorise a
+    row's loop in the law-constant copies (:data:`SPAN`; what it gained:
+    docs/performance.md)."""
     kind, ratio, u_min, s0, s1, s2, s3, h_zero, h_dry, g = src
     p0, p1, p2, p3, p4, p5, p6, p7 = law_row
     hi = h[i]

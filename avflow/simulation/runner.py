@@ -21,7 +21,7 @@ from avflow.errors import AvflowWarning, Problem, RunFailed, ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
 from avflow.numerics.physics import (SOURCE_EROSION_ENERGY, SOURCE_EXPONENTIAL,
                                      SOURCE_SHEAR_THRESHOLD)
-from avflow.numerics.rheology import FOREST_SLOT, friction_parameters
+from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
 from avflow.numerics.sources import MassSource
 from avflow.numerics.stepping import MAX_RETRIES
@@ -299,8 +299,6 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
         raise ScenarioError.at(scenario, err.field, str(err)) from None
     _warn_empty(scenario, source, forest)
     law, params = friction_parameters(scenario.rheology, scenario.physics.density, maps)
-    if forest is not None:  # the forest's c_f takes the slot no law uses
-        params = params[..., :FOREST_SLOT]
     h_max = float(h0.max())
     out = scenario.output
     thresholds = {
