@@ -116,16 +116,22 @@ def _polygon_layer(layers, path: Path):
     return polygons[0]
 
 
-def _thickness(value, k: int, path: Path) -> float | None:
+def _as_number(value) -> float | None:
+    """An attribute's value as a float: None for a NULL (or blank text), NaN for what is
+    no number."""
     if value is None or (isinstance(value, str) and not value.strip()):
         return None
     if isinstance(value, float) and math.isnan(value):  # a NULL in a numeric column
         return None
     try:
-        thickness = float(value)
+        return float(value)
     except (TypeError, ValueError):
-        thickness = math.nan
-    if not math.isfinite(thickness) or thickness <= 0.0:
+        return math.nan
+
+
+def _thickness(value, k: int, path: Path) -> float | None:
+    thickness = _as_number(value)
+    if thickness is not None and not (math.isfinite(thickness) and thickness > 0.0):
         raise PolygonError(f"{path}: polygon {k} has thickness {value!r}; "
                            "it must be a positive number of metres")
     return thickness
@@ -133,15 +139,8 @@ def _thickness(value, k: int, path: Path) -> float | None:
 
 def _number(value, k: int, path: Path, attribute: str) -> float | None:
     """A polygon's value of a map's attribute: a finite number, or None (NULL)."""
-    if value is None or (isinstance(value, str) and not value.strip()):
-        return None
-    if isinstance(value, float) and math.isnan(value):  # a NULL in a numeric column
-        return None
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        number = math.nan
-    if not math.isfinite(number):
+    number = _as_number(value)
+    if number is not None and not math.isfinite(number):
         raise PolygonError(f"{path}: polygon {k} has {attribute} {value!r}; it must be a "
                            "finite number")
     return number
