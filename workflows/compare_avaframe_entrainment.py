@@ -41,8 +41,8 @@ TIMES = (10, 25, 45, 65, 85, 105, 145, 185)
 def avflow_run(scenario, ent_path, t_end):
     """avflow with AvaFrame's erosion energy over the ENT polygon's thickness, the
     scenario's ``entrainment:`` block, to ``t_end``: the series ``(t, entrained)`` at the
-    snapshots (every 5 s), the peak thickness, the layer at the start and left, the cells'
-    centres and areas, and the balance's terms."""
+    snapshots (every 5 s), the peak thickness, the layer at the start, the cells'
+    centres (and the grid's x, y) and areas, and the balance's terms."""
     from avflow.output.dataset import to_dataset
     from avflow.simulation.runner import simulate
 
@@ -64,20 +64,11 @@ def avflow_run(scenario, ent_path, t_end):
     area = dx / np.cos(np.radians(np.nan_to_num(ds["slope_angle"].values)))
     series = np.stack([ds["time"].values, ds["entrained_volume_series"].values], axis=1)
     return {"series": series, "peak_h": peak.ravel(), "layer": layer.ravel(),
-            "left": left.ravel(), "x": xx.ravel(), "y": yy.ravel(), "area": area.ravel(),
+            "x": xx.ravel(), "y": yy.ravel(), "xs": ds["x"].values, "ys": ds["y"].values,
+            "area": area.ravel(),
             "wall_s": float(s["wall_time"]), "released": float(s["release_volume"]),
             "on_map": float(s["deposit_volume"]), "outflow": float(s["outflow_volume"]),
             "entrained": float(ds["entrained_volume"])}
-
-
-def sample(values, x, y, px, py):
-    """A raster on cell centres (x, y) sampled at the points (px, py), nearest cell; 0 out."""
-    ix = np.rint((px - x[0]) / (x[1] - x[0])).astype(int)
-    iy = np.rint((py - y[0]) / (y[1] - y[0])).astype(int)
-    ok = (ix >= 0) & (ix < x.size) & (iy >= 0) & (iy < y.size)
-    out = np.zeros(px.size)
-    out[ok] = np.nan_to_num(values[iy[ok], ix[ok]], nan=0.0)
-    return out
 
 
 def figure(png, af_t, af_v, fl, af_on_fl, title):
@@ -138,7 +129,7 @@ def main(argv=None):
     t_stop = float(af["t_end_s"])
     fl = avflow_run(scenario, Path(args.ent), t_stop)
     pft, ax_, ay_ = ca.read_asc(af["pft"])
-    af_on_fl = sample(pft, ax_, ay_, fl["x"], fl["y"])
+    af_on_fl = ca.nearest_on(pft, ax_, ay_, fl["xs"], fl["ys"]).ravel()
     area = fl["area"]
     lines = [f"# AvaFrame com1DFA and avflow, erosion-energy entrainment on avaAlr "
              f"({args.dx:g} m cells)", "",
