@@ -31,7 +31,7 @@ from pathlib import Path
 #: What the kernels are compiled from: these modules, and the constants Numba freezes into
 #: them from the terrain (boundary and face codes).
 _KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/physics.py", "numerics/cpu.py",
-                   "numerics/stepping.py", "numerics/timeloop.py",
+                   "numerics/stepping.py", "numerics/loop.py", "numerics/timeloop.py",
                    "numerics/rheology.py", "numerics/kernels.py",
                    "numerics/reconstruction.py", "numerics/square_grid.py", "numerics/vectorize.py",
                    "numerics/profile.py", "numerics/face_sweep.py", "numerics/face_gather.py",

@@ -418,8 +418,8 @@ class Solver:
                             *self._parallel_from)
         work = GridWork(self._h_work, self._hu_work, self._hv_work, self._g_rings,
                         *self._g_order2)
-        status = self._loop(threads)(threads, self._g_mesh, fields, work, self._physics(),
-                                     run)
+        status = self._loop(threads)(self._g_mesh, fields, work, self._physics(), run,
+                                     threads)
         if chunk is not None:
             numba.set_parallel_chunksize(chunk)
         if not layout.compact:
@@ -612,5 +612,5 @@ class Solver:
         run = self._control(t_target, max_steps, stop_volume, stop_kinetic,
                             self._gather_from if threads > 1 else np.iinfo(np.int64).max, 0)
         status = self._loop(threads)(self._face_mesh, self._fields(state), self._face_work,
-                                     self._physics(), run, *self._sweep)
+                                     self._physics(), run, self._sweep)
         return STATUS_NAMES[status]

@@ -1,10 +1,12 @@
-"""The time loop of the profile and face kernels (the square-grid kernel's is
-:func:`avflow.numerics.square_grid.grid_loop`): step size, retry by halving, stop rules,
-observers, Heun's two stages and merge at order 2, and the active lists of the faces.
+"""The region of the profile and face kernels in the one time loop
+(:func:`avflow.numerics.loop.advance`): the profile's line, or the active lists of the
+faces, and what a step runs on them (the order-1 sweep of the law, or Heun's two stages and
+merge at order 2). The square-grid kernel's region is in :mod:`avflow.numerics.square_grid`.
 
-:func:`_advance` is a template compiled per mesh kind, order, law kind and threads by
-:func:`_advance_for` (:func:`avflow.numerics.vectorize.specialize`): Numba drops the
-branches of the other kinds before it types a copy, so a run compiles only what it uses.
+The hooks (:func:`_start` .. :func:`_end`) are templates compiled per mesh kind, order, law
+kind and threads by :func:`_advance_for` (:func:`avflow.numerics.vectorize.specialize`):
+Numba drops the branches of the other kinds before it types a copy, so a run compiles only
+what it uses.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from avflow.numerics.cpu import DRY, SOURCE_NONE, dt_from_inverse
+from avflow.numerics.cpu import DRY
 from avflow.numerics.face_gather import N_SUMS
 from avflow.numerics.face_gather import heun_cells_parallel as _heun_parallel
 from avflow.numerics.face_gather import step_cells_parallel as _step_parallel
@@ -27,11 +29,10 @@ from avflow.numerics.profile import ProfileLine
 from avflow.numerics.profile import STEP as _PROFILE_STEP
 from avflow.numerics.reconstruction import (reconstruct_cells, reconstruct_profile,
                                             reconstruct_cells_parallel as _recon_par)
-from avflow.numerics.sources import SRC_KIND, add_listed, add_span
-from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, STAMPS_PER_STEP,
-                                      ST_FALLBACK, ST_RETRIES, ST_SOURCE, ST_TIME, Conserved,
-                                      Lists, Observers, StepTime, end_loop, record_end,
-                                      record_step, step_size)
+from avflow.numerics.loop import advance
+from avflow.numerics.sources import add_listed, add_span
+from avflow.numerics.stepping import (STAMPS_PER_STEP, ST_SOURCE, Conserved, Lists,
+                                      Observers, end_loop, record_end)
 from avflow.numerics.vectorize import law_kind, law_label, specialize
 
 
@@ -106,252 +107,228 @@ def wet_after(changed, n_changed, h, h_zero, wet, wet_last, n_wet, gained, lost,
     return n_new, n_gained, n_lost
 
 
-def _advance(mesh, fields, work, physics, run, sweep_geo, sweep_work):
-    """Advance ``(h, hu, hv)`` in place until ``t_target``, a stop, or ``max_steps``.
+#: The face kernel's region (:mod:`avflow.numerics.loop`): what changes from step to step.
+#: Its lists (they swap with relist's new ones and with the last step's wet cells; ``fresh``:
+#: the cells to sync) and their counts, the stamp of the listed faces, whether this call has
+#: lists yet (``listed``), whether the wet cells are the last step's (``same_wet``: its lists
+#: hold), and how many cells the last step found wet or dry anew (-1: not counted)
+FaceRegion = namedtuple("FaceRegion", "wet wet_last touched active_faces new_faces new_cells "
+                        "fresh n_wet n_previous n_active n_touched n_fresh n_changed n_gained "
+                        "n_lost n_synced list_stamp listed same_wet wet_changes")
+#: ... and what does not: order 2's work, the profile's line, the lists' work, the
+#: observers, and this call's number (:func:`sync_fresh`)
+FaceContext = namedtuple("FaceContext", "o2 line lw obs call")
 
-    ``stats`` (see the ``ST_*`` slots) carries the time, the CFL limit and the counters from
-    one call to the next. Observers updated every step: ``peak_h``, ``peak_speed``,
-    ``arrival`` (first time h > h_dry, NaN before) and ``last_moved`` (end of the last step
-    with u != 0: the time a cell came to rest for good once it stays at rest). The run is
-    *stopped* once the moving volume (cells with u != 0 and h > h_dry) falls below
-    ``stop_volume``, or once the kinetic energy is at most ``stop_kinetic`` times its peak so
-    far (AvaFrame's rule); a negative value switches that rule off.
-    ``order`` 2: limited reconstruction (``limiter``, :mod:`avflow.numerics.reconstruction`;
-    ``face_offset[f, side]``: from each cell's centre half the way to its neighbour's, in its
-    basis) and Heun's two stages, each a full step of the seed's scheme (threshold, Dirac
-    faces, projection), averaged by :func:`heun_faces`. ``flux`` (n_faces, 5): the face
-    fluxes of order 2 (empty at order 1); ``transport`` (per cell): the largest mass flux
-    per metre through its faces in the last step. ``sweep_geo, sweep_work``: what the face
-    kernel's order-1 step reads and works in
-    (:func:`avflow.numerics.face_sweep.geometry`, :func:`~avflow.numerics.face_sweep.work`;
-    empty elsewhere, :func:`~avflow.numerics.face_sweep.unused`). ``min_parallel_cells``:
-    in the copy with threads, an order-1 step, an order-2 stage or Heun's merge that sweeps
-    at least that many cells runs on Numba's threads (order 1:
-    :func:`avflow.numerics.face_sweep._step_threads`, each thread scattering into the cells
-    of its own piece of the faces, from twice as many where its lists changed; order 2:
-    :mod:`avflow.numerics.face_gather`, in gather form; the same bits as the serial
-    sweeps). ``erodible, source``: the mass source and its layer
-    (:mod:`avflow.numerics.sources`), applied once per accepted step to the new state.
-    Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
-    The arguments are named tuples: ``mesh``
-    (:data:`~avflow.numerics.stepping.FaceMesh`), ``fields``
-    (:data:`~avflow.numerics.stepping.Fields`: the state, observers, erodible layer and
-    ``stats``), ``work`` (:data:`~avflow.numerics.stepping.FaceWork`), ``physics``
-    (:data:`~avflow.numerics.stepping.Physics`), ``run``
-    (:data:`~avflow.numerics.stepping.Control`); their fields are named as here.
+@njit(error_model="numpy", cache=True)
+def _lists(region, n_active, n_touched, n_fresh, active_faces=None, touched=None,
+           new_faces=None, new_cells=None, fresh=None, listed=True, list_stamp=-1,
+           n_synced=-1):
+    """``region`` with new lists (the arrays left out stay as they are)."""
+    r = region
+    return FaceRegion(r.wet, r.wet_last, r.touched if touched is None else touched,
+                      r.active_faces if active_faces is None else active_faces,
+                      r.new_faces if new_faces is None else new_faces,
+                      r.new_cells if new_cells is None else new_cells,
+                      r.fresh if fresh is None else fresh, r.n_wet, r.n_previous, n_active,
+                      n_touched, n_fresh, r.n_changed, r.n_gained, r.n_lost,
+                      r.n_synced if n_synced < 0 else n_synced,
+                      r.list_stamp if list_stamp < 0 else list_stamp, listed, r.same_wet,
+                      r.wet_changes)
 
-    Kept by the caller from one call to the next (face kernel): ``face_stamp`` (per face),
-    ``cell_stamp`` and ``cell_sync`` (per cell, -1 at first), ``synced`` (per cell, any) and
-    ``clock`` (int64[2]: the steps stamped so far, the calls). The stamps then never repeat,
-    and nothing per call costs the map: at order 1 the work buffers take the state of a cell
-    when a step first touches it in the call, and only those cells go back at the end. At
-    order 1 a step whose wet cells are the last step's keeps that step's active lists (a
-    flow covering its mesh, a deposit at rest: nothing is listed again), and one where a few
-    changed mends them (:func:`relist`: a spreading flow lists its front, not its area).
 
-    A template: :func:`time_loop` gives its copy for the mesh kind and the order, where
-    ``STRUCTURED``, ``ORDER2`` and ``PARALLEL`` are constants:
-    Numba drops the branches of the other kinds before it types the function, so a run
-    compiles only the sweeps it uses (a fraction of the compile time: docs/performance.md).
-    """
-    face_cells, cell_area, cfl_factor = mesh.face_cells, mesh.cell_area, mesh.cfl_factor
-    density, gamma_x, gamma_z, curvature = (mesh.density, mesh.gamma_x, mesh.gamma_z,
-                                            mesh.curvature)
-    cell_face_ptr, cell_face_idx = mesh.cell_face_ptr, mesh.cell_face_idx
-    h, hu, hv, flag, stats = fields.h, fields.hu, fields.hv, fields.flag, fields.stats
-    peak_h, peak_speed, arrival, last_moved = (fields.peak_h, fields.peak_speed,
-                                               fields.arrival, fields.last_moved)
-    erodible = fields.erodible
-    h_work, hu_work, hv_work = work.h_work, work.hu_work, work.hv_work
-    flux, transport, face_stamp, cell_stamp = (work.flux, work.transport, work.face_stamp,
-                                               work.cell_stamp)
-    cell_sync, synced, clock = work.cell_sync, work.synced, work.clock
-    h_zero, source = physics.h_zero, physics.source
-    cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
-    stop_volume, stop_kinetic, limiter = run.stop_volume, run.stop_kinetic, run.limiter
-    min_parallel_cells = run.min_parallel_cells
-    t = stats[ST_TIME]
-    # order-2 work arrays: one allocation per call, none per step
+def _start(loop):
+    """The face kernel's region at the start of a call: order 2's work arrays, the profile's
+    line and the lists' work (one allocation per call, none per step), the wet cells."""
+    mesh, fields, work = loop.mesh, loop.fields, loop.work
+    face_cells, h = mesh.face_cells, fields.h
     o2 = order2_work(h.size if ORDER2 else 0, face_cells.shape[0] if ORDER2 else 0,
                      STRUCTURED, PARALLEL)
-    union = o2.union
-    obs = Observers(peak_h, peak_speed, arrival, last_moved)
+    obs = Observers(fields.peak_h, fields.peak_speed, fields.arrival, fields.last_moved)
     # order-1 profile sweep (avflow.numerics.profile): its work lines, once per call
     m1 = h.size if STRUCTURED and not ORDER2 else 0
     p_kappa = np.empty(m1)
     for i in range(m1):
-        p_kappa[i] = curvature[i, 0]
-    line = ProfileLine(face_cells[0, 1], face_cells[face_cells.shape[0] - 1, 1], cell_area[0],
-                       cfl_factor, density, gamma_x, gamma_z, p_kappa,
-                       np.zeros((_PROFILE_WORK, m1 + 2 if m1 else 0)),
-                       np.full(m1 + 2 if m1 else 0, DRY, dtype=flag.dtype))
-    cur_h, cur_hu, cur_hv = h, hu, hv
-    nxt_h, nxt_hu, nxt_hv = h_work, hu_work, hv_work
-    status = REACHED_TARGET
-    steps = 0
-    # Active lists (face kernel): both buffers agree outside the cells touched by the last
-    # step, so a cell left untouched needs no copy; those touched last time are copied.
+        p_kappa[i] = mesh.curvature[i, 0]
+    line = ProfileLine(face_cells[0, 1], face_cells[face_cells.shape[0] - 1, 1],
+                       mesh.cell_area[0], mesh.cfl_factor, mesh.density, mesh.gamma_x,
+                       mesh.gamma_z, p_kappa, np.zeros((_PROFILE_WORK, m1 + 2 if m1 else 0)),
+                       np.full(m1 + 2 if m1 else 0, DRY, dtype=fields.flag.dtype))
+    if STRUCTURED or ORDER2:  # the whole state into the work buffers (faces, order 1: lazily)
+        work.h_work[:] = h
+        work.hu_work[:] = fields.hu
+        work.hv_work[:] = fields.hv
+    work.clock[1] += 1
     n = h.size
     nf = face_cells.shape[0]
-    if STRUCTURED or ORDER2:  # the whole state into the work buffers (faces, order 1: lazily)
-        h_work[:] = h
-        hu_work[:] = hu
-        hv_work[:] = hv
-    clock[1] += 1
-    call = clock[1]
-    n_synced = 0
     lw = list_work(0 if STRUCTURED else n, 0 if STRUCTURED else nf,
                    not (STRUCTURED or ORDER2))
-    wet, wet_last, touched, active_faces = lw.wet, lw.wet_last, lw.touched, lw.active_faces
-    gained, lost, new_faces, new_cells = lw.gained, lw.lost, lw.new_faces, lw.new_cells
     n_wet = 0
-    for i in range(wet_last.size):
-        if h[i] > h_zero:
-            wet[n_wet] = i
+    for i in range(lw.wet_last.size):
+        if h[i] > loop.physics.h_zero:
+            lw.wet[n_wet] = i
             n_wet += 1
-    n_previous = 0
-    n_active = 0
-    n_touched = 0
+    region = FaceRegion(lw.wet, lw.wet_last, lw.touched, lw.active_faces, lw.new_faces,
+                        lw.new_cells, lw.touched, n_wet, 0, 0, 0, 0, 0, 0, 0, 0, 0, False,
+                        False, -1)
+    return region, FaceContext(o2, line, lw, obs, work.clock[1])
+
+
+def _before(region, ctx, loop, cur, nxt, steps):
+    """The active lists of the next step (not on a profile). Kept while the wet cells are
+    the last step's (the step rewrites all their cells in the work buffers, which are
+    synced already); made from the wet cells at order 2, in a call's first step, or where
+    much changed; else mended (:func:`relist`: a spreading flow lists its front, not its
+    area). At order 1 a cell touched for the first time in this call is synced."""
+    r = region
+    if not STRUCTURED and not r.same_wet:
+        mesh, work, lw, o2 = loop.mesh, loop.work, ctx.lw, ctx.o2
+        if ORDER2 or not r.listed or r.n_gained + r.n_lost > RELIST_SHARE * r.n_wet:
+            # the buffers first made to agree on the last step's cells (still in its list:
+            # order 2's union is written again only once this step's stages ran, order 1's
+            # touched list by activate below)
+            _agree(o2.union if ORDER2 else r.touched, r.n_previous, cur.h, cur.hu, cur.hv,
+                   nxt.h, nxt.hu, nxt.hv)
+            list_stamp = (STAMPS_PER_STEP if ORDER2 else 1) * (work.clock[0] + steps)
+            n_active, n_touched = activate(r.wet, r.n_wet, mesh.cell_face_ptr,
+                                           mesh.cell_face_idx, mesh.face_cells,
+                                           work.face_stamp, work.cell_stamp, list_stamp,
+                                           r.active_faces, r.touched)
+            r = _lists(r, n_active, n_touched, n_touched, fresh=r.touched,
+                       list_stamp=list_stamp)
+        else:
+            # a cell that leaves the lists gets its new state in both buffers (the step does
+            # not write it); the cells that join are synced below
+            n_active, n_touched, n_fresh, n_dropped = relist(
+                lw.gained, r.n_gained, lw.lost, r.n_lost, cur.h, loop.physics.h_zero,
+                mesh.cell_face_ptr, mesh.cell_face_idx, mesh.face_cells, work.face_stamp,
+                work.cell_stamp, r.list_stamp, r.active_faces, r.n_active, r.touched,
+                r.n_touched, r.new_faces, r.new_cells, lw.fresh_faces, lw.gone_faces,
+                lw.added, lw.dropped)
+            _agree(lw.dropped, n_dropped, cur.h, cur.hu, cur.hv, nxt.h, nxt.hu, nxt.hv)
+            r = _lists(r, n_active, n_touched, n_fresh, active_faces=r.new_faces,
+                       new_faces=r.active_faces, touched=r.new_cells, new_cells=r.touched,
+                       fresh=lw.added)
+        if not ORDER2:
+            # its state into the work buffers (never written yet in this call, so the
+            # fields hold it); both buffers then agree on it
+            n_synced = sync_fresh(r.fresh, r.n_fresh, ctx.call, work.cell_sync, work.synced,
+                                  r.n_synced, loop.fields, work)
+            r = _lists(r, r.n_active, r.n_touched, r.n_fresh, n_synced=n_synced)
+    return _counted(r, r.n_touched if not STRUCTURED else 0, r.wet_changes)
+
+
+@njit(error_model="numpy", cache=True)
+def _counted(r, n_changed, wet_changes):
+    """``r`` with the cells a step changed and how many it found wet or dry anew."""
+    return FaceRegion(r.wet, r.wet_last, r.touched, r.active_faces, r.new_faces, r.new_cells,
+                      r.fresh, r.n_wet, r.n_previous, r.n_active, r.n_touched, r.n_fresh,
+                      n_changed, r.n_gained, r.n_lost, r.n_synced, r.list_stamp, r.listed,
+                      r.same_wet, wet_changes)
+
+
+def _step(region, ctx, loop, cur, nxt, when, steps, attempt):
+    """One step on the profile's line or on the active lists: the order-1 sweep (its law's
+    copy; on threads where at least ``min_parallel_cells`` cells are touched), or order 2's
+    two stages and merge."""
+    r = region
+    mesh, work, physics, fields = loop.mesh, loop.work, loop.physics, loop.fields
+    flag, obs, o2 = fields.flag, ctx.obs, ctx.o2
+    min_parallel_cells = loop.run.min_parallel_cells
+    # the lists are the last step's (or this step's last attempt's): the order-1 face step
+    # keeps what it made of them (their runs and pieces)
+    same_lists = r.same_wet or attempt > 0
+    wet_changes = -1  # (the order-1 face steps count the cells wet or dry anew)
+    fallbacks = 0
+    n_changed = r.n_changed
+    lists = Lists(r.active_faces, r.n_active, r.touched, r.n_touched, same_lists,
+                  work.face_stamp, r.list_stamp)
+    if STRUCTURED and not ORDER2:
+        ok, out, lim, moving, film, clamped, kinetic = profile_step(
+            ctx.line, physics, cur, nxt, flag, obs, when, True)
+    elif (not ORDER2 and PARALLEL and r.n_touched >= min_parallel_cells
+          and (same_lists or r.n_touched // 2 >= min_parallel_cells)):
+        # on threads, each on its piece of the faces (the same bits); on lists that changed,
+        # from twice as many cells (it cuts them and finds the cells its pieces share again,
+        # a cost the threads must win back: docs/performance.md)
+        ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step_threads(
+            mesh, physics, cur, nxt, work.transport, flag, obs, when, lists, loop.extra.geometry,
+            loop.extra.work)
+    elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
+        ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step(
+            mesh, physics, cur, nxt, work.transport, flag, obs, when, lists, loop.extra.geometry,
+            loop.extra.work)
+    elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
+        ok, out, lim, moving, film, clamped, kinetic, fallbacks = heun_profile(
+            mesh, physics, cur, nxt, work.flux, work.transport, flag, obs, o2,
+            loop.run.limiter, when)
+    else:  # order 2 on faces, each stage on its own active lists
+        stamp = STAMPS_PER_STEP * (work.clock[0] + steps) + 2 * attempt
+        ok, out, lim, moving, film, clamped, kinetic, fallbacks, n_changed = order2_faces(
+            mesh, physics, cur, nxt, work.flux, work.transport, flag, obs, work, o2, lists,
+            stamp, when, min_parallel_cells)
+    return (ok, out, lim, moving, film, clamped, kinetic, fallbacks,
+            _counted(r, n_changed, wet_changes))
+
+
+def _source(region, ctx, loop, nxt, when):
+    """The source over the cells the step touched (order 2: either stage; a profile: all),
+    which hold every wet one."""
+    mesh, fields, physics = loop.mesh, loop.fields, loop.physics
+    if STRUCTURED:
+        volume, inv = add_span(0, nxt.h.size, nxt.h, nxt.hu, nxt.hv, fields.erodible, physics,
+                               when.dt, when.t_new, mesh.cell_area, mesh.cfl_factor,
+                               mesh.gamma_z, fields.peak_h, fields.arrival)
+    else:
+        volume, inv = add_listed(ctx.o2.union if ORDER2 else region.touched, region.n_changed,
+                                 nxt.h, nxt.hu, nxt.hv, fields.erodible, physics, when.dt,
+                                 when.t_new, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z,
+                                 fields.peak_h, fields.arrival)
+    fields.stats[ST_SOURCE] += volume
+    return inv
+
+
+def _after(region, ctx, loop, nxt):
+    """The wet cells after a step (only the changed ones can be). At order 1 also those that
+    became wet or dry: a next step on the same wet cells keeps this step's active lists (a
+    flow at rest or covering its whole mesh lists nothing again), and on a few changes they
+    are mended. An order-1 face step counts the touched cells that became wet or dry: with
+    none, the wet cells are the last step's, and are not looked for again."""
+    r = region
+    if STRUCTURED:
+        return r
+    changed = ctx.o2.union if ORDER2 else r.touched
+    wet, wet_last, n_wet = r.wet, r.wet_last, r.n_wet
     n_gained = 0
     n_lost = 0
-    listed = False  # this call has active lists (made by activate, with list_stamp)
-    list_stamp = 0
-    same_wet = False  # wet cells as in the last step: its active lists still hold
-    while t < t_target:
-        dt, dt_decide, last = step_size(stats, cfl, t, t_target)
-        ok = False
-        if not STRUCTURED and not same_wet:
-            # (skipped while the wet cells are the last step's: its lists hold, the step
-            # rewrites all their cells in the work buffers, and they are synced already)
-            if ORDER2 or not listed or n_gained + n_lost > RELIST_SHARE * n_wet:
-                # listed from the wet cells (order 2, a call's first step, or where much
-                # changed); the buffers first made to agree on the last step's cells (still
-                # in its list: order 2's union is written again only once this step's
-                # stages ran, order 1's touched list by activate below)
-                _agree(union if ORDER2 else touched, n_previous, cur_h, cur_hu, cur_hv, nxt_h,
-                       nxt_hu, nxt_hv)
-                list_stamp = (STAMPS_PER_STEP if ORDER2 else 1) * (clock[0] + steps)
-                n_active, n_touched = activate(wet, n_wet, cell_face_ptr, cell_face_idx,
-                                               face_cells, face_stamp, cell_stamp, list_stamp,
-                                               active_faces, touched)
-                listed = True
-                n_fresh = n_touched
-                fresh = touched
-            else:
-                # order 1, a few cells changed: the last lists mended (relist); a cell that
-                # leaves them gets its new state in both buffers (the step does not write
-                # it), and the cells that join are synced below
-                n_active, n_touched, n_fresh, n_dropped = relist(
-                    gained, n_gained, lost, n_lost, cur_h, h_zero, cell_face_ptr,
-                    cell_face_idx, face_cells, face_stamp, cell_stamp, list_stamp,
-                    active_faces, n_active, touched, n_touched, new_faces, new_cells,
-                    lw.fresh_faces, lw.gone_faces, lw.added, lw.dropped)
-                active_faces, new_faces = new_faces, active_faces
-                touched, new_cells = new_cells, touched
-                _agree(lw.dropped, n_dropped, cur_h, cur_hu, cur_hv, nxt_h, nxt_hu, nxt_hv)
-                fresh = lw.added
-            if not ORDER2:
-                # a cell touched for the first time in this call: its state into the work
-                # buffers (never written yet in this call, so h holds it); both buffers then
-                # agree on it, as the copies of the cells that leave the lists keep them
-                n_synced = sync_fresh(fresh, n_fresh, call, cell_sync, synced, n_synced,
-                                      fields, work)
-        n_changed = n_touched if not STRUCTURED else 0
-        for attempt in range(MAX_RETRIES):
-            t_new = t_target if last else t + dt
-            # the lists are the last step's (or this step's last attempt's): the order-1
-            # face step keeps what it made of them (their runs and pieces)
-            same_lists = same_wet or attempt > 0
-            wet_changes = -1  # (the order-1 face steps count the cells wet or dry anew)
-            fallbacks = 0
-            cur = Conserved(cur_h, cur_hu, cur_hv)
-            nxt = Conserved(nxt_h, nxt_hu, nxt_hv)
-            when = StepTime(dt, dt_decide, t_new)
-            lists = Lists(active_faces, n_active, touched, n_touched, same_lists, face_stamp,
-                          list_stamp)
-            if STRUCTURED and not ORDER2:
-                ok, out, lim, moving, film, clamped, kinetic = profile_step(
-                    line, physics, cur, nxt, flag, obs, when, True)
-            elif (not ORDER2 and PARALLEL and n_touched >= min_parallel_cells
-                  and (same_lists or n_touched // 2 >= min_parallel_cells)):
-                # the same on threads, each on its piece of the faces (the same bits); on
-                # lists that changed, from twice as many cells (it cuts them and finds the
-                # cells its pieces share again, a cost the threads must win back:
-                # docs/performance.md)
-                ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step_threads(
-                    mesh, physics, cur, nxt, transport, flag, obs, when, lists, sweep_geo,
-                    sweep_work)
-            elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
-                ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step(
-                    mesh, physics, cur, nxt, transport, flag, obs, when, lists, sweep_geo,
-                    sweep_work)
-            elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
-                ok, out, lim, moving, film, clamped, kinetic, fallbacks = heun_profile(
-                    mesh, physics, cur, nxt, flux, transport, flag, obs, o2, limiter, when)
-            else:  # order 2 on faces, each stage on its own active lists
-                stamp = STAMPS_PER_STEP * (clock[0] + steps) + 2 * attempt
-                ok, out, lim, moving, film, clamped, kinetic, fallbacks, n_changed = (
-                    order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2,
-                                 lists, stamp, when, min_parallel_cells))
-            if ok:
-                break
-            dt *= 0.5
-            last = False
-            stats[ST_RETRIES] += 1
-        if not ok:
-            status = FAILED
-            break
-        if source[SRC_KIND] != SOURCE_NONE:  # only wet cells gain: the wet lists still hold
-            if STRUCTURED:
-                src_volume, inv = add_span(0, n, nxt_h, nxt_hu, nxt_hv, erodible, physics,
-                                           dt, t_new, cell_area, cfl_factor, gamma_z, peak_h,
-                                           arrival)
-            else:  # the cells the step touched (order 2: either stage), every wet one
-                src_volume, inv = add_listed(union if ORDER2 else touched, n_changed, nxt_h,
-                                             nxt_hu, nxt_hv, erodible, physics, dt, t_new,
-                                             cell_area, cfl_factor, gamma_z, peak_h, arrival)
-            stats[ST_SOURCE] += src_volume
-            lim = min(lim, dt_from_inverse(inv))
-        t = t_target if last else t + dt
-        steps += 1
-        if not STRUCTURED:
-            changed = union if ORDER2 else touched
-            # the new wet cells (only the changed ones can be). At order 1 those that became
-            # wet or dry, from both sorted lists: a next step on the same wet cells keeps this
-            # step's active lists (a flow at rest or covering its whole mesh lists nothing
-            # again), and on a few changes they are mended (order 2 lists with stamps of its
-            # own in each stage). An order-1 face step counts the touched cells that became
-            # wet or dry: with none, the wet cells are the last step's, and are not looked
-            # for again (a scan of every touched cell saved)
-            n_gained = 0
-            n_lost = 0
-            if wet_changes != 0:  # (none: the wet cells are the last step's, so is wet)
-                wet, wet_last = wet_last, wet
-                n_wet, n_gained, n_lost = wet_after(changed, n_changed, nxt_h, h_zero, wet,
-                                                    wet_last, n_wet, gained, lost, ORDER2)
-            same_wet = not ORDER2 and n_gained == 0 and n_lost == 0
-            n_previous = n_changed
-        stats[ST_FALLBACK] += fallbacks
-        cur_h, nxt_h = nxt_h, cur_h
-        cur_hu, nxt_hu = nxt_hu, cur_hu
-        cur_hv, nxt_hv = nxt_hv, cur_hv
-        status = record_step(stats, dt, lim, moving, film, kinetic, clamped, out, stop_volume,
-                             stop_kinetic, steps, max_steps)
-        if status != REACHED_TARGET:
-            break
-    clock[0] += steps + 1  # the next call's stamps follow this one's
+    if r.wet_changes != 0:
+        wet, wet_last = wet_last, wet
+        n_wet, n_gained, n_lost = wet_after(changed, r.n_changed, nxt.h, loop.physics.h_zero,
+                                            wet, wet_last, n_wet, ctx.lw.gained, ctx.lw.lost,
+                                            ORDER2)
+    same_wet = not ORDER2 and n_gained == 0 and n_lost == 0
+    return FaceRegion(wet, wet_last, r.touched, r.active_faces, r.new_faces, r.new_cells,
+                      r.fresh, n_wet, r.n_changed, r.n_active, r.n_touched, r.n_fresh,
+                      r.n_changed, n_gained, n_lost, r.n_synced, r.list_stamp, r.listed,
+                      same_wet, r.wet_changes)
+
+
+def _end(region, ctx, loop, cur, t, steps):
+    """The next call's stamps follow this one's; the newest state back where it is in the
+    work buffers (faces, order 1: only where a step touched)."""
+    fields, work = loop.fields, loop.work
+    work.clock[0] += steps + 1
     if STRUCTURED or ORDER2:
-        end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv)
-    else:  # the newest state back only where a step touched, if it is in the work buffers
+        end_loop(fields.stats, t, steps, fields.h, fields.hu, fields.hv, cur.h, cur.hu,
+                 cur.hv)
+    else:
         if steps % 2 == 1:
-            for c in range(n_synced):
-                i = synced[c]
-                h[i] = cur_h[i]
-                hu[i] = cur_hu[i]
-                hv[i] = cur_hv[i]
-        record_end(stats, t, steps)
-    return status
+            for c in range(region.n_synced):
+                i = work.synced[c]
+                fields.h[i] = cur.h[i]
+                fields.hu[i] = cur.hu[i]
+                fields.hv[i] = cur.hv[i]
+        record_end(fields.stats, t, steps)
 
 
 #: Placeholders of the order-1 sweeps :func:`_advance`'s copies call (their law's copy):
@@ -510,9 +487,10 @@ ORDER2_FACES = {
 
 def _advance_for(structured: bool, order2: bool, kind: int | None = None,
                  parallel: bool = False):
-    """:func:`_advance` compiled with the mesh kind and the order constants (and, at order
-    1, calling the sweep of the friction law ``kind``; ``parallel``: the face kernel with
-    its passes on threads, whose functions the other copies never compile)."""
+    """:func:`avflow.numerics.loop.advance` with the face kernel's region, its hooks
+    compiled with the mesh kind and the order constants (and, at order 1, calling the sweep
+    of the friction law ``kind``; ``parallel``: with its passes on threads, whose functions
+    the other copies never compile)."""
     suffix = f"_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
     names = {}
     if kind is not None:
@@ -525,8 +503,12 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
                 names["faces_step_threads"] = _FACES_THREADS[kind]
     if parallel:
         suffix += "_parallel"
-    return specialize(_advance, suffix, STRUCTURED=structured, ORDER2=order2,
-                      PARALLEL=parallel, order2_faces=ORDER2_FACES[parallel], **names)
+    hooks = {f"region_{hook}": specialize(fn, suffix, STRUCTURED=structured, ORDER2=order2,
+                                          PARALLEL=parallel,
+                                          order2_faces=ORDER2_FACES[parallel], **names)
+             for hook, fn in (("start", _start), ("before", _before), ("step", _step),
+                              ("source", _source), ("after", _after), ("end", _end))}
+    return specialize(advance, suffix, **hooks)
 
 
 #: The time loop per (structured, order 2, law kind, threads): the law only at order 1,
@@ -541,7 +523,11 @@ ADVANCE = {(s, o, k, p): _advance_for(s, o, k, p)
 
 
 def time_loop(structured: bool, order: int, law: int, parallel: bool = False):
-    """The time loop (:func:`_advance`: its arguments, its status codes) compiled for this
+    """The time loop (:func:`avflow.numerics.loop.advance`: its arguments, its status
+    codes; ``extra``: ``(sweep_geo, sweep_work)``, what the face kernel's order-1 step reads
+    and works in, :func:`avflow.numerics.face_sweep.geometry`,
+    :func:`~avflow.numerics.face_sweep.work`; empty elsewhere,
+    :func:`~avflow.numerics.face_sweep.unused`) compiled for this
     mesh kind (``structured``: a profile) and ``order`` alone (and, at order 1, for the
     friction ``law``); ``parallel``: with the passes on threads (on faces only;
     profiles run the serial copy)."""
