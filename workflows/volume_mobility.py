@@ -225,7 +225,10 @@ def run_member(scenario, volume: float, cells: int = BASE_CELLS, topography: str
             "peak_speed_m_s": float(np.max(result.state.peak_speed)),
             "steps": result.state.steps, "wall_s": round(elapsed, 3),
             # what left the window (must be 0: the window holds the deposit)
-            "volume_lost": 1.0 - result.solver.volume(result.state) / v0}
+            "volume_lost": 1.0 - result.solver.volume(result.state) / v0,
+            "parameters": " ".join(f"{k} {v:g}" for k, v in
+                                   member.rheology.model_dump(exclude_none=True).items()
+                                   if k != "law" and isinstance(v, float))}
 
 
 def slope(rows: list[dict], law: str, lo: float = FIT_RANGE[0], hi: float = FIT_RANGE[1],
@@ -244,8 +247,8 @@ def scheidegger(volume):
 
 TITLES = {"plane": "2 degree plane, magnified with the release",
           "hockey": "40 degree slope 5 km high onto flat",
-          "exponential": "the seed's exponential slope (fixed), extruded",
-          "exponential-similar": "the seed's exponential slope, magnified with the release"}
+          "exponential": "seed's exponential slope, fixed",
+          "exponential-similar": "seed's exponential slope, magnified"}
 
 
 def plot(rows: list[dict], path: Path, slopes: dict, topography: str = "plane",
@@ -255,7 +258,7 @@ def plot(rows: list[dict], path: Path, slopes: dict, topography: str = "plane",
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    fig, ax = plt.subplots(figsize=(6.5, 6.0))
     v = np.logspace(4.5, 10.5, 50)
     ax.loglog(v, scheidegger(v), "k--", lw=1, label="Scheidegger (1973)")
     for law, colour, marker in zip(dict.fromkeys(r["law"] for r in rows), ("C0", "C1", "C2"),
@@ -263,7 +266,8 @@ def plot(rows: list[dict], path: Path, slopes: dict, topography: str = "plane",
         sel = [r for r in rows if r["law"] == law]
         vol = [r["volume_m3"] for r in sel]
         ax.loglog(vol, [r["H_over_L"] for r in sel], "-", marker=marker, color=colour,
-                  label=f"{law}, H/L (slope {round(slopes[law], 3) + 0.0:+.3f})")
+                  label=f"{law} ({sel[0]['parameters']}), H/L "
+                        f"(slope {round(slopes[law], 3) + 0.0:+.3f})")
         if slopes_front is not None:  # open markers: H over the front's travel dL
             ax.loglog(vol, [r["H_over_dL"] for r in sel], ":", marker=marker, color=colour,
                       mfc="none", label=f"{law}, H/$\\Delta$L "
@@ -272,7 +276,7 @@ def plot(rows: list[dict], path: Path, slopes: dict, topography: str = "plane",
     ax.set_ylabel("H / L,  H / $\\Delta$L")
     ax.set_title("Mobility against volume: " + TITLES[topography], fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7.5, loc="upper center", bbox_to_anchor=(0.5, -0.14))  # off the data
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
