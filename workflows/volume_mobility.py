@@ -103,12 +103,12 @@ HOCKEY = {"slope_deg": 40.0, "drop": 5000.0, "aspect": 0.25, "flat": 45000.0}
 #: The seed's exponential slope (section 6, eq. 58: theta = theta0 exp(-s / a), s along the
 #: bed; scenarios/seed_exponential_*.yaml) extruded across y, continued to 30 km (the
 #: slope is below 0.1 degree from s = 11 km), 1.05 km high (a Si(theta0)) below s = 0 and
-#: a plane at theta0 above (where the collapse spreads back). The
-#: release is a cylinder half as thick as wide (the seed's parabola: 201.6 m over a half
-#: length of 400 m), crown at s = 0. The seed's own mass made round is 1.0e8 m^3 (radius
-#: 400 m). "exponential" keeps the slope fixed at every volume; "exponential-similar"
-#: magnifies it with the release (a = 1750 m at 1e8 m^3), the same scene at every volume
-#: under Coulomb, as the plane.
+#: a plane at theta0 above (where the collapse spreads back). The release is a cylinder as
+#: thick as half its radius (the seed's parabola: 201.6 m over a half length of 400 m),
+#: crown at s = 0. The seed's own mass made round is 1.0e8 m^3 (radius 400 m).
+#: "exponential" keeps the slope fixed at every volume; "exponential-similar" magnifies it
+#: with the release (a = 1750 m at 1e8 m^3): the same scene at every volume under Coulomb,
+#: as the plane.
 EXPONENTIAL = {"theta0_deg": 35.0, "a": 1750.0, "aspect": 0.5, "length": 30000.0,
                "base_radius": 400.0}
 
