@@ -24,6 +24,14 @@ def test_a_change_to_any_kernel_source_is_a_new_cache_folder(monkeypatch):
     assert numerics.kernel_cache_dir() == first
 
 
+#: the hooks of a kernel's region in its copies of the one time loop (numerics/loop.py)
+HOOKS = ("start", "before", "step", "source", "after", "end")
+
+
+def _hook(loop, name):
+    return loop.py_func.__globals__[f"region_{name}"]
+
+
 def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     from numba.core import config
 
@@ -32,11 +40,13 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     folder = numerics.kernel_cache_dir()
     loops = [square_grid.grid_loop(law, parallel, order) for law in (rheology.COULOMB, -1)
              for parallel in (False, True) for order in (1, 2)]
-    stages = [loop.py_func.__globals__["_stage"] for loop in loops]
+    hooks = [_hook(loop, name) for loop in (*loops, *timeloop.ADVANCE.values())
+             for name in HOOKS]
+    stages = [_hook(loop, "step").py_func.__globals__["_stage"] for loop in loops]
     sweeps = [stage.py_func.__globals__[name] for stage in stages
               for name in ("sweep_serial", "sweep_parallel")]
-    heuns = [loop.py_func.__globals__["order2_step"] for loop in loops[1::2]]
-    for dispatcher in (*timeloop.ADVANCE.values(), *face_sweep.STEP.values(),
+    heuns = [_hook(loop, "step").py_func.__globals__["order2_step"] for loop in loops[1::2]]
+    for dispatcher in (*timeloop.ADVANCE.values(), *hooks, *face_sweep.STEP.values(),
                        *face_sweep.STEP_THREADS.values(), *face_sweep.STEP_PIECES_SERIAL.values(),
                        kernels.step_faces,
                        kernels.step_profile,
@@ -73,8 +83,9 @@ def test_the_square_grid_loops_can_be_cached():
     for parallel in (False, True):
         loop = square_grid.grid_loop(rheology.COULOMB, parallel)
         assert loop.overloads, parallel
-        stage = loop.py_func.__globals__["_stage"]
+        stage = _hook(loop, "step").py_func.__globals__["_stage"]
         for sweep in (stage.py_func.__globals__["sweep_serial"],
-                      stage.py_func.__globals__["sweep_parallel"], stage, loop):
+                      stage.py_func.__globals__["sweep_parallel"], stage, loop,
+                      *(_hook(loop, name) for name in HOOKS)):
             for compiled in sweep.overloads.values():
                 assert not compiled.library.has_dynamic_globals, (sweep, parallel)

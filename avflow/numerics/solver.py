@@ -225,7 +225,7 @@ class Solver:
         self._flux = np.zeros((m.n_faces if self.order == 2 else 0, 5))
         # Faces of every cell (CSR), for the active lists of the face kernel.
         self._cell_face_ptr, self._cell_face_idx = kernels.cell_faces(m.face_cells, n)
-        # What the face kernel keeps from one call to the next (see timeloop._advance)
+        # What the face kernel keeps from one call to the next (see timeloop._start)
         self._face_stamp = np.full(m.n_faces, -1, dtype=np.int64)
         self._cell_stamp = np.full(n, -1, dtype=np.int64)
         self._cell_sync = np.full(n, -1, dtype=np.int64)
@@ -336,7 +336,7 @@ class Solver:
         self._g_order2 = (np.zeros(m2), np.zeros(m2), np.zeros(m2),
                           np.full(m2, DRY, dtype=np.uint8), np.zeros(m2))
         self._g_flag = np.zeros(n, dtype=np.uint8)
-        self._g_rings = None  # the kernel's ring buffers, a set per thread (_advance_grid)
+        self._g_rings = None  # the kernel's ring buffers, a set per thread (square_grid._grid_start)
         if not layout.compact:  # state and observers on the full grid, copied in and out
             self._g_state = {name: np.zeros(n) for name in self._grid_fields()}
 
