@@ -53,24 +53,15 @@ S_FAIL, S_INV, S_MOVING, S_FILM, S_KINETIC, S_COUNT = range(6)
 N_SUMS = 6
 
 
-def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face_state,
-               cell_sums):
-    """One order-2 stage on the listed faces and cells (step_faces' arguments at order 2;
-    ``cell_face_ptr, cell_face_idx``: the cells' faces in index order; ``cell_sums``: work,
-    (n, :data:`N_SUMS`)). Returns ``(ok, outflow, dt_limit, moving, film, clamped,
-    kinetic)`` as step_faces does."""
+@njit(error_model="numpy", cache=True, inline="always")
+def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
+    """Pass 1 of :func:`step_cells`: each active face's fluxes into ``flux[f]``, each side
+    in its own cell's basis. (Each pass is a function of its own, inlined by Numba into
+    step_cells' copies: one compiled body, its loops on threads in the parallel copy.)"""
     face_cells, face_frame, face_length = mesh.face_cells, mesh.face_frame, mesh.face_length
-    cell_area, cfl_factor, density = mesh.cell_area, mesh.cfl_factor, mesh.density
-    gamma_x, gamma_y, gamma_z = mesh.gamma_x, mesh.gamma_y, mesh.gamma_z
-    curvature, h, hu, hv, h_new = mesh.curvature, cur.h, cur.hu, cur.hv, nxt.h
-    hu_new, hv_new, law, params, g = nxt.hu, nxt.hv, physics.law, physics.params, physics.g
-    dirac, h_zero, h_dry, dt = physics.dirac, physics.h_zero, physics.h_dry, when.dt
-    dt_decide, active_faces, n_active = when.dt_decide, lists.active_faces, lists.n_active
-    touched, n_touched, cell_face_ptr = lists.touched, lists.n_touched, mesh.cell_face_ptr
-    cell_face_idx = mesh.cell_face_idx
-    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
-    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
-
+    density, gamma_z, h = mesh.density, mesh.gamma_z, cur.h
+    g, h_zero, active_faces = physics.g, physics.h_zero, lists.active_faces
+    n_active = lists.n_active
     # --- 1: each active face's fluxes, each side in its own cell's basis
     for a in prange(n_active):
         f = active_faces[a]
@@ -115,6 +106,20 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
             flux[f, 3] = f_n * nj_x + f_t * tj_x
             flux[f, 4] = f_n * nj_y + f_t * tj_y
 
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists):
+    """Pass 2 of :func:`step_cells`: each cell's sum of its active faces (index order), its
+    trial momentum (eq. 47) and flag (eq. 49)."""
+    face_cells, cell_area, gamma_x = mesh.face_cells, mesh.cell_area, mesh.gamma_x
+    gamma_y, gamma_z, curvature = mesh.gamma_y, mesh.gamma_z, mesh.curvature
+    h, hu, hv = cur.h, cur.hu, cur.hv
+    hu_new, hv_new, law = nxt.hu, nxt.hv, physics.law
+    params, g, h_zero = physics.params, physics.g, physics.h_zero
+    dt, dt_decide, touched = when.dt, when.dt_decide, lists.touched
+    n_touched, cell_face_ptr, cell_face_idx = lists.n_touched, mesh.cell_face_ptr, mesh.cell_face_idx
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     # --- 2: each cell's sum of its active faces (index order), trial state and flag
     for c in prange(n_touched):
         i = touched[c]
@@ -151,6 +156,15 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
         hv_new[i] = qy
         flag[i] = fi
 
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _gather_mass(mesh, physics, cur, nxt, flux, transport, flag, lists):
+    """Pass 3 of :func:`step_cells`: the mass through each cell's faces that are not Dirac
+    (eqs. 51-53), what a dry cell takes back through a Dirac face, its ``transport``."""
+    face_cells, face_length, h = mesh.face_cells, mesh.face_length, cur.h
+    h_new, hu_new, hv_new = nxt.h, nxt.hu, nxt.hv
+    dirac, h_zero, touched = physics.dirac, physics.h_zero, lists.touched
+    n_touched, cell_face_ptr, cell_face_idx = lists.n_touched, mesh.cell_face_ptr, mesh.cell_face_idx
     # --- 3: mass through the faces that keep the rectangular density (index order)
     for c in prange(n_touched):
         i = touched[c]
@@ -192,6 +206,20 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
         hv_new[i] = qy
         transport[i] = unit_max
 
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_sums):
+    """Pass 4 of :func:`step_cells`: the new thickness, the projection of eq. 50, each cell's
+    terms of the step's sums into ``cell_sums``."""
+    cell_area, cfl_factor, gamma_x = mesh.cell_area, mesh.cfl_factor, mesh.gamma_x
+    gamma_y, gamma_z, curvature = mesh.gamma_y, mesh.gamma_z, mesh.curvature
+    h, hu, hv = cur.h, cur.hu, cur.hv
+    h_new, hu_new, hv_new = nxt.h, nxt.hu, nxt.hv
+    law, params, g = physics.law, physics.params, physics.g
+    h_zero, h_dry, dt = physics.h_zero, physics.h_dry, when.dt
+    touched, n_touched = lists.touched, lists.n_touched
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     # --- 4: new thickness, projection; each cell's terms of the sums
     for c in prange(n_touched):
         i = touched[c]
@@ -215,6 +243,20 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
         _keep_terms(cell_sums, i, hn < 0.0, inv_i, hn, area, speed,
                     cell_moves(speed, speed_n, transport[i], hn), h_dry, cl)
 
+
+def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face_state,
+               cell_sums):
+    """One order-2 stage on the listed faces and cells (step_faces' arguments at order 2;
+    ``cell_face_ptr, cell_face_idx``: the cells' faces in index order; ``cell_sums``: work,
+    (n, :data:`N_SUMS`)). Returns ``(ok, outflow, dt_limit, moving, film, clamped,
+    kinetic)`` as step_faces does."""
+    _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state)
+    _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists)
+    _gather_mass(mesh, physics, cur, nxt, flux, transport, flag, lists)
+    _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_sums)
+    face_cells, dirac, dt = mesh.face_cells, physics.dirac, when.dt
+    active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
+    n_touched = lists.n_touched
     # the sums, cell after cell in the list's order; the outflow face after face
     failed, lim, moving, film, kinetic, clamped = _add_terms(touched, n_touched, cell_sums)
     if failed:

@@ -243,40 +243,19 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
     return True, outflow, dt_from_inverse(inv_lim), moving, film, clamped, kinetic
 
 
-@njit(error_model="numpy", cache=True)
-def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, order2,
-               face_state, watch, emit):
-    """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
-
-    Only the ``n_active`` faces of ``active_faces`` (those of the wet cells) and the
-    ``n_touched`` cells of ``touched`` (their two sides) are swept: every other cell is dry,
-    receives nothing and keeps its state, so the cost follows the area the mass covers.
-
-    ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
-    Normal and tangential components are taken in each face's frame (rotational invariance):
-    the normal part uses the kinetic flux, the tangential velocity is carried upwind with the
-    mass. ``face_frame`` (see :class:`avflow.terrain.mesh.Mesh`) maps each cell's discharge into the
-    face frame and the flux back into the cell's own basis. ``flux[f, 0]`` is ``L_f`` times the mass flux through face f along its normal, ``flux[f, 1:5]`` the momentum it brings to side i (x, y) and side j (x, y).
-
-    Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``: ok is False when a thickness
-    would turn negative; outflow the volume that left through open faces in this step;
-    dt_limit the CFL limit of the new state; moving and film the volumes of the cells that
-    transport mass (u != 0 and a face flux above TRANSPORT_EPS h |u|) above and below h_dry;
-    ``transport`` is a per-cell work array; clamped the number of cells whose normal
-    acceleration was clamped at 0; kinetic the sum of h A |u|^2 of the new state.
-    """
+@njit(error_model="numpy", cache=True, inline="always")
+def _face_fluxes(mesh, physics, cur, nxt, flux, when, lists, order2, face_state, emit):
+    """Sweeps 0 and 1a of :func:`step_faces`: what each cell emits (order 1; order 2 reads
+    the reconstructed face states) and the rectangular fluxes of the active faces, each
+    side read and written in its own cell's basis, into ``flux`` and the sums of ``nxt``.
+    (Each sweep of step_faces is a function of its own, inlined into it by Numba: one
+    compiled body, as before the split.)"""
     face_cells, face_frame, face_length = mesh.face_cells, mesh.face_frame, mesh.face_length
-    cell_area, cfl_factor, density = mesh.cell_area, mesh.cfl_factor, mesh.density
-    gamma_x, gamma_y, gamma_z = mesh.gamma_x, mesh.gamma_y, mesh.gamma_z
-    curvature, h, hu, hv, h_new = mesh.curvature, cur.h, cur.hu, cur.hv, nxt.h
-    hu_new, hv_new, law, params, g = nxt.hu, nxt.hv, physics.law, physics.params, physics.g
-    dirac, h_dry, h_zero, dt = physics.dirac, physics.h_dry, physics.h_zero, when.dt
-    dt_decide, t_new, peak_h = when.dt_decide, when.t_new, obs.peak_h
-    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
-    active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
-    n_touched = lists.n_touched
-    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
-    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
+    density, gamma_z, h = mesh.density, mesh.gamma_z, cur.h
+    hu, hv, h_new = cur.hu, cur.hv, nxt.h
+    hu_new, hv_new, g = nxt.hu, nxt.hv, physics.g
+    h_zero, active_faces, n_active = physics.h_zero, lists.active_faces, lists.n_active
+    touched, n_touched = lists.touched, lists.n_touched
     for c in range(n_touched):
         i = touched[c]
         h_new[i] = 0.0
@@ -354,6 +333,20 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
             hu_new[j] += qjx
             hv_new[j] += qjy
 
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _face_trials(mesh, physics, cur, nxt, flag, when, lists, order2):
+    """Sweep 1b of :func:`step_faces`: the trial momentum and the threshold flag of each
+    touched cell (eqs. 47, 49)."""
+    cell_area, gamma_x, gamma_y = mesh.cell_area, mesh.gamma_x, mesh.gamma_y
+    gamma_z, curvature, h = mesh.gamma_z, mesh.curvature, cur.h
+    hu, hv, h_new = cur.hu, cur.hv, nxt.h
+    hu_new, hv_new, law = nxt.hu, nxt.hv, physics.law
+    params, g, h_zero = physics.params, physics.g, physics.h_zero
+    dt, dt_decide = when.dt, when.dt_decide
+    touched, n_touched = lists.touched, lists.n_touched
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     # --- sweep 1b: trial state and threshold flags
     for c in range(n_touched):
         i = touched[c]
@@ -375,6 +368,16 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
         flag[i] = fi
         h_new[i] = 0.0
 
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _face_mass(mesh, physics, nxt, flux, transport, flag, when, lists):
+    """Sweep 2a of :func:`step_faces`: the mass through the faces that keep the rectangular
+    density (the Dirac faces of eq. 53 carry none), each cell's ``transport``. Returns the
+    volume that left through open faces."""
+    face_cells, face_length = mesh.face_cells, mesh.face_length
+    h_new, hu_new, hv_new = nxt.h, nxt.hu, nxt.hv
+    dirac, dt, active_faces = physics.dirac, when.dt, lists.active_faces
+    n_active, touched, n_touched = lists.n_active, lists.touched, lists.n_touched
     # --- sweep 2a: mass through the faces that keep the rectangular density
     outflow = 0.0
     for c in range(n_touched):
@@ -402,7 +405,25 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
             transport[j] = max(transport[j], unit)
         elif j == OUTFLOW:
             outflow += max(fh, 0.0) * dt
+    return outflow
 
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _face_finals(mesh, physics, cur, nxt, transport, flag, obs, when, lists, order2, watch):
+    """Sweep 2b of :func:`step_faces`: the new thickness, the projection of eq. 50, the
+    observers and the step's sums. Returns ``(ok, dt_limit, moving, film, clamped,
+    kinetic)``."""
+    cell_area, cfl_factor, gamma_x = mesh.cell_area, mesh.cfl_factor, mesh.gamma_x
+    gamma_y, gamma_z, curvature = mesh.gamma_y, mesh.gamma_z, mesh.curvature
+    h, hu, hv = cur.h, cur.hu, cur.hv
+    h_new, hu_new, hv_new = nxt.h, nxt.hu, nxt.hv
+    law, params, g = physics.law, physics.params, physics.g
+    h_dry, h_zero, dt = physics.h_dry, physics.h_zero, when.dt
+    t_new, peak_h, peak_speed = when.t_new, obs.peak_h, obs.peak_speed
+    arrival, last_moved = obs.arrival, obs.last_moved
+    touched, n_touched = lists.touched, lists.n_touched
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     # --- sweep 2b: new thickness, projection, observers
     inv_lim = 0.0
     moving = 0.0
@@ -414,7 +435,7 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
         area = cell_area[i]
         hn = h[i] + dt / area * h_new[i]
         if hn < 0.0:
-            return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
+            return False, 0.0, 0.0, 0.0, 0, 0.0
         speed_n = speed_of(h[i], hu[i], hv[i])
         qx = hu_new[i]
         qy = hv_new[i]
@@ -441,7 +462,37 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
         kinetic += kin
         moving += mov
         film += fil
-    return True, outflow, dt_from_inverse(inv_lim), moving, film, clamped, kinetic
+    return True, dt_from_inverse(inv_lim), moving, film, clamped, kinetic
+
+
+@njit(error_model="numpy", cache=True)
+def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, order2,
+               face_state, watch, emit):
+    """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
+
+    Only the ``n_active`` faces of ``active_faces`` (those of the wet cells) and the
+    ``n_touched`` cells of ``touched`` (their two sides) are swept: every other cell is dry,
+    receives nothing and keeps its state, so the cost follows the area the mass covers.
+
+    ``h_new`` first accumulates the trial mass rate, ``hu_new, hv_new`` the momentum rate.
+    Normal and tangential components are taken in each face's frame (rotational invariance):
+    the normal part uses the kinetic flux, the tangential velocity is carried upwind with the
+    mass. ``face_frame`` (see :class:`avflow.terrain.mesh.Mesh`) maps each cell's discharge into the
+    face frame and the flux back into the cell's own basis. ``flux[f, 0]`` is ``L_f`` times the mass flux through face f along its normal, ``flux[f, 1:5]`` the momentum it brings to side i (x, y) and side j (x, y).
+
+    Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``: ok is False when a thickness
+    would turn negative; outflow the volume that left through open faces in this step;
+    dt_limit the CFL limit of the new state; moving and film the volumes of the cells that
+    transport mass (u != 0 and a face flux above TRANSPORT_EPS h |u|) above and below h_dry;
+    ``transport`` is a per-cell work array; clamped the number of cells whose normal
+    acceleration was clamped at 0; kinetic the sum of h A |u|^2 of the new state.
+    """
+    _face_fluxes(mesh, physics, cur, nxt, flux, when, lists, order2, face_state, emit)
+    _face_trials(mesh, physics, cur, nxt, flag, when, lists, order2)
+    outflow = _face_mass(mesh, physics, nxt, flux, transport, flag, when, lists)
+    ok, lim, moving, film, clamped, kinetic = _face_finals(mesh, physics, cur, nxt, transport,
+                                                          flag, obs, when, lists, order2, watch)
+    return ok, outflow if ok else 0.0, lim, moving, film, clamped, kinetic
 
 
 @njit(error_model="numpy", cache=True)

@@ -331,7 +331,7 @@ def _end(region, ctx, loop, cur, t, steps):
         record_end(fields.stats, t, steps)
 
 
-#: Placeholders of the order-1 sweeps :func:`_advance`'s copies call (their law's copy):
+#: Placeholders of the order-1 sweeps :func:`_step`'s copies call (their law's copy):
 #: the profile's and the faces' (:mod:`avflow.numerics.face_sweep`; on threads, in the
 #: copy with threads, its step on threads)
 profile_step = None
