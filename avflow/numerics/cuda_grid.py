@@ -53,8 +53,10 @@ N_EMIT = 8
 #: Per-cell terms of the step's sums, then per row, then for the grid
 T_INV, T_KIN, T_MOV, T_FILM, T_OUT, T_CLAMPED, T_BAD = range(7)
 N_TERMS = 7
-#: Threads per block of the launches
+#: Threads per block of the launches (the simulator runs a Python thread for each, even
+#: those past the grid's end: :func:`_build` takes fewer there)
 THREADS = 256
+SIMULATOR_THREADS = 32
 
 #: What the kernels read of the grid (device arrays; those of
 #: :data:`~avflow.numerics.stepping.GridMesh`, curvature ``(3, places)``)
@@ -400,10 +402,13 @@ _KERNELS = None
 def _build():
     """The device copies of the pointwise physics and the CPU kernel's helpers, and the
     kernels (made once per process, at the first cuda run: numba.cuda is imported then)."""
-    global _KERNELS
+    global _KERNELS, THREADS
     if _KERNELS is not None:
         return _KERNELS
-    from numba import cuda
+    from numba import config, cuda
+
+    if config.ENABLE_CUDASIM:
+        THREADS = SIMULATOR_THREADS
 
     from avflow.numerics import square_grid, vectorize
     from avflow.numerics.cpu import compile_pointwise
@@ -457,8 +462,10 @@ class CudaGrid:
         self.obs = DeviceObservers(z(n, dtype=np.uint8), z(n), z(n), z(n), z(n))
         self.current = 0  # the buffer that holds the state
         self.held = None  # (the fields' arrays, the stats) as last downloaded
+        self.uploads = 0  # calls that copied the state to the device
 
     def _upload(self, fields: stepping.Fields) -> None:
+        self.uploads += 1
         cur = self.buffers[self.current]
         for dev, host in ((cur.h, fields.h), (cur.hu, fields.hu), (cur.hv, fields.hv),
                           (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
