@@ -13,16 +13,17 @@ which thread computes which cell or face, and the sums over the grid.
 One step is six launches, every cell or face of the grid (no swept region, a first
 version): what each cell emits (:func:`_emit`), the flux of every face (:func:`_faces`),
 the trial momentum and Coulomb flag of each cell (:func:`_trial`), the final update with
-Dirac faces, projection, film rule and observers (:func:`_final`), the per-row sums
-(:func:`_row_sums`), the grid's sums (:func:`_total`). The host reads seven numbers a step
+Dirac faces, projection, film rule and observers (:func:`_final`), and the grid's sums in
+two passes of a block reduction (:func:`_reduce`). The host reads seven numbers a step
 (the sums) and applies the stop rules to them with the CPU loops' own
 :func:`~avflow.numerics.stepping.record_step`; it sees the state only when a call ends
 (an output time).
 
 Compared with the CPU square-grid kernel: thickness, discharge, flags and observers are
 the same arithmetic, the grid-wide sums (moving volume, film, kinetic energy, outflow) are
-added in another order (each row left to right, then the rows bottom to top: the CPU kernel
-adds the swept columns of each row in vector lanes), so they differ by round-off; the
+added in another order (a tree per block of threads, then over the blocks: the CPU kernel
+adds the swept columns of each row in vector lanes, then the rows), so they differ by
+round-off; the
 simulator (``NUMBA_ENABLE_CUDASIM=1``) gives the CPU kernel's fields bit for bit. On a GPU,
 NVVM contracts ``a * b + c`` into fused multiply-adds (its default): fields agree to
 round-off, not bit for bit.
@@ -57,6 +58,10 @@ N_TERMS = 7
 #: those past the grid's end: :func:`_build` takes fewer there)
 THREADS = 256
 SIMULATOR_THREADS = 32
+#: Threads per block of the sums (a power of 2), and their first pass's most blocks, whose
+#: partial sums one block then adds (the simulator: a block of 8, whose barriers are slow)
+RED_THREADS = 256
+MAX_PARTIALS = 1024
 
 #: What the kernels read of the grid (device arrays; those of
 #: :data:`~avflow.numerics.stepping.GridMesh`, curvature ``(3, places)``)
@@ -68,7 +73,7 @@ DeviceState = namedtuple("DeviceState", "h hu hv")
 #: The running observers and the flags, on the device
 DeviceObservers = namedtuple("DeviceObservers", "flag peak_h peak_speed arrival last_moved")
 #: The work arrays of a step: emitted values, face fluxes, trial flags and momenta, terms
-DeviceWork = namedtuple("DeviceWork", "emit xf yf trial_flag qx qy terms rows totals")
+DeviceWork = namedtuple("DeviceWork", "emit xf yf trial_flag qx qy terms partials totals")
 #: The scalars of the physics a step reads
 Scalars = namedtuple("Scalars", "law g dirac h_dry h_zero")
 
@@ -117,7 +122,7 @@ def _retarget(fn, namespace: dict, decorate):
 # Written against the names below, which :func:`_build` binds to the device copies.
 
 emitted_state = speed_of = trial_momentum = final_momentum = observe_cell = observe = None
-step_terms = face_flux = in_face_order = cell_law = cuda = None
+step_terms = face_flux = in_face_order = cell_law = cuda = float64 = None
 
 
 def _emit(mesh, cur, emit, g, h_zero):
@@ -362,38 +367,42 @@ def _final(mesh, sc, cur, nxt, obs, work, dt, t_new):
     terms[T_BAD, i] = 1.0 if bad else 0.0
 
 
-def _row_sums(terms, rows, nx):
-    """Per row, its cells' terms added left to right (the CFL inverse: the largest)."""
-    r = cuda.grid(1)
-    ny = rows.shape[1]
-    if r >= ny:
-        return
-    base = r * nx
+def _reduce(src, dst, n):
+    """Block b's sums of the terms ``src[:, 0..n)`` into ``dst[:, b]`` (the CFL inverse:
+    the largest): each thread adds the cells ``b * RED_THREADS + t``, a grid's width apart,
+    then the block adds its threads' sums in a tree in shared memory. The order is fixed by
+    ``n`` and the launch: the same bits from run to run (not the CPU kernel's order)."""
+    part = cuda.shared.array((N_TERMS, RED_THREADS), float64)
+    t = cuda.threadIdx.x
+    b = cuda.blockIdx.x
+    stride = cuda.gridDim.x * RED_THREADS
     for k in range(N_TERMS):
-        s = 0.0
-        for c in range(nx):
-            v = terms[k, base + c]
+        acc = 0.0
+        i = b * RED_THREADS + t
+        while i < n:
+            v = src[k, i]
             if k == T_INV:
-                s = v if v > s else s
+                acc = v if v > acc else acc
             else:
-                s += v
-        rows[k, r] = s
-
-
-def _total(rows, totals):
-    """The grid's sums from the rows', bottom to top (one thread: a fixed order)."""
-    if cuda.grid(1) != 0:
-        return
-    ny = rows.shape[1]
-    for k in range(N_TERMS):
-        s = 0.0
-        for r in range(ny):
-            v = rows[k, r]
-            if k == T_INV:
-                s = v if v > s else s
-            else:
-                s += v
-        totals[k] = s
+                acc += v
+            i += stride
+        part[k, t] = acc
+    cuda.syncthreads()
+    half = RED_THREADS // 2
+    while half > 0:
+        if t < half:
+            for k in range(N_TERMS):
+                a = part[k, t]
+                v = part[k, t + half]
+                if k == T_INV:
+                    part[k, t] = v if v > a else a
+                else:
+                    part[k, t] = a + v
+        cuda.syncthreads()
+        half //= 2
+    if t == 0:
+        for k in range(N_TERMS):
+            dst[k, b] = part[k, 0]
 
 
 _KERNELS = None
@@ -402,13 +411,13 @@ _KERNELS = None
 def _build():
     """The device copies of the pointwise physics and the CPU kernel's helpers, and the
     kernels (made once per process, at the first cuda run: numba.cuda is imported then)."""
-    global _KERNELS, THREADS
+    global _KERNELS, THREADS, RED_THREADS, MAX_PARTIALS
     if _KERNELS is not None:
         return _KERNELS
-    from numba import config, cuda
+    from numba import config, cuda, float64
 
     if config.ENABLE_CUDASIM:
-        THREADS = SIMULATOR_THREADS
+        THREADS, RED_THREADS, MAX_PARTIALS = SIMULATOR_THREADS, 8, 1
 
     from avflow.numerics import square_grid, vectorize
     from avflow.numerics.cpu import compile_pointwise
@@ -419,17 +428,22 @@ def _build():
     names["in_face_order"] = _retarget(square_grid._in_face_order, names, device)
     names["cell_law"] = _retarget(vectorize.cell_law, names, device)
     names["cuda"] = cuda
+    names["float64"] = float64
     names["side_terms"] = _retarget(_side_terms, names, device)
     names["centripetal"] = _retarget(_centripetal, names, device)
     _KERNELS = {name: _retarget(fn, names, cuda.jit)
                 for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
-                                 ("final", _final), ("row_sums", _row_sums),
-                                 ("total", _total))}
+                                 ("final", _final), ("reduce", _reduce))}
     return _KERNELS
 
 
 def _blocks(n: int) -> int:
     return max(1, (n + THREADS - 1) // THREADS)
+
+
+def _partials(n: int) -> int:
+    """Blocks of the first pass of the sums over ``n`` cells."""
+    return max(1, min((n + RED_THREADS - 1) // RED_THREADS, MAX_PARTIALS))
 
 
 class CudaGrid:
@@ -457,7 +471,7 @@ class CudaGrid:
         z = cuda.device_array
         self.work = DeviceWork(z((N_EMIT, n)), z((5, self.ny, self.nx + 1)),
                                z((5, self.ny + 1, self.nx)), z(n, dtype=np.uint8), z(n), z(n),
-                               z((N_TERMS, n)), z((N_TERMS, self.ny)), z(N_TERMS))
+                               z((N_TERMS, n)), z((N_TERMS, _partials(n))), z((N_TERMS, 1)))
         self.buffers = [DeviceState(z(n), z(n), z(n)), DeviceState(z(n), z(n), z(n))]
         self.obs = DeviceObservers(z(n, dtype=np.uint8), z(n), z(n), z(n), z(n))
         self.current = 0  # the buffer that holds the state
@@ -505,7 +519,7 @@ class CudaGrid:
         cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
         n = self.n
         n_faces = self.ny * (self.nx + 1) + (self.ny + 1) * self.nx
-        bc, bf, br = _blocks(n), _blocks(n_faces), _blocks(self.ny)
+        bc, bf = _blocks(n), _blocks(n_faces)
         work, obs, m = self.work, self.obs, self.mesh
         t = stats[ST_TIME]
         status = REACHED_TARGET
@@ -524,9 +538,8 @@ class CudaGrid:
                 t_new = t_target if last else t + dt
                 k["trial"][bc, THREADS](m, sc, cur, work, dt, dt_decide)
                 k["final"][bc, THREADS](m, sc, cur, nxt, obs, work, dt, t_new)
-                k["row_sums"][br, THREADS](work.terms, work.rows, self.nx)
-                k["total"][1, 1](work.rows, work.totals)
-                sums = work.totals.copy_to_host()  # the few numbers the host sees a step
+                self._sums()
+                sums = work.totals.copy_to_host()[:, 0]  # the few numbers the host sees
                 ok = sums[T_BAD] == 0.0
                 if ok:
                     break
@@ -566,9 +579,18 @@ class CudaGrid:
             m, work.emit, work.xf, work.yf)
         k["trial"][bc, THREADS](m, sc, cur, work, 0.0, 0.0)
         k["final"][bc, THREADS](m, sc, cur, nxt, scratch, work, 0.0, 0.0)
-        k["row_sums"][_blocks(self.ny), THREADS](work.terms, work.rows, self.nx)
-        k["total"][1, 1](work.rows, work.totals)
+        self._sums()
         self.cuda.synchronize()
+
+    def _sums(self) -> None:
+        """The step's sums of the cells' terms into ``work.totals`` (two passes)."""
+        k, work = self.k, self.work
+        nb = work.partials.shape[1]
+        if nb == 1:  # one block adds them all
+            k["reduce"][1, RED_THREADS](work.terms, work.totals, self.n)
+            return
+        k["reduce"][nb, RED_THREADS](work.terms, work.partials, self.n)
+        k["reduce"][1, RED_THREADS](work.partials, work.totals, nb)
 
 
 def physics_dt(inv_lim: float) -> float:
