@@ -330,6 +330,9 @@ def _add_region_parser(sub, quiet) -> None:
                    "dask; default: one per core)")
     g.add_argument("--scheduler", help="address (tcp://host:port) or scheduler file of a "
                    "running dask scheduler (default: a local cluster)")
+    g.add_argument("--backend", choices=("cpu", "cuda"), help="where every release's time "
+                   "loop runs (the scenario block's numerics.backend; cuda: one GPU per "
+                   "worker, docs/guide/gpu.md)")
     g.set_defaults(func=_cmd_region)
 
 
@@ -341,6 +344,13 @@ def _cmd_region(args) -> int:
     if args.workers is not None and args.workers < 0:
         raise AvflowError(f"--workers must be >= 0, got {args.workers}")
     region = load_region(args.region)  # every check of the file before any release runs
+    numerics = region.scenario.get("numerics") or {}
+    if args.backend is not None and args.backend != numerics.get("backend", "cpu"):
+        import dataclasses
+
+        # the scenario block as if written so (its key too: results on another backend)
+        region = dataclasses.replace(region, scenario={
+            **region.scenario, "numerics": {**numerics, "backend": args.backend}})
     try:
         outcome = run_region(region, args.output, workers=args.workers,
                              scheduler=args.scheduler, quiet=args.quiet)
