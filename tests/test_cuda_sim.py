@@ -146,6 +146,63 @@ def test_missing_numba_cuda_or_gpu_is_one_line(tmp_path):
     assert len(real.stdout.strip().splitlines()) == 1 and "GPU" in real.stdout
 
 
+PTX_CHECK = """\
+import sys
+from types import SimpleNamespace
+import numpy as np
+from numba import typeof
+import numba.cuda.dispatcher as dispatcher
+# no driver here: the device functions ask for the GPU's compute capability
+dispatcher.get_current_device = lambda: SimpleNamespace(compute_capability=(9, 0))
+from numba import cuda
+from avflow.numerics import cuda_grid as cg
+try:
+    k = cg._build()
+    nx, ny = 6, 5
+    n = nx * ny
+    f = lambda *shape: np.zeros(shape)
+    u8, i8 = (lambda *shape: np.zeros(shape, np.uint8)), (lambda *shape: np.zeros(shape, np.int8))
+    mesh = cg.DeviceMesh(u8(n), i8(ny, nx + 1), f(ny, 4, nx + 1), f(ny, nx + 1), i8(ny + 1, nx),
+                         f(ny + 1, 4, nx), f(ny + 1, nx), f(n), f(n), f(n), f(n), f(n), f(n),
+                         f(n), f(3, n), f(1, 8))
+    st = cg.DeviceState(f(n), f(n), f(n))
+    obs = cg.DeviceObservers(u8(n), f(n), f(n), f(n), f(n))
+    work = cg.DeviceWork(f(8, n), f(5, ny, nx + 1), f(5, ny + 1, nx), u8(n), f(n), f(n),
+                         f(7, n), f(7, 1), f(7, 1))
+    sc = cg.Scalars(1, 9.81, True, 1e-3, 1e-3)
+    launches = {"emit": (mesh, st, work.emit, 9.81, 1e-3),
+                "faces": (mesh, work.emit, work.xf, work.yf),
+                "trial": (mesh, sc, st, work, 0.1, 0.1),
+                "final": (mesh, sc, st, st, obs, work, 0.1, 0.2),
+                "reduce": (work.terms, work.partials, n)}
+    fused = {}
+    for name, args in launches.items():
+        ptx, _ = cuda.compile_ptx(k[name].py_func, tuple(typeof(a) for a in args), cc=(9, 0))
+        fused[name] = ptx.count("fma.rn.f64")
+except Exception as err:  # no NVVM or NVRTC on this machine
+    if type(err).__name__ in ("NvvmSupportError", "DynamicLibNotFoundError", "CudaSupportError"):
+        print("SKIP", type(err).__name__)
+        sys.exit(0)
+    raise
+print("OK", fused)
+"""
+
+
+def test_kernels_compile_for_a_gpu():
+    """Every kernel typed and compiled to PTX for sm_90 by the real CUDA target (no GPU
+    needed, but NVVM and NVRTC: the CUDA toolkit's wheels, ``avflow[cuda]``). Emit, faces
+    and the sums fuse no multiply-add (the CPU's bits); trial and final only inside
+    libdevice's exp and log."""
+    done = subprocess.run([sys.executable, "-c", PTX_CHECK], capture_output=True, text=True,
+                          env=_child_env(False), timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    if done.stdout.startswith("SKIP"):
+        pytest.skip(f"no NVVM / NVRTC here ({done.stdout.split()[1]}): pip install "
+                    "'avflow[cuda]'")
+    fused = eval(done.stdout.split("OK", 1)[1])
+    assert fused["emit"] == fused["faces"] == fused["reduce"] == 0
+
+
 # --- the child process ----------------------------------------------------------------------
 
 def _compare(terrain, h0, law, params, targets, max_steps, **kw):

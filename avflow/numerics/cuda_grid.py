@@ -24,9 +24,10 @@ the same arithmetic, the grid-wide sums (moving volume, film, kinetic energy, ou
 added in another order (a tree per block of threads, then over the blocks: the CPU kernel
 adds the swept columns of each row in vector lanes, then the rows), so they differ by
 round-off; the
-simulator (``NUMBA_ENABLE_CUDASIM=1``) gives the CPU kernel's fields bit for bit. On a GPU,
-NVVM contracts ``a * b + c`` into fused multiply-adds (its default): fields agree to
-round-off, not bit for bit.
+simulator (``NUMBA_ENABLE_CUDASIM=1``) gives the CPU kernel's fields bit for bit. On a GPU
+the multiply-adds are not fused (:func:`_no_fused_multiply_add`), so the same should hold
+there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws may differ
+in the last bit); no GPU has run it yet.
 
 Not served (refused at load time, one line): order 2, a mass source (entrainment), meshes
 other than square grids. Cells with no wet cell around them are computed too (all cells
@@ -408,6 +409,27 @@ def _reduce(src, dst, n):
 _KERNELS = None
 
 
+def _no_fused_multiply_add() -> None:
+    """NVVM fuses ``a * b + c`` into one rounding by default (``-fma=1``); the CPU kernels
+    never do. Without the fusion a GPU gives the CPU's bits (Coulomb, Voellmy; libdevice's
+    ``exp`` and ``log`` of Pouliquen and samosAT may differ in the last bit). numba-cuda
+    has no option for it: its ``compile_ir`` is given ``fma=0`` for the whole process,
+    except where a kernel asks for fastmath."""
+    from numba.cuda.cudadrv import nvvm
+
+    if getattr(nvvm.compile_ir, "avflow_no_fma", False):
+        return
+    original = nvvm.compile_ir
+
+    def compile_ir(llvmir, **options):
+        if not options.get("fastmath"):
+            options.setdefault("fma", False)
+        return original(llvmir, **options)
+
+    compile_ir.avflow_no_fma = True
+    nvvm.compile_ir = compile_ir
+
+
 def _build():
     """The device copies of the pointwise physics and the CPU kernel's helpers, and the
     kernels (made once per process, at the first cuda run: numba.cuda is imported then)."""
@@ -418,6 +440,8 @@ def _build():
 
     if config.ENABLE_CUDASIM:
         THREADS, RED_THREADS, MAX_PARTIALS = SIMULATOR_THREADS, 8, 1
+    else:
+        _no_fused_multiply_add()
 
     from avflow.numerics import square_grid, vectorize
     from avflow.numerics.cpu import compile_pointwise
