@@ -1,5 +1,5 @@
 """The square-grid kernel on a CUDA GPU (issue 32): the CPU square-grid kernel's step,
-one GPU thread per cell or face, with the whole state resident on the device for a call.
+one GPU thread per cell or face, with the whole state resident on the device for the run.
 
 The physics is not written again here. The pointwise functions of
 :mod:`avflow.numerics.kinetic`, :mod:`avflow.numerics.physics` and the friction laws of
@@ -10,21 +10,21 @@ cell's four faces, the per-cell friction parameters) are the same Python functio
 retargeted the same way (:func:`_retarget`). What is written here is only the traversal:
 which thread computes which cell or face, and the sums over the grid.
 
-One step is six launches, every cell or face of the grid (no swept region, a first
+One step is five or six launches, every cell or face of the grid (no swept region, a first
 version): what each cell emits (:func:`_emit`), the flux of every face (:func:`_faces`),
 the trial momentum and Coulomb flag of each cell (:func:`_trial`), the final update with
 Dirac faces, projection, film rule and observers (:func:`_final`), and the grid's sums in
-two passes of a block reduction (:func:`_reduce`). The host reads seven numbers a step
+one or two passes of a block reduction (:func:`_reduce`). The host reads seven numbers a step
 (the sums) and applies the stop rules to them with the CPU loops' own
 :func:`~avflow.numerics.stepping.record_step`; it sees the state only when a call ends
-(an output time).
+(an output time), and the state stays on the device for the next call.
 
 Compared with the CPU square-grid kernel: thickness, discharge, flags and observers are
 the same arithmetic, the grid-wide sums (moving volume, film, kinetic energy, outflow) are
 added in another order (a tree per block of threads, then over the blocks: the CPU kernel
 adds the swept columns of each row in vector lanes, then the rows), so they differ by
-round-off; the
-simulator (``NUMBA_ENABLE_CUDASIM=1``) gives the CPU kernel's fields bit for bit. On a GPU
+round-off; the simulator (``NUMBA_ENABLE_CUDASIM=1``) gives the CPU kernel's fields bit
+for bit. On a GPU
 the multiply-adds are not fused (:func:`_no_fused_multiply_add`), so the same should hold
 there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws may differ
 in the last bit); no GPU has run it yet.
@@ -521,21 +521,23 @@ class CudaGrid:
                           (self.obs.last_moved, fields.last_moved)):
             host[:] = dev.copy_to_host()
 
-    def _is_held(self, fields: stepping.Fields) -> bool:
-        """Whether the device holds ``fields`` as this object left them (the same arrays
-        and statistics: nothing written to them since, by anyone using this interface)."""
+    def _is_held(self, fields: stepping.Fields, owner) -> bool:
+        """Whether the device holds ``fields`` of ``owner`` (the caller's state) as the last
+        call left them: the same owner, arrays and statistics. (A caller that writes into
+        the state's arrays between calls must pass another owner.)"""
         if self.held is None:
             return False
-        arrays, stats = self.held
-        return (all(a is b for a, b in zip(arrays, fields[:8]))
+        who, arrays, stats = self.held
+        return (who is owner and all(a is b for a, b in zip(arrays, fields[:8]))
                 and np.array_equal(stats, fields.stats))
 
     def advance(self, fields: stepping.Fields, physics: stepping.Physics,
-                run: stepping.Control) -> int:
+                run: stepping.Control, owner=None) -> int:
         """The time loop (the CPU kernel's: same arguments where they mean the same, same
-        status codes and ``stats`` slots, ``fields`` on the full ``ny x nx`` grid)."""
+        status codes and ``stats`` slots, ``fields`` on the full ``ny x nx`` grid).
+        ``owner``: the state the fields are of; None: uploaded at every call."""
         k = self.k
-        if not self._is_held(fields):
+        if owner is None or not self._is_held(fields, owner):
             self._upload(fields)
         stats = fields.stats
         sc = Scalars(int(physics.law), float(physics.g), bool(physics.dirac),
@@ -584,7 +586,7 @@ class CudaGrid:
                 break
         record_end(stats, t, steps)
         self._download(fields)
-        self.held = (tuple(fields[:8]), stats.copy())
+        self.held = (owner, tuple(fields[:8]), stats.copy())
         return status
 
 

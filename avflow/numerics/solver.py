@@ -463,7 +463,7 @@ class Solver:
         run = self._control(t_target, max_steps, stop_volume, stop_kinetic, 0, 0)
         if self._cuda is None:
             self._cuda = self._loop(1)(self._g_mesh, self._rows)
-        status = self._cuda.advance(fields, self._physics(), run)
+        status = self._cuda.advance(fields, self._physics(), run, owner=state)
         if not layout.compact:
             for name in names:
                 getattr(state, name)[:] = arrays[name][layout.place]
