@@ -499,7 +499,7 @@ class CudaGrid:
         self.buffers = [DeviceState(z(n), z(n), z(n)), DeviceState(z(n), z(n), z(n))]
         self.obs = DeviceObservers(z(n, dtype=np.uint8), z(n), z(n), z(n), z(n))
         self.current = 0  # the buffer that holds the state
-        self.held = None  # (the fields' arrays, the stats) as last downloaded
+        self.held = None  # (owner, the fields' arrays, the stats) as last downloaded
         self.uploads = 0  # calls that copied the state to the device
 
     def _upload(self, fields: stepping.Fields) -> None:
