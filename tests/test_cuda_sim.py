@@ -90,10 +90,18 @@ def test_state_stays_on_the_device_between_calls(cases):
     assert cases["plane"]["uploads"] == 1
 
 
+def test_entrainment_gives_the_cpu_answer(cases):
+    """AvaFrame's erosion energy over an erodible layer: the source hook (the CPU kernels'
+    own gain per cell) after each accepted step; the layer left, bit for bit."""
+    report = cases["entrainment"]
+    _assert_same(report)
+    assert report["equal_erodible"] and report["entrained_cpu"] > 0.0
+    assert report["entrained_cuda"] == pytest.approx(report["entrained_cpu"], rel=1e-12)
+
+
 @pytest.mark.parametrize("case,words", [
     ("order2", "it runs order 1 only, not order 2"),
     ("profile", "the mesh is not a square grid"),
-    ("entrainment", "does not run entrainment"),
 ])
 def test_what_it_does_not_serve_is_refused_in_one_line(cases, case, words):
     message = cases["refused"][case]
@@ -167,14 +175,17 @@ try:
                          f(n), f(3, n), f(1, 8))
     st = cg.DeviceState(f(n), f(n), f(n))
     obs = cg.DeviceObservers(u8(n), f(n), f(n), f(n), f(n))
+    t = cg.N_TERMS
     work = cg.DeviceWork(f(8, n), f(5, ny, nx + 1), f(5, ny + 1, nx), u8(n), f(n), f(n),
-                         f(7, n), f(7, 1), f(7, 1))
+                         f(t, n), f(t, 1), f(t, 1))
     sc = cg.Scalars(1, 9.81, True, 1e-3, 1e-3)
     launches = {"emit": (mesh, st, work.emit, 9.81, 1e-3),
                 "faces": (mesh, work.emit, work.xf, work.yf),
                 "trial": (mesh, sc, st, work, 0.1, 0.1),
                 "final": (mesh, sc, st, st, obs, work, 0.1, 0.2),
-                "reduce": (work.terms, work.partials, n)}
+                "reduce": (work.terms, work.partials, n),
+                "source": (mesh, sc, st, obs, f(n), work.terms, (0.0,) * 8,
+                           (3, 0.5, 0.0, 5000.0, 0.0, 0.0, 0.0, 1e-3, 1e-3, 9.81), 0.1, 0.2)}
     fused = {}
     for name, args in launches.items():
         ptx, _ = cuda.compile_ptx(k[name].py_func, tuple(typeof(a) for a in args), cc=(9, 0))
@@ -192,7 +203,7 @@ def test_kernels_compile_for_a_gpu():
     """Every kernel typed and compiled to PTX for sm_90 by the real CUDA target (no GPU
     needed, but NVVM and NVRTC: the CUDA toolkit's wheels, ``avflow[cuda]``). Emit, faces
     and the sums fuse no multiply-add (the CPU's bits); trial and final only inside
-    libdevice's exp and log."""
+    libdevice's exp and log (trial, final and the source read the friction laws)."""
     done = subprocess.run([sys.executable, "-c", PTX_CHECK], capture_output=True, text=True,
                           env=_child_env(False), timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -242,6 +253,8 @@ def _compare(terrain, h0, law, params, targets, max_steps, **kw):
         "at_rest": bool(np.array_equal(b.h, h0) and not b.hu.any() and not b.hv.any()
                         and np.array_equal(a.h, b.h)),
         "uploads": uploads[-1] if uploads else 0,
+        "equal_erodible": bool(np.array_equal(a.erodible, b.erodible)),
+        "entrained_cpu": float(a.stats[13]), "entrained_cuda": float(b.stats[13]),
     }
 
 
@@ -263,6 +276,7 @@ def _cases() -> dict:
 
     import numpy as np
 
+    from avflow.numerics.physics import SOURCE_EROSION_ENERGY
     from avflow.numerics.registry import KernelUnavailable
     from avflow.numerics.rheology import Law
     from avflow.numerics.solver import Solver
@@ -288,6 +302,10 @@ def _cases() -> dict:
     rows = np.tile([tan20, 0.0], (dem.n_cells, 1))
     rows[: dem.n_cells // 2, 0] = math.tan(math.radians(15.0))
     out["per_cell"] = _compare(dem, h0, Law.COULOMB, rows, (3.0,), 5, h_zero=1e-3)
+    layer = MassSource(SOURCE_EROSION_ENERGY, np.full(dem.n_cells, 0.5), (5000.0,),
+                       density_ratio=0.5)
+    out["entrainment"] = _compare(dem, h0, Law.COULOMB, (tan20,), (1.0, 3.0), 6, h_zero=1e-3,
+                                  h_dry=1e-3, source=layer)
     bowl_x = np.arange(12) * 5.0 + 2.5
     bowl_y = np.arange(10) * 5.0 + 2.5
     bx, by = np.meshgrid(bowl_x, bowl_y)
@@ -303,9 +321,6 @@ def _cases() -> dict:
                                  backend="cuda"),
         "profile": lambda: Solver(slope_profile(200.0, 10.0, 30.0), Law.COULOMB,
                                   np.array([tan20]), backend="cuda"),
-        "entrainment": lambda: Solver(
-            ter, Law.COULOMB, np.array([tan20]), backend="cuda",
-            source=MassSource(1, np.full(ter.n_cells, 0.5), (1e-3,))),
     }
     for name, attempt in attempts.items():
         try:

@@ -29,8 +29,9 @@ the multiply-adds are not fused (:func:`_no_fused_multiply_add`), so the same sh
 there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws may differ
 in the last bit); no GPU has run it yet.
 
-Not served (refused at load time, one line): order 2, a mass source (entrainment), meshes
-other than square grids. Cells with no wet cell around them are computed too (all cells
+Entrainment is the CPU kernels' own source hook (:func:`_source`: numerics.sources' gain
+per cell, after each accepted step). Not served (refused at load time, one line): order 2,
+meshes other than square grids. Cells with no wet cell around them are computed too (all cells
 traversal): their update changes nothing, and they are left out of the CFL limit, as the
 CPU kernel does by not sweeping them.
 """
@@ -45,7 +46,10 @@ import numpy as np
 
 from avflow.numerics import kinetic, physics, rheology, stepping
 from avflow.numerics.physics import DRY, FLOWING, TRANSPORT_EPS
+from avflow.numerics.physics import SOURCE_NONE
+from avflow.numerics.sources import SRC_KIND, SRC_PARAMS, SRC_RATIO, SRC_UMIN
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
+                                      ST_SOURCE,
                                       ST_TIME, record_end, record_step, step_size)
 from avflow.terrain.squaregrid import HIGH_OPEN, HIGH_WALL, INNER, KIND, LOW_OPEN, NO_FACE
 
@@ -53,8 +57,8 @@ from avflow.terrain.squaregrid import HIGH_OPEN, HIGH_WALL, INNER, KIND, LOW_OPE
 E_H, E_U1, E_U2, E_C, E_S, E_KH, E_K3, E_SPEED = range(8)
 N_EMIT = 8
 #: Per-cell terms of the step's sums, then per row, then for the grid
-T_INV, T_KIN, T_MOV, T_FILM, T_OUT, T_CLAMPED, T_BAD = range(7)
-N_TERMS = 7
+T_INV, T_KIN, T_MOV, T_FILM, T_OUT, T_CLAMPED, T_BAD, T_SOURCE = range(8)
+N_TERMS = 8
 #: Threads per block of the launches (the simulator runs a Python thread for each, even
 #: those past the grid's end: :func:`_build` takes fewer there)
 THREADS = 256
@@ -123,7 +127,7 @@ def _retarget(fn, namespace: dict, decorate):
 # Written against the names below, which :func:`_build` binds to the device copies.
 
 emitted_state = speed_of = trial_momentum = final_momentum = observe_cell = observe = None
-step_terms = face_flux = in_face_order = cell_law = cuda = float64 = None
+step_terms = face_flux = in_face_order = cell_law = cuda = float64 = gain = None
 
 
 def _emit(mesh, cur, emit, g, h_zero):
@@ -366,6 +370,22 @@ def _final(mesh, sc, cur, nxt, obs, work, dt, t_new):
     terms[T_OUT, i] = ((out_w + out_e) + out_s) + out_n if good else 0.0
     terms[T_CLAMPED, i] = cl if good else 0
     terms[T_BAD, i] = 1.0 if bad else 0.0
+    terms[T_SOURCE, i] = 0.0
+
+
+def _source(mesh, sc, nxt, obs, erodible, terms, law_row, src, dt, t_new):
+    """Per cell, after an accepted step, what it takes from its erodible layer
+    (numerics.sources' gain: the CPU kernels' own, the same bits), its volume and the new
+    inverse CFL limit into the cell's terms."""
+    i = cuda.grid(1)
+    if i >= nxt.h.size:
+        return
+    added, inv = gain(i, nxt.h, nxt.hu, nxt.hv, erodible, sc.law, mesh.params, law_row, src,
+                      dt, t_new, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z, obs.peak_h,
+                      obs.arrival)
+    old = terms[T_INV, i]
+    terms[T_INV, i] = inv if inv > old else old
+    terms[T_SOURCE, i] = added
 
 
 def _reduce(src, dst, n):
@@ -443,7 +463,7 @@ def _build():
     else:
         _no_fused_multiply_add()
 
-    from avflow.numerics import square_grid, vectorize
+    from avflow.numerics import sources, square_grid, vectorize
     from avflow.numerics.cpu import compile_pointwise
 
     device = cuda.jit(device=True)
@@ -455,9 +475,11 @@ def _build():
     names["float64"] = float64
     names["side_terms"] = _retarget(_side_terms, names, device)
     names["centripetal"] = _retarget(_centripetal, names, device)
+    names["gain"] = _retarget(sources._gain, names, device)
     _KERNELS = {name: _retarget(fn, names, cuda.jit)
                 for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
-                                 ("final", _final), ("reduce", _reduce))}
+                                 ("final", _final), ("reduce", _reduce),
+                                 ("source", _source))}
     return _KERNELS
 
 
@@ -498,6 +520,7 @@ class CudaGrid:
                                z((N_TERMS, n)), z((N_TERMS, _partials(n))), z((N_TERMS, 1)))
         self.buffers = [DeviceState(z(n), z(n), z(n)), DeviceState(z(n), z(n), z(n))]
         self.obs = DeviceObservers(z(n, dtype=np.uint8), z(n), z(n), z(n), z(n))
+        self.erodible = z(n)  # the erodible layer (read and written where there is a source)
         self.current = 0  # the buffer that holds the state
         self.held = None  # (owner, the fields' arrays, the stats) as last downloaded
         self.uploads = 0  # calls that copied the state to the device
@@ -509,8 +532,10 @@ class CudaGrid:
                           (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
                           (self.obs.peak_speed, fields.peak_speed),
                           (self.obs.arrival, fields.arrival),
-                          (self.obs.last_moved, fields.last_moved)):
-            dev.copy_to_device(np.ascontiguousarray(host))
+                          (self.obs.last_moved, fields.last_moved),
+                          (self.erodible, fields.erodible)):
+            if host.size:  # (no erodible layer without a source)
+                dev.copy_to_device(np.ascontiguousarray(host))
 
     def _download(self, fields: stepping.Fields) -> None:
         cur = self.buffers[self.current]
@@ -518,8 +543,10 @@ class CudaGrid:
                           (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
                           (self.obs.peak_speed, fields.peak_speed),
                           (self.obs.arrival, fields.arrival),
-                          (self.obs.last_moved, fields.last_moved)):
-            host[:] = dev.copy_to_host()
+                          (self.obs.last_moved, fields.last_moved),
+                          (self.erodible, fields.erodible)):
+            if host.size:
+                host[:] = dev.copy_to_host()
 
     def _is_held(self, fields: stepping.Fields, owner) -> bool:
         """Whether the device holds ``fields`` of ``owner`` (the caller's state) as the last
@@ -528,7 +555,7 @@ class CudaGrid:
         if self.held is None:
             return False
         who, arrays, stats = self.held
-        return (who is owner and all(a is b for a, b in zip(arrays, fields[:8]))
+        return (who is owner and all(a is b for a, b in zip(arrays, fields[:9]))
                 and np.array_equal(stats, fields.stats))
 
     def advance(self, fields: stepping.Fields, physics: stepping.Physics,
@@ -547,11 +574,20 @@ class CudaGrid:
         n_faces = self.ny * (self.nx + 1) + (self.ny + 1) * self.nx
         bc, bf = _blocks(n), _blocks(n_faces)
         work, obs, m = self.work, self.obs, self.mesh
+        source = physics.source
+        entraining = int(source[SRC_KIND]) != SOURCE_NONE
+        if entraining:  # what every cell's gain reads (numerics.sources._scalars)
+            p = physics.params
+            law_row = tuple(float(p[0, j]) for j in range(8))
+            src = (int(source[SRC_KIND]), float(source[SRC_RATIO]), float(source[SRC_UMIN]),
+                   float(source[SRC_PARAMS]), float(source[SRC_PARAMS + 1]),
+                   float(source[SRC_PARAMS + 2]), float(source[SRC_PARAMS + 3]),
+                   sc.h_zero, sc.h_dry, sc.g)
         t = stats[ST_TIME]
         status = REACHED_TARGET
         steps = 0
         if not t < t_target:  # a call that takes no step (the runner's warm-up): compile
-            self._warm(sc)
+            self._warm(sc, (law_row, src) if entraining else None)
         while t < t_target:
             dt, dt_decide, last = step_size(stats, cfl, t, t_target)
             cur = self.buffers[self.current]
@@ -575,6 +611,12 @@ class CudaGrid:
             if not ok:
                 status = FAILED
                 break
+            if entraining:  # the source after the accepted step, on its new state
+                k["source"][bc, THREADS](m, sc, nxt, obs, self.erodible, work.terms, law_row,
+                                         src, dt, t_new)
+                self._sums()
+                sums = work.totals.copy_to_host()[:, 0]
+                stats[ST_SOURCE] += sums[T_SOURCE]
             t = t_target if last else t + dt
             steps += 1
             self.current = 1 - self.current
@@ -586,11 +628,11 @@ class CudaGrid:
                 break
         record_end(stats, t, steps)
         self._download(fields)
-        self.held = (owner, tuple(fields[:8]), stats.copy())
+        self.held = (owner, tuple(fields[:9]), stats.copy())
         return status
 
 
-    def _warm(self, sc: Scalars) -> None:
+    def _warm(self, sc: Scalars, source=None) -> None:
         """Every kernel launched once on the state, into scratch observers and the spare
         buffer, so that the first call of a run times no compilation (numba.cuda compiles a
         kernel at its first launch); the state and its observers are left as they are."""
@@ -605,6 +647,9 @@ class CudaGrid:
             m, work.emit, work.xf, work.yf)
         k["trial"][bc, THREADS](m, sc, cur, work, 0.0, 0.0)
         k["final"][bc, THREADS](m, sc, cur, nxt, scratch, work, 0.0, 0.0)
+        if source is not None:  # ``(law_row, src)``: on the spare buffer, a scratch layer
+            k["source"][bc, THREADS](m, sc, nxt, scratch, like(self.erodible), work.terms,
+                                     source[0], source[1], 0.0, 0.0)
         self._sums()
         self.cuda.synchronize()
 

@@ -89,10 +89,9 @@ KERNELS: dict[tuple[str, str], Kernel] = {
                             _grid_refuses, _grid_loop),
     ("faces", "cpu"): Kernel("faces", "cpu", (1, 2), "any mesh by face lists, on threads",
                              _faces_refuses, _face_loop),
-    # numerics.cuda_grid: order 1, no mass source (the solver refuses entrainment on it)
+    # numerics.cuda_grid: the square-grid kernel's step at order 1
     ("grid", "cuda"): Kernel("grid", "cuda", (1,), "square grids (planes, DEMs), a GPU "
-                             "thread per cell, without entrainment", _cuda_grid_refuses,
-                             _cuda_grid_loop),
+                             "thread per cell", _cuda_grid_refuses, _cuda_grid_loop),
 }
 
 

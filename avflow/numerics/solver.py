@@ -173,8 +173,8 @@ class Solver:
     #: (both orders), the face kernel elsewhere; "faces": the face kernel everywhere (the
     #: reference); "grid": the square-grid kernel, an error where it does not apply.
     kernel: str = "auto"
-    #: where the kernels run: "cpu", or "cuda" (a GPU: square grids at order 1, no mass
-    #: source, :mod:`avflow.numerics.cuda_grid`); the kernels of
+    #: where the kernels run: "cpu", or "cuda" (a GPU: square grids at order 1,
+    #: :mod:`avflow.numerics.cuda_grid`); the kernels of
     #: :mod:`avflow.numerics.registry`
     backend: str = "cpu"
     #: a mass source and its erodible layer (:mod:`avflow.numerics.sources`); None: none
@@ -208,10 +208,6 @@ class Solver:
         self._density = density_factor(self.gravity * self.terrain.gamma_z)
         self._kernel = registry.select(self.terrain, self.order, self.kernel, self.backend)
         self._cuda = None  # the cuda backend's grid on the device, made at the first call
-        if self.backend == "cuda" and self.source is not None:
-            raise registry.KernelUnavailable(
-                "the cuda backend does not run entrainment (a mass source) yet; available: "
-                f"{registry.available('cuda')}")
         if self._kernel.name == "grid":
             layout = square_grid(self.terrain)
             if layout is not None:
