@@ -70,6 +70,9 @@ def _grid_loop(structured, order, law, parallel):
 def _cuda_grid_refuses(terrain, order):
     from avflow.numerics.cuda_grid import unavailable
 
+    # what it does not serve first, then what this machine lacks (numba-cuda, a GPU)
+    if order != 1:
+        return f"it runs order 1 only, not order {order}"
     return _grid_refuses(terrain, order) or unavailable()
 
 
