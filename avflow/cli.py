@@ -110,6 +110,8 @@ def _load_with_sets(args):
     sets = list(args.set)
     if getattr(args, "threads", None) is not None:
         sets.append(f"numerics.threads={args.threads}")
+    if getattr(args, "backend", None) is not None:
+        sets.append(f"numerics.backend={args.backend}")
     overrides = parse_overrides(sets)  # a malformed --set: exit 2 before reading
     return apply_overrides(load_scenario(args.scenario), overrides)
 
@@ -233,6 +235,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "else half of this machine's memory)")
     r.add_argument("--threads", type=int, metavar="N", help="CPU threads of the time loop "
                    "(numerics.threads; default: every core); the answer does not depend on it")
+    r.add_argument("--backend", choices=("cpu", "cuda"), help="where the time loop runs "
+                   "(numerics.backend; cuda: a GPU, square grids at order 1, "
+                   "docs/guide/gpu.md)")
     r.set_defaults(func=_cmd_run)
     e = sub.add_parser("ensemble", help="run an ensemble file (here or on dask); exit 1 if "
                                         "a member failed", parents=[quiet, sets])
@@ -251,6 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-members", type=int, metavar="N", help="refuse an ensemble of more "
                    "members (default: $AVFLOW_MAX_MEMBERS, else 10000)")
     e.add_argument("--report", action="store_true", help="write OUTDIR/report.md at the end")
+    e.add_argument("--backend", choices=("cpu", "cuda"), help="where every member's time "
+                   "loop runs (numerics.backend; cuda: one GPU per worker, docs/guide/gpu.md)")
     e.set_defaults(func=_cmd_ensemble)
     rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble",
                         parents=[quiet])
@@ -323,6 +330,9 @@ def _add_region_parser(sub, quiet) -> None:
                    "dask; default: one per core)")
     g.add_argument("--scheduler", help="address (tcp://host:port) or scheduler file of a "
                    "running dask scheduler (default: a local cluster)")
+    g.add_argument("--backend", choices=("cpu", "cuda"), help="where every release's time "
+                   "loop runs (the scenario block's numerics.backend; cuda: one GPU per "
+                   "worker, docs/guide/gpu.md)")
     g.set_defaults(func=_cmd_region)
 
 
@@ -334,6 +344,13 @@ def _cmd_region(args) -> int:
     if args.workers is not None and args.workers < 0:
         raise AvflowError(f"--workers must be >= 0, got {args.workers}")
     region = load_region(args.region)  # every check of the file before any release runs
+    numerics = region.scenario.get("numerics") or {}
+    if args.backend is not None and args.backend != numerics.get("backend", "cpu"):
+        import dataclasses
+
+        # the scenario block as if written so (its key too: results on another backend)
+        region = dataclasses.replace(region, scenario={
+            **region.scenario, "numerics": {**numerics, "backend": args.backend}})
     try:
         outcome = run_region(region, args.output, workers=args.workers,
                              scheduler=args.scheduler, quiet=args.quiet)
@@ -382,7 +399,8 @@ def _cmd_ensemble(args) -> int:
     from avflow.ensemble.orchestrate import ProgressLine
     from avflow.ensemble.spec import parse_overrides
 
-    overrides = parse_overrides(args.set)
+    overrides = parse_overrides(args.set + ([f"numerics.backend={args.backend}"]
+                                            if args.backend else []))
     # --workers N: the local cluster starts now, while the ensemble file is checked (closed
     # again if the file is refused); run_ensemble uses it, or closes it if it does not fit
     from avflow.ensemble.orchestrate import close_started, start_local_cluster

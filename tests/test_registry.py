@@ -33,7 +33,9 @@ def test_each_scene_gets_its_kernel(scene, kernel, order, expected):
 
 @pytest.mark.parametrize("scene, order, backend, words", [
     ("triangles", 1, "cpu", ["grid: the mesh is not a square grid"]),
-    ("grid", 1, "cuda", ["no kernel runs on the backend 'cuda'", "available: cpu"]),
+    ("grid", 1, "rocm", ["no kernel runs on the backend 'rocm'", "available: cpu, cuda"]),
+    ("triangles", 1, "cuda", ["grid: the mesh is not a square grid",
+                              "available: grid (square grids"]),
 ])
 def test_a_combination_no_kernel_runs_fails_at_load_in_one_line_naming_what_is_there(
         scene, order, backend, words):

@@ -10,6 +10,8 @@
   traversals of one step (profiles, face lists, square-grid rows; order 2's reconstruction);
 - :mod:`avflow.numerics.stepping`, :mod:`avflow.numerics.timeloop`: the time loops' shared
   rules (step size, stop rules, statistics) and the loop of profiles and faces;
+- :mod:`avflow.numerics.cuda_grid`: the square-grid kernel on a CUDA GPU (the same
+  pointwise physics compiled by numba-cuda; ``numerics.backend: cuda``);
 - :mod:`avflow.numerics.registry`: which kernel runs which scene, on which backend;
 - :mod:`avflow.numerics.solver`: :class:`~avflow.numerics.solver.Solver` and its state;
 - :mod:`avflow.numerics.analytic`: exact dam-break solutions to test against.

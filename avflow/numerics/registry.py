@@ -3,8 +3,9 @@ and meshes it supports, in the manner of xarray's backends. :class:`~avflow.nume
 asks :func:`select`; a combination no kernel runs fails there, at load time, with one line
 naming what is available.
 
-A new backend (a GPU) registers its kernels here with ``backend="cuda"``; a new traversal
-registers its mesh kind. Nothing else chooses a kernel.
+A backend registers its kernels here (the GPU's: ``backend="cuda"``,
+:mod:`avflow.numerics.cuda_grid`); a new traversal registers its mesh kind. Nothing else
+chooses a kernel.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ class Kernel:
     """One traversal on one backend."""
 
     name: str  #: "profile", "grid" or "faces"
-    backend: str  #: "cpu"
+    backend: str  #: "cpu" or "cuda"
     orders: tuple[int, ...]
     description: str  #: for messages: what it walks
     #: None when it runs ``(terrain, order)``, else why not (a phrase)
@@ -66,6 +67,24 @@ def _grid_loop(structured, order, law, parallel):
     return grid_loop(law, parallel, order)
 
 
+def _cuda_grid_refuses(terrain, order):
+    from avflow.numerics.cuda_grid import unavailable
+
+    # what it does not serve first, then what this machine lacks (numba-cuda, a GPU)
+    if order != 1:
+        return f"it runs order 1 only, not order {order}"
+    return _grid_refuses(terrain, order) or unavailable()
+
+
+def _cuda_grid_loop(structured, order, law, parallel):
+    from avflow.numerics.cuda_grid import loop
+
+    return loop(structured, order, law, parallel)
+
+
+#: the values of ``numerics.backend``
+BACKENDS = ("cpu", "cuda")
+
 KERNELS: dict[tuple[str, str], Kernel] = {
     ("profile", "cpu"): Kernel("profile", "cpu", (1, 2), "a profile's cells in line order",
                                _profile_refuses, _face_loop),
@@ -73,6 +92,9 @@ KERNELS: dict[tuple[str, str], Kernel] = {
                             _grid_refuses, _grid_loop),
     ("faces", "cpu"): Kernel("faces", "cpu", (1, 2), "any mesh by face lists, on threads",
                              _faces_refuses, _face_loop),
+    # numerics.cuda_grid: the square-grid kernel's step at order 1
+    ("grid", "cuda"): Kernel("grid", "cuda", (1,), "square grids (planes, DEMs), a GPU "
+                             "thread per cell", _cuda_grid_refuses, _cuda_grid_loop),
 }
 
 

@@ -173,7 +173,9 @@ class Solver:
     #: (both orders), the face kernel elsewhere; "faces": the face kernel everywhere (the
     #: reference); "grid": the square-grid kernel, an error where it does not apply.
     kernel: str = "auto"
-    #: where the kernels run: "cpu" (the kernels registered in :mod:`avflow.numerics.registry`)
+    #: where the kernels run: "cpu", or "cuda" (a GPU: square grids at order 1,
+    #: :mod:`avflow.numerics.cuda_grid`); the kernels of
+    #: :mod:`avflow.numerics.registry`
     backend: str = "cpu"
     #: a mass source and its erodible layer (:mod:`avflow.numerics.sources`); None: none
     source: MassSource | None = None
@@ -205,11 +207,16 @@ class Solver:
         self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
         self._density = density_factor(self.gravity * self.terrain.gamma_z)
         self._kernel = registry.select(self.terrain, self.order, self.kernel, self.backend)
+        self._cuda = None  # the cuda backend's grid on the device, made at the first call
         if self._kernel.name == "grid":
             layout = square_grid(self.terrain)
             if layout is not None:
                 self._setup_grid(layout)
                 return
+            if self.backend == "cuda":  # no face kernel on the GPU to fall back on
+                raise registry.KernelUnavailable(
+                    "the cuda kernel does not run this grid (its faces are not axis-aligned "
+                    f"rows); available: {registry.available(self.backend)}")
             if self.kernel == "grid":  # a grid whose faces are not in the kernel's order
                 raise registry.KernelUnavailable(
                     "the square-grid kernel does not run this grid (its faces are not "
@@ -358,6 +365,7 @@ class Solver:
             self._grid = self._g_cells = self._g_state = self._g_flag = None
             self._g_rings = self._g_mesh = self._g_order2 = None
             self._h_work = self._hu_work = self._hv_work = None
+            self._cuda = None  # the device's memory too
             self._released = True
 
     def threads_used(self) -> int:
@@ -428,6 +436,36 @@ class Solver:
             state.flag[:] = flag[layout.place]
         return STATUS_NAMES[status]
 
+    def _advance_cuda(self, state: State, t_target, stop_volume, stop_kinetic,
+                      max_steps) -> str:
+        """The time loop on the GPU (:class:`~avflow.numerics.cuda_grid.CudaGrid`, made at
+        the first call and kept: the geometry and the state stay on the device), on the
+        square-grid kernel's layout and full-grid arrays."""
+        layout = self._grid
+        names = self._grid_fields()
+        if layout.compact:
+            arrays = {}
+        else:
+            arrays = self._g_state
+            for name in names:
+                full = arrays[name]
+                full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
+                full[layout.place] = getattr(state, name)
+        flag = state.flag if layout.compact else self._g_flag
+        if not layout.compact:
+            flag.fill(DRY)
+            flag[layout.place] = state.flag
+        fields = self._fields(state, dict(arrays, flag=flag))
+        run = self._control(t_target, max_steps, stop_volume, stop_kinetic, 0, 0)
+        if self._cuda is None:
+            self._cuda = self._loop(1)(self._g_mesh, self._rows)
+        status = self._cuda.advance(fields, self._physics(), run, owner=state)
+        if not layout.compact:
+            for name in names:
+                getattr(state, name)[:] = arrays[name][layout.place]
+            state.flag[:] = flag[layout.place]
+        return STATUS_NAMES[status]
+
     def _loop(self, threads: int):
         """The compiled time loop of this solver's kernel, law and threads."""
         return self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
@@ -443,6 +481,9 @@ class Solver:
         threads = 1 if self.threads is None else self.threads_used()
         law = {"samosat": "samosAT", "velocity_weakening": "velocity-weakening"}.get(
             Law(self.law).name.lower(), Law(self.law).name.title())
+        if self._kernel.backend == "cuda":
+            return (f"the {self._kernel.name} kernel at order {self.order} with {law} "
+                    "friction on the GPU")
         return (f"the {self._kernel.name} kernel at order {self.order} with {law} friction"
                 + (f" on {threads} threads" if threads > 1 else ""))
 
@@ -509,6 +550,8 @@ class Solver:
         if self._released:
             self._setup_grid(square_grid(self.terrain))
             self._released = False
+        if self._kernel.backend == "cuda":
+            return self._advance_cuda(state, t_target, stop_volume, stop_kinetic, max_steps)
         most = self.threads_used()
         if self.threads is None and most > 1 and self._kernel.name != "profile":
             return self._advance_auto(state, t_target, stop_volume, stop_kinetic, max_steps)

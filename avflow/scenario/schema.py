@@ -998,6 +998,11 @@ class Numerics(_Model):
     """auto: the structured square-grid kernel on square grids (both orders), the face kernel
     elsewhere; faces: the general face kernel everywhere (the reference it is tested
     against); grid: the square-grid kernel, an error where it does not apply."""
+    backend: Literal["cpu", "cuda"] = "cpu"
+    """cpu: the kernels above, on this machine's cores; cuda: the square-grid kernel on a
+    CUDA GPU (``pip install 'avflow[cuda]'``; square grids at order 1;
+    anything else is refused at load time, as is a machine without a GPU). Its fields
+    agree with the CPU's to round-off (docs/guide/gpu.md)."""
 
 
 class Physics(_Model):
@@ -1227,6 +1232,8 @@ class Scenario(_Model):
         data["numerics"].pop("threads", None)
         if data["numerics"].get("kernel") == "auto":
             data["numerics"].pop("kernel")
+        if data["numerics"].get("backend") == "cpu":  # hashes as before the field
+            data["numerics"].pop("backend")
         for block in ("terrain", "release"):
             if "path" in data[block]:
                 try:

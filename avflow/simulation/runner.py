@@ -314,8 +314,9 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
                               else min_flow)
     try:
         solver = _solver(scenario, terrain, law, params, thresholds, h_max, source, forest)
-    except ValueError as err:  # numerics.kernel: grid where it does not apply
-        raise ScenarioError.at(scenario, "numerics.kernel", str(err)) from None
+    except ValueError as err:  # numerics.kernel: grid where it does not apply; the backend's
+        field = "numerics.backend" if scenario.numerics.backend != "cpu" else "numerics.kernel"
+        raise ScenarioError.at(scenario, field, str(err)) from None
     return terrain, h0, solver, thresholds
 
 
@@ -325,6 +326,7 @@ def _solver(scenario, terrain, law, params, thresholds, h_max, source=None,
                     cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
                     order=scenario.numerics.order, limiter=scenario.numerics.limiter,
                     threads=scenario.numerics.threads, kernel=scenario.numerics.kernel,
+                    backend=scenario.numerics.backend,
                     h_dry=thresholds["dry"],
                     h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]),
                     source=source, forest=forest)

@@ -1,0 +1,675 @@
+"""The square-grid kernel on a CUDA GPU (issue 32): the CPU square-grid kernel's step,
+one GPU thread per cell or face, with the whole state resident on the device for the run.
+
+The physics is not written again here. The pointwise functions of
+:mod:`avflow.numerics.kinetic`, :mod:`avflow.numerics.physics` and the friction laws of
+:mod:`avflow.numerics.rheology` are compiled with ``numba.cuda.jit(device=True)`` by the
+same :func:`avflow.numerics.cpu.compile_pointwise` that compiles them for the CPU; the
+square-grid kernel's own per-face and per-cell helpers (its face flux, its order of a
+cell's four faces, the per-cell friction parameters) are the same Python functions,
+retargeted the same way (:func:`_retarget`). What is written here is only the traversal:
+which thread computes which cell or face, and the sums over the grid.
+
+One step is five or six launches, every cell or face of the grid (no swept region, a first
+version): what each cell emits (:func:`_emit`), the flux of every face (:func:`_faces`),
+the trial momentum and Coulomb flag of each cell (:func:`_trial`), the final update with
+Dirac faces, projection, film rule and observers (:func:`_final`), and the grid's sums in
+one or two passes of a block reduction (:func:`_reduce`). The host reads seven numbers a step
+(the sums) and applies the stop rules to them with the CPU loops' own
+:func:`~avflow.numerics.stepping.record_step`; it sees the state only when a call ends
+(an output time), and the state stays on the device for the next call.
+
+Compared with the CPU square-grid kernel: thickness, discharge, flags and observers are
+the same arithmetic, the grid-wide sums (moving volume, film, kinetic energy, outflow) are
+added in another order (a tree per block of threads, then over the blocks: the CPU kernel
+adds the swept columns of each row in vector lanes, then the rows), so they differ by
+round-off; the simulator (``NUMBA_ENABLE_CUDASIM=1``) gives the CPU kernel's fields bit
+for bit. On a GPU
+the multiply-adds are not fused (:func:`_no_fused_multiply_add`), so the same should hold
+there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws may differ
+in the last bit); no GPU has run it yet.
+
+Entrainment is the CPU kernels' own source hook (:func:`_source`: numerics.sources' gain
+per cell, after each accepted step). Not served (refused at load time, one line): order 2,
+meshes other than square grids. Cells with no wet cell around them are computed too (all cells
+traversal): their update changes nothing, and they are left out of the CFL limit, as the
+CPU kernel does by not sweeping them.
+"""
+
+from __future__ import annotations
+
+import math
+import types
+from collections import namedtuple
+
+import numpy as np
+
+from avflow.numerics import kinetic, physics, rheology, stepping
+from avflow.numerics.physics import DRY, FLOWING, TRANSPORT_EPS
+from avflow.numerics.physics import SOURCE_NONE
+from avflow.numerics.sources import SRC_KIND, SRC_PARAMS, SRC_RATIO, SRC_UMIN
+from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
+                                      ST_SOURCE,
+                                      ST_TIME, record_end, record_step, step_size)
+from avflow.terrain.squaregrid import HIGH_OPEN, HIGH_WALL, INNER, KIND, LOW_OPEN, NO_FACE
+
+#: Rows of the emitted values of each cell (those of the CPU kernel's ``E_*`` lines)
+E_H, E_U1, E_U2, E_C, E_S, E_KH, E_K3, E_SPEED = range(8)
+N_EMIT = 8
+#: Per-cell terms of the step's sums, then per row, then for the grid
+T_INV, T_KIN, T_MOV, T_FILM, T_OUT, T_CLAMPED, T_BAD, T_SOURCE = range(8)
+N_TERMS = 8
+#: Threads per block of the launches (the simulator runs a Python thread for each, even
+#: those past the grid's end: :func:`_build` takes fewer there)
+THREADS = 256
+SIMULATOR_THREADS = 32
+#: Threads per block of the sums (a power of 2), and their first pass's most blocks, whose
+#: partial sums one block then adds (the simulator: a block of 8, whose barriers are slow)
+RED_THREADS = 256
+MAX_PARTIALS = 1024
+
+#: What the kernels read of the grid (device arrays; those of
+#: :data:`~avflow.numerics.stepping.GridMesh`, curvature ``(3, places)``)
+DeviceMesh = namedtuple("DeviceMesh", "valid x_code x_frame x_length y_code y_frame y_length "
+                        "cell_area inv_area cfl_factor density gamma_x gamma_y gamma_z "
+                        "curvature params")
+#: One buffer of the conserved variables on the device
+DeviceState = namedtuple("DeviceState", "h hu hv")
+#: The running observers and the flags, on the device
+DeviceObservers = namedtuple("DeviceObservers", "flag peak_h peak_speed arrival last_moved")
+#: The work arrays of a step: emitted values, face fluxes, trial flags and momenta, terms
+DeviceWork = namedtuple("DeviceWork", "emit xf yf trial_flag qx qy terms partials totals")
+#: The scalars of the physics a step reads
+Scalars = namedtuple("Scalars", "law g dirac h_dry h_zero")
+
+
+def unavailable() -> str | None:
+    """Why the cuda backend cannot run here (a phrase), or None: numba-cuda missing, or no
+    GPU (the simulator, ``NUMBA_ENABLE_CUDASIM=1``, counts as one)."""
+    try:
+        from numba import cuda
+    except ImportError:
+        return "numba-cuda is not installed (pip install 'avflow[cuda]')"
+    try:
+        if not cuda.is_available():
+            return "no CUDA GPU or driver found (numba.cuda.is_available() is False)"
+    except Exception as err:  # a broken driver: one line, not a traceback
+        return f"the CUDA driver failed: {str(err).splitlines()[0] if str(err) else err}"
+    return None
+
+
+def _plain_rheology():
+    """The friction laws as plain Python, in a module object of their own (rheology's are
+    Numba CPU dispatchers): their ``py_func``, with the constants they read."""
+    plain = types.ModuleType(rheology.__name__)
+    for name in ("friction", "law_friction", "pouliquen_mu", "velocity_weakening_mu",
+                 "samosat_drag_factor"):
+        setattr(plain, name, getattr(rheology, name).py_func)
+    for name in ("COULOMB", "POULIQUEN", "VOELLMY", "SAMOSAT", "VELOCITY_WEAKENING",
+                 "PER_CELL", "math"):
+        setattr(plain, name, getattr(rheology, name))
+    return plain
+
+
+def _retarget(fn, namespace: dict, decorate):
+    """``fn`` (a Python function or a Numba dispatcher's) compiled by ``decorate``, its
+    globals those of its module with ``namespace`` over them: the CPU kernel's helpers call
+    the device copies of the pointwise functions."""
+    py = getattr(fn, "py_func", fn)
+    scope = dict(py.__globals__)
+    scope.update(namespace)
+    copy = types.FunctionType(py.__code__, scope, py.__name__, py.__defaults__, py.__closure__)
+    copy.__qualname__, copy.__module__, copy.__doc__ = py.__qualname__, py.__module__, py.__doc__
+    return decorate(copy)
+
+
+# --- the traversal: one thread per cell (or face) ------------------------------------------
+# Written against the names below, which :func:`_build` binds to the device copies.
+
+emitted_state = speed_of = trial_momentum = final_momentum = observe_cell = observe = None
+step_terms = face_flux = in_face_order = cell_law = cuda = float64 = gain = None
+
+
+def _emit(mesh, cur, emit, g, h_zero):
+    """Per cell, what it emits through its faces at time n and its speed (physics'
+    emitted_state and speed_of: the CPU kernel's emitted_cell, the same bits)."""
+    i = cuda.grid(1)
+    n = cur.h.size
+    if i >= n:
+        return
+    h, q1, q2 = cur.h[i], cur.hu[i], cur.hv[i]
+    e0, e1, e2, e3, e4, e5, e6 = emitted_state(h, q1, q2, h_zero, g * mesh.gamma_z[i],
+                                               mesh.density[i])
+    emit[E_H, i] = e0
+    emit[E_U1, i] = e1
+    emit[E_U2, i] = e2
+    emit[E_C, i] = e3
+    emit[E_S, i] = e4
+    emit[E_KH, i] = e5
+    emit[E_K3, i] = e6
+    emit[E_SPEED, i] = speed_of(h, q1, q2)
+
+
+def _faces(mesh, emit, xf, yf):
+    """Per face, its flux ``(fh, qix, qiy, qjx, qjy)``: the CPU kernel's face flux, the owner
+    beyond a boundary face (HIGH_*: the east or north cell), zero on a NO_FACE."""
+    k = cuda.grid(1)
+    ny, nx1 = mesh.x_code.shape
+    nx = nx1 - 1
+    n_x = ny * nx1
+    if k < n_x:
+        r = k // nx1
+        c = k - r * nx1
+        code = mesh.x_code[r, c]
+        frame = mesh.x_frame
+        length = mesh.x_length[r, c]
+        out = xf
+        col = c
+        row = r
+        a = r * nx + c - 1  # the first (west) cell, the second (east) one
+        b = r * nx + c
+    else:
+        k -= n_x
+        if k >= (ny + 1) * nx:
+            return
+        r = k // nx
+        c = k - r * nx
+        code = mesh.y_code[r, c]
+        frame = mesh.y_frame
+        length = mesh.y_length[r, c]
+        out = yf
+        col = c
+        row = r
+        a = (r - 1) * nx + c  # the south cell, the north one
+        b = r * nx + c
+    kind = code & KIND
+    if kind == NO_FACE:
+        for m in range(5):
+            out[m, row, col] = 0.0
+        return
+    if kind == INNER:
+        f0, f1, f2, f3, f4 = face_flux(
+            code, emit[E_H, a], emit[E_U1, a], emit[E_U2, a], emit[E_C, a], emit[E_S, a],
+            emit[E_KH, a], emit[E_K3, a], emit[E_H, b], emit[E_U1, b], emit[E_U2, b],
+            emit[E_C, b], emit[E_S, b], emit[E_KH, b], emit[E_K3, b], frame[row, 0, col],
+            frame[row, 1, col], frame[row, 2, col], frame[row, 3, col], length)
+    else:
+        o = b if kind >= HIGH_WALL else a  # the face's owner
+        f0, f1, f2, f3, f4 = face_flux(
+            code, emit[E_H, o], emit[E_U1, o], emit[E_U2, o], emit[E_C, o], emit[E_S, o],
+            emit[E_KH, o], emit[E_K3, o], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+            frame[row, 0, col], frame[row, 1, col], frame[row, 2, col], frame[row, 3, col],
+            length)
+    out[0, row, col] = f0
+    out[1, row, col] = f1
+    out[2, row, col] = f2
+    out[3, row, col] = f3
+    out[4, row, col] = f4
+
+
+def _side_terms(mesh, xf, yf, r, c):
+    """A cell's four side terms (mass, x, y), W, E, S, N, as the CPU kernel's: a face brings
+    +F_j to its second cell and -F_i to its first."""
+    w_in = (mesh.x_code[r, c] & KIND) == INNER
+    s_in = (mesh.y_code[r, c] & KIND) == INNER
+    return ((xf[0, r, c] if w_in else -xf[0, r, c]), (xf[3, r, c] if w_in else -xf[1, r, c]),
+            (xf[4, r, c] if w_in else -xf[2, r, c]),
+            -xf[0, r, c + 1], -xf[1, r, c + 1], -xf[2, r, c + 1],
+            (yf[0, r, c] if s_in else -yf[0, r, c]), (yf[3, r, c] if s_in else -yf[1, r, c]),
+            (yf[4, r, c] if s_in else -yf[2, r, c]),
+            -yf[0, r + 1, c], -yf[1, r + 1, c], -yf[2, r + 1, c])
+
+
+side_terms = None
+
+
+def _centripetal(mesh, i, u1, u2):
+    """u.K.u of cell i (physics.centripetal_accel, from the emitted velocity)."""
+    k = mesh.curvature
+    return k[0, i] * u1 * u1 + 2.0 * k[1, i] * u1 * u2 + k[2, i] * u2 * u2
+
+
+centripetal = None
+
+
+def _trial(mesh, sc, cur, work, dt, dt_decide):
+    """Per cell, the flux divergence, the trial momentum of eq. 47 and the flag of eq. 49
+    (physics.trial_momentum); a dry cell keeps its momentum sum for the final update."""
+    i = cuda.grid(1)
+    n = cur.h.size
+    if i >= n:
+        return
+    nx = mesh.x_code.shape[1] - 1
+    r = i // nx
+    c = i - r * nx
+    xf, yf, emit = work.xf, work.yf, work.emit
+    wm, wx, wy, e_m, ex, ey, sm, sx, sy, nm, nx_, ny_ = side_terms(mesh, xf, yf, r, c)
+    mx = in_face_order(0.0, wx, ex, sx, nx_)
+    my = in_face_order(0.0, wy, ey, sy, ny_)
+    mh = in_face_order(0.0, wm, e_m, sm, nm)
+    ia = mesh.inv_area[i]
+    u1 = emit[E_U1, i]
+    u2 = emit[E_U2, i]
+    p = mesh.params
+    pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(
+        sc.law, p, i, p[0, 0], p[0, 1], p[0, 2], p[0, 3], p[0, 4], p[0, 5], p[0, 6], p[0, 7])
+    h = cur.h[i]
+    qx, qy, fi = trial_momentum(h, sc.h_zero, emit[E_SPEED, i], cur.hu[i], cur.hv[i],
+                                mh * ia, mx * ia, my * ia, dt, dt_decide, mesh.gamma_x[i],
+                                mesh.gamma_y[i], mesh.gamma_z[i], centripetal(mesh, i, u1, u2),
+                                sc.law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, sc.g, False)
+    dry = h <= sc.h_zero
+    work.qx[i] = mx if dry else qx
+    work.qy[i] = my if dry else qy
+    work.trial_flag[i] = DRY if (mesh.valid[i] == 0 or dry) else fi
+
+
+def _final(mesh, sc, cur, nxt, obs, work, dt, t_new):
+    """Per cell, the final update (the CPU kernel's _final_cells, its two loops one after
+    the other): mass through the faces that are not Dirac, the projection, the flags, the
+    observers, and the cell's terms of the step's sums (``work.terms``)."""
+    i = cuda.grid(1)
+    n = cur.h.size
+    if i >= n:
+        return
+    nx = mesh.x_code.shape[1] - 1
+    r = i // nx
+    c = i - r * nx
+    xf, yf, emit, fl = work.xf, work.yf, work.emit, work.trial_flag
+    g, h_zero = sc.g, sc.h_zero
+    inside = mesh.valid[i] != 0
+    fi = fl[i]
+    w_code, e_code = mesh.x_code[r, c], mesh.x_code[r, c + 1]
+    s_code, n_code = mesh.y_code[r, c], mesh.y_code[r + 1, c]
+    w_in = (w_code & KIND) == INNER
+    e_in = (e_code & KIND) == INNER
+    s_in = (s_code & KIND) == INNER
+    n_in = (n_code & KIND) == INNER
+    # a boundary ghost shares its cell's flag
+    f_w = fl[i - 1] if w_in else fi
+    f_e = fl[i + 1] if e_in else fi
+    f_s = fl[i - nx] if s_in else fi
+    f_n = fl[i + nx] if n_in else fi
+    wm, wx, wy, e_m, ex, ey, sm, sx, sy, nm, nx_, ny_ = side_terms(mesh, xf, yf, r, c)
+    area = mesh.cell_area[i]
+    h_old = cur.h[i]
+    qx = work.qx[i]
+    qy = work.qy[i]
+    gz = mesh.gamma_z[i]
+    speed_n = emit[E_SPEED, i]
+    u1 = emit[E_U1, i]
+    u2 = emit[E_U2, i]
+    # Dirac faces (eqs. 51-53): both sides at zero temperature
+    cold = sc.dirac and (fi != FLOWING)
+    d_w = cold and (f_w != FLOWING)
+    d_e = cold and (f_e != FLOWING)
+    d_s = cold and (f_s != FLOWING)
+    d_n = cold and (f_n != FLOWING)
+    acc = in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
+                        0.0 if d_s else sm, 0.0 if d_n else nm)
+    hn = h_old + dt / area * acc
+    good = inside and (hn >= 0.0)
+    bad = inside and (hn < 0.0)
+    any_dirac = d_w or d_e or d_s or d_n
+    if any_dirac:  # what those faces brought to the trial's sum, taken back in face order
+        qx_b = in_face_order(qx, -wx if d_w else 0.0, -ex if d_e else 0.0,
+                             -sx if d_s else 0.0, -nx_ if d_n else 0.0)
+        qy_b = in_face_order(qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
+                             -sy if d_s else 0.0, -ny_ if d_n else 0.0)
+    else:
+        qx_b = qx
+        qy_b = qy
+    if fi == DRY:
+        qx = dt * (qx_b / area + g * hn * mesh.gamma_x[i])
+        qy = dt * (qy_b / area + g * hn * mesh.gamma_y[i])
+    p = mesh.params
+    pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(
+        sc.law, p, i, p[0, 0], p[0, 1], p[0, 2], p[0, 3], p[0, 4], p[0, 5], p[0, 6], p[0, 7])
+    qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz,
+                                centripetal(mesh, i, u1, u2), sc.law, pc0, pc1, pc2, pc3,
+                                pc4, pc5, pc6, pc7, g, h_old, False)
+    if inside:
+        obs.flag[i] = fi
+    h_w = hn if good else h_old
+    qx = qx if good else 0.0
+    qy = qy if good else 0.0
+    nxt.h[i] = h_w
+    nxt.hu[i] = qx
+    nxt.hv[i] = qy
+    # the observers and the sums, from what was written
+    speed, inv_i = observe_cell(h_w, math.sqrt(qx * qx + qy * qy), mesh.cfl_factor[i], gz, g)
+    (obs.peak_h[i], obs.peak_speed[i], obs.arrival[i], obs.last_moved[i]) = observe(
+        good, h_w, speed, t_new, sc.h_dry, obs.peak_h[i], obs.peak_speed[i], obs.arrival[i],
+        obs.last_moved[i])
+    len_w, len_e = mesh.x_length[r, c], mesh.x_length[r, c + 1]
+    len_s, len_n = mesh.y_length[r, c], mesh.y_length[r + 1, c]
+    limit = TRANSPORT_EPS * h_w * speed_n
+    carried = (((not d_w) and (abs(wm) > limit * len_w))
+               or ((not d_e) and (abs(e_m) > limit * len_e))
+               or ((not d_s) and (abs(sm) > limit * len_s))
+               or ((not d_n) and (abs(nm) > limit * len_n)))
+    moves = good and (speed > 0.0) and ((speed_n == 0.0) or carried)
+    # the CFL limit counts the cells the CPU kernel sweeps: wet, or by a wet cell
+    eh = emit[E_H]
+    touched = ((eh[i] > 0.0) or (w_in and eh[i - 1] > 0.0) or (e_in and eh[i + 1] > 0.0)
+               or (s_in and eh[i - nx] > 0.0) or (n_in and eh[i + nx] > 0.0))
+    kin, mov, film = step_terms(h_w, area, speed, moves, sc.h_dry)
+    open_w = ((w_code & KIND) == HIGH_OPEN) and (not d_w) and (wm < 0.0)
+    open_e = ((e_code & KIND) == LOW_OPEN) and (not d_e) and (e_m < 0.0)
+    open_s = ((s_code & KIND) == HIGH_OPEN) and (not d_s) and (sm < 0.0)
+    open_n = ((n_code & KIND) == LOW_OPEN) and (not d_n) and (nm < 0.0)
+    out_w = -wm * dt if open_w else 0.0
+    out_e = -e_m * dt if open_e else 0.0
+    out_s = -sm * dt if open_s else 0.0
+    out_n = -nm * dt if open_n else 0.0
+    terms = work.terms
+    terms[T_INV, i] = inv_i if (good and touched) else 0.0
+    terms[T_KIN, i] = kin if good else 0.0
+    terms[T_MOV, i] = mov
+    terms[T_FILM, i] = film
+    terms[T_OUT, i] = ((out_w + out_e) + out_s) + out_n if good else 0.0
+    terms[T_CLAMPED, i] = cl if good else 0
+    terms[T_BAD, i] = 1.0 if bad else 0.0
+    terms[T_SOURCE, i] = 0.0
+
+
+def _source(mesh, sc, nxt, obs, erodible, terms, law_row, src, dt, t_new):
+    """Per cell, after an accepted step, what it takes from its erodible layer
+    (numerics.sources' gain: the CPU kernels' own, the same bits), its volume and the new
+    inverse CFL limit into the cell's terms."""
+    i = cuda.grid(1)
+    if i >= nxt.h.size:
+        return
+    added, inv = gain(i, nxt.h, nxt.hu, nxt.hv, erodible, sc.law, mesh.params, law_row, src,
+                      dt, t_new, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z, obs.peak_h,
+                      obs.arrival)
+    old = terms[T_INV, i]
+    terms[T_INV, i] = inv if inv > old else old
+    terms[T_SOURCE, i] = added
+
+
+def _reduce(src, dst, n):
+    """Block b's sums of the terms ``src[:, 0..n)`` into ``dst[:, b]`` (the CFL inverse:
+    the largest): each thread adds the cells ``b * RED_THREADS + t``, a grid's width apart,
+    then the block adds its threads' sums in a tree in shared memory. The order is fixed by
+    ``n`` and the launch: the same bits from run to run (not the CPU kernel's order)."""
+    part = cuda.shared.array((N_TERMS, RED_THREADS), float64)
+    t = cuda.threadIdx.x
+    b = cuda.blockIdx.x
+    stride = cuda.gridDim.x * RED_THREADS
+    for k in range(N_TERMS):
+        acc = 0.0
+        i = b * RED_THREADS + t
+        while i < n:
+            v = src[k, i]
+            if k == T_INV:
+                acc = v if v > acc else acc
+            else:
+                acc += v
+            i += stride
+        part[k, t] = acc
+    cuda.syncthreads()
+    half = RED_THREADS // 2
+    while half > 0:
+        if t < half:
+            for k in range(N_TERMS):
+                a = part[k, t]
+                v = part[k, t + half]
+                if k == T_INV:
+                    part[k, t] = v if v > a else a
+                else:
+                    part[k, t] = a + v
+        cuda.syncthreads()
+        half //= 2
+    if t == 0:
+        for k in range(N_TERMS):
+            dst[k, b] = part[k, 0]
+
+
+_KERNELS = None
+
+
+def _no_fused_multiply_add() -> None:
+    """NVVM fuses ``a * b + c`` into one rounding by default (``-fma=1``); the CPU kernels
+    never do. Without the fusion a GPU gives the CPU's bits (Coulomb, Voellmy; libdevice's
+    ``exp`` and ``log`` of Pouliquen and samosAT may differ in the last bit). numba-cuda
+    has no option for it: its ``compile_ir`` is given ``fma=0`` for the whole process,
+    except where a kernel asks for fastmath."""
+    from numba.cuda.cudadrv import nvvm
+
+    if getattr(nvvm.compile_ir, "avflow_no_fma", False):
+        return
+    original = nvvm.compile_ir
+
+    def compile_ir(llvmir, **options):
+        if not options.get("fastmath"):
+            options.setdefault("fma", False)
+        return original(llvmir, **options)
+
+    compile_ir.avflow_no_fma = True
+    nvvm.compile_ir = compile_ir
+
+
+def _build():
+    """The device copies of the pointwise physics and the CPU kernel's helpers, and the
+    kernels (made once per process, at the first cuda run: numba.cuda is imported then)."""
+    global _KERNELS, THREADS, RED_THREADS, MAX_PARTIALS
+    if _KERNELS is not None:
+        return _KERNELS
+    from numba import config, cuda, float64
+
+    if config.ENABLE_CUDASIM:
+        THREADS, RED_THREADS, MAX_PARTIALS = SIMULATOR_THREADS, 8, 1
+    else:
+        _no_fused_multiply_add()
+
+    from avflow.numerics import sources, square_grid, vectorize
+    from avflow.numerics.cpu import compile_pointwise
+
+    device = cuda.jit(device=True)
+    names = compile_pointwise((kinetic, physics, _plain_rheology()), device)
+    names["face_flux"] = _retarget(square_grid._face_flux, names, device)
+    names["in_face_order"] = _retarget(square_grid._in_face_order, names, device)
+    names["cell_law"] = _retarget(vectorize.cell_law, names, device)
+    names["cuda"] = cuda
+    names["float64"] = float64
+    names["side_terms"] = _retarget(_side_terms, names, device)
+    names["centripetal"] = _retarget(_centripetal, names, device)
+    names["gain"] = _retarget(sources._gain, names, device)
+    _KERNELS = {name: _retarget(fn, names, cuda.jit)
+                for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
+                                 ("final", _final), ("reduce", _reduce),
+                                 ("source", _source))}
+    return _KERNELS
+
+
+def _blocks(n: int) -> int:
+    return max(1, (n + THREADS - 1) // THREADS)
+
+
+def _partials(n: int) -> int:
+    """Blocks of the first pass of the sums over ``n`` cells."""
+    return max(1, min((n + RED_THREADS - 1) // RED_THREADS, MAX_PARTIALS))
+
+
+class CudaGrid:
+    """A solver's grid on the device: the geometry uploaded once, the state uploaded at the
+    first call and kept there from call to call (downloaded at the end of each call, which
+    the runner makes at output times); :meth:`advance` is the CPU kernel's time loop."""
+
+    def __init__(self, mesh: stepping.GridMesh, params: np.ndarray):
+        from numba import cuda
+
+        self.k = _build()
+        self.cuda = cuda
+        self.nx, self.ny = int(mesh.nx), int(mesh.ny)
+        n = self.nx * self.ny
+        self.n = n
+        to = cuda.to_device
+        self.mesh = DeviceMesh(
+            to(np.ascontiguousarray(mesh.valid)), to(np.ascontiguousarray(mesh.x_code)),
+            to(np.ascontiguousarray(mesh.x_frame)), to(np.ascontiguousarray(mesh.x_length)),
+            to(np.ascontiguousarray(mesh.y_code)), to(np.ascontiguousarray(mesh.y_frame)),
+            to(np.ascontiguousarray(mesh.y_length)), to(mesh.cell_area), to(mesh.inv_area),
+            to(mesh.cfl_factor), to(mesh.density), to(mesh.gamma_x), to(mesh.gamma_y),
+            to(mesh.gamma_z), to(np.ascontiguousarray(mesh.curvature)),
+            to(np.ascontiguousarray(params, dtype=np.float64).reshape(-1, params.shape[-1])))
+        z = cuda.device_array
+        self.work = DeviceWork(z((N_EMIT, n)), z((5, self.ny, self.nx + 1)),
+                               z((5, self.ny + 1, self.nx)), z(n, dtype=np.uint8), z(n), z(n),
+                               z((N_TERMS, n)), z((N_TERMS, _partials(n))), z((N_TERMS, 1)))
+        self.buffers = [DeviceState(z(n), z(n), z(n)), DeviceState(z(n), z(n), z(n))]
+        self.obs = DeviceObservers(z(n, dtype=np.uint8), z(n), z(n), z(n), z(n))
+        self.erodible = z(n)  # the erodible layer (read and written where there is a source)
+        self.current = 0  # the buffer that holds the state
+        self.held = None  # (owner, the fields' arrays, the stats) as last downloaded
+        self.uploads = 0  # calls that copied the state to the device
+
+    def _upload(self, fields: stepping.Fields) -> None:
+        self.uploads += 1
+        cur = self.buffers[self.current]
+        for dev, host in ((cur.h, fields.h), (cur.hu, fields.hu), (cur.hv, fields.hv),
+                          (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
+                          (self.obs.peak_speed, fields.peak_speed),
+                          (self.obs.arrival, fields.arrival),
+                          (self.obs.last_moved, fields.last_moved),
+                          (self.erodible, fields.erodible)):
+            if host.size:  # (no erodible layer without a source)
+                dev.copy_to_device(np.ascontiguousarray(host))
+
+    def _download(self, fields: stepping.Fields) -> None:
+        cur = self.buffers[self.current]
+        for dev, host in ((cur.h, fields.h), (cur.hu, fields.hu), (cur.hv, fields.hv),
+                          (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
+                          (self.obs.peak_speed, fields.peak_speed),
+                          (self.obs.arrival, fields.arrival),
+                          (self.obs.last_moved, fields.last_moved),
+                          (self.erodible, fields.erodible)):
+            if host.size:
+                host[:] = dev.copy_to_host()
+
+    def _is_held(self, fields: stepping.Fields, owner) -> bool:
+        """Whether the device holds ``fields`` of ``owner`` (the caller's state) as the last
+        call left them: the same owner, arrays and statistics. (A caller that writes into
+        the state's arrays between calls must pass another owner.)"""
+        if self.held is None:
+            return False
+        who, arrays, stats = self.held
+        return (who is owner and all(a is b for a, b in zip(arrays, fields[:9]))
+                and np.array_equal(stats, fields.stats))
+
+    def advance(self, fields: stepping.Fields, physics: stepping.Physics,
+                run: stepping.Control, owner=None) -> int:
+        """The time loop (the CPU kernel's: same arguments where they mean the same, same
+        status codes and ``stats`` slots, ``fields`` on the full ``ny x nx`` grid).
+        ``owner``: the state the fields are of; None: uploaded at every call."""
+        k = self.k
+        if owner is None or not self._is_held(fields, owner):
+            self._upload(fields)
+        stats = fields.stats
+        sc = Scalars(int(physics.law), float(physics.g), bool(physics.dirac),
+                     float(physics.h_dry), float(physics.h_zero))
+        cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
+        n = self.n
+        n_faces = self.ny * (self.nx + 1) + (self.ny + 1) * self.nx
+        bc, bf = _blocks(n), _blocks(n_faces)
+        work, obs, m = self.work, self.obs, self.mesh
+        source = physics.source
+        entraining = int(source[SRC_KIND]) != SOURCE_NONE
+        if entraining:  # what every cell's gain reads (numerics.sources._scalars)
+            p = physics.params
+            law_row = tuple(float(p[0, j]) for j in range(8))
+            src = (int(source[SRC_KIND]), float(source[SRC_RATIO]), float(source[SRC_UMIN]),
+                   float(source[SRC_PARAMS]), float(source[SRC_PARAMS + 1]),
+                   float(source[SRC_PARAMS + 2]), float(source[SRC_PARAMS + 3]),
+                   sc.h_zero, sc.h_dry, sc.g)
+        t = stats[ST_TIME]
+        status = REACHED_TARGET
+        steps = 0
+        if not t < t_target:  # a call that takes no step (the runner's warm-up): compile
+            self._warm(sc, (law_row, src) if entraining else None)
+        while t < t_target:
+            dt, dt_decide, last = step_size(stats, cfl, t, t_target)
+            cur = self.buffers[self.current]
+            nxt = self.buffers[1 - self.current]
+            # what cells emit and the face fluxes depend on the state alone: once a step
+            k["emit"][bc, THREADS](m, cur, work.emit, sc.g, sc.h_zero)
+            k["faces"][bf, THREADS](m, work.emit, work.xf, work.yf)
+            ok = False
+            for _ in range(MAX_RETRIES):
+                t_new = t_target if last else t + dt
+                k["trial"][bc, THREADS](m, sc, cur, work, dt, dt_decide)
+                k["final"][bc, THREADS](m, sc, cur, nxt, obs, work, dt, t_new)
+                self._sums()
+                sums = work.totals.copy_to_host()[:, 0]  # the few numbers the host sees
+                ok = sums[T_BAD] == 0.0
+                if ok:
+                    break
+                dt *= 0.5
+                last = False
+                stats[ST_RETRIES] += 1
+            if not ok:
+                status = FAILED
+                break
+            if entraining:  # the source after the accepted step, on its new state
+                k["source"][bc, THREADS](m, sc, nxt, obs, self.erodible, work.terms, law_row,
+                                         src, dt, t_new)
+                self._sums()
+                sums = work.totals.copy_to_host()[:, 0]
+                stats[ST_SOURCE] += sums[T_SOURCE]
+            t = t_target if last else t + dt
+            steps += 1
+            self.current = 1 - self.current
+            status = record_step(stats, dt, physics_dt(sums[T_INV]), sums[T_MOV],
+                                 sums[T_FILM], sums[T_KIN], int(sums[T_CLAMPED]),
+                                 sums[T_OUT], run.stop_volume, run.stop_kinetic, steps,
+                                 max_steps)
+            if status != REACHED_TARGET:
+                break
+        record_end(stats, t, steps)
+        self._download(fields)
+        self.held = (owner, tuple(fields[:9]), stats.copy())
+        return status
+
+
+    def _warm(self, sc: Scalars, source=None) -> None:
+        """Every kernel launched once on the state, into scratch observers and the spare
+        buffer, so that the first call of a run times no compilation (numba.cuda compiles a
+        kernel at its first launch); the state and its observers are left as they are."""
+        k, m, work = self.k, self.mesh, self.work
+        cur = self.buffers[self.current]
+        nxt = self.buffers[1 - self.current]
+        like = self.cuda.device_array_like
+        scratch = DeviceObservers(*(like(a) for a in self.obs))
+        bc = _blocks(self.n)
+        k["emit"][bc, THREADS](m, cur, work.emit, sc.g, sc.h_zero)
+        k["faces"][_blocks(self.ny * (self.nx + 1) + (self.ny + 1) * self.nx), THREADS](
+            m, work.emit, work.xf, work.yf)
+        k["trial"][bc, THREADS](m, sc, cur, work, 0.0, 0.0)
+        k["final"][bc, THREADS](m, sc, cur, nxt, scratch, work, 0.0, 0.0)
+        if source is not None:  # ``(law_row, src)``: on the spare buffer, a scratch layer
+            k["source"][bc, THREADS](m, sc, nxt, scratch, like(self.erodible), work.terms,
+                                     source[0], source[1], 0.0, 0.0)
+        self._sums()
+        self.cuda.synchronize()
+
+    def _sums(self) -> None:
+        """The step's sums of the cells' terms into ``work.totals`` (two passes)."""
+        k, work = self.k, self.work
+        nb = work.partials.shape[1]
+        if nb == 1:  # one block adds them all
+            k["reduce"][1, RED_THREADS](work.terms, work.totals, self.n)
+            return
+        k["reduce"][nb, RED_THREADS](work.terms, work.partials, self.n)
+        k["reduce"][1, RED_THREADS](work.partials, work.totals, nb)
+
+
+def physics_dt(inv_lim: float) -> float:
+    """The CFL limit of the step's largest inverse limit (physics.dt_from_inverse)."""
+    return physics.dt_from_inverse(float(inv_lim))
+
+
+def loop(structured, order, law, parallel):
+    """The registry's ``loop`` of the cuda kernel: the class that runs it (there is no one
+    compiled loop to hand out: the kernels compile at the first launch)."""
+    return CudaGrid
