@@ -1208,7 +1208,7 @@ def _loops() -> dict:
                 heun = (specialize(_order2_step, suffix, _stage=stage) if order2 else None)
                 names = dict(ORDER2=order2, _stage=stage, order2_step=heun,
                              add_span=SPAN[kind])
-                hooks = {f"region_{hook}": specialize(fn, suffix, **names)
+                hooks = {f"region_{hook}": specialize(fn, suffix, inline="always", **names)
                          for hook, fn in (("start", _grid_start), ("before", _grid_before),
                                           ("step", _grid_step), ("source", _grid_source),
                                           ("after", _grid_after), ("end", _grid_end))}

@@ -503,7 +503,8 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
                 names["faces_step_threads"] = _FACES_THREADS[kind]
     if parallel:
         suffix += "_parallel"
-    hooks = {f"region_{hook}": specialize(fn, suffix, STRUCTURED=structured, ORDER2=order2,
+    hooks = {f"region_{hook}": specialize(fn, suffix, inline="always", STRUCTURED=structured,
+                                          ORDER2=order2,
                                           PARALLEL=parallel,
                                           order2_faces=ORDER2_FACES[parallel], **names)
              for hook, fn in (("start", _start), ("before", _before), ("step", _step),

@@ -155,7 +155,8 @@ def law_label(kind: int) -> str:
     return {COULOMB: "coulomb", VOELLMY: "voellmy"}.get(kind, "any")
 
 
-def specialize(fn, suffix: str, parallel: bool = False, nrt: bool = True, **names):
+def specialize(fn, suffix: str, parallel: bool = False, nrt: bool = True,
+               inline: str = "never", **names):
     """``fn`` compiled as a copy named ``fn.__name__ + suffix`` whose globals ``names`` are
     replaced (constants Numba then folds, branches it drops before typing, or the copies of
     what it calls). Its own name: Numba's cache files are named after the function (name
@@ -171,7 +172,8 @@ def specialize(fn, suffix: str, parallel: bool = False, nrt: bool = True, **name
     copy.__module__ = fn.__module__
     copy.__doc__ = fn.__doc__
     # nrt=False: no reference counting (see :func:`by_law`)
-    return njit(error_model="numpy", cache=True, parallel=parallel, _nrt=nrt)(copy)
+    return njit(error_model="numpy", cache=True, parallel=parallel, _nrt=nrt,
+                inline=inline)(copy)
 
 
 def by_law(fn, law: int | None, label: str, nrt: bool = True, **names):
