@@ -387,6 +387,32 @@ class Solver:
             cores = os.cpu_count() or 1
         return max(1, min(self.threads or cores, numba.config.NUMBA_NUM_THREADS))
 
+    def _on_grid(self, state: State) -> stepping.Fields:
+        """The state as the square-grid kernels (CPU and GPU) take it: its own arrays on a
+        compact layout, else copied into the full-grid arrays (0 off the DEM, NaN for the
+        times, DRY flags). The state's own flags: the kernel writes those of the cells it
+        sweeps and keeps the others (a flag buffer kept by the solver gave a second state
+        the flags the first had left where the second never swept)."""
+        layout = self._grid
+        if layout.compact:
+            return self._fields(state, {"flag": state.flag})
+        arrays = self._g_state
+        for name in self._grid_fields():
+            full = arrays[name]
+            full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
+            full[layout.place] = getattr(state, name)
+        self._g_flag.fill(DRY)
+        self._g_flag[layout.place] = state.flag
+        return self._fields(state, dict(arrays, flag=self._g_flag))
+
+    def _off_grid(self, state: State, fields: stepping.Fields) -> None:
+        """The kernel's answer back into ``state`` where it ran on the full-grid arrays."""
+        layout = self._grid
+        if not layout.compact:
+            for name in self._grid_fields():
+                getattr(state, name)[:] = getattr(fields, name)[layout.place]
+            state.flag[:] = fields.flag[layout.place]
+
     def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps,
                       threads):
         """The time loop on the square-grid kernel, on ``threads`` (see :meth:`advance`)."""
@@ -401,27 +427,11 @@ class Solver:
             # blocks handed out one at a time, not split evenly up front: a thread that the
             # system deschedules (a busy machine) then holds up one block, not its share
             chunk = numba.set_parallel_chunksize(1)
-        names = self._grid_fields()
-        if layout.compact:
-            arrays = {}
-        else:
-            arrays = self._g_state
-            for name in names:
-                full = arrays[name]
-                full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
-                full[layout.place] = getattr(state, name)
         # ring buffers of the kernel's blocks, a set per thread, made once (each step made
         # its own before: 0.7-1 ms a step on a map 2000 cells wide)
         if self._g_rings is None or self._g_rings.emit.shape[0] < threads:
             self._g_rings = _rings(self.threads_used(), layout.nx, self.order == 2)
-        # the state's own flags: the kernel writes those of the cells it sweeps and keeps
-        # the others (a flag buffer kept by the solver gave a second state the flags the
-        # first had left where the second never swept)
-        flag = state.flag if layout.compact else self._g_flag
-        if not layout.compact:
-            flag.fill(DRY)
-            flag[layout.place] = state.flag
-        fields = self._fields(state, dict(arrays, flag=flag))
+        fields = self._on_grid(state)
         run = self._control(t_target, max_steps, stop_volume, stop_kinetic,
                             *self._parallel_from)
         work = GridWork(self._h_work, self._hu_work, self._hv_work, self._g_rings,
@@ -430,10 +440,7 @@ class Solver:
                                      threads)
         if chunk is not None:
             numba.set_parallel_chunksize(chunk)
-        if not layout.compact:
-            for name in names:
-                getattr(state, name)[:] = arrays[name][layout.place]
-            state.flag[:] = flag[layout.place]
+        self._off_grid(state, fields)
         return STATUS_NAMES[status]
 
     def _advance_cuda(self, state: State, t_target, stop_volume, stop_kinetic,
@@ -441,29 +448,12 @@ class Solver:
         """The time loop on the GPU (:class:`~avflow.numerics.cuda_grid.CudaGrid`, made at
         the first call and kept: the geometry and the state stay on the device), on the
         square-grid kernel's layout and full-grid arrays."""
-        layout = self._grid
-        names = self._grid_fields()
-        if layout.compact:
-            arrays = {}
-        else:
-            arrays = self._g_state
-            for name in names:
-                full = arrays[name]
-                full.fill(np.nan if name in ("arrival", "last_moved") else 0.0)
-                full[layout.place] = getattr(state, name)
-        flag = state.flag if layout.compact else self._g_flag
-        if not layout.compact:
-            flag.fill(DRY)
-            flag[layout.place] = state.flag
-        fields = self._fields(state, dict(arrays, flag=flag))
+        fields = self._on_grid(state)
         run = self._control(t_target, max_steps, stop_volume, stop_kinetic, 0, 0)
         if self._cuda is None:
             self._cuda = self._loop(1)(self._g_mesh, self._rows)
         status = self._cuda.advance(fields, self._physics(), run, owner=state)
-        if not layout.compact:
-            for name in names:
-                getattr(state, name)[:] = arrays[name][layout.place]
-            state.flag[:] = flag[layout.place]
+        self._off_grid(state, fields)
         return STATUS_NAMES[status]
 
     def _loop(self, threads: int):
