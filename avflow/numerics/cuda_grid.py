@@ -164,8 +164,6 @@ def _faces(mesh, emit, xf, yf):
         frame = mesh.x_frame
         length = mesh.x_length[r, c]
         out = xf
-        col = c
-        row = r
         a = r * nx + c - 1  # the first (west) cell, the second (east) one
         b = r * nx + c
     else:
@@ -178,33 +176,31 @@ def _faces(mesh, emit, xf, yf):
         frame = mesh.y_frame
         length = mesh.y_length[r, c]
         out = yf
-        col = c
-        row = r
         a = (r - 1) * nx + c  # the south cell, the north one
         b = r * nx + c
     kind = code & KIND
     if kind == NO_FACE:
         for m in range(5):
-            out[m, row, col] = 0.0
+            out[m, r, c] = 0.0
         return
     if kind == INNER:
         f0, f1, f2, f3, f4 = face_flux(
             code, emit[E_H, a], emit[E_U1, a], emit[E_U2, a], emit[E_C, a], emit[E_S, a],
             emit[E_KH, a], emit[E_K3, a], emit[E_H, b], emit[E_U1, b], emit[E_U2, b],
-            emit[E_C, b], emit[E_S, b], emit[E_KH, b], emit[E_K3, b], frame[row, 0, col],
-            frame[row, 1, col], frame[row, 2, col], frame[row, 3, col], length)
+            emit[E_C, b], emit[E_S, b], emit[E_KH, b], emit[E_K3, b], frame[r, 0, c],
+            frame[r, 1, c], frame[r, 2, c], frame[r, 3, c], length)
     else:
         o = b if kind >= HIGH_WALL else a  # the face's owner
         f0, f1, f2, f3, f4 = face_flux(
             code, emit[E_H, o], emit[E_U1, o], emit[E_U2, o], emit[E_C, o], emit[E_S, o],
             emit[E_KH, o], emit[E_K3, o], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-            frame[row, 0, col], frame[row, 1, col], frame[row, 2, col], frame[row, 3, col],
+            frame[r, 0, c], frame[r, 1, c], frame[r, 2, c], frame[r, 3, c],
             length)
-    out[0, row, col] = f0
-    out[1, row, col] = f1
-    out[2, row, col] = f2
-    out[3, row, col] = f3
-    out[4, row, col] = f4
+    out[0, r, c] = f0
+    out[1, r, c] = f1
+    out[2, r, c] = f2
+    out[3, r, c] = f3
+    out[4, r, c] = f4
 
 
 def _side_terms(mesh, xf, yf, r, c):
