@@ -41,9 +41,24 @@ class Progress:
 
 
 def _compiling(what: str) -> None:
-    from avflow.numerics.registry import notify_compiling
+    from avflow.numerics.compiling import notify_compiling
 
     notify_compiling(what)
+
+
+def _announce_compiles(args) -> None:
+    """Ensembles, regions and calibrations: one line on stderr when this process compiles
+    kernels, and how long it took (quiet with -q)."""
+    if not args.quiet:
+        from avflow.numerics.compiling import announce
+
+        announce()
+
+
+def _compiled(seconds: float) -> None:
+    from avflow.numerics.compiling import notify_compiled
+
+    notify_compiled(seconds)
 
 
 def summary_line(ds) -> str:
@@ -146,7 +161,8 @@ def _cmd_run(args) -> int:
                 try:
                     result = simulate(scenario, progress=progress,
                                       max_memory=args.max_memory, snapshots=stream,
-                                      on_compile=None if args.quiet else _compiling)
+                                      on_compile=None if args.quiet else _compiling,
+                                      on_compiled=None if args.quiet else _compiled)
                 finally:
                     progress.close()
                 if result.status not in SUCCESS_STATUSES:  # exit 1 writes nothing
@@ -344,6 +360,7 @@ def _cmd_region(args) -> int:
     if args.workers is not None and args.workers < 0:
         raise AvflowError(f"--workers must be >= 0, got {args.workers}")
     region = load_region(args.region)  # every check of the file before any release runs
+    _announce_compiles(args)
     numerics = region.scenario.get("numerics") or {}
     if args.backend is not None and args.backend != numerics.get("backend", "cpu"):
         import dataclasses
@@ -375,6 +392,7 @@ def _cmd_calibrate(args) -> int:
     if args.workers is not None and args.workers < 0:
         raise AvflowError(f"--workers must be >= 0, got {args.workers}")
     calibration = load_calibration(args.calibration)  # every check before any run
+    _announce_compiles(args)
     result = calibrate(calibration, args.output, workers=args.workers,
                        scheduler=args.scheduler, quiet=args.quiet)
     if not args.quiet:
@@ -419,6 +437,7 @@ def _cmd_ensemble(args) -> int:
         close_started(starting)
         raise
     out = Path(args.output)
+    _announce_compiles(args)
     say = (lambda *a, **k: None) if args.quiet else print
     say(f"{ensemble.name}: {len(ensemble.members)} members -> {out}")
     progress = ProgressLine(len(ensemble.members), quiet=args.quiet)

@@ -89,3 +89,50 @@ def test_the_square_grid_loops_can_be_cached():
                       *(_hook(loop, name) for name in HOOKS)):
             for compiled in sweep.overloads.values():
                 assert not compiled.library.has_dynamic_globals, (sweep, parallel)
+
+
+def test_a_misspelt_placeholder_is_refused_not_ignored():
+    """A copy's replacement for a global its function never reads would leave the original
+    in place without a word: refused, for one function and for a group."""
+    from avflow.numerics.vectorize import UnknownPlaceholder, shared_names, specialize
+
+    def uses_order2():
+        return ORDER2  # noqa: F821 - a placeholder, filled in the copy
+
+    with pytest.raises(UnknownPlaceholder, match="reads no global named ORDR2"):
+        specialize(uses_order2, "_x", ORDR2=True)
+    assert specialize(uses_order2, "_y", ORDER2=True).py_func() is True
+    with pytest.raises(UnknownPlaceholder, match="reads a global named PARALEL"):
+        shared_names({"a": uses_order2}, ORDER2=True, PARALEL=True)
+    assert shared_names({"a": uses_order2, "b": lambda: 0}, ORDER2=1) == {"a": {"ORDER2": 1},
+                                                                        "b": {}}
+
+
+def test_the_kernel_cache_is_shared_by_every_checkout(tmp_path):
+    """Two copies of the package at different places put a kernel's compiled files in the
+    same per-user folder (Numba's own locators name it after the path on disk: each clone
+    compiled everything again)."""
+    import shutil
+    import subprocess
+    import sys
+
+    package = Path(numerics.__file__).resolve().parents[1]
+    code = ("import avflow.numerics as n; from avflow.numerics import kinetic, kernels; "
+            "print(kernels.step_faces._cache._cache_path); print(n.kernel_cache_dir()); "
+            "print(n.__file__)")
+    seen = []
+    for place in ("a", "b"):
+        root = tmp_path / place
+        shutil.copytree(package, root / "avflow",
+                        ignore=shutil.ignore_patterns("__pycache__"))
+        env = {**os.environ, "PYTHONPATH": str(root), "AVFLOW_CACHE_DIR": str(tmp_path / "c")}
+        env.pop("NUMBA_CACHE_DIR", None)
+        done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                              text=True, cwd=root, timeout=300)
+        assert done.returncode == 0, done.stderr
+        path, folder, imported = done.stdout.split()
+        assert Path(imported).is_relative_to(root), imported  # the copy, not this checkout
+        assert Path(path) == Path(folder) / "numerics", (path, folder)
+        assert Path(folder).parent == tmp_path / "c"
+        seen.append(path)
+    assert seen[0] == seen[1]

@@ -20,8 +20,12 @@ Numba's cache of compiled kernels (``cache=True``) checks only the file that def
 function, not the functions it inlines from other files: after a change to ``kinetic.py``
 alone, the time loops of ``kernels.py`` came back from the cache with the old half fluxes.
 So the cache goes to a folder named after a digest of every file the kernels are compiled
-from (:func:`kernel_cache_dir`), unless ``NUMBA_CACHE_DIR`` is set: a changed file, a new
-version, is a new folder, compiled afresh, and the folders of other versions are removed.
+from, Numba's and Python's versions and the processor (:func:`kernel_cache_dir`): a changed
+file, a new version, is a new folder, compiled afresh. The folder is per user, not per
+checkout (``$AVFLOW_CACHE_DIR``, else ``$XDG_CACHE_HOME/avflow`` or ``~/.cache/avflow``),
+and a function's files inside it are named after its place in the package, not on disk
+(:class:`SharedLocator`): every clone and virtual environment of one version shares what
+the first one compiled. ``NUMBA_CACHE_DIR``, where set, is used as Numba uses it.
 """
 
 from __future__ import annotations
@@ -41,46 +45,108 @@ _KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/physics.py", "numerics/cpu.p
                    "terrain/mesh.py", "terrain/squaregrid.py")
 
 
+_PACKAGE = Path(__file__).resolve().parents[1]
+
+#: Folders of other versions unused this long are removed (another clone may still use one)
+_STALE_DAYS = 30
+
+
+def cache_root() -> Path:
+    """Where avflow keeps compiled kernels for this user: ``$AVFLOW_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/avflow``, else ``~/.cache/avflow``."""
+    chosen = os.environ.get("AVFLOW_CACHE_DIR")
+    if chosen:
+        return Path(chosen).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base).expanduser() / "avflow"
+
+
 def kernel_cache_dir() -> Path:
-    """``avflow/numerics/__pycache__/kernels-<digest>``: the digest of the kernels' sources."""
-    package = Path(__file__).resolve().parents[1]
+    """``<cache_root>/kernels-<digest>``: the digest of the kernels' sources, of Numba's and
+    Python's versions and of the processor's architecture."""
+    import platform
+    import sys
+
+    from numba import __version__ as numba_version
+
     digest = hashlib.sha256()
     for name in _KERNEL_SOURCES:
         digest.update(name.encode())
-        digest.update((package / name).read_bytes())
-    return Path(__file__).resolve().parent / "__pycache__" / f"kernels-{digest.hexdigest()[:16]}"
+        digest.update((_PACKAGE / name).read_bytes())
+    digest.update(f"{numba_version} {sys.version} {platform.machine()}".encode())
+    return cache_root() / f"kernels-{digest.hexdigest()[:16]}"
 
 
 def _prune(current: Path) -> None:
-    """Remove the cache folders of other versions of the sources (``kernels-<digest>``
-    beside ``current``): each edit or upgrade made one, some 5 MB, and none was ever read
-    again. Best effort: a folder that cannot be removed stays."""
+    """Remove the folders of other versions (``kernels-<digest>`` beside ``current``) unused
+    for :data:`_STALE_DAYS` days, and the ones older versions kept inside the package. Best
+    effort: a folder that cannot be removed stays."""
     import shutil
+    import time
 
+    now = time.time()
+    try:
+        os.utime(current)  # in use: not stale for the other clones' pruning
+    except OSError:
+        pass
     for folder in current.parent.glob("kernels-*"):
-        if folder.name != current.name and folder.is_dir():
+        try:
+            stale = now - folder.stat().st_mtime > _STALE_DAYS * 86400
+        except OSError:
+            continue
+        if folder.name != current.name and folder.is_dir() and stale:
             shutil.rmtree(folder, ignore_errors=True)
+    for folder in (Path(__file__).resolve().parent / "__pycache__").glob("kernels-*"):
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _shared_locator(folder: Path):
+    """A Numba cache locator that puts the compiled files of this package's functions in
+    ``folder``, under their module's folder *in the package* (``numerics/``), wherever the
+    checkout lies; Numba's own locators name the folder after the path on disk, so each
+    clone compiled everything again. Numba checks each file's content hash, as before."""
+    from numba.core import caching, config
+
+    class SharedLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
+        def __init__(self, py_func, py_file):
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            inside = Path(py_file).resolve().parent.relative_to(_PACKAGE)
+            self._cache_path = str(folder / inside)
+
+        def get_cache_path(self):
+            return self._cache_path
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if config.CACHE_DIR:  # NUMBA_CACHE_DIR: the user's choice stands
+                return None
+            try:
+                Path(py_file).resolve().relative_to(_PACKAGE)
+            except (ValueError, OSError):  # another package's function: Numba's locators
+                return None
+            # None where the folder cannot be written: Numba's own locators then
+            return super().from_function(py_func, py_file)
+
+    return SharedLocator
 
 
 def _import_kernels() -> None:
-    """Import the kernel modules with Numba's cache folder set to :func:`kernel_cache_dir`
-    (where their dispatchers look is fixed when they are decorated), then put the setting
-    back: other packages' cached functions in the same process keep their own folders."""
-    from numba.core import config
+    """Put :func:`_shared_locator` first among Numba's cache locators (where a dispatcher
+    caches is fixed when it is decorated), then import the kernel modules."""
+    from numba.core import caching
 
-    saved = config.CACHE_DIR
-    if not os.environ.get("NUMBA_CACHE_DIR"):  # else the user's choice stands
-        try:
-            folder = kernel_cache_dir()
-            config.CACHE_DIR = str(folder)
-            _prune(folder)
-        except OSError:  # sources unreadable (a zipped install): Numba's own locations
-            pass
     try:
-        from avflow.numerics import (cpu, kernels, reconstruction,  # noqa: F401
-                                     rheology, square_grid, timeloop)
-    finally:
-        config.CACHE_DIR = saved
+        folder = kernel_cache_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+        _prune(folder)
+    except OSError:  # sources unreadable or no writable cache: Numba's own locations
+        folder = None
+    locators = caching.CacheImpl._locator_classes
+    if folder is not None and not any(c.__name__ == "SharedLocator" for c in locators):
+        locators.insert(0, _shared_locator(folder))
+    from avflow.numerics import (cpu, kernels, reconstruction,  # noqa: F401
+                                 rheology, square_grid, timeloop)
 
 
 _import_kernels()

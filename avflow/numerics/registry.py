@@ -10,9 +10,7 @@ chooses a kernel.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 #: the values of ``numerics.kernel``: auto picks the fastest kernel that supports the scene
@@ -132,20 +130,3 @@ def select(terrain, order: int, kernel: str = "auto", backend: str = "cpu") -> K
         why.append(f"{name}: {reason}")
     raise KernelUnavailable(f"no {backend} kernel runs this scene at order {order} "
                             f"({'; '.join(why)}); available: {available(backend)}")
-
-
-def is_cached(dispatcher) -> bool:
-    """Whether ``dispatcher`` is compiled in this process or has machine code in Numba's
-    cache on disk (its index file): False means a first run compiles it."""
-    if getattr(dispatcher, "signatures", None):
-        return True
-    cache = getattr(dispatcher, "_cache", None)
-    index = getattr(getattr(cache, "_cache_file", None), "_index_path", None)
-    return bool(index) and Path(index).is_file()
-
-
-def notify_compiling(what: str, stream=None) -> None:
-    """One line on stderr: the kernels of ``what`` are being compiled for this machine."""
-    print(f"avflow: compiling {what} for this machine (the first run of this kind takes "
-          "15 to 70 s more; the next ones load it from the cache)", file=stream or sys.stderr,
-          flush=True)

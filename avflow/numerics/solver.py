@@ -461,11 +461,6 @@ class Solver:
         return self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
                                  threads > 1 and self._kernel.name != "profile")
 
-    def kernels_cached(self) -> bool:
-        """Whether this solver's time loop is compiled already (in this process, or in
-        Numba's cache on disk): False means that its first call compiles it."""
-        return registry.is_cached(self._loop(1 if self.threads is None else self.threads_used()))
-
     def describe_kernel(self) -> str:
         """What runs this solver, for the user: kernel, order, law, threads."""
         threads = 1 if self.threads is None else self.threads_used()

@@ -65,7 +65,7 @@ from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, cell_law, friction_law, in_select,
                                        law_kind, law_label, line_max, line_sum, noalias,
-                                       out_select, specialize)
+                                       out_select, shared_names, specialize)
 from avflow.terrain.squaregrid import (HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -1210,12 +1210,13 @@ def _loops() -> dict:
                              add_span=SPAN[kind])
                 # inlined into the loop (compiled once there), but for the step: inlined,
                 # order 2 ran 8% slower (measured, docs/performance.md)
-                hooks = {f"region_{hook}": specialize(fn, suffix, **names,
+                fns = {"start": _grid_start, "before": _grid_before, "step": _grid_step,
+                       "source": _grid_source, "after": _grid_after, "end": _grid_end}
+                given = shared_names(fns, **names)
+                hooks = {f"region_{hook}": specialize(fn, suffix, **given[hook],
                                                       inline="never" if hook == "step"
                                                       else "always")
-                         for hook, fn in (("start", _grid_start), ("before", _grid_before),
-                                          ("step", _grid_step), ("source", _grid_source),
-                                          ("after", _grid_after), ("end", _grid_end))}
+                         for hook, fn in fns.items()}
                 loops[kind, parallel, order2] = specialize(advance, suffix, **hooks)
     return loops
 

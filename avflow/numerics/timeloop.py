@@ -33,7 +33,7 @@ from avflow.numerics.loop import advance
 from avflow.numerics.sources import add_listed, add_span
 from avflow.numerics.stepping import (STAMPS_PER_STEP, ST_SOURCE, Conserved, Lists,
                                       Observers, end_loop, record_end)
-from avflow.numerics.vectorize import law_kind, law_label, specialize
+from avflow.numerics.vectorize import law_kind, law_label, shared_names, specialize
 
 
 #: The face kernel's lists and what :func:`relist` works in (:func:`list_work`): the wet
@@ -503,12 +503,12 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
                 names["faces_step_threads"] = _FACES_THREADS[kind]
     if parallel:
         suffix += "_parallel"
-    hooks = {f"region_{hook}": specialize(fn, suffix, inline="always", STRUCTURED=structured,
-                                          ORDER2=order2,
-                                          PARALLEL=parallel,
-                                          order2_faces=ORDER2_FACES[parallel], **names)
-             for hook, fn in (("start", _start), ("before", _before), ("step", _step),
-                              ("source", _source), ("after", _after), ("end", _end))}
+    fns = {"start": _start, "before": _before, "step": _step, "source": _source,
+           "after": _after, "end": _end}
+    given = shared_names(fns, STRUCTURED=structured, ORDER2=order2, PARALLEL=parallel,
+                         order2_faces=ORDER2_FACES[parallel], **names)
+    hooks = {f"region_{hook}": specialize(fn, suffix, inline="always", **given[hook])
+             for hook, fn in fns.items()}
     return specialize(advance, suffix, **hooks)
 
 

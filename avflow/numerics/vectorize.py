@@ -155,6 +155,25 @@ def law_label(kind: int) -> str:
     return {COULOMB: "coulomb", VOELLMY: "voellmy"}.get(kind, "any")
 
 
+class UnknownPlaceholder(NameError):
+    """A copy asked to replace a global its function never reads (a misspelt name)."""
+
+
+#: Globals :func:`by_law` replaces in every copy, whether or not the function reads them
+_OPTIONAL = frozenset({"friction_law"})
+
+
+def shared_names(fns: dict, **names) -> dict:
+    """``names`` shared out among the functions ``fns`` (key -> function): each gets those
+    its code reads; a name that none of them reads is :class:`UnknownPlaceholder`."""
+    read = {key: set(fn.__code__.co_names) for key, fn in fns.items()}
+    unread = sorted(set(names) - set().union(*read.values()))
+    if unread:
+        raise UnknownPlaceholder(f"none of {', '.join(fn.__qualname__ for fn in fns.values())} "
+                                 f"reads a global named {', '.join(unread)}: nothing to replace")
+    return {key: {k: v for k, v in names.items() if k in read[key]} for key in fns}
+
+
 def specialize(fn, suffix: str, parallel: bool = False, nrt: bool = True,
                inline: str = "never", **names):
     """``fn`` compiled as a copy named ``fn.__name__ + suffix`` whose globals ``names`` are
@@ -163,7 +182,14 @@ def specialize(fn, suffix: str, parallel: bool = False, nrt: bool = True,
     and line), not after its globals or flags, so two copies under one name would load each
     other's machine code (a "serial" sweep once ran on the thread pool that way). Make the
     copies as the module is imported: Numba fixes a dispatcher's cache folder then
-    (:mod:`avflow.numerics`)."""
+    (:mod:`avflow.numerics`).
+
+    Every name in ``names`` must be a global that ``fn``'s code reads: a misspelt name would
+    otherwise leave the original in place, silently (:class:`UnknownPlaceholder`)."""
+    unknown = sorted(set(names) - set(fn.__code__.co_names) - _OPTIONAL)
+    if unknown:
+        raise UnknownPlaceholder(f"{fn.__module__}.{fn.__qualname__} reads no global named "
+                                 f"{', '.join(unknown)}: nothing to replace")
     namespace = dict(fn.__globals__)
     namespace.update(names)
     copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + suffix,

@@ -21,6 +21,7 @@ from avflow.errors import AvflowWarning, Problem, RunFailed, ScenarioError
 from avflow.terrain.release import ReleaseError, initial_thickness, release_crs
 from avflow.numerics.physics import (SOURCE_EROSION_ENERGY, SOURCE_EXPONENTIAL,
                                      SOURCE_SHEAR_THRESHOLD)
+from avflow.numerics import compiling
 from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
 from avflow.numerics.sources import MassSource
@@ -416,11 +417,13 @@ def _failure(scenario, t: float, reason: str) -> str:
 
 def simulate(scenario, progress: Callable[[float, float], None] | None = None, *,
              max_memory=None, snapshots: Snapshots | None = None,
-             on_compile: Callable[[str], None] | None = None) -> RunResult:
+             on_compile: Callable[[str], None] | None = None,
+             on_compiled: Callable[[float], None] | None = None) -> RunResult:
     """Run a validated scenario to its end time or until the mass stops.
 
-    ``progress(t, t_end)`` is called after every output time; ``on_compile(what)`` before
-    the kernels are compiled, where they are neither in this process nor in Numba's cache. A non-finite state (h, hu,
+    ``progress(t, t_end)`` is called after every output time; ``on_compile(what)`` as
+    Numba starts compiling kernels that are neither in this process nor in the kernel cache,
+    ``on_compiled(seconds)`` after the run where it did. A non-finite state (h, hu,
     hv, checked at every output time, or the mass balance) or a step that cannot keep
     h >= 0 raises :class:`~avflow.errors.RunFailed`: a blow-up is never a result.
     ``snapshots`` records the output times (default: a new :class:`Snapshots`, every field
@@ -442,40 +445,42 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
     entraining = solver.source is not None
     if entraining:
         snaps.entrained_volume.append(0.0)
-    if on_compile is not None and not solver.kernels_cached():
-        on_compile(solver.describe_kernel())
-    compile_time = first_use + warm_up(solver, state, scenario.time.max_steps, **stop)
-    started = _time.perf_counter()
-    recording = 0.0  # s storing snapshots (copies, or writes to the file): not the loop's
-    k = 1
-    time_to_stop = np.nan
-    while True:
-        target = min(k * every, t_end)
-        status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
-        before = _time.perf_counter()
-        snaps.record(state, state.statistics.moving_volume, terrain)
-        if entraining:
-            snaps.entrained_volume.append(solver.entrained_volume(state))
-        recording += _time.perf_counter() - before
-        failure = _non_finite(state, terrain)
-        if status == "failed" and failure is None:
-            failure = (f"no time step kept h >= 0 after {MAX_RETRIES} halvings "
-                       f"(time.cfl {scenario.time.cfl:g})")
-        if failure is not None:
-            status = "failed"
-            break
-        if progress is not None:
-            progress(state.t, t_end)
-        if status == "stopped":
-            # A mass that never moved (no cell ever had a speed) was at rest from the release.
-            time_to_stop = state.t if state.peak_speed.any() else 0.0
-            still = state.statistics.moving_volume
-            status = AT_REST if by_volume or still <= REST_FRACTION * v0 else ENDED_BY_RULE
-            break
-        if status != "running" or target >= t_end:
-            status = "completed" if status == "running" else status
-            break
-        k += 1
+    # Numba compiles here only what is neither loaded nor in the kernel cache: one line then
+    with compiling.watch(on_compile, solver.describe_kernel) as compiled:
+        compile_time = first_use + warm_up(solver, state, scenario.time.max_steps, **stop)
+        if compiled.compiled and on_compiled is not None:
+            on_compiled(compiled.seconds)
+        started = _time.perf_counter()
+        recording = 0.0  # s storing snapshots (copies, or writes to the file): not the loop's
+        k = 1
+        time_to_stop = np.nan
+        while True:
+            target = min(k * every, t_end)
+            status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
+            before = _time.perf_counter()
+            snaps.record(state, state.statistics.moving_volume, terrain)
+            if entraining:
+                snaps.entrained_volume.append(solver.entrained_volume(state))
+            recording += _time.perf_counter() - before
+            failure = _non_finite(state, terrain)
+            if status == "failed" and failure is None:
+                failure = (f"no time step kept h >= 0 after {MAX_RETRIES} halvings "
+                           f"(time.cfl {scenario.time.cfl:g})")
+            if failure is not None:
+                status = "failed"
+                break
+            if progress is not None:
+                progress(state.t, t_end)
+            if status == "stopped":
+                # A mass that never moved (no cell ever had a speed) was at rest from the release.
+                time_to_stop = state.t if state.peak_speed.any() else 0.0
+                still = state.statistics.moving_volume
+                status = AT_REST if by_volume or still <= REST_FRACTION * v0 else ENDED_BY_RULE
+                break
+            if status != "running" or target >= t_end:
+                status = "completed" if status == "running" else status
+                break
+            k += 1
     wall = _time.perf_counter() - started - recording
     solver.release_buffers()  # the kernel's work arrays, before the file is finished
     result = RunResult(scenario, terrain, solver, state, h0, snaps, status, time_to_stop,

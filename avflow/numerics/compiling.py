@@ -1,0 +1,88 @@
+"""One line on stderr while Numba compiles kernels, and how long it took.
+
+Numba signals a compilation (``numba:compile``) only where the machine code is neither in
+the process nor in the kernel cache (:func:`avflow.numerics.kernel_cache_dir`), so the
+line appears on a first run of a kind on this machine and version, not on cache loads.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Callable
+
+from numba.core import event
+
+
+class _Watch(event.Listener):
+    """Calls ``announce()`` at the first compilation and sums the seconds spent compiling
+    (outermost compilations only: a kernel compiles its callees inside its own)."""
+
+    def __init__(self, announce: Callable[[], None] | None):
+        self.announce = announce
+        self.depth = 0
+        self.started = 0.0
+        self.seconds = 0.0
+        self.compiled = False
+
+    def on_start(self, event):
+        if self.depth == 0:
+            self.started = time.perf_counter()
+            if not self.compiled and self.announce is not None:
+                self.announce()
+            self.compiled = True
+        self.depth += 1
+
+    def on_end(self, event):
+        self.depth -= 1
+        if self.depth == 0:
+            self.seconds += time.perf_counter() - self.started
+
+    def __enter__(self):
+        event.register("numba:compile", self)
+        return self
+
+    def __exit__(self, *exc):
+        event.unregister("numba:compile", self)
+        return False
+
+
+def watch(on_compile: Callable[[str], None] | None, what: Callable[[], str]) -> _Watch:
+    """A context manager: inside it, the first compilation calls ``on_compile(what())``;
+    its ``seconds`` and ``compiled`` say how long Numba compiled and whether it did."""
+    return _Watch(None if on_compile is None else (lambda: on_compile(what())))
+
+
+def notify_compiling(what: str, stream=None) -> None:
+    """One line on stderr: what is compiled, and that it happens once per machine and
+    avflow version (the kernel cache's folder)."""
+    from avflow.numerics import cache_root
+
+    print(f"avflow: compiling {what} (once per machine and avflow version; kept in "
+          f"{cache_root()}) ...", file=stream or sys.stderr, flush=True)
+
+
+def notify_compiled(seconds: float, stream=None) -> None:
+    """The line after :func:`notify_compiling`: how long it took."""
+    print(f"avflow: compiled in {seconds:.0f} s", file=stream or sys.stderr, flush=True)
+
+
+class _Announcer(_Watch):
+    """For the whole process: the first compilation's line, and its duration once done."""
+
+    def __init__(self, what: str, stream=None):
+        super().__init__(lambda: notify_compiling(what, stream))
+        self.stream, self.told = stream, False
+
+    def on_end(self, event):
+        super().on_end(event)
+        if self.depth == 0 and not self.told:
+            self.told = True
+            notify_compiled(self.seconds, self.stream)
+
+
+def announce(what: str = "the kernels these scenes need", stream=None) -> None:
+    """From now on in this process, the first compilation says so on stderr (ensembles,
+    regions, calibrations: their runs in this process; their workers load the kernels
+    this process compiled first)."""
+    event.register("numba:compile", _Announcer(what, stream))
