@@ -91,3 +91,36 @@ def test_the_user_is_told_while_numba_compiles_and_only_then(capsys):
     assert err[0].startswith("avflow: compiling the profile kernel at order 1 with Coulomb "
                              "friction (once per machine and avflow version; kept in ")
     assert err[1] == "avflow: compiled in 12 s" and len(err) == 2
+
+
+def test_a_backend_this_machine_lacks_is_said_alone_with_what_to_do(monkeypatch):
+    """A scene the backend serves, on a machine without its GPU: what is missing and what to
+    do, not a list of kernels that ends by offering the one just refused."""
+    import dataclasses
+
+    cuda = registry.KERNELS["grid", "cuda"]
+    monkeypatch.setitem(registry.KERNELS, ("grid", "cuda"), dataclasses.replace(
+        cuda, unavailable=lambda: "no CUDA GPU or driver found"))
+    with pytest.raises(registry.KernelUnavailable) as err:
+        registry.select(bump_on_a_slope("grid"), 1, "auto", "cuda")
+    message = str(err.value)
+    assert message == ("the cuda backend cannot run on this machine: no CUDA GPU or driver "
+                       "found; run with numerics.backend: cpu (--backend cpu), or on a "
+                       "machine that has it")
+    # what the backend does not serve is still said first, with what it does serve
+    with pytest.raises(registry.KernelUnavailable, match="not a square grid.*available: grid"):
+        registry.select(bump_on_a_slope("triangles"), 1, "auto", "cuda")
+
+
+def test_the_gpu_backend_compiles_every_friction_function_there_is():
+    """The device copies take every compiled function and constant of the friction laws'
+    module: a law's new helper needs no list in the GPU backend to keep up with."""
+    from avflow.numerics import cuda_grid, rheology
+
+    plain = cuda_grid._plain_rheology()
+    compiled = {name for name, v in vars(rheology).items()
+                if getattr(getattr(v, "py_func", None), "__module__", "") == rheology.__name__}
+    assert compiled >= {"friction", "law_friction", "pouliquen_mu", "samosat_drag_factor"}
+    for name in compiled:
+        assert getattr(plain, name) is getattr(rheology, name).py_func, name
+    assert plain.COULOMB == rheology.COULOMB and plain.math is math

@@ -100,14 +100,18 @@ def unavailable() -> str | None:
 
 def _plain_rheology():
     """The friction laws as plain Python, in a module object of their own (rheology's are
-    Numba CPU dispatchers): their ``py_func``, with the constants they read."""
+    Numba CPU dispatchers): every compiled function of :mod:`~avflow.numerics.rheology` as
+    its ``py_func``, every constant and module it reads as it is; a law's new helper comes
+    with it, with no list here to keep."""
     plain = types.ModuleType(rheology.__name__)
-    for name in ("friction", "law_friction", "pouliquen_mu", "velocity_weakening_mu",
-                 "samosat_drag_factor"):
-        setattr(plain, name, getattr(rheology, name).py_func)
-    for name in ("COULOMB", "POULIQUEN", "VOELLMY", "SAMOSAT", "VELOCITY_WEAKENING",
-                 "PER_CELL", "math"):
-        setattr(plain, name, getattr(rheology, name))
+    for name, value in vars(rheology).items():
+        if name.startswith("__"):
+            continue
+        fn = getattr(value, "py_func", None)
+        if fn is not None and fn.__module__ == rheology.__name__:
+            setattr(plain, name, fn)
+        elif isinstance(value, (int, float, types.ModuleType)):
+            setattr(plain, name, value)
     return plain
 
 

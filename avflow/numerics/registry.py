@@ -33,6 +33,8 @@ class Kernel:
     refuses: Callable[[object, int], str | None]
     #: the compiled time loop for ``(structured, order, law, parallel)``
     loop: Callable[..., object]
+    #: None when this machine can run it, else what it lacks (a phrase: a package, a GPU)
+    unavailable: Callable[[], str | None] = lambda: None
 
     def label(self) -> str:
         orders = " and ".join(str(o) for o in self.orders)
@@ -65,13 +67,10 @@ def _grid_loop(structured, order, law, parallel):
     return grid_loop(law, parallel, order)
 
 
-def _cuda_grid_refuses(terrain, order):
+def _cuda_unavailable():
     from avflow.numerics.cuda_grid import unavailable
 
-    # what it does not serve first, then what this machine lacks (numba-cuda, a GPU)
-    if order != 1:
-        return f"it runs order 1 only, not order {order}"
-    return _grid_refuses(terrain, order) or unavailable()
+    return unavailable()
 
 
 def _cuda_grid_loop(structured, order, law, parallel):
@@ -92,7 +91,8 @@ KERNELS: dict[tuple[str, str], Kernel] = {
                              _faces_refuses, _face_loop),
     # numerics.cuda_grid: the square-grid kernel's step at order 1
     ("grid", "cuda"): Kernel("grid", "cuda", (1,), "square grids (planes, DEMs), a GPU "
-                             "thread per cell", _cuda_grid_refuses, _cuda_grid_loop),
+                             "thread per cell", _grid_refuses, _cuda_grid_loop,
+                             _cuda_unavailable),
 }
 
 
@@ -126,6 +126,12 @@ def select(terrain, order: int, kernel: str = "auto", backend: str = "cpu") -> K
             orders = " and ".join(str(o) for o in entry.orders)
             reason = f"it runs order {orders} only, not order {order}"
         if reason is None:
+            # the scene is served; what this machine lacks is said alone, with what to do
+            lacks = entry.unavailable()
+            if lacks is not None:
+                raise KernelUnavailable(f"the {backend} backend cannot run on this machine: "
+                                        f"{lacks}; run with numerics.backend: cpu (--backend "
+                                        "cpu), or on a machine that has it")
             return entry
         why.append(f"{name}: {reason}")
     raise KernelUnavailable(f"no {backend} kernel runs this scene at order {order} "
