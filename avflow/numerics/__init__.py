@@ -24,7 +24,7 @@ from, Numba's and Python's versions and the processor (:func:`kernel_cache_dir`)
 file, a new version, is a new folder, compiled afresh. The folder is per user, not per
 checkout (``$AVFLOW_CACHE_DIR``, else ``$XDG_CACHE_HOME/avflow`` or ``~/.cache/avflow``),
 and a function's files inside it are named after its place in the package, not on disk
-(:class:`SharedLocator`): every clone and virtual environment of one version shares what
+(:func:`_shared_locator`): every clone and virtual environment of one version shares what
 the first one compiled. ``NUMBA_CACHE_DIR``, where set, is used as Numba uses it.
 """
 
