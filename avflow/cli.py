@@ -207,7 +207,7 @@ def _cmd_path(args) -> int:
 
     text, written = analyse_target(args.target, line=args.line, field=args.field,
                                    threshold=args.threshold, width=args.width,
-                                   output=args.output)
+                                   output=args.output, regression=args.alpha_beta)
     if not args.quiet:
         print(text)
         print("wrote " + ", ".join(str(w) for w in written))
@@ -302,6 +302,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "whose cells count (default: every cell)")
     pa.add_argument("-o", "--output", help="output stem (default: RUN_path next to the run "
                                            "file, OUTDIR/path for an ensemble)")
+    pa.add_argument("--alpha-beta", metavar="REGRESSION",
+                    help="alpha-beta regression: norway (Lied and Bakkehoi 1980, the "
+                         "default), austria, austria_small (AvaFrame com2AB's sets), or "
+                         "k1,k2,k3,k4,sd for alpha = k1 beta + k2 z'' + k3 H0 + k4")
     pa.set_defaults(func=_cmd_path)
     _add_region_parser(sub, quiet)
     ca = sub.add_parser("calibrate", help="calibrate parameters to an observed event "

@@ -224,11 +224,19 @@ def test_avflow_path_writes_the_table_and_the_figure(plane_run, tmp_path, capsys
     capsys.readouterr()
     assert main(["path", str(plane_run), "-q", "-o", str(tmp_path / "q")]) == 0
     assert capsys.readouterr().out == "" and (tmp_path / "q.csv").exists()  # --quiet
+    # alpha-beta beside the dynamic angle: a plane never falls to 10 degrees
+    assert main(["path", str(plane_run), "--alpha-beta", "austria", "-o",
+                 str(tmp_path / "ab")]) == 0
+    assert "alpha-beta (austria): no 10-degree point" in capsys.readouterr().out
+    row = pd.read_csv(tmp_path / "ab.csv").iloc[0]
+    assert row["path_ab_regression"] == "austria" and math.isnan(row["path_ab_beta"])
+    assert "Austrian Alps" in (tmp_path / "ab.md").read_text()
 
 
 @pytest.mark.parametrize("args, message", [
     (["--line", "nowhere.shp"], "nowhere.shp: no such file"),
     (["--threshold", "-1"], "threshold must be a number > 0"),
+    (["--alpha-beta", "sweden"], "alpha-beta regression 'sweden'"),
 ])
 def test_avflow_path_bad_input_is_one_line_exit_2(plane_run, tmp_path, capsys, args, message):
     args = [a if a != "nowhere.shp" else str(tmp_path / a) for a in args]

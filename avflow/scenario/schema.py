@@ -21,6 +21,7 @@ import copy
 import functools
 import hashlib
 import json
+import math
 import os
 import re
 import types
@@ -866,6 +867,10 @@ STOP_FRACTIONS = {"moving_volume": 1e-3, "kinetic_energy": 0.01}
 LINE_SUFFIXES = {".shp": (".shx", ".dbf", ".prj"), ".geojson": (), ".json": (), ".csv": ()}
 
 
+#: The alpha-beta regressions by name (avflow/output/alphabeta.py holds their coefficients).
+AB_REGRESSIONS = ("norway", "austria", "austria_small")
+
+
 class PathAnalysis(_Model):
     """Runout along the avalanche path (AvaFrame's AIMEC; avflow/output/path.py): `avflow
     run` writes OUT_path.csv/.md/.png beside the NetCDF, ensembles add path_* columns to
@@ -881,6 +886,24 @@ class PathAnalysis(_Model):
     runout threshold)."""
     width: Positive | None = None
     """Width (m) of the band around the line whose cells count; null: every cell."""
+    alpha_beta: Text | None = None
+    """Alpha-beta regression beside the dynamic runout: norway (Lied and Bakkehøi 1980,
+    alpha = 0.96 beta - 1.4 deg, SD 2.3 deg; null means this one), austria or austria_small
+    (AvaFrame com2AB's sets), or "k1,k2,k3,k4,sd" for alpha = k1 beta + k2 z'' + k3 H0 + k4."""
+
+    @field_validator("alpha_beta")
+    @classmethod
+    def _known_regression(cls, value: str | None) -> str | None:
+        if value is None or value.strip() in AB_REGRESSIONS:
+            return value
+        try:
+            numbers = [float(p) for p in value.split(",")]
+        except ValueError:
+            numbers = []
+        if len(numbers) != 5 or not all(math.isfinite(v) for v in numbers) or numbers[4] < 0:
+            raise ValueError(f"give one of {', '.join(AB_REGRESSIONS)} or k1,k2,k3,k4,sd "
+                             "(five numbers, sd >= 0)")
+        return value
 
     @field_validator("line")
     @classmethod
