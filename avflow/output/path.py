@@ -837,7 +837,7 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
         if not math.isnan(sc["runout_angle"]):
             ax.plot([sc["top_s"], sc["runout_s"]], [sc["top_z"], sc["runout_z"]], "--",
                     color=color, lw=1,
-                    label=None if many else f"alpha = {sc['runout_angle']:.1f} deg")
+                    label=None if many else f"run: alpha = {sc['runout_angle']:.1f} deg")
             ax.plot(sc["runout_s"], sc["runout_z"], "x", color=color, ms=6, mew=1.5)
     if first.top_index is not None:
         ax.plot(first.scalars["top_s"], first.scalars["top_z"], "^", color="w", mec="k",
@@ -874,7 +874,8 @@ def _plot_alpha_beta(ax, ax_map, result: PathResult) -> None:
     ax.plot([top_s, ab.beta_s], [top_z, ab.beta_z], ":", color="tab:purple", lw=1)
     ax.plot(ab.beta_s, ab.beta_z, "D", color="tab:purple", ms=5,
             label=f"beta = {ab.beta:.1f} deg (10 deg point)")
-    styles = (("tab:orange", "alpha"), ("tab:red", "alpha-1SD"), ("darkred", "alpha-2SD"))
+    styles = (("tab:orange", f"alpha-beta ({ab.regression.name}): alpha"),
+              ("tab:red", "alpha-1SD"), ("darkred", "alpha-2SD"))
     for a, s_, z_, (color, name) in zip(ab.alphas, s0, z0, styles):
         if math.isnan(s_):
             continue
