@@ -76,6 +76,7 @@ def summary_line(ds) -> str:
             f", length {f('deposit_length', '.1f')} m"
             f", mass error {f('mass_balance_error', '.1e')}"
             + _entrained_note(ds)
+            + _structure_note(ds)
             + f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s"
             + _compile_note(ds))
 
@@ -91,6 +92,12 @@ def _entrained_note(ds) -> str:
     return (f" (released {v['release_volume']:.4g} + entrained {v['entrained_volume']:.4g}"
             f" = on the map {v['deposit_volume']:.4g} + out {v['outflow_volume']:.4g} "
             f"{units})")
+
+
+def _structure_note(ds) -> str:
+    from avflow.output.structures import structure_note
+
+    return structure_note(ds) if "structure_retained_volume" in ds else ""
 
 
 def _compile_note(ds) -> str:
@@ -113,7 +120,10 @@ def _load_with_sets(args):
     if getattr(args, "backend", None) is not None:
         sets.append(f"numerics.backend={args.backend}")
     overrides = parse_overrides(sets)  # a malformed --set: exit 2 before reading
-    return apply_overrides(load_scenario(args.scenario), overrides)
+    scenario = apply_overrides(load_scenario(args.scenario), overrides)
+    if getattr(args, "without_structures", False):  # the twin run without its structures
+        scenario = scenario.with_updates({"structures": ()})
+    return scenario
 
 
 def _cmd_run(args) -> int:
@@ -202,6 +212,16 @@ def _run_path(ds, block, out: Path, quiet: bool = False, inputs=None) -> None:
     print("wrote " + ", ".join(str(w) for w in written))
 
 
+def _cmd_compare(args) -> int:
+    from avflow.output.structures import compare_runs
+
+    text, written = compare_runs(args.run_a, args.run_b, args.output)
+    if not args.quiet:
+        print(text)
+        print("wrote " + ", ".join(str(w) for w in written))
+    return 0
+
+
 def _cmd_path(args) -> int:
     from avflow.output.path import analyse_target
 
@@ -238,6 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--backend", choices=("cpu", "cuda"), help="where the time loop runs "
                    "(numerics.backend; cuda: a GPU, square grids at order 1, "
                    "docs/guide/gpu.md)")
+    r.add_argument("--without-structures", action="store_true",
+                   help="run the scenario with its structures left out (the twin run that "
+                        "avflow compare sets beside the one with them)")
     r.set_defaults(func=_cmd_run)
     e = sub.add_parser("ensemble", help="run an ensemble file (here or on dask); exit 1 if "
                                         "a member failed", parents=[quiet, sets])
@@ -307,6 +330,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "default), austria, austria_small (AvaFrame com2AB's sets), or "
                          "k1,k2,k3,k4,sd for alpha = k1 beta + k2 z'' + k3 H0 + k4")
     pa.set_defaults(func=_cmd_path)
+    cm = sub.add_parser("compare", help="two runs of one map side by side (a scenario with "
+                                        "and without its structures): runout, volumes, "
+                                        "peak-pressure areas; table and PNG",
+                        parents=[quiet])
+    cm.add_argument("run_a", help="NetCDF written by avflow run (A, e.g. without the dam)")
+    cm.add_argument("run_b", help="NetCDF written by avflow run (B, e.g. with the dam)")
+    cm.add_argument("-o", "--output", help="output stem (default: B_vs_A next to B)")
+    cm.set_defaults(func=_cmd_compare)
     _add_region_parser(sub, quiet)
     ca = sub.add_parser("calibrate", help="calibrate parameters to an observed event "
                                           "(grid, lhs, bayes-opt, posterior); resumable",

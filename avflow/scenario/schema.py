@@ -1047,6 +1047,48 @@ class Physics(_Model):
     the largest release thickness, are held)."""
 
 
+class Structure(_Model):
+    """A protective structure built into the bed before the run (AvaFrame com1DFA's dam
+    takes a crest line, a height and a side slope; RAMMS users edit the DEM): every feature
+    of a line file (any vector format GDAL reads), in the DEM's CRS.
+
+    - ``dam``: an earth dam or catching/deflecting dam: the bed is raised to a crest
+      ``height`` above the ground under the line, ``crest_width`` wide, falling at
+      ``side_slope_deg`` on both sides; a flow with enough energy overtops it.
+    - ``wall``: a vertical wall, ``crest_width`` thick (at least the cells the line
+      touches): its cells leave the mesh and reflect the flow (walls of the grid), so it is
+      never overtopped, whatever its ``height``."""
+
+    name: Text = ""
+    """Label in the outputs; empty: the file's stem."""
+    line: Text
+    """Line file (.shp, .gpkg, .geojson, .json, .fgb), relative to the scenario file;
+    stored absolute."""
+    kind: Literal["dam", "wall"] = "dam"
+    """dam (raised bed with side slopes, can be overtopped) or wall (vertical, reflecting)."""
+    height: Positive
+    """Crest height above the ground under the line (m)."""
+    crest_width: NonNegative = 0.0
+    """Width of the flat crest (m); a wall's thickness."""
+    side_slope_deg: Angle | None = None
+    """A dam's side slope (degrees from the horizontal), both sides; required for a dam."""
+
+    @field_validator("line")
+    @classmethod
+    def _existing_line(cls, value: str, info: ValidationInfo) -> str:
+        return _data_file(value, info, POLYGON_SUFFIXES)
+
+    @model_validator(mode="after")
+    def _slope_for_a_dam(self) -> Structure:
+        if self.kind == "dam" and self.side_slope_deg is None:
+            raise _problem("required for a dam (its sides' angle from the horizontal, "
+                           "degrees)", "side_slope_deg")
+        if self.kind == "wall" and self.side_slope_deg is not None:
+            raise _problem("a wall is vertical: leave side_slope_deg out, or make it a dam",
+                           "side_slope_deg")
+        return self
+
+
 class Scenario(_Model):
     """A validated scenario. Build one with :func:`load_scenario` or :func:`parse_scenario`.
 
@@ -1069,6 +1111,8 @@ class Scenario(_Model):
     """Mass the flow takes from an erodible layer on its way, by ``law``; null: none."""
     forest: Forest | None = None
     """Forest's resistance to the flow, where it stands; null: none."""
+    structures: tuple[Structure, ...] = ()
+    """Dams and walls built into the bed before the run (2D terrains)."""
     time: Time
     output: Output = Output()
     boundary: Boundaries = Boundaries()
@@ -1121,6 +1165,8 @@ class Scenario(_Model):
         if terrain == "profile" and self.output.path is not None and self.output.path.line:
             raise _problem("not allowed on a 'profile' terrain (the profile is its own path)",
                            "output.path.line")
+        if terrain == "profile" and self.structures:
+            raise _problem("a structure needs a 2D terrain ('plane' or 'dem')", "structures")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
         self._maps_fit(terrain)
