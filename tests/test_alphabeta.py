@@ -121,3 +121,20 @@ def test_path_analysis_carries_the_alpha_beta_points_beside_the_dynamic_angle():
     assert sc["ab_alpha_m2sd_s"] == pytest.approx(_meets(22.8), rel=1e-9)
     dynamic = math.degrees(math.atan2(1000.0 - z[120], 1200.0))
     assert sc["runout_angle"] == pytest.approx(dynamic, abs=1e-9)
+
+
+def test_a_bench_near_the_top_is_not_the_alpha_point():
+    """40 degrees for 20 m, a 15-degree bench to 100 m, 40 degrees to 1000 m, then 5: the
+    alpha line from the top dips under the bench, but the runout lies beyond the beta
+    point, where the algebra puts it."""
+    t40, t15 = math.tan(math.radians(40.0)), math.tan(math.radians(15.0))
+    s = np.arange(0.0, 4000.0, 5.0)
+    slope = np.where(s < 20, t40, np.where(s < 100, t15, np.where(s < 1000, t40, T5)))
+    z = 1000.0 - np.concatenate([[0.0], np.cumsum(slope[:-1] * np.diff(s))])
+    ab = alpha_beta(s, z)
+    drop = 20 * t40 + 80 * t15 + 900 * t40
+    assert ab.beta_s == 1000.0
+    assert ab.beta == pytest.approx(math.degrees(math.atan(drop / 1000.0)), abs=1e-9)
+    a = math.radians(ab.alphas[0])
+    # 1000 - tan(a) s = 1000 - drop - tan5 (s - 1000)
+    assert ab.points_s[0] == pytest.approx((drop - 1000 * T5) / (math.tan(a) - T5), rel=1e-9)

@@ -9,7 +9,7 @@ repository, 5 m grids): the potential release areas with the default criteria
 - the PRA's total area and number of single areas, and the path's release area.
 
 The defaults are not tuned on these four paths. Run: ``python workflows/pra_avaframe.py
-[DATA_DIR]`` (default ../shared/data/avaframe from the repository); writes
+[DATA_DIR]`` (default: the repository's data/avaframe); writes
 workflows/pra_avaframe_results.md.
 """
 
@@ -52,7 +52,7 @@ def coverage(data: Path, name: str, settings=None) -> dict:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    data = Path(argv[0]) if argv else ROOT.parent / "shared" / "data" / "avaframe"
+    data = Path(argv[0]) if argv else ROOT / "data" / "avaframe"
     rows = [coverage(data, name) for name in PATHS]
     lines = ["| path | own release (m2) | share covered by the PRA | PRA total (m2) | "
              "PRA areas | DEM (m2) | PRA / DEM | time (s) |", "|---|---|---|---|---|---|---|---|"]

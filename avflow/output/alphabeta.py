@@ -11,8 +11,8 @@ path's profile, the practitioner's first check beside a dynamic run.
   parabola through the whole profile (as AvaFrame com2AB computes them); ``alpha - 1 SD``
   and ``alpha - 2 SD`` reach farther.
 - each alpha's **point** is where the line from the top of the release, falling at that
-  angle, first meets the profile (linear between the samples: exact on a piecewise-linear
-  profile).
+  angle, first meets the profile beyond the beta point (from the top for an alpha above
+  beta), linear between the samples: exact on a piecewise-linear profile.
 
 The regressions (:data:`REGRESSIONS`) are published ones, quoted with their sources; a
 user's own is ``k1,k2,k3,k4,sd``.
@@ -139,12 +139,15 @@ def beta_index(s: np.ndarray, z: np.ndarray, ds_min: float = DS_MIN) -> int | No
     return None
 
 
-def crossing(s: np.ndarray, z: np.ndarray, angle_deg: float) -> tuple[float, float]:
+def crossing(s: np.ndarray, z: np.ndarray, angle_deg: float, start: int = 0
+             ) -> tuple[float, float]:
     """Where the line from ``(s[0], z[0])`` falling at ``angle_deg`` first meets the
-    profile from above (linear between samples); NaN, NaN beyond its end."""
+    profile from above (linear between samples), from sample ``start`` on; NaN, NaN beyond
+    its end."""
     line = z[0] - math.tan(math.radians(angle_deg)) * (s - s[0])
     d = line - z  # > 0: the line runs above the bed
     above = np.flatnonzero(d[1:] > 0.0) + 1
+    above = above[above >= start]
     if above.size == 0:
         return math.nan, math.nan
     for j in range(int(above[0]), s.size - 1):
@@ -178,6 +181,9 @@ def alpha_beta(s, z, reg: str | Regression | None = None, ds_min: float = DS_MIN
         height = float(fit.max() - fit.min())
     alpha = reg.alpha(beta, curvature, height)
     alphas = (alpha, alpha - reg.sd, alpha - 2.0 * reg.sd)
-    points = [crossing(s, z, a) if 0.0 < a < 90.0 else (math.nan, math.nan) for a in alphas]
+    # an angle under beta meets the bed beyond the beta point (AvaFrame's com2AB looks
+    # beyond its split point): a gentle stretch near the top is not a runout
+    points = [crossing(s, z, a, k if a <= beta else 0) if 0.0 < a < 90.0
+              else (math.nan, math.nan) for a in alphas]
     return ABResult(reg, beta, float(s[k]), float(z[k]), curvature, height, alphas,
                     tuple(p[0] for p in points), tuple(p[1] for p in points))
