@@ -138,3 +138,37 @@ def test_a_bench_near_the_top_is_not_the_alpha_point():
     a = math.radians(ab.alphas[0])
     # 1000 - tan(a) s = 1000 - drop - tan5 (s - 1000)
     assert ab.points_s[0] == pytest.approx((drop - 1000 * T5) / (math.tan(a) - T5), rel=1e-9)
+
+
+def test_a_path_that_starts_off_the_map_still_gives_beta_from_the_release_top():
+    """A 10 m grid of the kinked profile (x from 0 to 3000 m), the release's top cell at
+    x = 5, the path line from x = -200 (off the map, as a centre-of-mass track's upslope
+    extension can be): beta is taken from the top cell to the first sample from which the
+    bed falls at 10 degrees or less, the cell centre x = 1005 (bilinear between the centres
+    995 and 1005 the bed falls at 18 degrees)."""
+    x = np.arange(5.0, 3000.0, 10.0)
+    y = np.arange(5.0, 100.0, 10.0)
+    zx = np.where(x <= 1000, 1000.0 - T30 * x, 1000.0 - T30 * 1000 - T5 * (x - 1000))
+    X, Y = np.meshgrid(x, y)
+    Z = np.tile(zx, (y.size, 1))
+    released = (X < 50.0)
+    pressure = np.where(X < 1200.0, 5000.0, 0.0)
+    pts = RunPoints(X.ravel(), Y.ravel(), Z.ravel(),
+                    {"peak_pressure": pressure.ravel(), "peak_speed": pressure.ravel() / 1e3,
+                     "peak_thickness": pressure.ravel() / 1e3}, released.ravel(), 10.0,
+                    grid=(x, y, Z))
+    z_top, z_beta = 1000.0 - T30 * 5.0, 1000.0 - T30 * 1000.0 - T5 * 5.0
+    r = analyse(pts, PathLine([-200.0, 3000.0], [45.0, 45.0]))
+    assert r.scalars["ab_beta_s"] == pytest.approx(1205.0)  # s from the line's start
+    assert r.scalars["ab_beta"] == pytest.approx(
+        math.degrees(math.atan((z_top - z_beta) / 1000.0)), abs=1e-9)
+    # a line whose first segment runs off the map (y > 100) where the top cell projects
+    line = PathLine([-50.0, 300.0, 3000.0], [200.0, 45.0, 45.0])
+    r = analyse(pts, line)
+    sc = r.scalars
+    assert math.isfinite(sc["ab_beta"])  # not lost to the stretch off the map
+    # the beta point: the first half-cell sample past the kink's cells (samples 5 m apart
+    # along the line, not on the cell centres here)
+    assert 1000.0 <= float(line.at([sc["ab_beta_s"]])[0][0]) <= 1010.0
+    assert sc["ab_beta"] == pytest.approx(math.degrees(math.atan(
+        (z_top - sc["ab_beta_z"]) / (sc["ab_beta_s"] - sc["top_s"]))), abs=1e-9)

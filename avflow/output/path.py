@@ -434,7 +434,8 @@ def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
     result = PathResult(line, field, threshold, units, width, s, l, run, top, sc)
     result.profile = cross_sections(points, result, inside, bin_size or points.spacing)
     if top is not None:
-        result.alpha_beta = path_alpha_beta(points, line, sc["top_s"], regression)
+        result.alpha_beta = path_alpha_beta(points, line, sc["top_s"], sc["top_z"],
+                                            regression)
         sc.update(alpha_beta_scalars(result.alpha_beta))
     return result
 
@@ -461,15 +462,22 @@ def bed_along(points: RunPoints, line: PathLine, s) -> np.ndarray:
     return LinearNDInterpolator(np.column_stack([points.x, points.y]), points.z)(x, y)
 
 
-def path_alpha_beta(points: RunPoints, line: PathLine, s_top: float, regression=None):
-    """The alpha-beta model on the bed along the line, from ``s_top`` (the top of the
-    release) to the line's end or the map's edge, sampled every half cell."""
+def path_alpha_beta(points: RunPoints, line: PathLine, s_top: float, z_top: float,
+                    regression=None):
+    """The alpha-beta model from the top of the release (its highest cell, ``s_top``,
+    ``z_top``: the dynamic runout angle's top too) along the bed on the line, sampled every
+    half cell to the line's end or the map's edge (a stretch of the line off the map just
+    below the top, as a centre-of-mass track's upslope extension can be, is skipped)."""
     from avflow.output.alphabeta import alpha_beta
 
     step = 0.5 * points.spacing
     s_end = max(line.length, float(np.nanmax(line.project(points.x, points.y)[0])))
-    s = s_top + step * np.arange(max(int((s_end - s_top) / step) + 1, 0))
-    return alpha_beta(s, bed_along(points, line, s), regression)
+    s = s_top + step * np.arange(1, max(int((s_end - s_top) / step) + 1, 1))
+    z = bed_along(points, line, s)
+    on = np.flatnonzero(np.isfinite(z))
+    if on.size:
+        s, z = s[on[0]:], z[on[0]:]
+    return alpha_beta(np.concatenate([[s_top], s]), np.concatenate([[z_top], z]), regression)
 
 
 def alpha_beta_scalars(ab) -> dict:
