@@ -332,6 +332,9 @@ def test_ensemble_records_the_path_per_member(tmp_path, capsys):
         assert ens["path_peak_pressure"].dims == ("realization", "path_s")
         assert ens.attrs["path_field"] == "pressure" and ens["path_x"].size >= 2
         np.testing.assert_allclose(ens["path_runout_s"], table["path_runout_s"])
+        # alpha-beta beside each member's angle: a plane never falls to 10 degrees
+        assert ens["path_ab_beta"].dims == ("realization",)
+    assert table["path_ab_beta"].isna().all() and set(table["path_ab_regression"]) == {"norway"}
     assert main(["path", str(outdir)]) == 0
     assert "3 members along the path" in capsys.readouterr().out
     for name in ("path.csv", "path.md", "path.png", "path_profile.csv"):
