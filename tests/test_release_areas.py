@@ -133,3 +133,48 @@ def test_cli_writes_polygons_with_thickness_and_refuses_bad_input(tmp_path, caps
     assert not (tmp_path / "x.gpkg").exists()
     assert main(["release-areas", str(dem), "-o", str(dem)]) == 2  # never over the DEM
     assert dem.stat().st_size > 0
+
+
+def test_a_region_runs_the_release_areas_of_its_dem(tmp_path, capsys):
+    """releases: {from_dem: ...}: the region runs exactly the areas avflow release-areas
+    finds (a 30-degree slope onto a flat floor, 20 m cells, the region tests' kernels)."""
+    import pandas as pd
+    import rasterio
+    from rasterio.transform import from_origin
+
+    dx, nx, ny = 20.0, 80, 30
+    x = 1000.0 + dx * (np.arange(nx) + 0.5)
+    y = 5000.0 - dx * (np.arange(ny) + 0.5)
+    z = np.clip(1000.0 + 600.0 - x, 0.0, None) * math.tan(math.radians(33.0))
+    z = z[None, :] + 0.05 * np.abs(y - y.mean())[:, None]
+    with rasterio.open(tmp_path / "dem.tif", "w", driver="GTiff", width=nx, height=ny,
+                       count=1, dtype="float32", crs="EPSG:2056",
+                       transform=from_origin(1000.0, 5000.0, dx, dx)) as dst:
+        dst.write(z.astype(np.float32), 1)
+    region = """\
+name: from-dem
+dem: dem.tif
+releases:
+  from_dem: {{min_area: 20000, d0: 1.0{extra}}}
+scenario:
+  rheology: {{law: coulomb, delta_deg: 24.0}}
+  time: {{end: 60.0}}
+  numerics: {{order: 1}}
+merge:
+  chunk: 16
+"""
+    (tmp_path / "r.yaml").write_text(region.format(extra=""))
+    found = potential_release_areas(tmp_path / "dem.tif", PRASettings(min_area=20000, d0=1.0))
+    assert main(["region", str(tmp_path / "r.yaml"), "-o", str(tmp_path / "out"),
+                 "--workers", "0", "-q"]) == 0
+    table = pd.read_csv(tmp_path / "out" / "releases.csv")
+    assert len(table) == len(found.areas) >= 1
+    assert set(table["status"]) == {"ok"}
+    np.testing.assert_allclose(sorted(table["thickness"]),
+                               sorted(a["thickness"] for a in found.areas), rtol=1e-9)
+    capsys.readouterr()
+    (tmp_path / "bad.yaml").write_text(region.format(extra=", slope_mix: 30"))
+    assert main(["region", str(tmp_path / "bad.yaml"), "-o", str(tmp_path / "bad"),
+                 "--workers", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "releases.from_dem.slope_mix" in err
