@@ -375,6 +375,10 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
         if key in REGION_BLOCKS:
             raise fail(("scenario", key), f"set by the region for each release ({key} comes "
                        "from dem: and releases:); leave it out")
+    if spec.scenario.get("structures"):
+        raise fail(("scenario", "structures"), "a structure belongs to one scenario's DEM and "
+                   "a release's window need not hold its line: run the releases that reach "
+                   "it with avflow run (the structures in their scenario)")
     stand_in = _check_scenario_block(spec.scenario, path, positions, base_dir)
     scenarios = SINGLE
     if spec.scenarios is not None:
