@@ -201,3 +201,25 @@ def test_scenario_checks_of_a_structure(tmp_path):
     with pytest.raises(Exception, match="file not found"):
         _scenario(tmp_path, "x", "structures: [{line: gone.geojson, height: 5.0, "
                                  "side_slope_deg: 40}]")
+
+
+def test_a_region_scenario_block_refuses_structures(tmp_path):
+    from avflow.region import RegionError, load_region
+
+    x, y = _dem(tmp_path)
+    _line(tmp_path, "dam", [(x[2], y[10]), (x[-3], y[10])])
+    (tmp_path / "rel.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"thickness": 1.0}, "geometry": {
+            "type": "Polygon", "coordinates": [[[x[5], y[30]], [x[9], y[30]], [x[9], y[34]],
+                                                [x[5], y[34]], [x[5], y[30]]]]}}]}))
+    (tmp_path / "r.yaml").write_text("""\
+name: r
+dem: dem.tif
+releases: {path: rel.geojson}
+scenario:
+  rheology: {law: coulomb, delta_deg: 20.0}
+  time: {end: 5.0}
+  structures: [{line: dam.geojson, height: 5.0, side_slope_deg: 40.0}]
+""")
+    with pytest.raises(RegionError, match="scenario.structures: a structure belongs"):
+        load_region(tmp_path / "r.yaml")
