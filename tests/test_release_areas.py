@@ -178,3 +178,24 @@ merge:
                  "--workers", "0"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "releases.from_dem.slope_mix" in err
+
+
+def test_split_by_aspect_separates_two_faces(tmp_path):
+    """z = 3000 - tan 40 max(x, y): an east-facing face (x > y) and a north-facing one
+    (y > x) meeting on the diagonal; connected they are one area, split by 90-degree
+    sectors two, each on its own side of the diagonal (the fold's cells, whose fitted
+    planes face north-east, join the face they border most)."""
+    x = np.arange(DX / 2, 400.0, DX)
+    X, Y = np.meshgrid(x, x)
+    write_tif(tmp_path / "two.tif", 3000.0 - math.tan(math.radians(40.0)) * np.maximum(X, Y),
+              x, x, None)
+    # without the roughness, which leaves out the fold itself and so splits them already
+    smooth = PRASettings(roughness=False)
+    assert len(potential_release_areas(tmp_path / "two.tif", smooth).areas) == 1
+    r = potential_release_areas(tmp_path / "two.tif",
+                                PRASettings(roughness=False, split_aspect_deg=90.0))
+    assert len(r.areas) == 2
+    for a in r.areas:
+        cells = r.labels == a["id"]
+        east = (X > Y)[cells].mean()
+        assert east > 0.95 or east < 0.05

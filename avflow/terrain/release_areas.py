@@ -31,7 +31,8 @@ terrain is not more convex than that (the mean curvature of the DEM, 1/m; off by
 no published value is adopted here).
 
 **Single release areas**: connected cells (sharing a side); with ``split_aspect_deg`` each
-is split where the downslope direction changes sector (sectors of that width), fragments
+is split where the downslope direction changes sector (sectors of that width, centred on
+north), fragments
 smaller than the minimum area joining the neighbour they share the longest border with (an
 object-based split in the spirit of Bühler et al. 2018, NHESS 18, 3235; not their
 algorithm). Areas smaller than ``min_area`` (horizontal, m^2; default 4 cells: a release a
@@ -236,31 +237,37 @@ def _split_by_aspect(cells, gx, gy, sector_deg, min_cells):
     from scipy.ndimage import label
 
     aspect = (np.degrees(np.arctan2(-gx, -gy)) + 360.0) % 360.0
-    sector = np.floor(aspect / sector_deg).astype(int)
+    # sectors centred on north (north, east, south, west are no boundaries at 90 degrees)
+    sector = np.floor(((aspect + 0.5 * sector_deg) % 360.0) / sector_deg).astype(int)
     labels = np.zeros(cells.shape, int)
     n = 0
     for s in np.unique(sector[cells]):
         lab, k = label(cells & (sector == s))
         labels[lab > 0] = lab[lab > 0] + n
         n += k
+    from scipy.ndimage import binary_dilation, find_objects
+
+    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
     for _ in range(50):  # join fragments until none is left or none can be joined
         sizes = np.bincount(labels.ravel(), minlength=n + 1)
         small = [k for k in range(1, n + 1) if 0 < sizes[k] < min_cells]
         if not small:
             break
+        boxes = find_objects(labels)
         changed = False
         for k in small:
-            mask = labels == k
-            border = {}
-            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-                nb = np.roll(np.roll(labels, dr, 0), dc, 1)
-                shifted = np.roll(np.roll(mask, dr, 0), dc, 1)
-                vals = labels[shifted & (labels != k) & (labels > 0)]
-                for v in vals:
-                    border[v] = border.get(v, 0) + 1
-                del nb
-            if border:
-                labels[mask] = max(border, key=border.get)
+            box = boxes[k - 1]
+            if box is None:
+                continue
+            # the fragment's box grown by one cell: its border cells, locally
+            sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in box)
+            local = labels[sl]
+            mask = local == k
+            ring = binary_dilation(mask, structure=cross) & ~mask
+            neighbours = local[ring & (local > 0)]
+            if neighbours.size:
+                values, counts = np.unique(neighbours, return_counts=True)
+                local[mask] = values[np.argmax(counts)]
                 changed = True
         if not changed:
             break
