@@ -135,6 +135,13 @@ def test_a_low_dam_is_overtopped_and_the_volume_beyond_it_reported(tmp_path, cap
     assert table.loc[1, "structure_overtopped_volume"] == pytest.approx(beyond)
     assert (tmp_path / "cmp.png").stat().st_size > 0
     assert bare_front < 250.0  # without the dam the flow passed the line as well
+    # a file that is not a run: one line, exit 2, nothing written
+    capsys.readouterr()
+    assert main(["compare", str(out), str(tmp_path / "low.yaml"), "-o",
+                 str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "low.yaml" in err
+    assert not (tmp_path / "bad.csv").exists()
 
 
 def test_an_oblique_wall_turns_the_flow_towards_its_lower_end(tmp_path):
