@@ -230,3 +230,17 @@ scenario:
 """)
     with pytest.raises(RegionError, match="scenario.structures: a structure belongs"):
         load_region(tmp_path / "r.yaml")
+
+
+def test_hash_without_structures_is_unchanged_and_lines_count_by_content(tmp_path):
+    # recorded before the structures block existed: a scenario without it hashes the same
+    assert _scenario(tmp_path, "h").scenario_hash() == "99c37ce8e570da4d"
+    _line(tmp_path, "dam", [(0, 250), (200, 250)])
+    block = "structures: [{line: %s, height: 5.0, side_slope_deg: 40.0}]"
+    with_dam = _scenario(tmp_path, "h", block % "dam.geojson").scenario_hash()
+    assert with_dam != "99c37ce8e570da4d"
+    (tmp_path / "elsewhere").mkdir()
+    _line(tmp_path / "elsewhere", "dam", [(0, 250), (200, 250)])
+    assert _scenario(tmp_path, "h", block % "elsewhere/dam.geojson").scenario_hash() == with_dam
+    _line(tmp_path / "elsewhere", "dam", [(0, 240), (200, 240)])
+    assert _scenario(tmp_path, "h", block % "elsewhere/dam.geojson").scenario_hash() != with_dam

@@ -1312,6 +1312,14 @@ class Scenario(_Model):
         for block in ("entrainment", "forest"):  # none: hashes as before the blocks
             if data.get(block) is None:
                 data.pop(block, None)
+        if not data.get("structures"):  # none: hashes as before the block
+            data.pop("structures", None)
+        for k, structure in enumerate(data.get("structures") or ()):  # lines by content
+            try:
+                structure["line"] = "sha256:" + _content_digest(structure["line"])
+            except OSError as err:
+                raise ScenarioError.at(self, f"structures.{k}.line",
+                                       f"cannot read: {err}") from None
         for field, spec in self.data_maps().items():  # maps count by their files' content
             node = data
             for key in field.split("."):
