@@ -244,3 +244,14 @@ def test_hash_without_structures_is_unchanged_and_lines_count_by_content(tmp_pat
     assert _scenario(tmp_path, "h", block % "elsewhere/dam.geojson").scenario_hash() == with_dam
     _line(tmp_path / "elsewhere", "dam", [(0, 240), (200, 240)])
     assert _scenario(tmp_path, "h", block % "elsewhere/dam.geojson").scenario_hash() != with_dam
+
+
+def test_a_run_never_writes_over_its_structure_line(tmp_path, capsys):
+    _line(tmp_path, "dam", [(0, 250), (200, 250)])
+    (tmp_path / "s.yaml").write_text(PLANE.format(
+        tag="x", width=200.0, structures="structures: [{line: dam.geojson, height: 5.0, "
+        "side_slope_deg: 40.0}]"))
+    before = (tmp_path / "dam.geojson").read_bytes()
+    assert main(["run", str(tmp_path / "s.yaml"), "-o", str(tmp_path / "dam.geojson")]) == 2
+    assert "dam.geojson" in capsys.readouterr().err
+    assert (tmp_path / "dam.geojson").read_bytes() == before

@@ -1264,6 +1264,7 @@ class Scenario(_Model):
             files += spec.files()
         if self.output.path is not None:
             files.append(self.output.path.line)
+        files += [s.line for s in self.structures]
         return [f for f in files if f]
 
     @property
