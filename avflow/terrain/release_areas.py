@@ -428,12 +428,23 @@ def write_release_areas(result: PRAResult, target, index_raster=None) -> list[Pa
                               driver=driver, crs=result.crs_wkt, geometry_type="Unknown")
 
     written = []
-    if driver == "ESRI Shapefile":  # a shapefile is several files: written where it goes
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            warnings.simplefilter("ignore", UserWarning)
-            pyogrio.raw.write(str(target), wkb, columns, names, driver=driver,
-                              crs=result.crs_wkt, geometry_type="Polygon")
+    if driver == "ESRI Shapefile":  # several files: written in a folder beside, then moved
+        import os
+        import shutil
+        import tempfile
+
+        target.parent.mkdir(parents=True, exist_ok=True)
+        folder = Path(tempfile.mkdtemp(prefix=f".{target.stem}-", dir=target.parent))
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                warnings.simplefilter("ignore", UserWarning)
+                pyogrio.raw.write(str(folder / target.name), wkb, columns, names,
+                                  driver=driver, crs=result.crs_wkt, geometry_type="Polygon")
+            for part in sorted(folder.iterdir()):
+                os.replace(part, target.with_suffix(part.suffix))
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
         written.append(target)
     else:
         written.append(atomic_write(target, write))
