@@ -91,6 +91,7 @@ def summary_line(ds) -> str:
             f", length {f('deposit_length', '.1f')} m"
             f", mass error {f('mass_balance_error', '.1e')}"
             + _entrained_note(ds)
+            + _structure_note(ds)
             + f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s"
             + _compile_note(ds))
 
@@ -106,6 +107,12 @@ def _entrained_note(ds) -> str:
     return (f" (released {v['release_volume']:.4g} + entrained {v['entrained_volume']:.4g}"
             f" = on the map {v['deposit_volume']:.4g} + out {v['outflow_volume']:.4g} "
             f"{units})")
+
+
+def _structure_note(ds) -> str:
+    from avflow.output.structures import structure_note
+
+    return structure_note(ds) if "structure_retained_volume" in ds else ""
 
 
 def _compile_note(ds) -> str:
@@ -128,7 +135,10 @@ def _load_with_sets(args):
     if getattr(args, "backend", None) is not None:
         sets.append(f"numerics.backend={args.backend}")
     overrides = parse_overrides(sets)  # a malformed --set: exit 2 before reading
-    return apply_overrides(load_scenario(args.scenario), overrides)
+    scenario = apply_overrides(load_scenario(args.scenario), overrides)
+    if getattr(args, "without_structures", False):  # the twin run without its structures
+        scenario = scenario.with_updates({"structures": ()})
+    return scenario
 
 
 def _cmd_run(args) -> int:
@@ -218,12 +228,58 @@ def _run_path(ds, block, out: Path, quiet: bool = False, inputs=None) -> None:
     print("wrote " + ", ".join(str(w) for w in written))
 
 
+def _cmd_compare(args) -> int:
+    from avflow.output.structures import compare_runs
+
+    text, written = compare_runs(args.run_a, args.run_b, args.output)
+    if not args.quiet:
+        print(text)
+        print("wrote " + ", ".join(str(w) for w in written))
+    return 0
+
+
+def _cmd_release_areas(args) -> int:
+    from avflow.files import check_target, protected
+    from avflow.terrain.release_areas import (PRASettings, potential_release_areas,
+                                              write_release_areas)
+
+    settings = PRASettings(
+        slope_min=args.slope_min, slope_max=args.slope_max, snow_depth=args.snow_depth,
+        roughness=not args.no_roughness, wind_direction=args.wind_direction,
+        wind_tolerance=args.wind_tolerance, threshold=args.threshold,
+        max_curvature=args.max_curvature, min_area=args.min_area,
+        split_aspect_deg=args.split_aspect, d0=args.d0,
+        reference_elevation=args.reference_elevation, gradient=args.gradient,
+        slope_correction=not args.no_slope_correction)
+    inputs = protected([args.dem, args.forest])
+    check_target(args.output, inputs, what="release areas")
+    if args.index_raster:
+        check_target(args.index_raster, inputs, what="release index raster")
+    result = potential_release_areas(args.dem, settings, forest=args.forest)
+    written = write_release_areas(result, args.output, args.index_raster)
+    if result.crs_wkt is None:
+        print(f"avflow: warning: {args.dem}: no CRS; the release areas are written without "
+              "one (in the DEM's coordinates)", file=sys.stderr)
+    if not args.quiet:
+        total = sum(a["area_m2"] for a in result.areas)
+        thick = [a["thickness"] for a in result.areas if "thickness" in a]
+        line = (f"{len(result.areas)} potential release areas, {total / 1e4:.2f} ha in all "
+                f"(slope {settings.slope_min:g}-{settings.slope_max:g} deg"
+                f"{', roughness' if settings.roughness else ''}"
+                f"{', wind from %g deg' % settings.wind_direction if settings.wind_direction is not None else ''})")
+        if thick:
+            line += f", thickness {min(thick):.2f} to {max(thick):.2f} m"
+        print(line)
+        print("wrote " + ", ".join(str(w) for w in written))
+    return 0
+
+
 def _cmd_path(args) -> int:
     from avflow.output.path import analyse_target
 
     text, written = analyse_target(args.target, line=args.line, field=args.field,
                                    threshold=args.threshold, width=args.width,
-                                   output=args.output)
+                                   output=args.output, regression=args.alpha_beta)
     if not args.quiet:
         print(text)
         print("wrote " + ", ".join(str(w) for w in written))
@@ -254,6 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--backend", choices=("cpu", "cuda"), help="where the time loop runs "
                    "(numerics.backend; cuda: a GPU, square grids at order 1, "
                    "docs/guide/gpu.md)")
+    r.add_argument("--without-structures", action="store_true",
+                   help="run the scenario with its structures left out (the twin run that "
+                        "avflow compare sets beside the one with them)")
     r.set_defaults(func=_cmd_run)
     e = sub.add_parser("ensemble", help="run an ensemble file (here or on dask); exit 1 if "
                                         "a member failed", parents=[quiet, sets])
@@ -318,7 +377,53 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "whose cells count (default: every cell)")
     pa.add_argument("-o", "--output", help="output stem (default: RUN_path next to the run "
                                            "file, OUTDIR/path for an ensemble)")
+    pa.add_argument("--alpha-beta", metavar="REGRESSION",
+                    help="alpha-beta regression: norway (Lied and Bakkehoi 1980, the "
+                         "default), austria, austria_small (AvaFrame com2AB's sets), or "
+                         "k1,k2,k3,k4,sd for alpha = k1 beta + k2 z'' + k3 H0 + k4")
     pa.set_defaults(func=_cmd_path)
+    ra = sub.add_parser("release-areas", help="potential release areas of a DEM (slope band, "
+                        "roughness, wind shelter, forest, minimum area) as polygons with a "
+                        "release thickness, for avflow region", parents=[quiet])
+    ra.add_argument("dem", help="DEM (GeoTIFF, ESRI ASCII, any GDAL raster)")
+    ra.add_argument("-o", "--output", required=True, help="polygon file (.gpkg, .shp, "
+                                                          ".geojson, .fgb)")
+    ra.add_argument("--slope-min", type=float, default=28.0, help="degrees (default 28)")
+    ra.add_argument("--slope-max", type=float, default=60.0, help="degrees (default 60)")
+    ra.add_argument("--snow-depth", type=float, default=2.3, help="m, the snow depth that "
+                    "sets the roughness scales (default 2.3)")
+    ra.add_argument("--no-roughness", action="store_true", help="leave the roughness out")
+    ra.add_argument("--wind-direction", type=float, help="degrees from north the wind comes "
+                    "from: adds the wind-shelter index (default: none)")
+    ra.add_argument("--wind-tolerance", type=float, default=30.0, help="degrees either side "
+                    "of the wind direction (default 30)")
+    ra.add_argument("--threshold", type=float, default=0.0, help="release index (0..1) a "
+                    "cell must exceed (default 0: the slope band and the roughness limit)")
+    ra.add_argument("--max-curvature", type=float, help="1/m: leave out terrain more convex "
+                    "than this (default: no limit)")
+    ra.add_argument("--forest", help="forest raster (> 0 is forest) or polygons: excluded")
+    ra.add_argument("--min-area", type=float, help="m2, smallest release area (default: 4 "
+                    "cells)")
+    ra.add_argument("--split-aspect", type=float, metavar="DEG", help="split connected "
+                    "areas where the slope's direction changes sector (sectors of DEG)")
+    ra.add_argument("--d0", type=float, help="m, reference release depth d0*: adds each "
+                    "area's thickness by the Swiss rule (elevation gradient, slope correction)")
+    ra.add_argument("--reference-elevation", type=float, default=2000.0,
+                    help="m, where d0 holds (default 2000)")
+    ra.add_argument("--gradient", type=float, default=0.05, help="m of depth per 100 m of "
+                    "elevation (default 0.05)")
+    ra.add_argument("--no-slope-correction", action="store_true",
+                    help="thickness without the slope factor f(psi)")
+    ra.add_argument("--index-raster", help="also write the release index as a GeoTIFF")
+    ra.set_defaults(func=_cmd_release_areas)
+    cm = sub.add_parser("compare", help="two runs of one map side by side (a scenario with "
+                                        "and without its structures): runout, volumes, "
+                                        "peak-pressure areas; table and PNG",
+                        parents=[quiet])
+    cm.add_argument("run_a", help="NetCDF written by avflow run (A, e.g. without the dam)")
+    cm.add_argument("run_b", help="NetCDF written by avflow run (B, e.g. with the dam)")
+    cm.add_argument("-o", "--output", help="output stem (default: B_vs_A next to B)")
+    cm.set_defaults(func=_cmd_compare)
     _add_region_parser(sub, quiet)
     ca = sub.add_parser("calibrate", help="calibrate parameters to an observed event "
                                           "(grid, lhs, bayes-opt, posterior); resumable",

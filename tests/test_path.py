@@ -224,11 +224,19 @@ def test_avflow_path_writes_the_table_and_the_figure(plane_run, tmp_path, capsys
     capsys.readouterr()
     assert main(["path", str(plane_run), "-q", "-o", str(tmp_path / "q")]) == 0
     assert capsys.readouterr().out == "" and (tmp_path / "q.csv").exists()  # --quiet
+    # alpha-beta beside the dynamic angle: a plane never falls to 10 degrees
+    assert main(["path", str(plane_run), "--alpha-beta", "austria", "-o",
+                 str(tmp_path / "ab")]) == 0
+    assert "alpha-beta (austria): no 10-degree point" in capsys.readouterr().out
+    row = pd.read_csv(tmp_path / "ab.csv").iloc[0]
+    assert row["path_ab_regression"] == "austria" and math.isnan(row["path_ab_beta"])
+    assert "Austrian Alps" in (tmp_path / "ab.md").read_text()
 
 
 @pytest.mark.parametrize("args, message", [
     (["--line", "nowhere.shp"], "nowhere.shp: no such file"),
     (["--threshold", "-1"], "threshold must be a number > 0"),
+    (["--alpha-beta", "sweden"], "alpha-beta regression 'sweden'"),
 ])
 def test_avflow_path_bad_input_is_one_line_exit_2(plane_run, tmp_path, capsys, args, message):
     args = [a if a != "nowhere.shp" else str(tmp_path / a) for a in args]
@@ -324,6 +332,9 @@ def test_ensemble_records_the_path_per_member(tmp_path, capsys):
         assert ens["path_peak_pressure"].dims == ("realization", "path_s")
         assert ens.attrs["path_field"] == "pressure" and ens["path_x"].size >= 2
         np.testing.assert_allclose(ens["path_runout_s"], table["path_runout_s"])
+        # alpha-beta beside each member's angle: a plane never falls to 10 degrees
+        assert ens["path_ab_beta"].dims == ("realization",)
+    assert table["path_ab_beta"].isna().all() and set(table["path_ab_regression"]) == {"norway"}
     assert main(["path", str(outdir)]) == 0
     assert "3 members along the path" in capsys.readouterr().out
     for name in ("path.csv", "path.md", "path.png", "path_profile.csv"):

@@ -20,8 +20,8 @@ import re
 from pathlib import Path
 
 #: Blocks of a scenario file, in the order of the file; each gets its own page.
-BLOCKS = ("name", "terrain", "grid", "release", "rheology", "entrainment", "forest", "time",
-          "output", "boundary", "physics", "numerics")
+BLOCKS = ("name", "terrain", "grid", "release", "rheology", "entrainment", "forest",
+          "structures", "time", "output", "boundary", "physics", "numerics")
 #: Top-level scalar fields documented on the "name" page.
 TOP_SCALARS = ("name", "description")
 

@@ -207,6 +207,10 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         data["moving_volume"] = ("time", np.asarray(snaps.moving_volume),
                                  {**attrs("moving_volume"),
                                   "units": per_width("m3", profile)})
+        if "structures" in terrain.extras:
+            from avflow.output.structures import structure_variables
+
+            data.update(structure_variables(result, space))
         for name, (values, is_map) in entrainment_variables(result).items():
             data[name] = ((space if is_map else "time"), grid(values) if is_map else values,
                           {**attrs(name), "units": attrs(name)["units"] if is_map

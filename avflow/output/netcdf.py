@@ -56,7 +56,8 @@ def encoding_for(ds: xr.Dataset) -> dict:
     for name, var in ds.variables.items():
         if name in ds.coords:
             enc[name] = {"_FillValue": None}
-        elif var.dtype.kind == "f" and var.ndim >= 1 and var.dims != ("time",):
+        elif (var.dtype.kind == "f" and var.ndim >= 1
+              and var.dims not in (("time",), ("structure",))):  # volumes stay float64
             chunks = field_chunks(var)
             fill = np.float32(np.nan) if bool(np.isnan(var.values).any()) else None
             enc[name] = {"dtype": "float32", "zlib": True, "complevel": 2, "shuffle": True,

@@ -306,6 +306,7 @@ class PathSettings:
     field: str = "pressure"
     threshold: float | None = None
     width: float | None = None
+    regression: str | None = None  #: alpha-beta regression (None: the Norwegian one)
 
     def __post_init__(self):
         if self.field not in FIELDS:
@@ -314,6 +315,10 @@ class PathSettings:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise PathError(f"{name} must be a number > 0, got {value:g}")
+        if self.regression is not None:
+            from avflow.output.alphabeta import regression
+
+            regression(self.regression)  # a bad one: one line before anything is read
 
     @classmethod
     def from_scenario(cls, block) -> "PathSettings":
@@ -321,7 +326,7 @@ class PathSettings:
         if block is None:
             return cls()
         return cls(line=block.line, field=block.field, threshold=block.threshold,
-                   width=block.width)
+                   width=block.width, regression=getattr(block, "alpha_beta", None))
 
     def threshold_for(self, points: RunPoints) -> float:
         if self.threshold is not None:
@@ -345,6 +350,7 @@ class PathResult:
     top_index: int | None
     scalars: dict
     profile: dict = field(default_factory=dict)  #: s, x, y, z and the cross-section maxima
+    alpha_beta: object = None     #: :class:`avflow.output.alphabeta.ABResult` (a top found)
 
     def row(self) -> dict:
         """The per-run columns of a table (``path_*``)."""
@@ -369,13 +375,28 @@ SCALARS = {
     "max_pressure": ("kPa", "largest peak pressure within the band around the path"),
     "max_speed": ("m s-1", "largest peak speed within the band around the path"),
     "max_thickness": ("m", "largest peak thickness within the band around the path"),
+    "ab_beta": ("degree", "alpha-beta model: beta, the angle from the top of the release to "
+                          "the first point where the path's slope falls to 10 degrees"),
+    "ab_beta_s": ("m", "distance along the path of the beta (10 degree) point"),
+    "ab_beta_z": ("m", "bed elevation of the beta point"),
+    "ab_alpha": ("degree", "alpha-beta model: the regression's runout angle alpha"),
+    "ab_alpha_s": ("m", "distance along the path where the alpha line meets the bed"),
+    "ab_alpha_z": ("m", "bed elevation there"),
+    "ab_alpha_m1sd": ("degree", "alpha minus one standard deviation of the regression"),
+    "ab_alpha_m1sd_s": ("m", "distance along the path where that line meets the bed"),
+    "ab_alpha_m1sd_z": ("m", "bed elevation there"),
+    "ab_alpha_m2sd": ("degree", "alpha minus two standard deviations of the regression"),
+    "ab_alpha_m2sd_s": ("m", "distance along the path where that line meets the bed"),
+    "ab_alpha_m2sd_z": ("m", "bed elevation there"),
 }
 
 
 def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
             threshold: float | None = None, width: float | None = None,
-            bin_size: float | None = None) -> PathResult:
-    """The run ``points`` along ``line``: runout point, alpha, maxima, cross-section profiles."""
+            bin_size: float | None = None, regression=None) -> PathResult:
+    """The run ``points`` along ``line``: runout point, alpha, maxima, cross-section profiles,
+    and the alpha-beta model's angles and points from the top of the release
+    (``regression``: :func:`avflow.output.alphabeta.regression`)."""
     settings = PathSettings(None, field, threshold, width)
     threshold = settings.threshold_for(points)
     variable, factor, units = FIELDS[field]
@@ -412,7 +433,61 @@ def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
         sc[f"max_{short}"] = float(v.max() * scale) if v.size else nan
     result = PathResult(line, field, threshold, units, width, s, l, run, top, sc)
     result.profile = cross_sections(points, result, inside, bin_size or points.spacing)
+    if top is not None:
+        result.alpha_beta = path_alpha_beta(points, line, sc["top_s"], sc["top_z"],
+                                            regression)
+        sc.update(alpha_beta_scalars(result.alpha_beta))
     return result
+
+
+def bed_along(points: RunPoints, line: PathLine, s) -> np.ndarray:
+    """The bed elevation on the line at distances ``s`` (bilinear on a grid, linear on a
+    profile or a triangle mesh; NaN off the map)."""
+    s = np.asarray(s, dtype=float)
+    x, y = line.at(s)
+    if points.kind == "profile":
+        return np.interp(x, points.x, points.z, left=np.nan, right=np.nan)
+    if points.grid is not None:
+        from scipy.interpolate import RegularGridInterpolator
+
+        xg, yg, bed = points.grid
+        if yg[0] > yg[-1]:
+            yg, bed = yg[::-1], bed[::-1]
+        if xg[0] > xg[-1]:
+            xg, bed = xg[::-1], bed[:, ::-1]
+        f = RegularGridInterpolator((yg, xg), bed, bounds_error=False, fill_value=np.nan)
+        return f(np.column_stack([y, x]))
+    from scipy.interpolate import LinearNDInterpolator
+
+    return LinearNDInterpolator(np.column_stack([points.x, points.y]), points.z)(x, y)
+
+
+def path_alpha_beta(points: RunPoints, line: PathLine, s_top: float, z_top: float,
+                    regression=None):
+    """The alpha-beta model from the top of the release (its highest cell, ``s_top``,
+    ``z_top``: the dynamic runout angle's top too) along the bed on the line, sampled every
+    half cell to the line's end or the map's edge (a stretch of the line off the map just
+    below the top, as a centre-of-mass track's upslope extension can be, is skipped)."""
+    from avflow.output.alphabeta import alpha_beta
+
+    step = 0.5 * points.spacing
+    s_end = max(line.length, float(np.nanmax(line.project(points.x, points.y)[0])))
+    s = s_top + step * np.arange(1, max(int((s_end - s_top) / step) + 1, 1))
+    z = bed_along(points, line, s)
+    on = np.flatnonzero(np.isfinite(z))
+    if on.size:
+        s, z = s[on[0]:], z[on[0]:]
+    return alpha_beta(np.concatenate([[s_top], s]), np.concatenate([[z_top], z]), regression)
+
+
+def alpha_beta_scalars(ab) -> dict:
+    """The ``ab_*`` scalars of an alpha-beta result (angles in degrees, s along the path)."""
+    out = {"ab_beta": ab.beta, "ab_beta_s": ab.beta_s, "ab_beta_z": ab.beta_z}
+    for label, a, s_, z_ in zip(ab.LABELS, ab.alphas, ab.points_s, ab.points_z):
+        out[f"ab_{label}"] = a
+        out[f"ab_{label}_s"] = s_
+        out[f"ab_{label}_z"] = z_
+    return out
 
 
 def _near_the_map(points: RunPoints, line: PathLine) -> None:
@@ -540,7 +615,7 @@ def analyse_run(ds, settings: PathSettings | None = None, line: PathLine | None 
     if line is None:
         line = path_for(points, settings.line)
     return points, analyse(points, line, settings.field, settings.threshold_for(points),
-                           settings.width)
+                           settings.width, regression=settings.regression)
 
 
 # =========================================================================================
@@ -555,9 +630,11 @@ def _fmt(v) -> str:
 
 
 def _settings_columns(result: PathResult) -> dict:
+    ab = result.alpha_beta
     return {"path_source": result.line.source, "path_field": result.field,
             "path_threshold": result.threshold, "path_threshold_units": result.units,
-            "path_width": math.nan if result.width is None else result.width}
+            "path_width": math.nan if result.width is None else result.width,
+            "path_ab_regression": "" if ab is None else ab.regression.name}
 
 
 def _write_tables(rows: list[dict], stem: Path) -> list[Path]:
@@ -568,7 +645,9 @@ def _write_tables(rows: list[dict], stem: Path) -> list[Path]:
     atomic_write(csv_path, lambda tmp: table.to_csv(tmp, index=False))
     shown = [c for c in table.columns if c not in ("path_source", "path_threshold_units",
                                                    "path_width", "path_field",
-                                                   "path_threshold", "file")]
+                                                   "path_threshold", "file",
+                                                   "path_ab_regression")
+             and not (c.startswith("path_ab_") and c.endswith("_z"))]
     first = rows[0] if rows else {}
     width = first.get("path_width", math.nan)
     band = "every cell" if math.isnan(width) else f"{_fmt(width)} m wide"
@@ -579,12 +658,26 @@ def _write_tables(rows: list[dict], stem: Path) -> list[Path]:
              f"{first.get('path_threshold_units', '')}",
              f"- band around the path: {band}",
              "- lengths in m along the path (horizontal), angles in degrees, pressure in kPa",
+             *_regression_lines(first.get("path_ab_regression", "")),
              "", "| " + " | ".join(c.removeprefix("path_") for c in shown) + " |",
              "|" + "---|" * len(shown)]
     for r in rows:
         lines.append("| " + " | ".join(_fmt(r.get(c, "")) for c in shown) + " |")
     atomic_write(md_path, lambda tmp: Path(tmp).write_text("\n".join(lines) + "\n"))
     return [csv_path, md_path]
+
+
+def _regression_lines(name: str) -> list[str]:
+    """The alpha-beta regression the ``ab_*`` columns used, with its source."""
+    if not name:
+        return []
+    from avflow.output.alphabeta import REGRESSIONS
+
+    reg = REGRESSIONS.get(name)
+    source = reg.source if reg is not None else "the user's coefficients"
+    return [f"- alpha-beta (ab_*): regression {name}: {source}; beta point: the path's "
+            "slope first at 10 degrees or less (for 30 m on); the ab_*_s columns are where "
+            "each alpha line from the top of the release meets the bed"]
 
 
 def _write_profiles(profiles: list[tuple[object, dict]], target: Path) -> Path:
@@ -752,12 +845,16 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
         if not math.isnan(sc["runout_angle"]):
             ax.plot([sc["top_s"], sc["runout_s"]], [sc["top_z"], sc["runout_z"]], "--",
                     color=color, lw=1,
-                    label=None if many else f"alpha = {sc['runout_angle']:.1f} deg")
+                    label=None if many else f"run: alpha = {sc['runout_angle']:.1f} deg")
             ax.plot(sc["runout_s"], sc["runout_z"], "x", color=color, ms=6, mew=1.5)
     if first.top_index is not None:
         ax.plot(first.scalars["top_s"], first.scalars["top_z"], "^", color="w", mec="k",
                 ms=7, label="top of release")
+    _plot_alpha_beta(ax, ax_map if points.kind != "profile" else None, first)
     if reach is not None:
+        sc = first.scalars
+        far = np.nanmax([reach[1], sc.get("ab_alpha_m2sd_s", np.nan) + 3 * points.spacing])
+        reach = (reach[0], far)
         ax.set_xlim(*reach)
     ax.set_xlabel("s along the path (m, horizontal)")
     ax.set_ylabel("bed elevation (m)", fontsize=9)
@@ -770,6 +867,34 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
     finally:
         plt.close(fig)
     return target
+
+
+def _plot_alpha_beta(ax, ax_map, result: PathResult) -> None:
+    """The beta point and the alpha, alpha - 1 SD and alpha - 2 SD lines from the top of the
+    release on the bed panel, and their points on the map."""
+    ab = result.alpha_beta
+    if ab is None or math.isnan(ab.beta):
+        return
+    sc = result.scalars
+    s0, z0 = ab.points_s, ab.points_z
+    top_s = sc["top_s"]
+    top_z = sc["ab_beta_z"] + math.tan(math.radians(ab.beta)) * (ab.beta_s - top_s)
+    ax.plot([top_s, ab.beta_s], [top_z, ab.beta_z], ":", color="tab:purple", lw=1)
+    ax.plot(ab.beta_s, ab.beta_z, "D", color="tab:purple", ms=5,
+            label=f"beta = {ab.beta:.1f} deg (10 deg point)")
+    styles = (("tab:orange", f"alpha-beta ({ab.regression.name}): alpha"),
+              ("tab:red", "alpha-1SD"), ("darkred", "alpha-2SD"))
+    for a, s_, z_, (color, name) in zip(ab.alphas, s0, z0, styles):
+        if math.isnan(s_):
+            continue
+        ax.plot([top_s, s_], [top_z, z_], "-", color=color, lw=0.8, alpha=0.7)
+        ax.plot(s_, z_, "o", color=color, ms=5, label=f"{name} = {a:.1f} deg")
+        if ax_map is not None:
+            x, y = result.line.at([s_])
+            ax_map.plot(x, y, "o", color=color, mec="k", ms=5)
+    if ax_map is not None:
+        x, y = result.line.at([ab.beta_s])
+        ax_map.plot(x, y, "D", color="tab:purple", mec="k", ms=5)
 
 
 def _reach(results, spacing: float):
@@ -835,19 +960,38 @@ def _title(result: PathResult, name: str) -> str:
             f"alpha = {sc['runout_angle']:.2f} deg")
 
 
+def alpha_beta_text(result: PathResult) -> str:
+    """``; alpha-beta (norway): beta 28.1, alpha 25.6 at s = ...`` or nothing."""
+    ab = result.alpha_beta
+    if ab is None:
+        return ""
+    if math.isnan(ab.beta):
+        return f"; alpha-beta ({ab.regression.name}): no 10-degree point on the path"
+
+    def at(s_):
+        return "beyond the path" if math.isnan(s_) else f"s = {s_:.0f} m"
+
+    a, m1, m2 = ab.alphas
+    return (f"; alpha-beta ({ab.regression.name}): beta {ab.beta:.1f} deg, alpha {a:.1f} deg "
+            f"at {at(ab.points_s[0])}, alpha-1SD {m1:.1f} at {at(ab.points_s[1])}, "
+            f"alpha-2SD {m2:.1f} at {at(ab.points_s[2])}")
+
+
 def summary_line(result: PathResult, farthest: float = math.nan,
                  truncated: bool = False) -> str:
     """One line: where the runout point lies along the path."""
     sc = result.scalars
     what = f"{result.field} >= {result.threshold:g} {result.units}"
     if math.isnan(sc["runout_s"]):
-        return f"along the path ({result.line.source}): no cell reaches {what}"
+        return (f"along the path ({result.line.source}): no cell reaches {what}"
+                + alpha_beta_text(result))
     text = (f"along the path ({result.line.source}): runout ({what}) at s = "
             f"{sc['runout_s']:.1f} m, {sc['runout_length']:.1f} m from the top of the "
             f"release, alpha {sc['runout_angle']:.2f} deg, max pressure "
             f"{sc['max_pressure']:.3g} kPa, max speed {sc['max_speed']:.3g} m/s")
     if not math.isnan(farthest):
         text += f" (farthest cell from the release: {farthest:.1f} m)"
+    text += alpha_beta_text(result)
     if truncated:
         text += "; a lower bound: the flow reached the edge of the map"
     return text
@@ -898,38 +1042,40 @@ def scenario_settings(text: str, near: Path, need_line: bool = True) -> PathSett
                             "from here: give it with --line")
         line = str(found)
     return PathSettings(line, block.get("field") or "pressure", block.get("threshold"),
-                        block.get("width"))
+                        block.get("width"), block.get("alpha_beta"))
 
 
 def merge_settings(base: PathSettings, line=None, field=None, threshold=None,
-                   width=None) -> PathSettings:
+                   width=None, regression=None) -> PathSettings:
     """``base`` with the command line's options on top (another field drops the base's
     threshold: kPa and m do not mix)."""
     if field is not None and field != base.field:
-        base = PathSettings(base.line, field, None, base.width)
+        base = PathSettings(base.line, field, None, base.width, base.regression)
     if line == COM:
-        base, line = PathSettings(None, base.field, base.threshold, base.width), None
+        base, line = PathSettings(None, base.field, base.threshold, base.width,
+                                  base.regression), None
     return PathSettings(line if line is not None else base.line,
                         field if field is not None else base.field,
                         threshold if threshold is not None else base.threshold,
-                        width if width is not None else base.width)
+                        width if width is not None else base.width,
+                        regression if regression is not None else base.regression)
 
 
-def analyse_target(target, line=None, field=None, threshold=None, width=None, output=None
-                   ) -> tuple[str, list[Path]]:
+def analyse_target(target, line=None, field=None, threshold=None, width=None, output=None,
+                   regression=None) -> tuple[str, list[Path]]:
     """``avflow path``: a run file (-> ``OUT_path.*``) or an ensemble folder
     (-> ``OUTDIR/path.*``); returns (summary line, written files)."""
     target = Path(target)
     if line is not None and line != COM and not Path(line).is_file():
         raise PathError(f"{line}: no such file")
     if target.is_dir():
-        return _analyse_folder(target, line, field, threshold, width, output)
+        return _analyse_folder(target, line, field, threshold, width, output, regression)
     from avflow.output.maps import open_run
 
     with open_run(target) as ds:
         base = PathSettings() if line not in (None, COM) else scenario_settings(
             ds.attrs.get("scenario", ""), target.parent, need_line=line is None)
-        settings = merge_settings(base, line, field, threshold, width)
+        settings = merge_settings(base, line, field, threshold, width, regression)
         stem = Path(output) if output else target.with_name(target.stem + "_path")
         inputs = protected([target, settings.line])
         result, written = write_run_path(ds, settings, stem, inputs)
@@ -950,7 +1096,7 @@ def member_labels(table) -> dict[int, str]:
             or f"member {int(k)}" for k, (_, row) in zip(table["realization"], table.iterrows())}
 
 
-def _analyse_folder(outdir: Path, line, field, threshold, width, output):
+def _analyse_folder(outdir: Path, line, field, threshold, width, output, regression=None):
     import pandas as pd
     import xarray as xr
 
@@ -983,7 +1129,7 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
                 if line is None or line == COM and "centre-of-mass" in a.get("path_source", ""):
                     recorded = PathLine(ens["path_x"].values, ens["path_y"].values,
                                         source=str(a.get("path_source", "ensemble.nc")))
-    settings = merge_settings(base, line, field, threshold, width)
+    settings = merge_settings(base, line, field, threshold, width, regression)
     stem = Path(output) if output else outdir / "path"
     members = [outdir / str(f) for f in table.get("file", ()) if isinstance(f, str) and f]
     check_path_outputs(stem, protected([summary, ens_nc, settings.line, *members]))
@@ -1039,7 +1185,7 @@ def _ensemble_results(table, outdir: Path, settings: PathSettings, line: PathLin
     results, rows = [], []
     for k, p in members.items():
         r = analyse(p, line, settings.field, settings.threshold_for(p), settings.width,
-                    bin_size=spacing)
+                    bin_size=spacing, regression=settings.regression)
         results.append((k, r))
         rows.append({"realization": k, **_settings_columns(r), **r.row(),
                      "farthest_cell_runout": p.farthest_runout})

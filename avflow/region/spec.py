@@ -10,6 +10,7 @@ merge rules; validated once, here, into a frozen :class:`Region`.
       thickness: 1.0                   # m, for every polygon; or
       # thickness_field: d0            #   a numeric attribute (default: 'thickness')
       id_field: id                     # positive integer attribute (default: feature order)
+      # from_dem: {min_area: 2500}     # instead of path: avflow release-areas' areas
     scenario:                          # a scenario without terrain, grid and release
       rheology: {law: coulomb, delta_deg: 20.0}
       time: {end: 120.0}
@@ -82,6 +83,14 @@ class Releases(_Model):
     grid (same cell size, aligned, any part of it); each connected patch of cells above 0
     is one release (ids in scan order, from the north-west), its cells' values its
     thickness."""
+    from_dem: dict[str, Any] | None = None
+    """Instead of ``path`` or ``raster``: the potential release areas of the region's DEM,
+    found as ``avflow release-areas`` finds them; a mapping of its options (``slope_min``,
+    ``slope_max``, ``snow_depth``, ``roughness``, ``wind_direction``, ``wind_tolerance``,
+    ``threshold``, ``max_curvature``, ``min_area``, ``split_aspect_deg``, ``d0``,
+    ``reference_elevation``, ``gradient``, ``slope_correction``, ``forest``: a file relative
+    to the region file), ``{}`` for the defaults; with ``d0`` each area's thickness. The
+    DEM is read whole for it."""
     connectivity: Literal[4, 8] = 8
     """Cells of a raster patch touch by their sides (4) or their sides and corners (8)."""
     thickness: Positive | None = None
@@ -295,8 +304,9 @@ class Region:
         return out
 
     def input_files(self) -> list[str]:
-        return [p for p in (self.path, self.dem, self.releases.path, self.releases.raster)
-                if p]
+        forest = (self.releases.from_dem or {}).get("forest")
+        return [p for p in (self.path, self.dem, self.releases.path, self.releases.raster,
+                            forest) if p]
 
 
 def _set_dotted(data: dict, dotted: str, value) -> None:
@@ -336,14 +346,20 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
         raise _first_error(err, fail) from None
     dem = _existing(spec.dem, base_dir, fail, ("dem",))
     _check_dem(dem, fail)
-    given = [k for k in ("path", "raster") if getattr(spec.releases, k) is not None]
+    given = [k for k in ("path", "raster", "from_dem")
+             if getattr(spec.releases, k) is not None]
     if len(given) != 1:
         raise fail(("releases", given[-1]) if given else ("releases",),
-                   "give either path (a polygon layer) or raster (a release-thickness "
-                   "raster)" + (", not both" if given else ""))
-    releases = spec.releases.model_copy(
-        update={given[0]: _existing(getattr(spec.releases, given[0]), base_dir, fail,
-                                    ("releases", given[0]))})
+                   "give one of path (a polygon layer), raster (a release-thickness "
+                   "raster) or from_dem (release areas found in the DEM)"
+                   + (f", not {len(given)}" if given else ""))
+    if given[0] == "from_dem":
+        releases = spec.releases.model_copy(update={"from_dem": _from_dem(
+            spec.releases.from_dem, base_dir, fail)})
+    else:
+        releases = spec.releases.model_copy(
+            update={given[0]: _existing(getattr(spec.releases, given[0]), base_dir, fail,
+                                        ("releases", given[0]))})
     if releases.raster is not None:
         for key in ("thickness_field", "id_field"):
             if getattr(releases, key) is not None:
@@ -359,6 +375,10 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
         if key in REGION_BLOCKS:
             raise fail(("scenario", key), f"set by the region for each release ({key} comes "
                        "from dem: and releases:); leave it out")
+    if spec.scenario.get("structures"):
+        raise fail(("scenario", "structures"), "a structure belongs to one scenario's DEM and "
+                   "a release's window need not hold its line: run the releases that reach "
+                   "it with avflow run (the structures in their scenario)")
     stand_in = _check_scenario_block(spec.scenario, path, positions, base_dir)
     scenarios = SINGLE
     if spec.scenarios is not None:
@@ -368,11 +388,13 @@ def parse_region(text: str, source_path: str | os.PathLike | None = None) -> Reg
             which = "thickness" if releases.thickness is not None else "thickness_field"
             raise fail(("releases", which), "the release thickness comes from "
                        "scenarios.return_periods; leave releases." + which + " out")
-    if releases.raster is not None:
+    if releases.raster is not None or releases.from_dem is not None:
         for k, rs in enumerate(spec.scenarios.return_periods or () if spec.scenarios else ()):
             if isinstance(rs.thickness, str):
                 raise fail(("scenarios", "return_periods", k, "thickness"), "a release "
-                           "raster has no attributes: give metres or a rule ({d0: ...})")
+                           + ("raster" if releases.raster is not None else "area found in "
+                              "the DEM") + " has no attributes: give metres or a rule "
+                           "({d0: ...})")
     thresholds = _region_thresholds(spec.merge, spec.scenarios is not None, stand_in, fail)
     return Region(name=spec.name.strip(), path=path, text=text, dem=dem, releases=releases,
                   scenario=spec.scenario, window=spec.window, merge=spec.merge,
@@ -494,6 +516,33 @@ def _first_error(err: ValidationError, fail) -> RegionError:
         return fail(keys, "required, but missing")
     message = e["msg"].replace("Input should be", "must be").replace("Value error, ", "")
     return fail(keys, f"{message}, got {show(e.get('input'))}")
+
+
+def _from_dem(options: dict, base_dir: str, fail) -> dict:
+    """``releases.from_dem`` checked as ``avflow release-areas`` checks its options; the
+    forest file made absolute."""
+    import dataclasses
+
+    from avflow.terrain.release_areas import PRAError, PRASettings
+
+    options = dict(options)
+    known = {f.name for f in dataclasses.fields(PRASettings)} | {"forest"}
+    for key in options:
+        if key not in known:
+            raise fail(("releases", "from_dem", key), f"unknown option; known: "
+                       f"{', '.join(sorted(known))}")
+    if options.get("forest") is not None:
+        options["forest"] = _existing(str(options["forest"]), base_dir, fail,
+                                      ("releases", "from_dem", "forest"))
+    try:
+        PRASettings(**{k: v for k, v in options.items() if k != "forest"})
+    except PRAError as err:
+        word = str(err).split()[0]
+        raise fail(("releases", "from_dem", word if word in known else "from_dem"),
+                   str(err)) from None
+    except TypeError as err:
+        raise fail(("releases", "from_dem"), str(err)) from None
+    return options
 
 
 def _existing(value: str, base_dir: str, fail, keys: tuple) -> str:

@@ -195,6 +195,39 @@ def read_raster_releases(region, dem: DemInfo) -> list[ReleaseArea]:
     return out
 
 
+def read_dem_releases(region) -> list[ReleaseArea]:
+    """The potential release areas of the region's DEM (``releases.from_dem``), numbered as
+    ``avflow release-areas`` numbers them; each area's thickness is ``releases.thickness``,
+    else its Swiss-rule thickness (with ``d0``), else its return periods'."""
+    import shapely
+
+    from avflow.terrain.release_areas import PRAError, PRASettings, potential_release_areas
+    from avflow.region.spec import RegionError
+
+    spec = region.releases
+    options = {k: v for k, v in spec.from_dem.items() if k != "forest"}
+    try:
+        result = potential_release_areas(region.dem, PRASettings(**options),
+                                         forest=spec.from_dem.get("forest"))
+    except PRAError as err:
+        raise RegionError(str(err), region.path, "releases.from_dem") from None
+    if not result.areas:
+        raise RegionError(f"{region.dem}: no potential release area (slope band, roughness, "
+                          "forest, minimum area)", region.path, "releases.from_dem")
+    periods = any(rs.return_period is not None for rs in region.scenarios)
+    out = []
+    for k, a in enumerate(result.areas):
+        thickness = spec.thickness if spec.thickness is not None else a.get("thickness")
+        problem = "" if thickness is not None or periods else (
+            "no thickness: give releases.thickness, from_dem.d0 or "
+            "scenarios.return_periods")
+        geom = a["geometry"]
+        out.append(ReleaseArea(int(a["id"]), k, shapely.to_wkb(geom), thickness,
+                               float(geom.area), tuple(float(v) for v in geom.bounds),
+                               problem))
+    return out
+
+
 def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
     """Every feature of the release layer; features that cannot run carry their problem
     (outside the DEM, zero area, another CRS, no thickness...) and are reported, not run."""
@@ -206,6 +239,8 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
     spec = region.releases
     if spec.raster is not None:
         return read_raster_releases(region, dem)
+    if spec.from_dem is not None:
+        return read_dem_releases(region)
     try:
         meta, _, wkb, columns = pyogrio.raw.read(spec.path)
     except Exception as err:  # noqa: BLE001 - GDAL's error: one line naming the file

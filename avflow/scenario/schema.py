@@ -21,6 +21,7 @@ import copy
 import functools
 import hashlib
 import json
+import math
 import os
 import re
 import types
@@ -866,6 +867,10 @@ STOP_FRACTIONS = {"moving_volume": 1e-3, "kinetic_energy": 0.01}
 LINE_SUFFIXES = {".shp": (".shx", ".dbf", ".prj"), ".geojson": (), ".json": (), ".csv": ()}
 
 
+#: The alpha-beta regressions by name (avflow/output/alphabeta.py holds their coefficients).
+AB_REGRESSIONS = ("norway", "austria", "austria_small")
+
+
 class PathAnalysis(_Model):
     """Runout along the avalanche path (AvaFrame's AIMEC; avflow/output/path.py): `avflow
     run` writes OUT_path.csv/.md/.png beside the NetCDF, ensembles add path_* columns to
@@ -881,6 +886,24 @@ class PathAnalysis(_Model):
     runout threshold)."""
     width: Positive | None = None
     """Width (m) of the band around the line whose cells count; null: every cell."""
+    alpha_beta: Text | None = None
+    """Alpha-beta regression beside the dynamic runout: norway (Lied and Bakkehøi 1980,
+    alpha = 0.96 beta - 1.4 deg, SD 2.3 deg; null means this one), austria or austria_small
+    (AvaFrame com2AB's sets), or "k1,k2,k3,k4,sd" for alpha = k1 beta + k2 z'' + k3 H0 + k4."""
+
+    @field_validator("alpha_beta")
+    @classmethod
+    def _known_regression(cls, value: str | None) -> str | None:
+        if value is None or value.strip() in AB_REGRESSIONS:
+            return value
+        try:
+            numbers = [float(p) for p in value.split(",")]
+        except ValueError:
+            numbers = []
+        if len(numbers) != 5 or not all(math.isfinite(v) for v in numbers) or numbers[4] < 0:
+            raise ValueError(f"give one of {', '.join(AB_REGRESSIONS)} or k1,k2,k3,k4,sd "
+                             "(five numbers, sd >= 0)")
+        return value
 
     @field_validator("line")
     @classmethod
@@ -1024,6 +1047,48 @@ class Physics(_Model):
     the largest release thickness, are held)."""
 
 
+class Structure(_Model):
+    """A protective structure built into the bed before the run (AvaFrame com1DFA's dam
+    takes a crest line, a height and a side slope; RAMMS users edit the DEM): every feature
+    of a line file (any vector format GDAL reads), in the DEM's CRS.
+
+    - ``dam``: an earth dam or catching/deflecting dam: the bed is raised to a crest
+      ``height`` above the ground under the line, ``crest_width`` wide, falling at
+      ``side_slope_deg`` on both sides; a flow with enough energy overtops it.
+    - ``wall``: a vertical wall, ``crest_width`` thick (at least the cells the line
+      touches): its cells leave the mesh and reflect the flow (walls of the grid), so it is
+      never overtopped, whatever its ``height``."""
+
+    name: Text = ""
+    """Label in the outputs; empty: the file's stem."""
+    line: Text
+    """Line file (.shp, .gpkg, .geojson, .json, .fgb), relative to the scenario file;
+    stored absolute."""
+    kind: Literal["dam", "wall"] = "dam"
+    """dam (raised bed with side slopes, can be overtopped) or wall (vertical, reflecting)."""
+    height: Positive
+    """Crest height above the ground under the line (m)."""
+    crest_width: NonNegative = 0.0
+    """Width of the flat crest (m); a wall's thickness."""
+    side_slope_deg: Angle | None = None
+    """A dam's side slope (degrees from the horizontal), both sides; required for a dam."""
+
+    @field_validator("line")
+    @classmethod
+    def _existing_line(cls, value: str, info: ValidationInfo) -> str:
+        return _data_file(value, info, POLYGON_SUFFIXES)
+
+    @model_validator(mode="after")
+    def _slope_for_a_dam(self) -> Structure:
+        if self.kind == "dam" and self.side_slope_deg is None:
+            raise _problem("required for a dam (its sides' angle from the horizontal, "
+                           "degrees)", "side_slope_deg")
+        if self.kind == "wall" and self.side_slope_deg is not None:
+            raise _problem("a wall is vertical: leave side_slope_deg out, or make it a dam",
+                           "side_slope_deg")
+        return self
+
+
 class Scenario(_Model):
     """A validated scenario. Build one with :func:`load_scenario` or :func:`parse_scenario`.
 
@@ -1046,6 +1111,8 @@ class Scenario(_Model):
     """Mass the flow takes from an erodible layer on its way, by ``law``; null: none."""
     forest: Forest | None = None
     """Forest's resistance to the flow, where it stands; null: none."""
+    structures: tuple[Structure, ...] = ()
+    """Dams and walls built into the bed before the run (2D terrains)."""
     time: Time
     output: Output = Output()
     boundary: Boundaries = Boundaries()
@@ -1098,6 +1165,8 @@ class Scenario(_Model):
         if terrain == "profile" and self.output.path is not None and self.output.path.line:
             raise _problem("not allowed on a 'profile' terrain (the profile is its own path)",
                            "output.path.line")
+        if terrain == "profile" and self.structures:
+            raise _problem("a structure needs a 2D terrain ('plane' or 'dem')", "structures")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
         self._maps_fit(terrain)
@@ -1195,6 +1264,7 @@ class Scenario(_Model):
             files += spec.files()
         if self.output.path is not None:
             files.append(self.output.path.line)
+        files += [s.line for s in self.structures]
         return [f for f in files if f]
 
     @property
@@ -1243,6 +1313,14 @@ class Scenario(_Model):
         for block in ("entrainment", "forest"):  # none: hashes as before the blocks
             if data.get(block) is None:
                 data.pop(block, None)
+        if not data.get("structures"):  # none: hashes as before the block
+            data.pop("structures", None)
+        for k, structure in enumerate(data.get("structures") or ()):  # lines by content
+            try:
+                structure["line"] = "sha256:" + _content_digest(structure["line"])
+            except OSError as err:
+                raise ScenarioError.at(self, f"structures.{k}.line",
+                                       f"cannot read: {err}") from None
         for field, spec in self.data_maps().items():  # maps count by their files' content
             node = data
             for key in field.split("."):

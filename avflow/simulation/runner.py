@@ -30,6 +30,7 @@ from avflow.simulation.resources import check_resources, release_freed_memory
 from avflow.simulation.summary import deposit_extent, runout_truncated, travel_angle
 from avflow.terrain.bed import Terrain
 from avflow.terrain.build import build_terrain
+from avflow.terrain.structures import StructureError
 from avflow.terrain.maps import MapError, erodible_depth, forest_coefficient, friction_maps
 from avflow.terrain.trimesh import MeshTooLarge
 
@@ -278,6 +279,8 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
         raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
     except MeshTooLarge as err:
         raise ScenarioError.at(scenario, "grid.refine.levels", str(err)) from None
+    except StructureError as err:
+        raise ScenarioError.at(scenario, err.field, str(err)) from None
     except ValueError as err:
         raise ScenarioError.at(scenario, "grid.dx", str(err)) from None
     if terrain.crs_wkt is None and terrain.kind != "profile":

@@ -329,7 +329,7 @@ FACE_CHUNK = 1 << 18
 
 
 def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=None,
-                    curvature: bool = True) -> Terrain:
+                    curvature: bool = True, walls=None) -> Terrain:
     """Any bed ``z = b(x, y)`` on a horizontal grid (a DEM); NaN cells lie outside the domain.
 
     Every cell is the lift of its grid cell onto the bed, with its own tangent basis (seed
@@ -342,6 +342,8 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
     crosses from one basis to the other through the face. Faces towards NODATA cells are
     walls or open (``nodata``). With ``curvature``, each cell carries the bed's curvature
     tensor (:func:`curvature_tensor` of :func:`bed_hessian`), the 2D form of eqs. 61-62.
+    ``walls``: a (ny, nx) mask of NaN cells whose faces are walls whatever ``nodata`` says
+    (a structure's vertical wall, :mod:`avflow.terrain.structures`).
     """
     z = np.asarray(elevation, dtype=float)
     ny, nx = z.shape
@@ -388,7 +390,9 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
             off = np.where(cj < 0, side_code["x_min"], side_code["x_max"])
         else:
             off = np.where(rj < 0, side_code["y_min"], side_code["y_max"])
-        j_idx = np.where(j_valid, index[rjc, cjc], np.where(inside, hole, off))
+        hole_j = (hole if walls is None else
+                  np.where(inside & walls[rjc, cjc], BOUNDARY_CODES["wall"], hole))
+        j_idx = np.where(j_valid, index[rjc, cjc], np.where(inside, hole_j, off))
         bj = np.where(j_valid[:, None, None], basis[np.maximum(index[rjc, cjc], 0)],
                       basis[i_idx])
         cells.append(np.stack([i_idx, j_idx], axis=1))

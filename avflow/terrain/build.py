@@ -20,7 +20,25 @@ def terrain_raster(scenario):
 
     A DEM is read (:mod:`avflow.terrain.raster`) and resampled to ``grid.dx`` (``dy``) unless its own
     spacing is within 1% of it; NODATA cells are NaN. A plane is sampled at its cell centres.
+    The scenario's structures are built in (:mod:`avflow.terrain.structures`; a wall's
+    cells NaN).
     """
+    z, x, y, wkt, _ = structured_raster(scenario)
+    return z, x, y, wkt
+
+
+def structured_raster(scenario):
+    """:func:`terrain_raster` and what its structures built (None without any)."""
+    z, x, y, wkt = _bare_raster(scenario)
+    built = None
+    if getattr(scenario, "structures", ()):
+        from avflow.terrain.structures import apply_structures
+
+        z, built = apply_structures(z, x, y, wkt, scenario.structures)
+    return z, x, y, wkt, built
+
+
+def _bare_raster(scenario):
     t = scenario.terrain
     if t.kind == "dem":
         raster = resample(read_raster(t.path), scenario.grid.dx, scenario.grid.dy)
@@ -56,13 +74,18 @@ def build_terrain(scenario, max_cells: float | None = None) -> Terrain:
         return scenario_triangle_terrain(scenario, max_cells)
     if t.kind == "profile":
         return profile_terrain(t, scenario.grid.dx, scenario.boundary)
-    if t.kind == "plane" and not getattr(t, "domain", None):
+    built_in = bool(getattr(scenario, "structures", ()))
+    if t.kind == "plane" and not getattr(t, "domain", None) and not built_in:
         return plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)
-    if t.kind in ("dem", "plane"):  # a DEM, or a plane cut to a domain polygon
-        z, x, y, wkt = terrain_raster(scenario)
-        return surface_terrain(z, x, y, scenario.boundary,
-                               nodata=getattr(t, "nodata", "wall"), crs_wkt=wkt,
-                               curvature=_curved(t))
+    if t.kind in ("dem", "plane"):  # a DEM, or a plane cut to a domain polygon or built on
+        z, x, y, wkt, built = structured_raster(scenario)
+        terrain = surface_terrain(z, x, y, scenario.boundary,
+                                  nodata=getattr(t, "nodata", "wall"), crs_wkt=wkt,
+                                  curvature=_curved(t),
+                                  walls=None if built is None else built.walls)
+        if built is not None:
+            terrain.extras["structures"] = built
+        return terrain
     raise ValueError(f"terrain kind {t.kind!r} is not available")
 
 
@@ -74,13 +97,19 @@ def scenario_triangle_terrain(scenario, max_cells: float | None = None) -> Terra
     if ref is not None:
         options.update(refine_angle_deg=ref.angle_deg, refine_slope_deg=ref.slope_deg,
                        refine_levels=ref.levels)
-    if t.kind == "plane" and not getattr(t, "domain", None):
+    if t.kind == "plane" and not getattr(t, "domain", None) and not scenario.structures:
         return plane_triangle_terrain(t, g.dx, g.dy, scenario.boundary, **options)
     # DEMs (and planes cut to a domain): the raster the square-grid builder would use
-    z, x, y, crs_wkt = terrain_raster(scenario)
-    return triangle_terrain(z, x, y, scenario.boundary,
-                            getattr(t, "nodata", "wall") or "wall", crs_wkt,
-                            curvature=_curved(t), **options)
+    z, x, y, crs_wkt, built = structured_raster(scenario)
+    if built is not None and built.walls.any():
+        raise ValueError("a wall needs the square grid (grid.mesh: square); on triangles "
+                         "give the structure as a dam")
+    terrain = triangle_terrain(z, x, y, scenario.boundary,
+                               getattr(t, "nodata", "wall") or "wall", crs_wkt,
+                               curvature=_curved(t), **options)
+    if built is not None:
+        terrain.extras["structures"] = built
+    return terrain
 
 
 def _curved(terrain) -> bool:
