@@ -59,7 +59,8 @@ def summary_line(ds) -> str:
         status += (f" (kinetic-energy rule, {moving} of the volume still moving: "
                    "not a deposit at rest)")
     elif status not in ("at_rest", "stopped") and ended_by:
-        status += f" ({ended_by}, {moving} of the volume still moving: not a deposit at rest)"
+        status += (f" ({ended_by.replace(', still moving', '')}, {moving} of the volume "
+                   "still moving: not a deposit at rest)")
     elif status != "failed":  # at rest by the rule: a few thin cells may still move
         status += f" ({moving} of the volume still moving)"
     if int(ds.attrs.get("runout_truncated", 0)):

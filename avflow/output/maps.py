@@ -442,7 +442,10 @@ def _title(ds) -> str:
     name = ds.attrs.get("scenario_name", "?")
     status = ds.attrs.get("status")
     if status and not at_rest(ds) and status != "failed":
-        status += ", still moving"
+        moved = (100 * float(ds["moving_volume_end"]) / max(float(ds["release_volume"]), 1e-300)
+                 if "moving_volume_end" in ds and "release_volume" in ds else math.nan)
+        status += (f", {moved:.2g}% of the volume still moving" if math.isfinite(moved)
+                   else ", still moving")
     if int(ds.attrs.get("runout_truncated", 0)):
         parts.append("runout truncated by the map's edge (a lower bound)")
     head = f"{name}" + (f" ({status})" if status else "")
