@@ -65,7 +65,10 @@ def summary_line(ds) -> str:
         status += f" ({moving} of the volume still moving)"
     if int(ds.attrs.get("runout_truncated", 0)):
         status += ", RUNOUT TRUNCATED by the map's edge (a lower bound: enlarge the map)"
-    runout = f"runout {f('runout', '.1f')} m"
+    profile = ds["peak_thickness"].dims == ("x",)
+    runout = (f"runout {f('runout', '.1f')} m "
+              + ("along the bed from the top" if profile else
+                 "from the release centroid (horizontal)"))
     if math.isnan(float(ds["runout"])):  # no cell above the runout threshold: say why
         left = float(ds["outflow_volume"]) if "outflow_volume" in ds else 0.0
         released = max(float(ds["release_volume"]), 1e-300)

@@ -104,3 +104,18 @@ def test_ensemble_names_edge_members_and_draws_no_by_law_for_one_law(tmp_path, c
     assert "1 member(s): 0 (rheology_delta_deg=14)" in text or \
         "1 member(s): 0 (rheology.delta_deg=14)" in text, text
     assert "by_law" not in text and not (out / "report" / "by_law.png").exists()
+
+
+def test_runouts_and_angles_are_named_by_what_they_measure(plane_run):
+    """The summary's runout is from the release centroid, the title's travel angle from the
+    highest released cell to the farthest deposit cell; the path analysis' runout and alpha
+    are along the path from the top of the release (its own line says so)."""
+    from avflow.output.maps import _title
+
+    _, ds = plane_run
+    line = summary_line(ds)
+    assert f"runout {float(ds.runout):.1f} m from the release centroid (horizontal)" in line
+    title = _title(ds)
+    assert f"runout {float(ds.runout):.0f} m from the release centroid" in title
+    assert (f"travel angle {float(ds.travel_angle):.1f}° (highest release cell to farthest "
+            "deposit)") in title

@@ -429,10 +429,12 @@ def _fmt(ds, name: str, fmt: str, unit: str) -> str | None:
 
 
 def _title(ds) -> str:
+    # each length and angle named by what it measures (the path analysis gives others)
+    frm = " along the bed" if scene_kind(ds) == "profile" else " from the release centroid"
     parts = [p for p in (
-        _fmt(ds, "runout", ".0f", " m") and "runout " + _fmt(ds, "runout", ".0f", " m"),
+        _fmt(ds, "runout", ".0f", " m") and "runout " + _fmt(ds, "runout", ".0f", " m") + frm,
         _fmt(ds, "travel_angle", ".1f", "°") and "travel angle "
-        + _fmt(ds, "travel_angle", ".1f", "°"),
+        + _fmt(ds, "travel_angle", ".1f", "°") + " (highest release cell to farthest deposit)",
         _fmt(ds, "deposit_max_thickness", ".2g", " m") and "deposit max "
         + _fmt(ds, "deposit_max_thickness", ".3g", " m"),
         _fmt(ds, "time_to_stop", ".1f", " s") and ("stops at " if at_rest(ds) else
