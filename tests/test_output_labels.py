@@ -101,9 +101,12 @@ def test_ensemble_names_edge_members_and_draws_no_by_law_for_one_law(tmp_path, c
             "0 (rheology.delta_deg=14)") in stdout, stdout
     assert main(["report", str(out)]) == 0
     text = (out / "report.md").read_text()
-    assert "1 member(s): 0 (rheology_delta_deg=14)" in text or \
-        "1 member(s): 0 (rheology.delta_deg=14)" in text, text
+    assert "1 member(s): 0 (rheology.delta_deg=14)" in text, text
     assert "by_law" not in text and not (out / "report" / "by_law.png").exists()
+    # the moving share of every member, in the table and the report
+    share = 100 * table["moving_volume_end"] / table["release_volume"]
+    assert np.isfinite(share).all()
+    assert "still moving at the end (% of the volume)" in text
 
 
 def test_runouts_and_angles_are_named_by_what_they_measure(plane_run):

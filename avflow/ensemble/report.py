@@ -96,7 +96,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
            f"- source: {ds.attrs.get('source', '')}"]
     if "runout_truncated" in ds:
         cut = np.flatnonzero(ds["runout_truncated"].values == 1)
-        named = "; ".join(f"{i} (" + ", ".join(f"{p}={float(ds[p].values[i]):g}"
+        named = "; ".join(f"{i} (" + ", ".join(f"{_dotted(ds, p)}={float(ds[p].values[i]):g}"
                                                for p in params) + ")" if params else f"{i}"
                           for i in cut)
         md += [f"- deposit reaching the domain's edge (runout is a lower bound): {cut.size} "
@@ -248,9 +248,15 @@ def write_report(outdir: str | os.PathLike) -> Path:
                  "mass_balance_error", "wall_time"]
         if entrained is not None and np.any(entrained[ok] > 0.0):
             names.insert(4, "entrained_volume")
-        md += [_md_table(["realization", "law", *params, "status", *names],
+        # the share of the volume still moving at the end, whatever the status
+        moving = (100 * ds["moving_volume_end"].values / (ds["release_volume"].values + (
+            np.nan_to_num(entrained) if entrained is not None else 0.0))
+            if "moving_volume_end" in ds else np.full(n, np.nan))
+        md += [_md_table(["realization", "law", *params, "status",
+                          "still moving at the end (% of the volume)", *names],
                          [[int(i), laws[i], *[float(ds[p].values[i]) for p in params],
-                           status[i], *[float(ds[m].values[i]) for m in names]]
+                           status[i], float(moving[i]), *[float(ds[m].values[i])
+                                                          for m in names]]
                           for i in range(n)]), ""]
     return atomic_text(outdir / "report.md", "\n".join(md))
 
