@@ -122,3 +122,11 @@ def test_runouts_and_angles_are_named_by_what_they_measure(plane_run):
     assert f"runout {float(ds.runout):.0f} m from the release centroid" in title
     assert (f"travel angle {float(ds.travel_angle):.1f}° (highest release cell to farthest "
             "deposit)") in title
+    # the path analysis names its own, and the summary's for comparison
+    from avflow.output.path import analyse_run, summary_line as path_line
+
+    _, res = analyse_run(ds)
+    text = path_line(res, float(ds.runout))
+    assert "m from the top of the release, alpha" in text, text
+    assert (f"(the summary's runout, farthest deposit cell from the release centroid: "
+            f"{float(ds.runout):.1f} m)") in text, text
