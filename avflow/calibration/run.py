@@ -258,15 +258,20 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     from avflow.calibration.outputs import write_outputs
 
     result.written = write_outputs(result, report=report)
+    where = outdir / ("report.md" if report else "calibration.nc")
     if result.fit is not None and not result.fit["fits"]:
         print(f"avflow: warning: the model cannot reproduce the observations within their "
               f"errors (best misfit {result.fit['chi2']:.4g}, at most "
               f"{result.fit['limit']:.3g} expected): no parameter is calibrated; see "
-              f"{outdir / 'report.md'}", file=sys.stderr)
+              f"{where}", file=sys.stderr)
     elif result.checks is not None and result.checks["flagged"]:
         print("avflow: warning: the model runs at posterior draws fit worse than the best "
-              "design run: the posterior is not confirmed; see "
-              f"{outdir / 'report.md'}", file=sys.stderr)
+              f"design run: the posterior is not confirmed; see {where}", file=sys.stderr)
+    zcols = [c for c in result.table.columns if c.endswith("_d_z")]
+    far = int((result.table[zcols].abs() > 3.0).to_numpy().sum()) if zcols else 0
+    if far:
+        print(f"avflow: warning: {far} check-run discrepancies lie more than 3 emulator "
+              f"standard deviations from the emulator; see {where}", file=sys.stderr)
     return result
 
 
