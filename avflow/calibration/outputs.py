@@ -251,7 +251,7 @@ def identifiability_lines(result) -> list[str]:
         return ["No posterior was sampled (method is not `posterior`): identifiability is "
                 "not assessed."]
     if ident.get("withheld"):
-        return [f"**Not assessed: {ident['withheld']}.** The posterior below describes the "
+        return [f"**Not assessed: {ident['withheld']}.** The posterior above describes the "
                 "emulator over the range, not what the observations allow: no parameter is "
                 "constrained by the data, whatever the width of its interval."] + [
             f"- {n}: 90% interval {ident['width'][n]:.0%} of its prior range: not assessed."
