@@ -69,15 +69,21 @@ def summary_line(ds) -> str:
 
     status = ds.attrs["status"]
     ended_by = ds.attrs.get("ended_by", "")
+    moving = moving_share(ds)
     if status == "ended_by_rule":
-        moving = float(ds["moving_volume_end"]) / max(float(ds["release_volume"]), 1e-300)
-        status += (f" (kinetic-energy rule, {100 * moving:.0f}% of the volume still moving: "
+        status += (f" (kinetic-energy rule, {moving} of the volume still moving: "
                    "not a deposit at rest)")
     elif status not in ("at_rest", "stopped") and ended_by:
-        status += f" ({ended_by}: not a deposit at rest)"
+        status += (f" ({ended_by.replace(', still moving', '')}, {moving} of the volume "
+                   "still moving: not a deposit at rest)")
+    elif status != "failed":  # at rest by the rule: a few thin cells may still move
+        status += f" ({moving} of the volume still moving)"
     if int(ds.attrs.get("runout_truncated", 0)):
         status += ", RUNOUT TRUNCATED by the map's edge (a lower bound: enlarge the map)"
-    runout = f"runout {f('runout', '.1f')} m"
+    profile = ds["peak_thickness"].dims == ("x",)
+    runout = (f"runout {f('runout', '.1f')} m "
+              + ("along the bed from the top" if profile else
+                 "from the release centroid (horizontal)"))
     if math.isnan(float(ds["runout"])):  # no cell above the runout threshold: say why
         left = float(ds["outflow_volume"]) if "outflow_volume" in ds else 0.0
         released = max(float(ds["release_volume"]), 1e-300)
@@ -94,6 +100,15 @@ def summary_line(ds) -> str:
             + _structure_note(ds)
             + f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s"
             + _compile_note(ds))
+
+
+def moving_share(ds) -> str:
+    """The volume still moving at the end over the volume there was (released plus
+    entrained), as a percentage with enough digits to be nonzero when it is."""
+    total = float(ds["release_volume"]) + (float(ds["entrained_volume"])
+                                           if "entrained_volume" in ds else 0.0)
+    share = 100 * float(ds["moving_volume_end"]) / max(total, 1e-300)
+    return "0%" if share == 0 else f"{share:.2g}%" if share < 10 else f"{share:.0f}%"
 
 
 def _entrained_note(ds) -> str:
@@ -560,6 +575,13 @@ def _cmd_ensemble(args) -> int:
     say(f"{outcome.ran} run, {outcome.reused} reused, {outcome.failed} failed "
         f"({outcome.elapsed:.1f} s, {outcome.where}); wrote {out / 'ensemble.nc'} and "
         f"{out / 'summary.csv'}")
+    from avflow.ensemble.orchestrate import edge_members
+
+    edge = edge_members(outcome.table, [n for n in ensemble.varied
+                                        if n in outcome.table.columns])
+    if edge:
+        say(f"{len(edge)} member(s) reached the map's edge (runout a lower bound: enlarge "
+            f"the map): " + "; ".join(edge))
     if args.report:
         from avflow.ensemble.report import write_report
 
@@ -684,6 +706,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("avflow: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if "avflow.numerics.compiling" in sys.modules:  # main() called in a longer process
+            sys.modules["avflow.numerics.compiling"].stop_announcing()
 
 
 if __name__ == "__main__":

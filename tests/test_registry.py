@@ -124,3 +124,27 @@ def test_the_gpu_backend_compiles_every_friction_function_there_is():
     for name in compiled:
         assert getattr(plain, name) is getattr(rheology, name).py_func, name
     assert plain.COULOMB == rheology.COULOMB and plain.math is math
+
+
+def test_a_command_run_in_process_stops_announcing_when_it_ends(capsys, tmp_path):
+    """An ensemble, region or calibration called through ``main()`` in a process that goes
+    on (a notebook, a test) leaves no compile notice behind it."""
+    from types import SimpleNamespace
+
+    from avflow.cli import _announce_compiles, main
+    from avflow.numerics import compiling
+
+    _announce_compiles(SimpleNamespace(quiet=False))  # as those commands do
+    assert len(compiling._ANNOUNCERS) == 1
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: [\n")
+    assert main(["run", str(bad)]) == 2
+    assert compiling._ANNOUNCERS == []
+
+    @njit
+    def four_times(x):
+        return 4 * x
+
+    capsys.readouterr()
+    four_times(1.0)
+    assert "avflow: compiling" not in capsys.readouterr().err

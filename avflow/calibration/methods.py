@@ -15,7 +15,12 @@ import numpy as np
 
 __all__ = ["grid_design", "lhs_design", "make_gp", "fit_gp", "expected_improvement",
            "propose_batch", "cross_validate", "Posterior", "sample_posterior",
-           "identifiability", "sobol_indices"]
+           "identifiability", "sobol_indices", "goodness_of_fit", "check_verdict",
+           "MIN_SPACING"]
+
+#: Closest two bayes-opt runs may lie in the unit cube (2% of a range): nearer, the model
+#: run repeats one it has and the surrogate learns nothing new.
+MIN_SPACING = 0.02
 
 
 def objective(misfit):
@@ -115,17 +120,20 @@ def propose_batch(X: np.ndarray, y: np.ndarray, q: int, seed: int, kernel=None
     for _ in range(q):
         cand = _candidates(X, y, rng)
         ei = expected_improvement(gp, cand, float(yf.min()))
-        # not a point already run (or picked): EI is ~0 there but ties would repeat it
+        # not a point already run (or picked), nor one within MIN_SPACING of it: a corner
+        # of the range gathers the clipped candidates, and runs there repeat each other
         taken = np.vstack([X, *out]) if out else X
         near = np.min(np.linalg.norm(cand[:, None, :] - taken[None, :, :], axis=2), axis=1)
-        ei = np.where(near > 1e-3, ei, -np.inf)
+        if not (near >= MIN_SPACING).any():
+            break  # the cube is covered at that spacing: nothing new to run
+        ei = np.where(near >= MIN_SPACING, ei, -np.inf)
         pick = cand[int(np.argmax(ei))]
         out.append(pick[None, :])
         mean = float(gp.predict(pick[None, :])[0])
         Xf, yf = np.vstack([Xf, pick]), np.append(yf, mean)
         believer = make_gp(X.shape[1], seed, optimize=False, kernel=gp.kernel_)
         gp = believer.fit(Xf, yf)
-    return np.vstack(out), fitted
+    return (np.vstack(out) if out else np.empty((0, X.shape[1]))), fitted
 
 
 def cross_validate(X: np.ndarray, y: np.ndarray, seed: int = 0, folds: int = 5,
@@ -280,3 +288,34 @@ def sobol_indices(predict, names: list[str], n: int, seed: int) -> dict:
     res = sobol_analyze.analyze(problem, Y, calc_second_order=False, seed=seed,
                                 print_to_console=False)
     return {k: np.asarray(res[k], float) for k in ("S1", "S1_conf", "ST", "ST_conf")}
+
+
+def goodness_of_fit(misfit: float, n_obs: int, level: float = 0.99) -> dict:
+    """Can the model reproduce the observations within their errors? If it can, each
+    ``d_i / sigma_i`` is a standard normal and the misfit of the best run a chi-square of
+    ``n_obs`` degrees of freedom (fitting the parameters only lowers it, so this is the
+    lenient test); the fit fails when the best misfit exceeds its ``level`` quantile."""
+    from scipy.stats import chi2
+
+    limit = float(chi2.ppf(level, n_obs))
+    return {"chi2": float(misfit), "dof": int(n_obs), "level": level, "limit": limit,
+            "p_value": float(chi2.sf(misfit, n_obs)),
+            "fits": bool(math.isfinite(misfit) and misfit <= limit)}
+
+
+def check_verdict(check_misfits, best_misfit: float, n_params: int,
+                  level: float = 0.99) -> dict:
+    """Do the model runs at posterior draws fit as well as the posterior claims? Near the
+    best fit of a model that reproduces the data, the misfit at a posterior draw exceeds
+    the least by a chi-square of ``n_params`` degrees of freedom; the posterior is flagged
+    when the median check run fits worse than the best design run by more than its
+    ``level`` quantile (or when no check run could be scored)."""
+    from scipy.stats import chi2
+
+    m = np.asarray(check_misfits, float)
+    m = m[np.isfinite(m)]
+    allowed = float(chi2.ppf(level, n_params))
+    median = float(np.median(m)) if m.size else math.nan
+    return {"median": median, "best": float(best_misfit), "allowed_rise": allowed,
+            "n": int(m.size),
+            "flagged": bool(not m.size or median > best_misfit + allowed)}

@@ -245,6 +245,8 @@ def score_member(cal, observed: Observed, cells: Cells) -> dict:
                 # never reached: arrival taken as the run's end (a late arrival, not none)
                 sim = np.where(np.isfinite(cells.arrival[cells_at]), cells.arrival[cells_at],
                                cells.end)
+            elif obs.field == "deposit":  # thickness at the end (NaN: none there)
+                sim = np.nan_to_num(cells.deposit[cells_at])
             else:
                 name, factor = {"speed": ("peak_speed", 1.0), "pressure": ("peak_pressure",
                                                                           1e-3),

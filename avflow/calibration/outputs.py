@@ -122,11 +122,15 @@ def calibration_dataset(result):
         col = f"{label}_d"
         units = ("m" if obs.kind == "runout" or (obs.kind == "deposit" and obs.raster)
                  else {"speed": "m s-1", "arrival_time": "s", "thickness": "m",
-                       "pressure": "kPa"}[obs.field] if obs.kind == "points" else "1")
+                       "pressure": "kPa", "deposit": "m"}[obs.field] if obs.kind == "points" else "1")
         data[col] = ("run", table[col].to_numpy(float) if col in table
                      else np.full(len(run), np.nan),
                      {"long_name": f"discrepancy of observation {label} ({obs.kind})",
                       "units": units, "error_sigma": cal.error(k), "weight": obs.weight})
+        if f"{col}_z" in table:
+            data[f"{col}_check_z"] = ("run", table[f"{col}_z"].to_numpy(float), {
+                "long_name": f"check runs: model minus emulator of {col}, in emulator "
+                             "standard deviations (NaN: not a check run)", "units": "1"})
         for extra in ("csi", "f1", "tversky", "auroc", "tp", "fp", "fn", "tn",
                       "s_sim", "s_obs", "rmse"):
             c = f"{label}_{extra}"
@@ -175,6 +179,13 @@ def calibration_dataset(result):
                                                   "emulator (sqrt_misfit: the GP of sqrt(misfit))"})
         data["emulator_cv_coverage90"] = ("quantity_cv",
                                           [result.cv[q]["coverage90"] for q in result.cv])
+    fit = result.fit
+    if fit is not None:
+        data["best_chi_square"] = ((), fit["chi2"], {
+            "long_name": "misfit of the best run, a chi-square if the model reproduces the "
+                         "observations within their errors", "units": "1",
+            "degrees_of_freedom": fit["dof"], "limit": fit["limit"],
+            "limit_quantile": fit["level"], "p_value": fit["p_value"]})
     ds = xr.Dataset({k: xr.Variable(*v) for k, v in data.items()}, coords=coords)
     observations = []
     for (k, key), path in sorted(cal.files.items()):
@@ -194,6 +205,25 @@ def calibration_dataset(result):
         "parameters": " ".join(names),
         "best_fit": " ".join(f"{n}={result.best[n]:.6g}" for n in names),
     }
+    if fit is not None:
+        ds.attrs["goodness_of_fit"] = (
+            f"fits: best misfit {fit['chi2']:.4g} <= {fit['limit']:.4g}" if fit["fits"] else
+            f"failed: the model cannot reproduce the observations within their errors "
+            f"(best misfit {fit['chi2']:.4g} > {fit['limit']:.4g}, the {fit['level']:.0%} "
+            f"quantile of chi-square with {fit['dof']} degrees of freedom)")
+    if result.checks is not None:
+        v = result.checks
+        ds.attrs["posterior_check"] = (
+            f"flagged: check runs' median misfit {v['median']:.4g} > best {v['best']:.4g} "
+            f"+ {v['allowed_rise']:.3g}" if v["flagged"] else
+            f"confirmed: check runs' median misfit {v['median']:.4g} <= best "
+            f"{v['best']:.4g} + {v['allowed_rise']:.3g}")
+    ident = result.identifiability
+    if ident is not None:
+        ds.attrs["constrained_parameters"] = " ".join(
+            n for n, ok in ident["constrained"].items() if ok)
+        if ident.get("withheld"):
+            ds.attrs["constrained_parameters_withheld"] = ident["withheld"]
     return ds
 
 
@@ -220,6 +250,12 @@ def identifiability_lines(result) -> list[str]:
     if ident is None:
         return ["No posterior was sampled (method is not `posterior`): identifiability is "
                 "not assessed."]
+    if ident.get("withheld"):
+        return [f"**Not assessed: {ident['withheld']}.** The posterior above describes the "
+                "emulator over the range, not what the observations allow: no parameter is "
+                "constrained by the data, whatever the width of its interval."] + [
+            f"- {n}: 90% interval {ident['width'][n]:.0%} of its prior range: not assessed."
+            for n in ident["constrained"]]
     lines = []
     for a, b, r in ident["ridges"]:
         lines.append(f"**The data do not separate {a} and {b}**: the posterior lies along a "
@@ -231,6 +267,59 @@ def identifiability_lines(result) -> list[str]:
         lines.append(f"- {n}: 90% interval {w:.0%} of its prior range: "
                      + ("constrained by the data." if ok else "NOT constrained by the data."))
     return lines
+
+
+#: Past this many emulator standard deviations a check run contradicts the emulator.
+Z_WARN = 3.0
+
+
+def fit_lines(result) -> list[str]:
+    """The report's goodness-of-fit verdict on the best run (tested)."""
+    fit = result.fit
+    if fit is None:
+        return []
+    n = fit["dof"]
+    head = (f"Goodness of fit: the best run's misfit {fit['chi2']:.4g} is a chi-square of "
+            f"{n} observation(s) if the model reproduces them within their errors; "
+            f"{fit['limit']:.3g} is its {fit['level']:.0%} quantile (p = {fit['p_value']:.2g}).")
+    if fit["fits"]:
+        return [head + " The fit is within the errors.", ""]
+    return [f"**The model cannot reproduce the observations within their errors**: the best "
+            f"of the runs misses them by a misfit of {fit['chi2']:.4g} where at most "
+            f"{fit['limit']:.3g} is expected. A wrong friction law, a wrong release or DEM, "
+            "or errors stated too small; no parameter value below is a calibrated one.", "",
+            head, ""]
+
+
+def check_lines(result) -> list[str]:
+    """Warnings on the posterior's check runs: emulator contradicted, posterior worse than
+    the best design run (tested)."""
+    cal = result.calibration
+    table = result.table
+    lines = []
+    checks = table[table["stage"] == "check"]
+    for _, r in checks.iterrows():
+        for k in range(len(cal.spec.observations)):
+            c = f"{cal.label(k)}_d"
+            z = r.get(c + "_z", math.nan)
+            if isinstance(z, float) and math.isfinite(z) and abs(z) > Z_WARN:
+                where = ", ".join(f"{n}={r[n]:.4g}" for n in cal.names)
+                lines.append(f"**Emulator off at a check run** ({where}): {c} is "
+                             f"{r[c]:.4g} by the model, {r[c + '_emulated']:.4g} +- "
+                             f"{r[c + '_emulated_sd']:.2g} by the emulator, {z:+.1f} standard "
+                             "deviations: the posterior there rests on a wrong emulator.")
+    v = result.checks
+    if v is not None:
+        if v["flagged"]:
+            lines.append(f"**The posterior is not confirmed by the model**: its check runs "
+                         f"fit worse (median misfit {v['median']:.4g}) than the best design "
+                         f"run ({v['best']:.4g}) by more than the {v['allowed_rise']:.3g} a "
+                         "posterior that fits would allow; it is not reported as "
+                         "constraining anything.")
+        else:
+            lines.append(f"Check runs: median misfit {v['median']:.4g} against the best "
+                         f"design run's {v['best']:.4g} (within {v['allowed_rise']:.3g}).")
+    return [*[ln + "\n" for ln in lines]] if lines else []
 
 
 def write_report(result, ds) -> Path:
@@ -260,6 +349,7 @@ def write_report(result, ds) -> Path:
            f"Misfit {best_row['misfit']:.4g}; " + "; ".join(
                f"{cal.label(k)} d = {best_row.get(cal.label(k) + '_d', math.nan):.4g}"
                for k in range(len(cal.spec.observations))), ""]
+    md += fit_lines(result)
     edges = [n for n, (lo, hi) in zip(names, cal.bounds)
              if min(best_row[n] - lo, hi - best_row[n]) <= 0.02 * (hi - lo)]
     for n in edges:
@@ -301,9 +391,11 @@ def write_report(result, ds) -> Path:
                 for k in range(len(cal.spec.observations)):
                     c = f"{cal.label(k)}_d"
                     rows.append([", ".join(f"{n}={r[n]:.4g}" for n in names), c, r.get(c),
-                                 r.get(c + "_emulated"), r.get(c + "_emulated_sd")])
-            md += [_table(["draw", "discrepancy", "model", "emulator", "emulator sd"], rows),
-                   ""]
+                                 r.get(c + "_emulated"), r.get(c + "_emulated_sd"),
+                                 r.get(c + "_z")])
+            md += [_table(["draw", "discrepancy", "model", "emulator", "emulator sd",
+                           "model - emulator (sd)"], rows), ""]
+            md += check_lines(result)
     if result.cv:
         md += ["## Emulators", "", "GP (scikit-learn, constant x Matern 2.5 + white noise) of "
                "each quantity over the design; 5-fold cross-validation:", "",
@@ -349,7 +441,10 @@ def _source(cal, k) -> str:
 
 def _dname(o) -> str:
     if o.kind == "points":
-        return f"RMSE of {o.field} at the points"
+        what = {"thickness": "peak flow thickness", "deposit": "deposit thickness (end)",
+                "speed": "peak speed", "pressure": "peak pressure",
+                "arrival_time": "arrival time"}[o.field]
+        return f"RMSE of the {what} at the points"
     if o.kind == "runout":
         return f"s_sim - s_obs (m), {o.field} >= threshold"
     if o.kind == "deposit" and o.raster is not None:

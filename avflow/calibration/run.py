@@ -42,6 +42,8 @@ class CalibrationResult:
     emulators: dict = field(default_factory=dict)  #: quantity -> fitted GP (unit cube)
     timings: dict = field(default_factory=dict)
     written: list = field(default_factory=list)
+    fit: dict | None = None         #: methods.goodness_of_fit of the best run
+    checks: dict | None = None      #: methods.check_verdict of the posterior's check runs
 
 
 class _Runner:
@@ -213,11 +215,7 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     t_all = time.perf_counter()
     overhead = 0.0
     runner.open()
-    from threadpoolctl import threadpool_limits
-
-    # one BLAS thread: the GP's small matrices gain nothing from more, and lose 2-7x to
-    # the thread pools' start-up on a busy machine (measured on 2 shared cores)
-    limits = threadpool_limits(1, user_api="blas")
+    limits = limit_blas_threads()
     try:
         method = spec.method
         design = spec.posterior.design if method == "posterior" else method
@@ -240,6 +238,11 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
                 batch, kernel = M.propose_batch(U, y, q, spec.seed + 1 + step,
                                                 None if step % 5 == 0 else kernel)
                 overhead += time.perf_counter() - clock
+                if not len(batch):
+                    if not quiet:
+                        print(f"calibrate: the range is covered at {M.MIN_SPACING:.0%} "
+                              "spacing: stopping before the budget", file=sys.stderr)
+                    break
                 runner.run(batch, "bayes-opt")
                 step += 1
         timings["acquisition"] = overhead
@@ -255,7 +258,34 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     from avflow.calibration.outputs import write_outputs
 
     result.written = write_outputs(result, report=report)
+    where = outdir / ("report.md" if report else "calibration.nc")
+    if result.fit is not None and not result.fit["fits"]:
+        print(f"avflow: warning: the model cannot reproduce the observations within their "
+              f"errors (best misfit {result.fit['chi2']:.4g}, at most "
+              f"{result.fit['limit']:.3g} expected): no parameter is calibrated; see "
+              f"{where}", file=sys.stderr)
+    elif result.checks is not None and result.checks["flagged"]:
+        print("avflow: warning: the model runs at posterior draws fit worse than the best "
+              f"design run: the posterior is not confirmed; see {where}", file=sys.stderr)
+    zcols = [c for c in result.table.columns if c.endswith("_d_z")]
+    far = int((result.table[zcols].abs() > 3.0).to_numpy().sum()) if zcols else 0
+    if far:
+        print(f"avflow: warning: {far} check-run discrepancies lie more than 3 emulator "
+              f"standard deviations from the emulator; see {where}", file=sys.stderr)
     return result
+
+
+def limit_blas_threads():
+    """One thread for every BLAS the calibration uses, returned as a threadpoolctl limiter
+    (``restore_original_limits()`` undoes it). threadpoolctl limits the libraries already
+    loaded only, so numpy's and scipy's (each wheel brings its own OpenBLAS) are loaded
+    first: the GP's small matrices gain nothing from more threads and lose up to 10x to
+    idle pools on a busy machine."""
+    import scipy.linalg  # noqa: F401 - loads scipy's OpenBLAS before the limit
+    import sklearn.gaussian_process  # noqa: F401 - and what scikit-learn links
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(1, user_api="blas")
 
 
 def _analyse(cal: Calibration, runner: _Runner, outdir: Path, timings: dict
@@ -307,6 +337,22 @@ def _analyse(cal: Calibration, runner: _Runner, outdir: Path, timings: dict
                 for q in quantities:
                     m, s = emulators[q].predict(u[None, :], return_std=True)
                     row[f"{q}_emulated"], row[f"{q}_emulated_sd"] = float(m[0]), float(s[0])
+                    # the model's value in emulator standard deviations from its mean
+                    row[f"{q}_z"] = ((row.get(q, math.nan) - float(m[0]))
+                                     / max(float(s[0]), 1e-300))
+            result.checks = M.check_verdict([r["misfit"] for r in rows],
+                                            float(misfit[ib]), len(cal.names))
+    result.fit = M.goodness_of_fit(float(misfit[ib]), len(spec.observations))
+    if result.identifiability is not None and (
+            not result.fit["fits"] or (result.checks or {}).get("flagged")):
+        # a posterior of a model that cannot fit, or that its own check runs contradict,
+        # constrains nothing: the widths are kept, the verdicts withdrawn
+        ident = result.identifiability
+        ident["withheld"] = ("the model cannot reproduce the observations within their "
+                             "errors" if not result.fit["fits"] else
+                             "the model runs at posterior draws fit worse than the best "
+                             "design run")
+        ident["constrained"] = {n: False for n in ident["constrained"]}
     if spec.sensitivity.enabled and emulators:
         clock = time.perf_counter()
         for q in ["sqrt_misfit", *quantities, *SUMMARIES]:

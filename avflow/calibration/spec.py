@@ -134,16 +134,18 @@ class DepositObservation(_MapObservation):
 
 
 class PointsObservation(_Observation):
-    """Values measured at points (peak speed, arrival time, peak thickness or pressure):
-    d = RMSE over the points of the run's value at the nearest cell minus the observed one.
-    Default errors: 1 m/s, 5 s, 0.1 m, 1 kPa."""
+    """Values measured at points (peak speed, arrival time, peak flow thickness, peak
+    pressure, or deposit thickness at the end, as probes and pits give): d = RMSE over the
+    points of the run's value at the nearest cell minus the observed one. Default errors:
+    1 m/s, 5 s, 0.1 m, 1 kPa, 0.1 m."""
 
     kind: Literal["points"]
     points: Annotated[list[tuple[Finite, Finite]], Field(min_length=1)]
     """[[x, y], ...] (on a profile: [[x, 0], ...], x horizontal)."""
-    field: Literal["speed", "arrival_time", "thickness", "pressure"] = "speed"
+    field: Literal["speed", "arrival_time", "thickness", "pressure", "deposit"] = "speed"
+    """thickness: the peak flow thickness over the run; deposit: the thickness at the end."""
     values: Annotated[list[Finite], Field(min_length=1)]
-    """One observed value per point: m/s, s since release, m or kPa."""
+    """One observed value per point: m/s, s since release, m, kPa or m."""
 
     @model_validator(mode="after")
     def _one_value_each(self):
@@ -155,7 +157,8 @@ class PointsObservation(_Observation):
 
 Observation = Annotated[Union[RunoutObservation, AreaObservation, DepositObservation,
                               PointsObservation], Field(discriminator="kind")]
-POINT_ERRORS = {"speed": 1.0, "arrival_time": 5.0, "thickness": 0.1, "pressure": 1.0}
+POINT_ERRORS = {"speed": 1.0, "arrival_time": 5.0, "thickness": 0.1, "pressure": 1.0,
+                "deposit": 0.1}
 
 
 class PosteriorSettings(_Model):

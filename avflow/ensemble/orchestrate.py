@@ -1225,6 +1225,18 @@ def member_table(ensemble: Ensemble, rows: dict[int, dict], outdir: Path):
     return pd.DataFrame.from_records(records)
 
 
+def edge_members(table, varied) -> list[str]:
+    """The members whose deposit reached the map's edge (runout a lower bound), each as
+    ``realization (name=value, ...)`` with the varied parameters."""
+    out = []
+    for _, row in table.iterrows():
+        if int(row.get("runout_truncated", 0)) == 1:
+            values = ", ".join(f"{n}={row[n]:g}" if isinstance(row[n], float) else
+                               f"{n}={row[n]}" for n in varied if n in row)
+            out.append(f"{int(row['realization'])}" + (f" ({values})" if values else ""))
+    return out
+
+
 def write_tables(table, outdir: Path) -> None:
     """summary.csv (+ summary.parquet when pyarrow is importable) and failures.csv."""
     outdir = Path(outdir)

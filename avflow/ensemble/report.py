@@ -95,9 +95,12 @@ def write_report(outdir: str | os.PathLike) -> Path:
            f"- base scenario hash: {ds.attrs.get('base_scenario_hash', '')}",
            f"- source: {ds.attrs.get('source', '')}"]
     if "runout_truncated" in ds:
-        cut = int((ds["runout_truncated"].values == 1).sum())
-        md += [f"- deposit reaching the domain's edge (runout is a lower bound): {cut} "
-               "member(s)" + (": enlarge the domain" if cut else "")]
+        cut = np.flatnonzero(ds["runout_truncated"].values == 1)
+        named = "; ".join(f"{i} (" + ", ".join(f"{_dotted(ds, p)}={float(ds[p].values[i]):g}"
+                                               for p in params) + ")" if params else f"{i}"
+                          for i in cut)
+        md += [f"- deposit reaching the domain's edge (runout is a lower bound): {cut.size} "
+               "member(s)" + (f": {named}; enlarge the domain" if cut.size else "")]
     # A member ended by its rule with mass still moving has no deposit at rest; its
     # time_to_stop is when the rule ended it. A panel of time_to_stop needs a finite one.
     rest = np.isin(status, ("at_rest", "stopped"))
@@ -149,24 +152,27 @@ def write_report(outdir: str | os.PathLike) -> Path:
         plt.close(fig)
         figures.append((f"{what.capitalize()} against {param}", fname))
 
-    # --- per law ---------------------------------------------------------------------------
-    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4),
-                             constrained_layout=True, squeeze=False)
-    axes = axes[0]
-    rng = np.random.default_rng(0)
-    for ax, name in zip(axes, panels):
-        y = ds[name].values
-        for k, law in enumerate(colors):
-            sel = ok & (laws == law)
-            ax.scatter(k + rng.uniform(-0.15, 0.15, sel.sum()), y[sel], color=colors[law],
-                       alpha=0.8, s=18)
-        ax.set_xticks(range(len(colors)), list(colors))
-        ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"{what} per friction law")
-    _savefig(fig, figdir / "by_law.png")
-    plt.close(fig)
-    figures.append((f"{what.capitalize()} per friction law", "by_law.png"))
+    # --- per law (one law: nothing to compare) ---------------------------------------------
+    if len(colors) > 1:
+        fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4),
+                                 constrained_layout=True, squeeze=False)
+        axes = axes[0]
+        rng = np.random.default_rng(0)
+        for ax, name in zip(axes, panels):
+            y = ds[name].values
+            for k, law in enumerate(colors):
+                sel = ok & (laws == law)
+                ax.scatter(k + rng.uniform(-0.15, 0.15, sel.sum()), y[sel], color=colors[law],
+                           alpha=0.8, s=18)
+            ax.set_xticks(range(len(colors)), list(colors))
+            ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
+            ax.grid(alpha=0.3)
+        fig.suptitle(f"{what} per friction law")
+        _savefig(fig, figdir / "by_law.png")
+        plt.close(fig)
+        figures.append((f"{what.capitalize()} per friction law", "by_law.png"))
+    else:
+        (figdir / "by_law.png").unlink(missing_ok=True)  # of an earlier report
 
     # --- deposits ---------------------------------------------------------------------------
     if profile:
@@ -242,9 +248,15 @@ def write_report(outdir: str | os.PathLike) -> Path:
                  "mass_balance_error", "wall_time"]
         if entrained is not None and np.any(entrained[ok] > 0.0):
             names.insert(4, "entrained_volume")
-        md += [_md_table(["realization", "law", *params, "status", *names],
+        # the share of the volume still moving at the end, whatever the status
+        moving = (100 * ds["moving_volume_end"].values / (ds["release_volume"].values + (
+            np.nan_to_num(entrained) if entrained is not None else 0.0))
+            if "moving_volume_end" in ds else np.full(n, np.nan))
+        md += [_md_table(["realization", "law", *params, "status",
+                          "still moving at the end (% of the volume)", *names],
                          [[int(i), laws[i], *[float(ds[p].values[i]) for p in params],
-                           status[i], *[float(ds[m].values[i]) for m in names]]
+                           status[i], float(moving[i]), *[float(ds[m].values[i])
+                                                          for m in names]]
                           for i in range(n)]), ""]
     return atomic_text(outdir / "report.md", "\n".join(md))
 

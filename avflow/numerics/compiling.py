@@ -81,8 +81,18 @@ class _Announcer(_Watch):
             notify_compiled(self.seconds, self.stream)
 
 
+_ANNOUNCERS: list = []
+
+
 def announce(what: str = "the kernels these scenes need", stream=None) -> None:
-    """From now on in this process, the first compilation says so on stderr (ensembles,
-    regions, calibrations: their runs in this process; their workers load the kernels
-    this process compiled first)."""
-    event.register("numba:compile", _Announcer(what, stream))
+    """Until :func:`stop_announcing`, the first compilation in this process says so on
+    stderr (ensembles, regions, calibrations: their runs in this process; their workers
+    load the kernels this process compiled first)."""
+    _ANNOUNCERS.append(_Announcer(what, stream))
+    event.register("numba:compile", _ANNOUNCERS[-1])
+
+
+def stop_announcing() -> None:
+    """The end of a command: its :func:`announce` says nothing more."""
+    while _ANNOUNCERS:
+        event.unregister("numba:compile", _ANNOUNCERS.pop())

@@ -31,6 +31,12 @@ TIME_UNITS = "s"
 EPOCH = datetime(1970, 1, 1)
 
 H_COMMENT = "measured normal to the bed (topography-linked frame of the seed, Fig. 1)"
+#: u and v on maps: the flow moves along the bed, so its speed there (what peak_speed and
+#: peak_pressure use) is longer than hypot(u, v) by the bed's slope.
+UV_COMMENT = ("on maps, the velocity along the bed projected on the horizontal plane; the "
+              "speed along the bed is sqrt(u^2 + v^2 + w^2) with w = u dz/dx + v dz/dy, z "
+              "the bed_elevation (on a slope of angle a in the flow direction, "
+              "hypot(u, v) / cos(a)); on profiles, u is the velocity along the bed")
 
 #: The run maxima and the deposit name, in ``cell_methods``, the scalar coordinate
 #: :data:`RUN` whose bounds are the whole run (CF 7.3: a dimension or a scalar coordinate
@@ -42,10 +48,12 @@ OVER_THE_RUN = "over the whole run, every time step from the release to the last
 #: name -> attributes. "kind": field (time, space), reduced (space), summary (0-d), coord.
 FIELDS = {
     "h": dict(kind="field", long_name="flow thickness", units="m", comment=H_COMMENT),
-    "u": dict(kind="field", long_name="depth-averaged velocity along the bed, x component",
-              units="m s-1"),
-    "v": dict(kind="field", long_name="depth-averaged velocity along the bed, y component",
-              units="m s-1", grid_only=True),
+    "u": dict(kind="field", long_name="depth-averaged velocity, x component of its "
+                                      "horizontal projection", units="m s-1",
+              comment=UV_COMMENT),
+    "v": dict(kind="field", long_name="depth-averaged velocity, y component of its "
+                                      "horizontal projection", units="m s-1",
+              grid_only=True, comment=UV_COMMENT),
     "flow_state": dict(kind="flag", long_name="state of the cell after the step",
                        flag_values=np.array([FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED], np.int8),
                        flag_meanings="dry flowing under_coulomb_threshold"),

@@ -429,10 +429,12 @@ def _fmt(ds, name: str, fmt: str, unit: str) -> str | None:
 
 
 def _title(ds) -> str:
+    # each length and angle named by what it measures (the path analysis gives others)
+    frm = " along the bed" if scene_kind(ds) == "profile" else " from the release centroid"
     parts = [p for p in (
-        _fmt(ds, "runout", ".0f", " m") and "runout " + _fmt(ds, "runout", ".0f", " m"),
+        _fmt(ds, "runout", ".0f", " m") and "runout " + _fmt(ds, "runout", ".0f", " m") + frm,
         _fmt(ds, "travel_angle", ".1f", "°") and "travel angle "
-        + _fmt(ds, "travel_angle", ".1f", "°"),
+        + _fmt(ds, "travel_angle", ".1f", "°") + " (highest release cell to farthest deposit)",
         _fmt(ds, "deposit_max_thickness", ".2g", " m") and "deposit max "
         + _fmt(ds, "deposit_max_thickness", ".3g", " m"),
         _fmt(ds, "time_to_stop", ".1f", " s") and ("stops at " if at_rest(ds) else
@@ -442,7 +444,10 @@ def _title(ds) -> str:
     name = ds.attrs.get("scenario_name", "?")
     status = ds.attrs.get("status")
     if status and not at_rest(ds) and status != "failed":
-        status += ", still moving"
+        moved = (100 * float(ds["moving_volume_end"]) / max(float(ds["release_volume"]), 1e-300)
+                 if "moving_volume_end" in ds and "release_volume" in ds else math.nan)
+        status += (f", {moved:.2g}% of the volume still moving" if math.isfinite(moved)
+                   else ", still moving")
     if int(ds.attrs.get("runout_truncated", 0)):
         parts.append("runout truncated by the map's edge (a lower bound)")
     head = f"{name}" + (f" ({status})" if status else "")

@@ -990,7 +990,8 @@ def summary_line(result: PathResult, farthest: float = math.nan,
             f"release, alpha {sc['runout_angle']:.2f} deg, max pressure "
             f"{sc['max_pressure']:.3g} kPa, max speed {sc['max_speed']:.3g} m/s")
     if not math.isnan(farthest):
-        text += f" (farthest cell from the release: {farthest:.1f} m)"
+        text += (f" (the summary's runout, farthest deposit cell from the release centroid: "
+                 f"{farthest:.1f} m)")
     text += alpha_beta_text(result)
     if truncated:
         text += "; a lower bound: the flow reached the edge of the map"

@@ -141,6 +141,11 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
     rows: dict[tuple[int, int], dict] = {}
     todo, reuse = [], []
     for rel in sorted(releases, key=lambda r: (-r.area, r.id)):  # largest first
+        if rel.area_outside > 0 and not rel.problem:
+            whole = rel.area + rel.area_outside
+            progress.note(f"release {rel.id}: {100 * rel.area_outside / whole:.0f}% of its "
+                          f"polygon lies outside the DEM: clipped to it (released area "
+                          f"{rel.area:.6g} of {whole:.6g} m2, area in {TABLE})")
         for rs in scenarios:
             thickness = _thickness(rel, rs)
             rkey = release_key(key, rel.wkb, thickness if not hasattr(thickness, "d0")
@@ -211,6 +216,10 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
         where, n_workers = _run(todo, workers, scheduler, client, merge, timings, progress)
         progress.close()
         clock = time.perf_counter()
+        by_id = {rel.id: rel for rel in releases}
+        for (rid, _), row in rows.items():  # the area on the DEM, reused rows included
+            if rid in by_id:
+                row.update(area=by_id[rid].area, area_outside_dem=by_id[rid].area_outside)
         table = _table(rows)
         atomic_write(outdir / TABLE, lambda tmp: table.to_csv(tmp, index=False))
         if multi:

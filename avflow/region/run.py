@@ -29,7 +29,8 @@ from avflow.files import atomic_write
 MERGED = ("ok", "dem_edge")
 #: Columns of releases.csv, in order.
 COLUMNS = ("id", "scenario", "return_period", "thickness", "status", "volume",
-           "entrained_volume", "runout", "travel_angle", "area", "retries",
+           "entrained_volume", "runout", "travel_angle", "area", "area_outside_dem",
+           "retries",
            "wall_time", "run_time", "buffer", "row0", "row1", "col0", "col1", "cells",
            "steps", "mass_balance_error", "reach_threshold", "reused", "error")
 
@@ -78,18 +79,37 @@ def read_result(path, key: str | None = None, arrays: bool = True):
     return row, maps, ""
 
 
-def _write_result(path: Path, row: dict, maps: dict) -> None:
+def _write_result(path: Path, row: dict, maps: dict, dem=None, window=None) -> None:
+    """The release's maps on its window, with the window's x, y (cell centres, m) and the
+    DEM's CRS when ``dem`` and ``window`` are given (a GIS opens the file in place)."""
     import netCDF4
+
+    from avflow.terrain.raster import cf_grid_mapping
 
     def write(tmp: Path) -> None:
         with netCDF4.Dataset(tmp, "w") as nc:
             ny, nx = next(iter(maps.values())).shape
             nc.createDimension("y", ny)
             nc.createDimension("x", nx)
+            mapping = None
+            if dem is not None and window is not None:
+                r0, r1, c0, c1 = window
+                for axis, values in (("x", dem.x(c0, c1)), ("y", dem.y(r0, r1))):
+                    var = nc.createVariable(axis, "f8", (axis,))
+                    var.setncatts({"standard_name": f"projection_{axis}_coordinate",
+                                   "long_name": f"{axis} of the cell centres", "units": "m",
+                                   "axis": axis.upper()})
+                    var[...] = values
+                mapping = cf_grid_mapping(dem.crs_wkt)
+                if mapping is not None:
+                    crs = nc.createVariable("crs", "i4")
+                    crs.setncatts(mapping)
             for name, values in maps.items():
                 var = nc.createVariable(name, "f4", ("y", "x"), zlib=True, complevel=1,
                                         fill_value=np.float32(np.nan))
                 var.set_auto_maskandscale(False)
+                if mapping is not None:
+                    var.setncattr("grid_mapping", "crs")
                 var[...] = values
             nc.setncattr("row", json.dumps(row, allow_nan=True))
 
@@ -149,7 +169,8 @@ def run_release(task: dict) -> dict:
         maps = None
     row["wall_time"] = time.perf_counter() - started
     if maps is not None:
-        _write_result(path, row, maps)
+        _write_result(path, row, maps, dem, (row["row0"], row["row1"], row["col0"],
+                                             row["col1"]))
     elif row["status"] == "invalid":  # kept without maps: resume does not retry the polygon
         _write_result(path, row, {"peak_thickness": np.full((1, 1), np.nan, np.float32)})
     return row  # a failed run keeps no file: a rerun tries it again

@@ -102,6 +102,8 @@ class ReleaseArea:
     patch: "Patch | None" = None
     #: what the result depends on besides the polygon and thickness (a patch's values)
     fingerprint: str = ""
+    #: m^2 of the polygon outside the DEM's box: not released (``area`` is the rest)
+    area_outside: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -322,8 +324,15 @@ def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:
             elif box[0] >= xmax or box[2] <= xmin or box[1] >= ymax or box[3] <= ymin:
                 problem = (f"outside the DEM (its box {_box(box)} against the DEM's "
                            f"{_box(dem.bounds)})")
+        outside = 0.0
+        if not problem and geom is not None and not (
+                box[0] >= xmin and box[2] <= xmax and box[1] >= ymin and box[3] <= ymax):
+            # the run releases only the cells on the DEM: the area says what is released
+            inside = float(shapely.intersection(geom, shapely.box(*dem.bounds)).area)
+            outside, area = area - inside, inside
         out.append(ReleaseArea(rid, k, b"" if geom is None else shapely.to_wkb(geom), thickness,
-                               area, box, crs_problem or problem, attributes or None))
+                               area, box, crs_problem or problem, attributes or None,
+                               area_outside=outside))
     if not out:
         raise RegionError(f"{spec.path}: holds no feature", region.path, "releases.path")
     return out

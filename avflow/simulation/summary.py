@@ -82,7 +82,35 @@ def runout_truncated(terrain: Terrain, peak_h: np.ndarray, threshold: float,
     released = h0 > 0.0
     if released.any():
         cells = cells[z[cells] < z[released].min()]
+    cells = np.setdiff1d(cells, uphill_edge_cells(terrain, walls_are_edges))
     return bool(outflow_volume > 0.0 or np.any(peak_h[cells] > threshold))
+
+
+#: Gravity along the bed pointing into the map across an edge by more than this (/ g, about
+#: a 15 degree slope falling away from the edge): a flow there runs away from that edge.
+AWAY_FROM_EDGE = 0.25
+
+
+def uphill_edge_cells(terrain: Terrain, walls_are_edges: bool) -> np.ndarray:
+    """Edge cells (:func:`edge_cells`, grids) whose every edge face has the bed falling into
+    the map: the top of a slope cut by the map's border. A flow touching the border there
+    moves away from it, so the border does not cut its runout (a release drawn up to an
+    oblique uphill edge wets edge cells lower than its lowest cell)."""
+    if terrain.tangent_basis is None:
+        return np.empty(0, dtype=np.int64)
+    mesh = terrain.mesh
+    faces = mesh.face_cells
+    j = faces[:, 1]
+    on_edge = np.flatnonzero((j < 0) if walls_are_edges else (j == OUTFLOW))
+    cell = faces[on_edge, 0]
+    e1, e2 = terrain.tangent_basis[cell, 0, :], terrain.tangent_basis[cell, 1, :]
+    n = mesh.face_normal[on_edge]  # outward, in the cell's tangent basis
+    outward = n[:, :1] * e1 + n[:, 1:] * e2
+    gravity = terrain.gamma_x[cell, None] * e1 + terrain.gamma_y[cell, None] * e2
+    into_map = np.einsum("ij,ij->i", outward, gravity) < -AWAY_FROM_EDGE
+    # a cell is uphill-only when none of its edge faces lets gravity point out of the map
+    cutting = np.unique(cell[~into_map])
+    return np.setdiff1d(np.unique(cell), cutting)
 
 
 def travel_angle(terrain: Terrain, h0: np.ndarray, h: np.ndarray, threshold: float):
