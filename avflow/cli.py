@@ -259,9 +259,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--backend", choices=("cpu", "cuda"), help="where every member's time "
                    "loop runs (numerics.backend; cuda: one GPU per worker, docs/guide/gpu.md)")
     e.set_defaults(func=_cmd_ensemble)
-    rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble",
-                        parents=[quiet])
-    rp.add_argument("outdir", help="output folder of avflow ensemble, or its ensemble.nc")
+    rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble "
+                        "or a region", parents=[quiet])
+    rp.add_argument("outdir", help="output folder of avflow ensemble (or its ensemble.nc), "
+                    "or of avflow region (or its region.zarr)")
     rp.set_defaults(func=_cmd_report)
     x = sub.add_parser("export", help="write the maps of a grid run, or the probability maps "
                                       "of an ensemble.nc, as GeoTIFF or ESRI ASCII rasters "
@@ -282,9 +283,13 @@ def build_parser() -> argparse.ArgumentParser:
     x.set_defaults(func=_cmd_export)
     pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness and peak-pressure "
                                      "classes over a hillshade; bed and snapshots on "
-                                     "profiles)", parents=[quiet])
-    pl.add_argument("run_file", help="NetCDF written by avflow run")
-    pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
+                                     "profiles; a region's merged maps, release outlines "
+                                     "and the release that set each maximum)",
+                        parents=[quiet])
+    pl.add_argument("run_file", help="NetCDF written by avflow run, or a region's OUTDIR "
+                                     "(or OUTDIR/region.zarr)")
+    pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png; "
+                                           "OUTDIR/region.png for a region)")
     pl.set_defaults(func=_cmd_plot)
     pa = sub.add_parser("path", help="runout along the avalanche path (AvaFrame's AIMEC): "
                                      "table and PNG of a run file or an ensemble folder",
@@ -463,7 +468,12 @@ def _check_members_fit(ensemble, max_memory) -> None:
 
 
 def _cmd_report(args) -> int:
-    from avflow.ensemble.report import write_report
+    from avflow.region.export import find_store
+
+    if find_store(args.outdir) is not None:  # a region's folder or its region.zarr
+        from avflow.region.plot import write_region_report as write_report
+    else:
+        from avflow.ensemble.report import write_report
 
     written = write_report(args.outdir)
     if not args.quiet:
@@ -499,7 +509,12 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from avflow.output.maps import plot_run
+    from avflow.region.export import find_store
+
+    if find_store(args.run_file) is not None:  # a region's folder or its region.zarr
+        from avflow.region.plot import plot_region as plot_run
+    else:
+        from avflow.output.maps import plot_run
 
     written = plot_run(args.run_file, args.output)
     if not args.quiet:

@@ -5,8 +5,8 @@
 - the generated reference names every field of the scenario schema, every option of the
   command line and every variable of :data:`avflow.output.cf.FIELDS`;
 - a doctest-style runner executes every ``bash`` and ``python`` block of the getting-started
-  page and of every tutorial, in order, in an empty folder that sees the repository's
-  ``scenarios/`` and ``data/``. A block with a ``title="NAME"`` is written to that file
+  page, of every tutorial and of the regional-maps guide, in order, in an empty folder that sees the repository's
+  ``scenarios/``, ``data/`` and ``workflows/``. A block with a ``title="NAME"`` is written to that file
   first (a scenario, a line). A block whose first line is
   ``# not run by the docs test: REASON`` is skipped, visibly, on the page itself.
 """
@@ -26,7 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 SKIP = "# not run by the docs test:"
 #: Pages whose code blocks are run. Tutorials landing from other branches join by folder.
-RUN_PAGES = [DOCS / "getting-started.md", *sorted((DOCS / "tutorials").glob("*.md"))]
+RUN_PAGES = [DOCS / "getting-started.md", *sorted((DOCS / "tutorials").glob("*.md")),
+             DOCS / "guide" / "region.md"]
 FENCE = re.compile(r"^```(\w+)([^\n]*)\n(.*?)^```[ \t]*$", re.M | re.S)
 
 
@@ -108,12 +109,13 @@ def test_every_skipped_block_says_why_and_few_are_skipped():
         for lang, _, code, line in _blocks(page):
             if code.startswith(SKIP):
                 assert len(code.splitlines()[0]) > len(SKIP) + 5, (page.name, line)
-    assert len(skipped) <= 3, skipped
+    # the install, the whole suite, and the two batch-system clusters of the region guide
+    assert len(skipped) <= 4, skipped
 
 
 @pytest.mark.parametrize("page", RUN_PAGES, ids=[p.stem for p in RUN_PAGES])
 def test_tutorial_code_blocks_run(page, tmp_path, monkeypatch):
-    for name in ("scenarios", "data"):
+    for name in ("scenarios", "data", "workflows"):
         (tmp_path / name).symlink_to(ROOT / name)
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("MPLBACKEND", "Agg")

@@ -65,7 +65,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
     path = outdir / "ensemble.nc"
     if not path.is_file():
         raise AvflowError(f"{path}: not found (give the folder of `avflow ensemble ... -o "
-                          "OUTDIR`)")
+                          "OUTDIR`, or of `avflow region ... -o OUTDIR`)")
     try:
         with xr.open_dataset(path, decode_times=False) as ds:
             ds = ds.load()

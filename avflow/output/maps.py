@@ -480,11 +480,12 @@ def plot_run(path, output=None) -> Path:
 
     path = Path(path)
     if path.is_dir():  # an ensemble's folder: say what plot and report each take
-        what = ("an ensemble folder" if (path / "ensemble.nc").is_file()
-                or (path / "summary.csv").is_file() else "a folder")
-        raise MapsError(f"{path}: {what}; avflow plot draws one run file (e.g. "
-                        f"{path / 'members'}/<hash>.nc), avflow report {path} draws the "
-                        "ensemble")
+        if (path / "ensemble.nc").is_file() or (path / "summary.csv").is_file():
+            raise MapsError(f"{path}: an ensemble folder; avflow plot draws one run file "
+                            f"(e.g. {path / 'members'}/<hash>.nc), avflow report {path} "
+                            "draws the ensemble")
+        raise MapsError(f"{path}: a folder; avflow plot draws one run file (.nc) or a "
+                        "region's output folder")
     target = path.with_suffix(".png") if output is None else Path(output)
     plt = _plt()
     with open_run(path) as ds:

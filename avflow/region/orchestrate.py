@@ -175,6 +175,10 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
         merged = RegionStore(tmp_store, dem, region.merge.fields, region.merge.chunk,
                              {"title": f"avflow region {region.name}",
                               "source": "avflow region", "region_key": key,
+                              # what avflow plot draws under and over the maps
+                              "dem": str(Path(region.dem).absolute()),
+                              **({"region_file": str(Path(region.path).absolute())}
+                                 if region.path else {}),
                               **_scenario_attrs(region)},
                              thresholds=region.thresholds, scenarios=len(scenarios)
                              if region.with_scenarios or region.thresholds else None)
