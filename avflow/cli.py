@@ -369,7 +369,7 @@ def _cmd_region(args) -> int:
                 if region.with_scenarios else f"{len(outcome.table)} releases")
         print(f"{region.name}: {runs}, {outcome.ran} run, "
               f"{outcome.reused} reused, {outcome.failed} not merged ({outcome.elapsed:.1f} s, "
-              f"{outcome.where}); wrote {outcome.store} and "
+              f"{outcome.where}); wrote {Path(args.output) / outcome.store.name} and "
               f"{Path(args.output) / 'releases.csv'}")
     return 0 if outcome.failed == 0 else 1
 
