@@ -1,4 +1,5 @@
-"""avflow: debris-avalanche runs from scenario files (run, ensemble, report, export, plot, path).
+"""avflow: debris-avalanche runs from scenario files (run, ensemble, report, export, plot, path,
+region, calibrate).
 
 Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
 Errors in the input are one line naming the file and the field; no output file is left
@@ -215,7 +216,8 @@ def _cmd_path(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="avflow", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="avflow",
+                                description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("--version", action="version", version=f"avflow {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     quiet = argparse.ArgumentParser(add_help=False)
@@ -229,12 +231,15 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run one scenario and write a CF NetCDF file",
                        parents=[quiet, sets])
     r.add_argument("scenario", help="scenario YAML file")
-    r.add_argument("-o", "--output", help="output NetCDF (default: SCENARIO name + .nc)")
+    r.add_argument("-o", "--output", help="output NetCDF (default: the scenario file's name "
+                   "with .nc, in the current folder)")
     r.add_argument("--max-memory", metavar="SIZE", help="refuse a run estimated to need more "
                    "(bytes, or 8G, 512M; 'none': no check; default: $AVFLOW_MAX_MEMORY, "
                    "else half of this machine's memory)")
     r.add_argument("--threads", type=int, metavar="N", help="CPU threads of the time loop "
-                   "(numerics.threads; default: every core); the answer does not depend on it")
+                   "(numerics.threads; default: every core this process may use where a few "
+                   "timed steps show them faster than one thread, else one); the answer does "
+                   "not depend on it")
     r.add_argument("--backend", choices=("cpu", "cuda"), help="where the time loop runs "
                    "(numerics.backend; cuda: a GPU, square grids at order 1, "
                    "docs/guide/gpu.md)")

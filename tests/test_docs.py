@@ -60,6 +60,10 @@ def test_mkdocs_build_strict_offline(tmp_path):
     assert "peak_pressure" in outputs and "generated: cf-variables" not in outputs
     api = (site / "reference" / "api" / "index.html").read_text()
     assert "with_updates" in api and "open_run" in api  # mkdocstrings rendered the API
+    assert 'id="avflow.calibrate"' in api
+    roles = re.compile(r":(?:func|class|meth|mod|data|attr|obj|exc):[<`]")
+    for html in site.rglob("*.html"):  # docstrings' Sphinx roles rendered, not raw text
+        assert not roles.search(html.read_text()), html.relative_to(site)
 
 
 def test_scenario_reference_names_every_field_of_the_schema():
