@@ -698,6 +698,7 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
     ax_map.set_ylabel("y (m)" if points.kind != "profile" else "bed elevation (m)")
     ax_map.legend(loc="best", fontsize=8)
     ax_map.set_title("peak field and path")
+    ax_map.ticklabel_format(useOffset=False, style="plain")  # UTM, LV95: whole metres
 
     # the chosen field in path coordinates, first run
     l = first.l
