@@ -130,6 +130,7 @@ def test_tutorial_code_blocks_run(page, tmp_path, monkeypatch):
     for lang, title, code, line in _blocks(page):
         where = f"{page.relative_to(ROOT)}:{line}"
         if title is not None:
+            (tmp_path / title).parent.mkdir(parents=True, exist_ok=True)
             (tmp_path / title).write_text(code)
             continue
         if code.startswith(SKIP):
