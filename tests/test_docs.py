@@ -18,6 +18,7 @@ import os
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -143,7 +144,9 @@ def test_tutorial_code_blocks_run(page, tmp_path, monkeypatch):
             ran += 1
         elif lang == "python":
             try:
-                exec(compile(code, where, "exec"), namespace)
+                with warnings.catch_warnings():  # a snippet that warns of a change is stale
+                    warnings.simplefilter("error", FutureWarning)
+                    exec(compile(code, where, "exec"), namespace)
             except Exception as err:  # the block and the page's line say where
                 raise AssertionError(f"{where}: {type(err).__name__}: {err}\n{code}") from err
             ran += 1
