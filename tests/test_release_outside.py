@@ -28,3 +28,19 @@ time: {{end: 10.0}}
     assert "far.geojson" in err and "x 1000-1100 m, y 2000-2100 m" in err
     assert "of the map (x 1769" in err  # avaKot's cell centres, EPSG:31287
     assert not (tmp_path / "o.nc").exists()
+
+
+def test_a_region_release_on_no_cell_names_no_removed_work_file(tmp_path):
+    from test_region import BOXES, REGION, _dem, _releases
+
+    from avflow.region import load_region
+    from avflow.region.orchestrate import run_region
+
+    _dem(tmp_path)
+    _releases(tmp_path / "releases.gpkg", [BOXES[4]])  # 6 m x 6 m between cell centres
+    (tmp_path / "r.yaml").write_text(REGION.format(releases="releases.gpkg", buffer=40.0))
+    outcome = run_region(load_region(tmp_path / "r.yaml"), tmp_path / "out", workers=0,
+                         quiet=True)
+    error = outcome.table.loc[0, "error"]
+    assert "no mass on any cell" in error and "x 1022-1028 m" in error
+    assert "work" not in error and "release.gpkg" not in error
