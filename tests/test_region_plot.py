@@ -78,6 +78,9 @@ def test_plot_of_the_store_itself_and_report(region_out, capsys):
     report = (region_out / "report.md").read_text()
     assert "![merged maps](region.png)" in report and "| ok |" in report
     assert "members" not in capsys.readouterr().err
+    assert main(["path", str(region_out)]) == 2  # not a run: says what draws a region
+    err = capsys.readouterr().err
+    assert "a region's maps" in err and f"avflow plot {region_out}" in err
 
 
 def test_a_folder_that_is_no_region_nor_ensemble_names_neither_members(tmp_path, capsys):

@@ -957,6 +957,9 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
 
     summary = outdir / "summary.csv"
     if not summary.is_file():
+        if (outdir / "region.zarr").is_dir() or outdir.name == "region.zarr":
+            raise PathError(f"{outdir}: a region's maps; avflow path takes a run file or an "
+                            f"ensemble folder (avflow plot {outdir} draws the region)")
         raise PathError(f"{outdir}: not a run file nor an ensemble folder (no summary.csv)")
     try:
         table = pd.read_csv(summary, keep_default_na=False, na_values=[""])
