@@ -30,6 +30,7 @@ def test_time_left_at_the_pace_so_far():
     assert time_left(10.0, 5, 20) == ", ~30 s left"        # 2 s a run, 15 to go
     assert time_left(60.0, 2, 10) == ", ~4 min 00 s left"
     assert time_left(3600.0, 1, 3) == ", ~2 h 00 min left"
+    assert time_left(0.3, 3, 4) == ", <1 s left"
 
 
 def test_ensemble_line_counts_members_and_says_the_time_left(clock):

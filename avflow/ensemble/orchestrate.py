@@ -389,6 +389,8 @@ def time_left(elapsed: float, done: int, total: int) -> str:
     if done <= 0 or total <= done:
         return ""
     left = elapsed / done * (total - done)
+    if left < 1:
+        return ", <1 s left"
     if left < 60:
         return f", ~{left:.0f} s left"
     minutes, seconds = divmod(int(round(left)), 60)
