@@ -111,3 +111,17 @@ def test_exceedance_maps_asked_of_a_region_without_them_say_why(tmp_path, capsys
     err = capsys.readouterr().err
     assert "peak_pressure_exceedance_count" in err and "scenarios:" in err
     assert not (tmp_path / "cogs" / "region_peak_pressure.tif").exists()
+
+
+def test_region_summary_names_its_files_one_way_and_no_parquet_line(tmp_path, monkeypatch,
+                                                                    capsys):
+    from test_region import _dem as dem
+
+    dem(tmp_path)
+    _releases(tmp_path / "releases.gpkg", BOXES[:1])
+    (tmp_path / "r.yaml").write_text(REGION.format(releases="releases.gpkg", buffer=40.0))
+    monkeypatch.chdir(tmp_path)
+    assert main(["region", "r.yaml", "-o", "maps", "--workers", "0"]) == 0
+    out, err = capsys.readouterr()
+    assert "wrote maps/region.zarr and maps/releases.csv" in out, out
+    assert "parquet" not in err
