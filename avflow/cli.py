@@ -1,4 +1,5 @@
-"""avflow: debris-avalanche runs from scenario files (run, ensemble, report, export, plot, path).
+"""avflow: debris-avalanche runs from scenario files (run, ensemble, report, export, plot, path,
+region, calibrate).
 
 Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
 Errors in the input are one line naming the file and the field; no output file is left
@@ -302,7 +303,8 @@ def _cmd_path(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="avflow", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="avflow",
+                                description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("--version", action="version", version=f"avflow {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     quiet = argparse.ArgumentParser(add_help=False)
@@ -316,12 +318,15 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run one scenario and write a CF NetCDF file",
                        parents=[quiet, sets])
     r.add_argument("scenario", help="scenario YAML file")
-    r.add_argument("-o", "--output", help="output NetCDF (default: SCENARIO name + .nc)")
+    r.add_argument("-o", "--output", help="output NetCDF (default: the scenario file's name "
+                   "with .nc, in the current folder)")
     r.add_argument("--max-memory", metavar="SIZE", help="refuse a run estimated to need more "
                    "(bytes, or 8G, 512M; 'none': no check; default: $AVFLOW_MAX_MEMORY, "
                    "else half of this machine's memory)")
     r.add_argument("--threads", type=int, metavar="N", help="CPU threads of the time loop "
-                   "(numerics.threads; default: every core); the answer does not depend on it")
+                   "(numerics.threads; default: every core this process may use where a few "
+                   "timed steps show them faster than one thread, else one); the answer does "
+                   "not depend on it")
     r.add_argument("--backend", choices=("cpu", "cuda"), help="where the time loop runs "
                    "(numerics.backend; cuda: a GPU, square grids at order 1, "
                    "docs/guide/gpu.md)")
@@ -349,9 +354,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--backend", choices=("cpu", "cuda"), help="where every member's time "
                    "loop runs (numerics.backend; cuda: one GPU per worker, docs/guide/gpu.md)")
     e.set_defaults(func=_cmd_ensemble)
-    rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble",
-                        parents=[quiet])
-    rp.add_argument("outdir", help="output folder of avflow ensemble, or its ensemble.nc")
+    rp = sub.add_parser("report", help="write OUTDIR/report.md (PNG figures) of an ensemble "
+                        "or a region", parents=[quiet])
+    rp.add_argument("outdir", help="output folder of avflow ensemble (or its ensemble.nc), "
+                    "or of avflow region (or its region.zarr)")
     rp.set_defaults(func=_cmd_report)
     x = sub.add_parser("export", help="write the maps of a grid run, or the probability maps "
                                       "of an ensemble.nc, as GeoTIFF or ESRI ASCII rasters "
@@ -372,9 +378,13 @@ def build_parser() -> argparse.ArgumentParser:
     x.set_defaults(func=_cmd_export)
     pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness and peak-pressure "
                                      "classes over a hillshade; bed and snapshots on "
-                                     "profiles)", parents=[quiet])
-    pl.add_argument("run_file", help="NetCDF written by avflow run")
-    pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png)")
+                                     "profiles; a region's merged maps, release outlines "
+                                     "and the release that set each maximum)",
+                        parents=[quiet])
+    pl.add_argument("run_file", help="NetCDF written by avflow run, or a region's OUTDIR "
+                                     "(or OUTDIR/region.zarr)")
+    pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png; "
+                                           "OUTDIR/region.png for a region)")
     pl.set_defaults(func=_cmd_plot)
     pa = sub.add_parser("path", help="runout along the avalanche path (AvaFrame's AIMEC): "
                                      "table and PNG of a run file or an ensemble folder",
@@ -501,7 +511,7 @@ def _cmd_region(args) -> int:
                 if region.with_scenarios else f"{len(outcome.table)} releases")
         print(f"{region.name}: {runs}, {outcome.ran} run, "
               f"{outcome.reused} reused, {outcome.failed} not merged ({outcome.elapsed:.1f} s, "
-              f"{outcome.where}); wrote {outcome.store} and "
+              f"{outcome.where}); wrote {Path(args.output) / outcome.store.name} and "
               f"{Path(args.output) / 'releases.csv'}")
     return 0 if outcome.failed == 0 else 1
 
@@ -609,7 +619,12 @@ def _check_members_fit(ensemble, max_memory) -> None:
 
 
 def _cmd_report(args) -> int:
-    from avflow.ensemble.report import write_report
+    from avflow.region.export import find_store
+
+    if find_store(args.outdir) is not None:  # a region's folder or its region.zarr
+        from avflow.region.plot import write_region_report as write_report
+    else:
+        from avflow.ensemble.report import write_report
 
     written = write_report(args.outdir)
     if not args.quiet:
@@ -645,7 +660,12 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from avflow.output.maps import plot_run
+    from avflow.region.export import find_store
+
+    if find_store(args.run_file) is not None:  # a region's folder or its region.zarr
+        from avflow.region.plot import plot_region as plot_run
+    else:
+        from avflow.output.maps import plot_run
 
     written = plot_run(args.run_file, args.output)
     if not args.quiet:

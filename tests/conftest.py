@@ -98,6 +98,6 @@ def contract_dir():
     """../shared/contract (or $AVFLOW_SHARED/contract): only for the tests whose point is that
     the shared contract files run unchanged; they skip where it is absent (a fresh clone)."""
     if not CONTRACT.is_dir():
-        pytest.skip(f"contract files not found at {CONTRACT} (set AVFLOW_SHARED): this test "
-                    "checks that the shared contract files run unchanged")
+        pytest.skip(f"the external reference scenarios are not at {CONTRACT} (set "
+                    "AVFLOW_SHARED): this test checks that they run unchanged")
     return CONTRACT

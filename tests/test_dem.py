@@ -169,7 +169,7 @@ def test_contract_dem_scenario_loads_unchanged():
     """../shared/contract/avakot_coulomb.yaml: DEM and polygon found relative to the file."""
     contract = ROOT.parent / "shared" / "contract" / "avakot_coulomb.yaml"
     if not contract.is_file():
-        pytest.skip("the shared contract folder is not next to the repository")
+        pytest.skip("the external reference scenarios ($AVFLOW_SHARED) are not here")
     sc = load_scenario(contract)
     terrain, h0, solver, _ = prepare(sc.with_updates({"grid.dx": 20.0}))
     assert terrain.crs_wkt and h0.max() == 1.0
@@ -218,7 +218,7 @@ def test_contract_plane_cylinder_runs_unchanged(tmp_path):
     down the 30 degree plane (Coulomb 20) until it piles against the downslope wall."""
     contract = ROOT.parent / "shared" / "contract" / "plane_cylinder.yaml"
     if not contract.is_file():
-        pytest.skip("the shared contract folder is not next to the repository")
+        pytest.skip("the external reference scenarios ($AVFLOW_SHARED) are not here")
     from avflow.cli import main
 
     out = tmp_path / "pc.nc"

@@ -113,7 +113,7 @@ def test_bad_export_one_line_exit_2(store, capsys, args, says):
 
 def test_releases_parquet(tmp_path, capsys):
     """releases.parquet holds releases.csv's table where pandas has a parquet engine;
-    elsewhere the run says once that it is not written."""
+    elsewhere it is not written, and no run says so (releases.csv has the same table)."""
     from test_region import BOXES, REGION, _dem, _releases
 
     from avflow.region import load_region
@@ -127,7 +127,7 @@ def test_releases_parquet(tmp_path, capsys):
     engine = any(importlib.util.find_spec(m) for m in ("pyarrow", "fastparquet"))
     if not engine:
         assert not (tmp_path / "out" / "releases.parquet").exists()
-        assert "no releases.parquet: pandas needs pyarrow" in err
+        assert "pyarrow" not in err and "parquet" not in err  # not said on every run
         pytest.skip("no parquet engine (pyarrow, fastparquet) installed: only its absence "
                     "is tested")
     table = pd.read_parquet(tmp_path / "out" / "releases.parquet")

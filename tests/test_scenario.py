@@ -28,8 +28,8 @@ def field(scenario, dotted):
 @pytest.fixture(scope="module")
 def contract():
     if not CONTRACT.is_dir():  # CI has it next to the checkout; a fresh clone does not
-        pytest.skip(f"contract files not found at {CONTRACT} (set AVFLOW_SHARED): these tests "
-                    "check that the shared contract files load unchanged")
+        pytest.skip(f"the external reference scenarios are not at {CONTRACT} (set "
+                    "AVFLOW_SHARED): these tests check that they load unchanged")
     return CONTRACT
 
 

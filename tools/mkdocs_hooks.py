@@ -375,3 +375,13 @@ def on_page_markdown(markdown, page, config, files):
     if CF_MARKER in markdown:
         markdown = markdown.replace(CF_MARKER, cf_table())
     return markdown
+
+
+#: A Sphinx role as mkdocstrings leaves it in the page: ``:class:<code>~a.b.C</code>``.
+_ROLE_HTML = re.compile(r":(?:func|class|meth|mod|data|attr|obj|exc):<code>~?(?:[\w.]*\.)?"
+                        r"([^<]+)</code>")
+
+
+def on_page_content(html, page, config, files):
+    """The docstrings' Sphinx roles (``:class:`X```) as plain code, not raw text."""
+    return _ROLE_HTML.sub(r"<code>\1</code>", html)

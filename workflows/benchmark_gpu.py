@@ -1,4 +1,4 @@
-"""The cuda backend on a GPU (issue 32): throughput, avaKot end to end, an ensemble.
+"""The cuda backend on a GPU: throughput, avaKot end to end, an ensemble.
 
     python workflows/benchmark_gpu.py [-o benchmark_gpu.csv] [--sizes 1024,4096,8192]
                                       [--steps 50] [--members 20] [--cpu-1m] [--tiny]

@@ -1,4 +1,4 @@
-"""Recovery of a known truth on a real path (issue 28): avaKot at 10 m, Voellmy.
+"""Recovery of a known truth on a real path: avaKot at 10 m, Voellmy.
 
     python workflows/calibrate_avakot.py [--out out/calibrate_avakot] [--dx 10] [--budget 40]
                                          [--workers N] [--method bayes-opt|posterior]

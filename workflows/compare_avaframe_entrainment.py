@@ -1,4 +1,4 @@
-"""avflow's erosion-energy entrainment beside AvaFrame com1DFA's, on AvaFrame's avaAlr (issue 30).
+"""avflow's erosion-energy entrainment beside AvaFrame com1DFA's, on AvaFrame's avaAlr.
 
     python workflows/compare_avaframe_entrainment.py --avaframe-python /work/avaframe_venv/bin/python
 

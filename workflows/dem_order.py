@@ -1,5 +1,4 @@
-"""Which order on DEMs: order 1 and order 2 on real paths against a finer reference (issue 27,
-item 9).
+"""Which order on DEMs: order 1 and order 2 on real paths against a finer reference.
 
     python workflows/dem_order.py                       # avaKot and avaWog, 10 / 5 / 2.5 m
     python workflows/dem_order.py --quick               # 20 m against 10 m (smoke test, ~1 min)

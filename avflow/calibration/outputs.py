@@ -499,7 +499,8 @@ def _corner(result):
     names = result.calibration.names
     draws = result.posterior.draws
     d = len(names)
-    fig, axes = plt.subplots(d, d, figsize=(2.8 * d + 1, 2.8 * d + 1), squeeze=False)
+    side = max(2.8 * d + 1, 5.0)  # one parameter: room for the title
+    fig, axes = plt.subplots(d, d, figsize=(side, side), squeeze=False, layout="constrained")
     for i in range(d):
         for j in range(d):
             ax = axes[i, j]
@@ -511,6 +512,11 @@ def _corner(result):
                 for q in np.quantile(draws[:, i], [0.05, 0.5, 0.95]):
                     ax.axvline(q, color="k", ls="--", lw=0.8)
                 ax.set_yticks([])
+                # the best run on its parameter's axis, as on the pair panels
+                ax.plot(result.best[names[i]], 0.0, "*", color="tab:red", ms=12,
+                        clip_on=False, zorder=5)
+                if d == 1:
+                    ax.set_xlabel(names[i])
             else:
                 ax.hist2d(draws[:, j], draws[:, i], bins=40, cmap="Blues")
             if i == d - 1:
@@ -520,8 +526,7 @@ def _corner(result):
             if i != j:
                 ax.plot(result.best[names[j]], result.best[names[i]], "*", color="tab:red",
                         ms=10)
-    fig.suptitle("posterior (dashed: 5%, 50%, 95%; star: best run)")
-    fig.tight_layout()
+    fig.suptitle("posterior (dashed: 5%, 50%, 95%; star: best run)", fontsize=10)
     return fig
 
 
@@ -529,7 +534,8 @@ def _sobol_bars(result):
     plt = _plt()
     names = result.calibration.names
     quantities = list(result.sobol)
-    fig, ax = plt.subplots(figsize=(min(12, max(6, 0.8 * len(quantities) * len(names))), 4))
+    fig, ax = plt.subplots(figsize=(min(13.5, max(7.5, 0.8 * len(quantities) * len(names)
+                                                  + 1.5)), 4), layout="constrained")
     width = 0.8 / (2 * len(names))
     x = np.arange(len(quantities))
     for k, n in enumerate(names):
@@ -542,8 +548,7 @@ def _sobol_bars(result):
     ax.set_xticklabels(quantities, rotation=20, fontsize=8)
     ax.set_ylabel("Sobol index")
     ax.set_ylim(0, 1.1)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # off the bars
     return fig
 
 
@@ -629,12 +634,16 @@ def _footprint(result):
         o = cal.spec.observations[j]
         if o.point is not None:
             ax.plot(*o.point, "o", mfc="white", mec="k", label="observed runout")
-    ax.plot([], [], color="tab:blue", label="observed area")
+    if obs is not None:  # only what was observed
+        ax.plot([], [], color="tab:blue", label="observed area")
     ax.fill([], [], color="orange", alpha=0.5, label=f"simulated: {what}")
-    ax.legend(fontsize=7, loc="upper right")
+    handles, labels = ax.get_legend_handles_labels()
+    unique = dict(zip(labels, handles))  # one entry per kind (several runout points)
+    ax.legend(unique.values(), unique.keys(), fontsize=7, loc="upper right")
     ax.set_title(title)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
+    ax.ticklabel_format(useOffset=False, style="plain")  # UTM, LV95: whole metres
     ax.set_aspect("equal")
     fig.tight_layout()
     return fig

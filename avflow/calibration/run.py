@@ -116,9 +116,11 @@ class _Runner:
         workers = 0 if self.client is None and (self.workers == 0 or self.rows) \
             else self.workers
         clock = time.perf_counter()
+        # the runs' counter and time left on a terminal; the ensemble's notes left out
+        line = ProgressLine(len(members), quiet=True, unit=f"{stage} runs")
+        line.live = not self.quiet and sys.stderr.isatty()
         outcome = run_ensemble(ensemble, self.outdir, workers=workers, client=self.client,
-                               progress=ProgressLine(len(members), quiet=True),
-                               write_outputs=False)
+                               progress=line, write_outputs=False)
         self.model_time += time.perf_counter() - clock
         if self.client is None and self.workers is None and not self.rows \
                 and outcome.where == "local cluster":
@@ -154,6 +156,12 @@ class _Runner:
         if self.observed is None:
             self.observed = observe(self.cal, cells)
         return score_member(self.cal, self.observed, cells)
+
+    def say(self, message: str) -> None:
+        """A stage that takes a while without runs (emulators, posterior, report)."""
+        if not self.quiet:
+            print(f"calibration: {message} ({time.perf_counter() - self.started:.1f} s)",
+                  file=sys.stderr, flush=True)
 
     def _progress(self) -> None:
         if self.quiet:
@@ -257,6 +265,7 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     result.timings = timings
     from avflow.calibration.outputs import write_outputs
 
+    runner.say("writing the tables" + (" and the report" if report else ""))
     result.written = write_outputs(result, report=report)
     where = outdir / ("report.md" if report else "calibration.nc")
     if result.fit is not None and not result.fit["fits"]:
@@ -306,6 +315,7 @@ def _analyse(cal: Calibration, runner: _Runner, outdir: Path, timings: dict
     quantities = [f"{cal.label(k)}_d" for k in range(len(spec.observations))]
     emulators = {}
     if n_ok >= 4:
+        runner.say(f"fitting the emulators to {n_ok} runs")
         clock = time.perf_counter()
         for q in ["sqrt_misfit", *quantities, *SUMMARIES]:
             y = M.objective(cols["misfit"]) if q == "sqrt_misfit" else cols[q]
@@ -316,6 +326,8 @@ def _analyse(cal: Calibration, runner: _Runner, outdir: Path, timings: dict
         timings["emulators"] = time.perf_counter() - clock
     result.emulators = emulators
     if spec.method == "posterior" and all(q in emulators for q in quantities):
+        runner.say(f"sampling the posterior ({spec.posterior.walkers} walkers x "
+                   f"{spec.posterior.steps} steps)")
         clock = time.perf_counter()
         errors = [cal.error(k) for k in range(len(spec.observations))]
         weights = [o.weight for o in spec.observations]
@@ -354,6 +366,7 @@ def _analyse(cal: Calibration, runner: _Runner, outdir: Path, timings: dict
                              "design run")
         ident["constrained"] = {n: False for n in ident["constrained"]}
     if spec.sensitivity.enabled and emulators:
+        runner.say("Sobol indices of the emulators")
         clock = time.perf_counter()
         for q in ["sqrt_misfit", *quantities, *SUMMARIES]:
             if q in emulators:

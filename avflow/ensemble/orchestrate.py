@@ -383,16 +383,36 @@ TIMINGS = {
 }
 
 
-class ProgressLine:
-    """``[#####.....] 12/21 members, 1 failed`` on one terminal line; failures on their own."""
+def time_left(elapsed: float, done: int, total: int) -> str:
+    """``, ~2 min 10 s left``: the time the ``total - done`` runs still to go take at the
+    pace of the ``done`` ones so far; empty before the first."""
+    if done <= 0 or total <= done:
+        return ""
+    left = elapsed / done * (total - done)
+    if left < 1:
+        return ", <1 s left"
+    if left < 60:
+        return f", ~{left:.0f} s left"
+    minutes, seconds = divmod(int(round(left)), 60)
+    if minutes < 60:
+        return f", ~{minutes} min {seconds:02d} s left"
+    return f", ~{minutes // 60} h {minutes % 60:02d} min left"
 
-    def __init__(self, total: int, stream=None, live: bool | None = None, quiet: bool = False):
+
+class ProgressLine:
+    """``[#####.....] 12/21 members, 1 failed (40.2 s, ~30 s left)`` on one terminal line;
+    failures on their own. The time left is from the members run since the line started
+    (members reused from an earlier run are not counted in its pace)."""
+
+    def __init__(self, total: int, stream=None, live: bool | None = None, quiet: bool = False,
+                 unit: str = "members"):
         stream = stream if stream is not None else sys.stderr
-        self.total, self.stream, self.quiet = total, stream, quiet
+        self.total, self.stream, self.quiet, self.unit = total, stream, quiet, unit
         self.live = (stream.isatty() if live is None else live) and not quiet
         self.done = self.failed = 0
         self.started = time.perf_counter()
         self.elapsed = math.nan  #: s, when closed: the last time the line showed
+        self._base: tuple[int, float] | None = None  # (done, s) at the first update
 
     def info(self, message: str) -> None:
         """A line of information (where the members run), left out when quiet."""
@@ -401,13 +421,16 @@ class ProgressLine:
 
     def update(self, done: int, failed: int) -> None:
         self.done, self.failed = done, failed
+        wall = time.perf_counter() - self.started
+        if self._base is None:
+            self._base = (done, wall)
         if not self.live:
             return
         width = 30
         filled = int(width * done / max(self.total, 1))
-        wall = time.perf_counter() - self.started
+        left = time_left(wall - self._base[1], done - self._base[0], self.total - self._base[0])
         self.stream.write(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} "
-                          f"members, {failed} failed ({wall:5.1f} s)")
+                          f"{self.unit}, {failed} failed ({wall:5.1f} s{left})\033[K")
         self.stream.flush()
 
     def failure(self, member: Member, error: str) -> None:

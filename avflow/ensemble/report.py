@@ -65,7 +65,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
     path = outdir / "ensemble.nc"
     if not path.is_file():
         raise AvflowError(f"{path}: not found (give the folder of `avflow ensemble ... -o "
-                          "OUTDIR`)")
+                          "OUTDIR`, or of `avflow region ... -o OUTDIR`)")
     try:
         with xr.open_dataset(path, decode_times=False) as ds:
             ds = ds.load()
@@ -177,13 +177,26 @@ def write_report(outdir: str | os.PathLike) -> Path:
     # --- deposits ---------------------------------------------------------------------------
     if profile:
         fig, ax = plt.subplots(figsize=(10, 4), constrained_layout=True)
-        for i in np.flatnonzero(ok):
+        members = np.flatnonzero(ok)
+        named = len(members) <= 12  # each curve labelled by its member's values
+        palette = plt.get_cmap("tab10" if len(members) <= 10 else "tab20")
+        for k, i in enumerate(members):
             x, h = _deposit_profile(ds, outdir, i)
-            if x is not None:
+            if x is None:
+                continue
+            if named:
+                label = ", ".join(
+                    [f"{_dotted(ds, q)} = {ds[q].values[i]:g}" for q in params]
+                    + ([laws[i]] if len(colors) > 1 else [])) or f"member {i}"
+                ax.plot(x, h, color=palette(k % palette.N), alpha=0.8, lw=1.2, label=label)
+            else:
                 ax.plot(x, h, color=colors[laws[i]], alpha=0.6, lw=1)
-        for law, c in colors.items():
-            ax.plot([], [], color=c, label=law)
-        ax.legend(title="law")
+        if named:
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        else:
+            for law, c in colors.items():
+                ax.plot([], [], color=c, label=law)
+            ax.legend(title="law")
         ax.set_xlabel("distance along the bed (m)")
         ax.set_ylabel("deposit thickness (m, normal to the bed)")
         ax.grid(alpha=0.3)

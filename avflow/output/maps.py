@@ -485,11 +485,12 @@ def plot_run(path, output=None) -> Path:
 
     path = Path(path)
     if path.is_dir():  # an ensemble's folder: say what plot and report each take
-        what = ("an ensemble folder" if (path / "ensemble.nc").is_file()
-                or (path / "summary.csv").is_file() else "a folder")
-        raise MapsError(f"{path}: {what}; avflow plot draws one run file (e.g. "
-                        f"{path / 'members'}/<hash>.nc), avflow report {path} draws the "
-                        "ensemble")
+        if (path / "ensemble.nc").is_file() or (path / "summary.csv").is_file():
+            raise MapsError(f"{path}: an ensemble folder; avflow plot draws one run file "
+                            f"(e.g. {path / 'members'}/<hash>.nc), avflow report {path} "
+                            "draws the ensemble")
+        raise MapsError(f"{path}: a folder; avflow plot draws one run file (.nc) or a "
+                        "region's output folder")
     target = path.with_suffix(".png") if output is None else Path(output)
     plt = _plt()
     with open_run(path) as ds:
@@ -585,7 +586,7 @@ def _plot_grid(ds, plt):
         k = run_pressure_classes(ds)
         cmap, norm = _class_style(len(classes))
         raster(axes[1], np.where(k > 0, k, np.nan), cmap=cmap, norm=norm, alpha=0.9)
-        _class_legend(fig, classes, where)
+        _class_legend(fig, classes, where, axes[1])
     _titles(fig, axes, ds)
     for ax in axes:
         plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
@@ -618,8 +619,8 @@ def _class_style(n: int):
     return cmap, mcolors.BoundaryNorm(np.arange(0.5, n + 1.0), cmap.N)
 
 
-def _class_legend(fig, classes, where) -> None:
-    """The classes named in a legend beside the maps (under them when wide)."""
+def _class_legend(fig, classes, where, ax=None) -> None:
+    """The classes named in a legend beside their map ``ax`` (under the maps when wide)."""
     from matplotlib.patches import Patch
 
     handles = [Patch(facecolor=c, edgecolor="0.3", alpha=0.9, label=label) for c, label in
@@ -630,6 +631,13 @@ def _class_legend(fig, classes, where) -> None:
         fig.legend(handles=handles[::-1], title=title.replace("\n", " "), fontsize=8,
                    title_fontsize=8, loc="outside lower center", ncol=len(handles),
                    frameon=False)
+    elif ax is not None:  # at the top right of its own map, the outlines' legend kept
+        outlines = ax.get_legend()
+        ax.legend(handles=handles, title=title, fontsize=8, title_fontsize=8,
+                  loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0,
+                  frameon=False)
+        if outlines is not None:
+            ax.add_artist(outlines)
     else:
         fig.legend(handles=handles, title=title, fontsize=8, title_fontsize=8,
                    loc="outside right upper", frameon=False)
@@ -795,6 +803,6 @@ def _plot_triangles(ds, plt):
         tri_p.set_mask(k < 1)
         axes[1].tripcolor(tri_p, facecolors=np.maximum(k, 1), cmap=cmap, norm=norm,
                           alpha=0.9, edgecolors="face", linewidth=0.2)
-        _class_legend(fig, classes, where)
+        _class_legend(fig, classes, where, axes[1])
     _titles(fig, axes, ds)
     return fig

@@ -791,6 +791,7 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
     ax_map.set_ylabel("y (m)" if points.kind != "profile" else "bed elevation (m)")
     ax_map.legend(loc="best", fontsize=8)
     ax_map.set_title("peak field and path")
+    ax_map.ticklabel_format(useOffset=False, style="plain")  # UTM, LV95: whole metres
 
     # the chosen field in path coordinates, first run
     l = first.l
@@ -1103,6 +1104,9 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output, regress
 
     summary = outdir / "summary.csv"
     if not summary.is_file():
+        if (outdir / "region.zarr").is_dir() or outdir.name == "region.zarr":
+            raise PathError(f"{outdir}: a region's maps; avflow path takes a run file or an "
+                            f"ensemble folder (avflow plot {outdir} draws the region)")
         raise PathError(f"{outdir}: not a run file nor an ensemble folder (no summary.csv)")
     try:
         table = pd.read_csv(summary, keep_default_na=False, na_values=[""])

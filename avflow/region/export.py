@@ -62,8 +62,10 @@ def region_rasters(ds, store: Path, variables=None) -> list[tuple]:
     names = list(variables or default)
     unknown = [n for n in names if n not in maps + stacked]
     if unknown:
+        why = ("; exceedance maps need a scenarios: block or merge.thresholds in the region "
+               "file" if not stacked and any("_exceedance_" in n for n in unknown) else "")
         raise RegionExportError(f"{store}: no map named {', '.join(map(repr, unknown))}; "
-                                f"available: {', '.join(maps + stacked)}")
+                                f"available: {', '.join(maps + stacked)}{why}")
     out = []
     for name in names:
         var = ds[name]
@@ -80,7 +82,7 @@ def region_rasters(ds, store: Path, variables=None) -> list[tuple]:
             out.append((f"{name}_{label}", var.sel({coord.name: t}), _options(
                 name, var, {"description": f"{kind}({what} > {float(t):g} {units})",
                             "tags": {"variable": name, "threshold": f"{float(t):g}",
-                                     "units": units}})))
+                                     "threshold_units": units}})))
     return out
 
 

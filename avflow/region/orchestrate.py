@@ -64,12 +64,14 @@ class RegionProgress:
         self.total, self.quiet, self.pixel_area, self.unit = total, quiet, pixel_area, unit
         self.said: set = set()  # (id, error) already on stderr: once per release
         self.live = self.stream.isatty() and not quiet
-        self.done = self.failed = 0
+        self.done = self.failed = self.instant = 0
         self.covered = 0.0
         self.started = time.perf_counter()
 
     def update(self, row: dict) -> None:
         self.done += 1
+        if row.get("reused") is True or row["status"] == "invalid":  # no run: not in the pace
+            self.instant += 1
         if row["status"] not in MERGED:
             self.failed += 1
             if (row["id"], row["error"]) not in self.said:
@@ -96,11 +98,14 @@ class RegionProgress:
     def draw(self) -> None:
         if not self.live:
             return
+        from avflow.ensemble.orchestrate import time_left
+
         filled = int(30 * self.done / max(self.total, 1))
         wall = time.perf_counter() - self.started
+        left = time_left(wall, self.done - self.instant, self.total - self.instant)
         self.stream.write(f"\r  [{'#' * filled}{'.' * (30 - filled)}] {self.done}/{self.total}"
                           f" {self.unit}, {self.failed} failed, {self.covered / 1e6:.2f} km2 of "
-                          f"windows ({wall:5.1f} s)")
+                          f"windows ({wall:5.1f} s{left})\033[K")
         self.stream.flush()
 
     def close(self) -> None:
@@ -180,6 +185,10 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
         merged = RegionStore(tmp_store, dem, region.merge.fields, region.merge.chunk,
                              {"title": f"avflow region {region.name}",
                               "source": "avflow region", "region_key": key,
+                              # what avflow plot draws under and over the maps
+                              "dem": str(Path(region.dem).absolute()),
+                              **({"region_file": str(Path(region.path).absolute())}
+                                 if region.path else {}),
                               **_scenario_attrs(region)},
                              thresholds=region.thresholds, scenarios=len(scenarios)
                              if region.with_scenarios or region.thresholds else None)
@@ -290,9 +299,8 @@ def _write_parquet(table, path: Path, progress) -> None:
     import importlib.util
 
     if not any(importlib.util.find_spec(m) for m in ("pyarrow", "fastparquet")):
+        # not said on every run: the guide says releases.csv holds the same table
         path.unlink(missing_ok=True)  # a stale one would disagree with releases.csv
-        progress.note(f"no {path.name}: pandas needs pyarrow (pip install 'avflow[parquet]')"
-                      f"; {TABLE} has the same table")
         return
     atomic_write(path, lambda tmp: table.to_parquet(tmp, index=False))
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import tempfile
 import time
 from pathlib import Path
@@ -165,6 +166,9 @@ def run_release(task: dict) -> dict:
                               for p in problems) if problems else " ".join(str(err).split()))
         row["status"] = ("invalid" if isinstance(err, ScenarioError)
                          else "failed" if isinstance(err, RunFailed) else "failed")
+        # the release's files in the (removed) work folder: named as what they hold
+        message = re.sub(r"\S*[/\\]work[/\\]release-\S*?[/\\](release)\.\w+", r"the \1 polygon",
+                         message)
         row["error"] = f"{type(err).__name__}: {message}"
         maps = None
     row["wall_time"] = time.perf_counter() - started

@@ -562,9 +562,16 @@ def _check_dem(dem: str, fail) -> None:
             t = src.transform
             rotated = t.b != 0.0 or t.d != 0.0
             shape = (src.height, src.width)
+            wkt = src.crs.to_wkt() if src.crs is not None else None
     except Exception as err:  # noqa: BLE001 - GDAL's own error, in one line
         raise fail(("dem",), f"{dem}: cannot be read as a raster ({type(err).__name__}: "
                              f"{' '.join(str(err).split())[:120]})") from None
+    from avflow.terrain.raster import geographic_crs
+
+    degrees = geographic_crs(wkt)
+    if degrees:
+        raise fail(("dem",), f"{dem}: this DEM is in degrees ({degrees}): reproject it to a "
+                             "projected CRS in metres (e.g. gdalwarp -t_srs EPSG:<UTM zone>)")
     if rotated:
         raise fail(("dem",), f"{dem}: rotated rasters are not supported; warp it north-up "
                              "first (gdalwarp)")

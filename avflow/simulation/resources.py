@@ -170,7 +170,7 @@ def estimate(scenario, streamed: bool = False) -> Estimate:
             from avflow.terrain.raster import NATIVE_TOLERANCE, RasterError, read_raster
 
             try:
-                raster = read_raster(t.path)
+                raster = read_raster(t.path, "DEM")
             except RasterError as err:
                 raise ScenarioError.at(scenario, "terrain.path", str(err)) from None
             span_x, span_y = raster.x[-1] - raster.x[0], raster.y[-1] - raster.y[0]

@@ -41,7 +41,7 @@ def structured_raster(scenario):
 def _bare_raster(scenario):
     t = scenario.terrain
     if t.kind == "dem":
-        raster = resample(read_raster(t.path), scenario.grid.dx, scenario.grid.dy)
+        raster = resample(read_raster(t.path, "DEM"), scenario.grid.dx, scenario.grid.dy)
         z, x, y, wkt = raster.values, raster.x, raster.y, raster.crs_wkt
     elif t.kind == "plane":
         p = plane_terrain(t, scenario.grid.dx, scenario.grid.dy, scenario.boundary)

@@ -68,8 +68,36 @@ class Raster:
         return np.where(inside, out, np.nan)
 
 
-def read_raster(path) -> Raster:
-    """Read a raster by its suffix; any problem is a :class:`RasterError` naming the file."""
+def read_raster(path, what: str = "raster") -> Raster:
+    """Read a raster by its suffix; any problem is a :class:`RasterError` naming the file.
+    ``what`` names it in the messages (``"DEM"``). A raster in degrees (a geographic CRS)
+    is refused: every cell size and distance here is in metres."""
+    raster = _read_raster(path)
+    degrees = geographic_crs(raster.crs_wkt)
+    if degrees:
+        raise RasterError(f"{path}: this {what} is in degrees ({degrees}): reproject it to a "
+                          "projected CRS in metres (e.g. gdalwarp -t_srs EPSG:<UTM zone>)")
+    return raster
+
+
+def geographic_crs(wkt: str | None) -> str | None:
+    """The name of ``wkt`` when it is a geographic CRS (longitude and latitude in degrees),
+    else None (projected, or none given)."""
+    if not wkt:
+        return None
+    try:
+        from pyproj import CRS
+
+        crs = CRS.from_user_input(wkt)
+    except Exception:  # noqa: BLE001 - a CRS pyproj does not read is not judged here
+        return None
+    if not crs.is_geographic:
+        return None
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else crs.name
+
+
+def _read_raster(path) -> Raster:
     path = Path(path)
     if not path.is_file():
         raise RasterError(f"{path}: no such raster file")

@@ -59,6 +59,13 @@ def initial_thickness(release, terrain: Terrain) -> np.ndarray:
             h = rasterize(areas, x, y, release.thickness, source=release.path)
         except PolygonError as err:
             raise ReleaseError(str(err)) from None
+        if not np.any(h > 0.0):  # the file and where it lies against the map
+            points = np.concatenate([np.asarray(r, float).reshape(-1, 2)
+                                     for a in areas for r in a.rings])
+            raise ReleaseError(f"{release.path}: the release puts no mass on any cell of the "
+                               f"domain: its polygons (x {_span(points[:, 0])}, y "
+                               f"{_span(points[:, 1])}) cover no cell centre of the map "
+                               f"(x {_span(x)}, y {_span(y)})")
     elif kind == "raster":
         try:
             raster = read_raster(release.path)
@@ -67,12 +74,26 @@ def initial_thickness(release, terrain: Terrain) -> np.ndarray:
         _check_crs(release.path, raster.crs_wkt, terrain)
         h = np.nan_to_num(raster.sample(x, y), nan=0.0)
         h = np.maximum(h, 0.0)
+        if not np.any(h > 0.0):
+            raise ReleaseError(f"{release.path}: the release puts no mass on any cell of the "
+                               f"domain: no thickness above 0 on the map's cells (the raster: "
+                               f"x {_span(raster.x)}, y {_span(raster.y)}; the map: "
+                               f"x {_span(x)}, y {_span(y)})")
     else:
         raise ReleaseError(f"release kind {kind!r} is not available")
     h = np.ascontiguousarray(h * release.volume_factor, dtype=float)
     if not np.any(h > 0.0):
         raise ReleaseError("the release puts no mass on any cell of the domain")
     return h
+
+
+def _span(values) -> str:
+    """``177000-179000 m``: the range of coordinates, whole metres."""
+    if values is None:
+        return "none"
+    v = np.ravel(np.asarray(values, dtype=float))
+    v = v[np.isfinite(v)]
+    return f"{v.min():.0f}-{v.max():.0f} m" if v.size else "none"
 
 
 def _check_crs(path, wkt, terrain: Terrain) -> None:
