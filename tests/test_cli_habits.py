@@ -121,7 +121,7 @@ def test_version(capsys):
 def test_wall_time_leaves_out_the_first_compile(tmp_path):
     """A first run in a fresh Numba cache spends seconds compiling: that is compile_time,
     on the summary line apart from the time loop's wall_time."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    env = {**os.environ, "AVFLOW_CACHE_DIR": str(tmp_path / "kernel-cache")}
     done = subprocess.run([sys.executable, "-m", "avflow.cli", "run", str(PLANE), "-o",
                            str(tmp_path / "p.nc"), "--set", "time.end=5"], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=600)
@@ -134,6 +134,12 @@ def test_wall_time_leaves_out_the_first_compile(tmp_path):
     assert float(ds["wall_time"]) < 0.25 * float(ds["compile_time"])
     assert (loop, compiling) == (f"{float(ds['wall_time']):.2f}",
                                  f"{float(ds['compile_time']):.2f}")
+    # said while it happened: what, once per machine and version, where, how long
+    said = [l for l in done.stderr.splitlines() if l.startswith("avflow: compil")]
+    assert said[0].startswith("avflow: compiling the grid kernel at order 1 with Coulomb "
+                              "friction (once per machine and avflow version; kept in "
+                              f"{tmp_path / 'kernel-cache'}) ..."), done.stderr
+    assert re.fullmatch(r"avflow: compiled in \d+ s", said[1]) and len(said) == 2, said
 
 
 # --- where an ensemble runs; its times ------------------------------------------------------

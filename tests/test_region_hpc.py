@@ -72,7 +72,7 @@ def test_documented_cluster_makes_a_valid_job_script(kind, directive, tmp_path, 
         assert any("walltime=02:00:00" in h for h in heads) and any("-q normal" in h
                                                                      for h in heads)
     assert "export NUMBA_NUM_THREADS=1" in script
-    assert "export NUMBA_CACHE_DIR=" in script
+    assert "export AVFLOW_CACHE_DIR=" in script
     # one worker process a job, one thread, under 4 GB, pointed at this scheduler
     worker = [line for line in lines if not line.startswith("#") and (
         "distributed.cli.dask_worker" in line or "dask worker" in line)]
