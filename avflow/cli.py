@@ -1,5 +1,5 @@
 """avflow: debris-avalanche runs from scenario files (run, ensemble, report, export, plot, path,
-region, calibrate).
+region, calibrate, compare, release-areas).
 
 Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
 Errors in the input are one line naming the file and the field; no output file is left
