@@ -116,7 +116,7 @@ class _Runner:
         clock = time.perf_counter()
         outcome = run_ensemble(ensemble, self.outdir, workers=workers, client=self.client,
                                progress=ProgressLine(len(members), quiet=True),
-                               write_outputs=False)
+                               write_outputs=False, held_lock=True)
         self.model_time += time.perf_counter() - clock
         if self.client is None and self.workers is None and not self.rows \
                 and outcome.where == "local cluster":
@@ -199,13 +199,19 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     ``report``) ``report.md`` and its PNGs, each atomically.
     """
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-    from avflow.files import check_folder, check_target, protected
+    from avflow.files import check_folder, check_target, output_lock, protected
 
     outdir = check_folder(Path(outdir), "calibration folder")
     inputs = protected([cal.path, cal.base.source_path, *cal.files.values()])
     for name in ("calibration.nc", "calibration.csv", "report.md"):
         check_target(outdir / name, inputs, what="calibration output")
-    outdir.mkdir(parents=True, exist_ok=True)
+    # the ensembles' lock: a second calibrate, or an ensemble, into this folder is refused
+    with output_lock(outdir, folder=True, what="calibration folder"):
+        return _calibrate(cal, outdir, workers, scheduler, quiet, report)
+
+
+def _calibrate(cal: Calibration, outdir: Path, workers, scheduler, quiet: bool,
+               report: bool) -> CalibrationResult:
     spec = cal.spec
     d = len(cal.names)
     runner = _Runner(cal, outdir, workers, scheduler, quiet)

@@ -462,7 +462,7 @@ def ensemble_inputs(ensemble: Ensemble) -> dict:
     scenario and data files of its base and of every member (a member may vary a DEM)."""
     from avflow.files import protected
 
-    paths = {ensemble.path, *ensemble.base.input_files()}
+    paths = {ensemble.path, *ensemble.base.input_files(), ensemble.sample.get("calibration")}
     for member in ensemble.members:
         paths.update(member.scenario.input_files())
     return protected(sorted(p for p in paths if p))
@@ -482,7 +482,10 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, **options) -> Ou
         check_target(outdir / name, inputs, what="ensemble output")
     members = outdir / "members"
     fresh = not members.exists()
-    with output_lock(outdir, folder=True, what="ensemble folder"):
+    # held_lock: the caller (a calibration) holds the folder's lock already
+    held = options.pop("held_lock", False)
+    with (contextlib.nullcontext() if held
+          else output_lock(outdir, folder=True, what="ensemble folder")):
         try:
             return _run_locked(ensemble, outdir, **options)
         except BaseException:

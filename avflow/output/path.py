@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from avflow.errors import AvflowError
-from avflow.files import atomic_write, protected
+from avflow.files import atomic_write, inputs_of, protected
 
 __all__ = ["FIELDS", "LINE_SUFFIXES", "PathError", "PathLine", "PathResult", "PathSettings",
            "RunPoints", "analyse", "analyse_run", "analyse_target", "com_path",
@@ -931,7 +931,8 @@ def analyse_target(target, line=None, field=None, threshold=None, width=None, ou
             ds.attrs.get("scenario", ""), target.parent, need_line=line is None)
         settings = merge_settings(base, line, field, threshold, width)
         stem = Path(output) if output else target.with_name(target.stem + "_path")
-        inputs = protected([target, settings.line])
+        inputs = inputs_of(target, ds.attrs)  # the run file and the files it records
+        inputs.update(protected([settings.line]))
         result, written = write_run_path(ds, settings, stem, inputs)
         farthest = float(ds["runout"]) if "runout" in ds else math.nan
         truncated = bool(int(ds.attrs.get("runout_truncated", 0)))
@@ -964,7 +965,7 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
         raise PathError(f"{summary}: cannot be read as an avflow summary table "
                         f"({type(err).__name__})") from None
     # The ensemble's own analysis (ensemble.nc) gives the defaults: its path and settings.
-    recorded, base = None, PathSettings()
+    recorded, base, made_from = None, PathSettings(), {}
     ens_nc = outdir / "ensemble.nc"
     if ens_nc.is_file():
         try:
@@ -974,6 +975,7 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
                             "run the ensemble again to write it") from None
         with ens:
             a = ens.attrs
+            made_from = inputs_of(ens_nc, a)  # the ensemble's own inputs
             if "path_x" in ens and "path_field" in a:
                 threshold_set = a.get("path_threshold_setting", "default")
                 width_set = float(a.get("path_width_m", math.nan))
@@ -986,7 +988,8 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output):
     settings = merge_settings(base, line, field, threshold, width)
     stem = Path(output) if output else outdir / "path"
     members = [outdir / str(f) for f in table.get("file", ()) if isinstance(f, str) and f]
-    check_path_outputs(stem, protected([summary, ens_nc, settings.line, *members]))
+    check_path_outputs(stem, {**made_from,
+                              **protected([summary, ens_nc, settings.line, *members])})
     _, results, rows, points = _ensemble_results(table, outdir, settings, recorded)
     written = _write_tables(rows, stem)
     written.append(_write_profiles([(k, r.profile) for k, r in results],

@@ -104,7 +104,7 @@ def export_region(path, outdir=None, variables=None) -> list[Path]:
     the store unless ``outdir``); returns the paths written."""
     import xarray as xr
 
-    from avflow.files import check_folder, check_target
+    from avflow.files import check_folder, check_target, inputs_of
 
     store = find_store(path)
     if store is None:
@@ -115,12 +115,14 @@ def export_region(path, outdir=None, variables=None) -> list[Path]:
         raise RegionExportError(f"{store}: cannot be read as Zarr ({type(err).__name__}: "
                                 f"{' '.join(str(err).split())[:120]})") from None
     with ds:
+        inputs = inputs_of(store, ds.attrs)
         rasters = region_rasters(ds, store, variables)
         outdir = check_folder(store.parent if outdir is None else Path(outdir))
         stem = store.name.removesuffix(".zarr")
         targets = [outdir / f"{stem}_{name}.tif" for name, _, _ in rasters]
         for target in targets:
-            check_target(target, (), what="raster")  # every one before the first is written
+            # every one before the first is written; none the region's DEM, releases, file
+            check_target(target, inputs, what="raster")
         wkt = _crs_wkt(ds)
         x, y = ds["x"].values, ds["y"].values
         chunk = int(next(iter(ds.data_vars.values())).encoding.get("chunks", (256,))[-1])

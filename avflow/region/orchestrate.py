@@ -175,6 +175,7 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
         merged = RegionStore(tmp_store, dem, region.merge.fields, region.merge.chunk,
                              {"title": f"avflow region {region.name}",
                               "source": "avflow region", "region_key": key,
+                              "input_files": "\n".join(map(str, region.input_files())),
                               **_scenario_attrs(region)},
                              thresholds=region.thresholds, scenarios=len(scenarios)
                              if region.with_scenarios or region.thresholds else None)
