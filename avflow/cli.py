@@ -533,6 +533,25 @@ def _terminate(signum, frame):
     raise Terminated
 
 
+#: What to do when memory ran out, by command (only advice that applies to it).
+OUT_OF_MEMORY = {
+    "run": "give the run fewer cells (a larger grid.dx), or leave --max-memory on to be "
+           "told before it starts",
+    "ensemble": "give the members fewer cells (a larger grid.dx), use fewer workers, or "
+                "leave --max-memory on to be told before they start",
+    "calibrate": "give the base scenario fewer cells (a larger grid.dx), or ask for less "
+                 "(budget, posterior.walkers and steps, sensitivity.n), or use fewer "
+                 "workers",
+    "region": "crop or coarsen the DEM and the release raster, give smaller windows "
+              "(window.buffer) or fewer workers",
+    "export": "the maps are larger than this machine's memory; export fewer at a time "
+              "(--variables) on a machine with more memory",
+    "plot": "the run file is larger than this machine's memory can draw",
+    "path": "the run file is larger than this machine's memory can analyse",
+    "report": "the ensemble is larger than this machine's memory can draw",
+}
+
+
 def main(argv=None) -> int:
     import logging
     import signal
@@ -551,8 +570,8 @@ def main(argv=None) -> int:
         print(f"avflow: error: {err}", file=sys.stderr)
         return err.exit_code
     except MemoryError:  # past the estimate (--max-memory none, or a bigger need than it)
-        print("avflow: error: out of memory; give the run fewer cells (a larger grid.dx), "
-              "or leave --max-memory on to be told before it starts", file=sys.stderr)
+        advice = OUT_OF_MEMORY.get(args.command, OUT_OF_MEMORY["run"])
+        print(f"avflow: error: out of memory; {advice}", file=sys.stderr)
         return 1
     except Terminated:
         print("avflow: terminated", file=sys.stderr)

@@ -146,3 +146,79 @@ def test_a_running_calibrations_folder_is_refused_to_a_second_calibrate_and_an_e
     assert c1 == 2 and "in use by another avflow command" in one_line(e1)
     assert c2 == 2 and "in use by another avflow command" in one_line(e2)
     assert not list(out.glob("*.nc")) and not temporaries(tmp_path)
+
+
+# --- 2. resources: what a calibration or region file may ask for -------------------------------
+
+
+@pytest.mark.parametrize("edit, field, words", [
+    ("budget: 1000000000", ":6:1: budget", "1,000,000,000 model runs, more than the limit "
+                                             "of 10,000"),
+    ("method: posterior\nbudget: 10\nposterior: {walkers: 24, steps: 1000000000}",
+     ":8:1: posterior", "24 x 1,000,000,000 = 24,000,000,000 draws (about"),
+    ("method: posterior\nbudget: 10\nposterior: {walkers: 100000000, steps: 1000}",
+     ":8:1: posterior", "draws (about"),
+    ("budget: 10\nsensitivity: {n: 1000000000}", ":7:15: sensitivity.n",
+     "3,000,000,000 emulator evaluations (about"),
+    ("method: posterior\nbudget: 10\nposterior: {checks: 100000}", ":8:",
+     "100,000 model runs"),
+])
+def test_calibration_sizes_are_bounded_before_anything_runs(dam_calibration, tmp_path,
+                                                            capsys, edit, field, words):
+    text = dam_calibration.read_text().replace("method: lhs\nbudget: 3\n"
+                                               "sensitivity: {enabled: false}\n", "")
+    dam_calibration.write_text(text + edit + "\n")
+    started = time.monotonic()
+    code, _, err = cli(["calibrate", dam_calibration, "-o", tmp_path / "out"], capsys)
+    assert code == 2 and words in one_line(err) and "c.yaml" + field in err, err
+    assert time.monotonic() - started < 20 and not (tmp_path / "out").exists()
+
+
+def test_calibration_files_are_bounded_and_regular(tmp_path, capsys):
+    big = tmp_path / "big.yaml"
+    big.write_bytes(b"a" * (2 << 20))
+    (tmp_path / "zero.yaml").symlink_to("/dev/zero")
+    for path, why in [("/dev/zero", "not a regular file"), (tmp_path / "zero.yaml",
+                      "not a regular file"), (tmp_path, "a folder"), (big, "over 1 MiB")]:
+        code, _, err = cli(["calibrate", path, "-o", tmp_path / "o"], capsys)
+        assert code == 2 and why in one_line(err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_out_of_memory_advice_fits_the_command(dam_calibration, tmp_path, capsys,
+                                               monkeypatch):
+    import avflow.calibration.run as run
+
+    def no_memory(*args, **kw):
+        raise MemoryError
+
+    monkeypatch.setattr(run._Runner, "run", no_memory)
+    code, _, err = cli(["calibrate", dam_calibration, "-o", tmp_path / "out"], capsys)
+    assert code == 1 and "out of memory" in one_line(err)
+    assert "--max-memory" not in err and "budget" in err
+
+
+def _raster_region(folder: Path, width=120, height=40):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    _dem(folder)
+    data = np.zeros((height, width), np.float32)
+    data[10:14, 10:14] = 2.0
+    with rasterio.open(folder / "rel.tif", "w", driver="GTiff", width=width, height=height,
+                       count=1, dtype="float32", crs="EPSG:2056",
+                       transform=from_origin(X0, Y0, 20.0, 20.0)) as dst:
+        dst.write(data, 1)
+    text = REGION.format(releases="x", buffer=40.0).replace(
+        "  path: x\n  id_field: id\n", "  raster: rel.tif\n")
+    (folder / "r.yaml").write_text(text)
+    return folder / "r.yaml"
+
+
+def test_a_release_raster_too_large_to_read_is_refused_with_advice_that_applies(
+        tmp_path, capsys, monkeypatch):
+    region = _raster_region(tmp_path)
+    monkeypatch.setenv("AVFLOW_MAX_MEMORY", "64K")  # 120 x 40 cells need about 100 KiB
+    code, _, err = cli(["region", region, "-o", tmp_path / "out", "--workers", "0"], capsys)
+    assert code == 2 and "releases.raster" in one_line(err)
+    assert "120 x 40 cells" in err and "crop the raster" in err and "--max-memory" not in err
