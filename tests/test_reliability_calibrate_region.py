@@ -222,3 +222,191 @@ def test_a_release_raster_too_large_to_read_is_refused_with_advice_that_applies(
     code, _, err = cli(["region", region, "-o", tmp_path / "out", "--workers", "0"], capsys)
     assert code == 2 and "releases.raster" in one_line(err)
     assert "120 x 40 cells" in err and "crop the raster" in err and "--max-memory" not in err
+
+
+# --- 3. invented results ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("depth", ["1000", "1e6", "1e16", "1e308"])
+def test_an_erodible_layer_deeper_than_the_map_is_long_is_refused(tmp_path, capsys, depth):
+    small = tmp_path / "small.yaml"  # a 600 m profile
+    small.write_text(DAMBREAK.read_text().replace("length: 2000.0", "length: 600.0")
+                     .replace("position: 1000.0", "position: 300.0"))
+    code, out, err = cli(["run", small, "--set", "entrainment={law: erosion_energy, layer: "
+                          f"{{depth: {depth}}}}}", "-o", tmp_path / "x.nc"], capsys)
+    assert code == 2 and "entrainment.layer.depth" in one_line(err)
+    assert "deeper than the map is long (600 m)" in err and not (tmp_path / "x.nc").exists()
+
+
+def test_an_erodible_raster_deeper_than_the_map_is_refused_before_the_run(slope, tmp_path,
+                                                                           capsys):
+    from avflow.terrain.raster import read_raster, write_tif
+
+    dem = read_raster(slope / "dem.tif")
+    write_tif(tmp_path / "layer.tif", np.full(dem.values.shape, 1e16), dem.x, dem.y,
+              dem.crs_wkt)
+    shutil.copy(slope / "dem.tif", tmp_path / "dem.tif")
+    (tmp_path / "s.yaml").write_text(SLOPE + "entrainment: {law: erosion_energy, layer: "
+                                     "{raster: layer.tif}}\n")
+    code, _, err = cli(["run", tmp_path / "s.yaml", "-o", tmp_path / "x.nc"], capsys)
+    assert code == 2 and "entrainment.layer: the erodible layer is 1e+16 m deep" in one_line(err)
+
+
+def test_a_run_whose_mass_balance_fails_is_no_success(tmp_path, capsys, monkeypatch):
+    import avflow.simulation.runner as runner
+
+    made = runner.summarize
+
+    def unbalanced(result, v0):
+        summary = made(result, v0)
+        summary["mass_balance_error"] = 54.0  # 5.7e5 m3 of flow from nothing
+        return summary
+
+    monkeypatch.setattr(runner, "summarize", unbalanced)
+    out = tmp_path / "x.nc"
+    out.write_bytes(b"the previous good file")
+    code, printed, err = cli(["run", DAMBREAK, "--set", "time.end=5", "-o", out], capsys)
+    assert code == 1 and "the mass balance is off by 54" in one_line(err)
+    assert "wrote" not in printed and "completed" not in printed
+    assert out.read_bytes() == b"the previous good file"
+
+
+def _dam_cal(tmp_path, observations, method="method: lhs\nbudget: 3\n"):
+    (tmp_path / "base.yaml").write_text(DAMBREAK.read_text().replace("end: 137.0", "end: 5.0"))
+    cal = tmp_path / "c.yaml"
+    cal.write_text("base: base.yaml\nparameters:\n  rheology.delta_deg: [0.0, 10.0]\n"
+                   "observations:\n" + observations + method
+                   + "sensitivity: {enabled: false}\n")
+    return cal
+
+
+def test_an_observed_area_no_run_reaches_gives_no_best_fit(tmp_path, capsys):
+    cal = _dam_cal(tmp_path, "  - {kind: area, interval: [1800.0, 1900.0], score: csi}\n")
+    code, out, err = cli(["calibrate", cal, "-o", tmp_path / "out", "--workers", "0", "-q"],
+                         capsys)
+    assert code == 2 and "every run has the same misfit" in one_line(err)
+    assert "best fit" not in out and not (tmp_path / "out" / "calibration.nc").exists()
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("thickness", "-1.0", "an observed thickness of -1 m is not physical"),
+    ("speed", "1e308", "an observed speed of 1e+308 m/s is not physical"),
+    ("arrival_time", "-5", "not physical"),
+    ("pressure", "1e308", "not physical"),
+])
+def test_observed_values_no_avalanche_has_are_refused_at_load(tmp_path, capsys, field, value,
+                                                              words):
+    cal = _dam_cal(tmp_path, f"  - {{kind: points, field: {field}, points: [[1010.0, 0.0]], "
+                             f"values: [{value}]}}\n")
+    code, _, err = cli(["calibrate", cal, "-o", tmp_path / "out"], capsys)
+    assert code == 2 and "observations.0.values.0" in one_line(err) and words in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("value, words", [(-0.5, "negative deposit thicknesses"),
+                                          (1e30, "not physical")])
+def test_an_observed_deposit_raster_that_cannot_be_is_refused_at_load(slope, tmp_path, capsys,
+                                                                       value, words):
+    from avflow.terrain.raster import read_raster, write_tif
+
+    dem = read_raster(slope / "dem.tif")
+    deposit = np.zeros(dem.values.shape)
+    deposit[20, 20] = value
+    write_tif(tmp_path / "dep.tif", deposit, dem.x, dem.y, dem.crs_wkt)
+    shutil.copy(slope / "dem.tif", tmp_path / "dem.tif")
+    (tmp_path / "s.yaml").write_text(SLOPE)
+    (tmp_path / "c.yaml").write_text(
+        "base: s.yaml\nparameters:\n  rheology.delta_deg: [20.0, 28.0]\nobservations:\n"
+        "  - {kind: deposit, raster: dep.tif}\nmethod: lhs\nbudget: 3\n")
+    code, _, err = cli(["calibrate", tmp_path / "c.yaml", "-o", tmp_path / "out"], capsys)
+    assert code == 2 and "observations.0.raster" in one_line(err) and words in err
+
+
+@pytest.fixture(scope="module")
+def region_out(tmp_path_factory):
+    """A region of one release (run here, no dask), its store exported once."""
+    folder = tmp_path_factory.mktemp("region")
+    _dem(folder)
+    _releases(folder / "rel.gpkg", BOXES[:1])
+    (folder / "r.yaml").write_text(REGION.format(releases="rel.gpkg", buffer=40.0))
+    assert main(["region", str(folder / "r.yaml"), "-o", str(folder / "out"), "--workers",
+                 "0", "-q"]) == 0
+    return folder
+
+
+def _copy_store(region_out, tmp_path) -> Path:
+    shutil.copytree(region_out / "out" / "region.zarr", tmp_path / "region.zarr")
+    return tmp_path / "region.zarr"
+
+
+def test_a_region_store_with_a_chunk_missing_is_damaged_not_empty(region_out, tmp_path,
+                                                                   capsys):
+    store = _copy_store(region_out, tmp_path)
+    chunk = sorted(p for p in (store / "peak_pressure").iterdir()
+                   if not p.name.startswith("."))[0]
+    chunk.unlink()
+    code, out, err = cli(["export", store, "-o", tmp_path / "gis"], capsys)
+    assert code == 2 and "the store is damaged" in one_line(err)
+    assert f"chunk peak_pressure/{chunk.name} is missing" in err and "wrote" not in out
+    assert not (tmp_path / "gis").exists() or not list((tmp_path / "gis").iterdir())
+
+
+def test_region_export_never_writes_over_the_regions_inputs(region_out, tmp_path, capsys):
+    store = _copy_store(region_out, tmp_path)
+    (tmp_path / "region_peak_pressure.tif").symlink_to(region_out / "dem.tif")
+    before = digests(region_out)
+    code, _, err = cli(["export", store, "-o", tmp_path], capsys)
+    assert code == 2 and "dem.tif" in one_line(err) and "is an input" in err
+    assert digests(region_out) == before
+
+
+# --- 4. tracebacks and misleading lines ---------------------------------------------------------
+
+
+def test_a_garbled_or_truncated_store_is_one_line(region_out, tmp_path, capsys):
+    store = _copy_store(region_out, tmp_path)
+    chunk = sorted(p for p in (store / "peak_pressure").iterdir()
+                   if not p.name.startswith("."))[0]
+    chunk.write_bytes(b"\x02\x01garbage" * 4)  # a blosc header, then nothing that decodes
+    code, _, err = cli(["export", store, "-o", tmp_path / "gis", "--variables",
+                        "peak_pressure"], capsys)
+    assert code == 2 and "the store is damaged" in one_line(err)
+    meta = store / ".zmetadata"
+    meta.write_bytes(meta.read_bytes()[:100])
+    for target in (store, tmp_path):
+        code, _, err = cli(["export", target, "-o", tmp_path / "gis"], capsys)
+        assert code == 2 and "the store is damaged" in one_line(err)
+        assert "no such file" not in err
+
+
+def _full_disk(*args, **kwargs):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_full_disk_under_export_is_one_line_and_leaves_nothing(region_out, slope, tmp_path,
+                                                                 capsys, monkeypatch):
+    import rasterio.shutil
+
+    store = _copy_store(region_out, tmp_path)
+    monkeypatch.setattr(rasterio.shutil, "copy", _full_disk)
+    code, out, err = cli(["export", store, "-o", tmp_path / "gis"], capsys)
+    assert code == 1 and "No space left on device" in one_line(err) and "wrote" not in out
+    assert not (tmp_path / "gis").exists() or not list((tmp_path / "gis").iterdir())
+    import avflow.files as files
+
+    monkeypatch.setattr(files, "fsync", _full_disk)  # the disk found full as it is flushed
+    code, out, err = cli(["export", slope / "run.nc", "-o", tmp_path / "gis2"], capsys)
+    assert code == 1 and "No space left on device" in err.strip().splitlines()[-1]
+    assert "Traceback" not in err
+    assert not (tmp_path / "gis2").exists() or not list((tmp_path / "gis2").iterdir())
+
+
+def test_a_full_disk_under_region_is_one_line_and_leaves_no_store(region_out, tmp_path,
+                                                                  capsys, monkeypatch):
+    import avflow.region.merge as merge
+
+    monkeypatch.setattr(merge.RegionStore, "add", _full_disk)
+    out = tmp_path / "out"
+    code, _, err = cli(["region", region_out / "r.yaml", "-o", out, "--workers", "0"], capsys)
+    assert code == 1 and "No space left on device" in one_line(err)
+    assert not (out / "region.zarr").exists() and not list(out.glob(".region.zarr.*"))

@@ -275,6 +275,13 @@ def _analyse(cal: Calibration, runner: _Runner, outdir: Path, timings: dict
     if not np.isfinite(misfit).any():
         raise AvflowError(f"{cal.path}: no run could be scored (every member failed); "
                           "see the failures above")
+    scored = misfit[np.isfinite(misfit)]
+    if scored.size > 1 and float(np.ptp(scored)) == 0.0:
+        # no run is better than another: the first one would be called the best fit
+        raise AvflowError(f"{cal.path}: every run has the same misfit ({scored[0]:.6g}): "
+                          "the observations do not tell the parameters apart (an observed "
+                          "area or point that no run reaches?); no best fit. Check the "
+                          "observations against the base scenario's map")
     ib = int(np.nanargmin(misfit))
     best = {n: runner.rows[ib][n] for n in cal.names}
     result = CalibrationResult(cal, None, best, outdir)

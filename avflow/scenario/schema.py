@@ -1174,6 +1174,14 @@ class Scenario(_Model):
                 raise _problem(f"a release {h:g} m thick{scaled} is thicker than the map is "
                                f"long ({size:g} m): the depth-averaged equations need a layer "
                                "thin compared with the flow's length", f"release.{field}")
+        layer = self.entrainment.layer if self.entrainment is not None else None
+        for name in ("depth", "thickness", "default") if spans and layer is not None else ():
+            size, depth = max(span for span, _, _ in spans.values()), getattr(layer, name)
+            if depth is not None and depth > size:  # 1e16 m made a flow out of nothing
+                raise _problem(f"an erodible layer {depth:g} m deep is deeper than the map "
+                               f"is long ({size:g} m): the depth-averaged equations need a "
+                               "layer thin compared with the flow's length",
+                               f"entrainment.layer.{name}")
         n = self.time.end / self.output.every
         if n > MAX_SNAPSHOTS:
             raise _problem(f"time.end / output.every = {n:.4g} snapshots, more than the "
