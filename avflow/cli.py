@@ -358,7 +358,7 @@ def _cmd_region(args) -> int:
         print("avflow: interrupted; the finished releases are kept in "
               f"{Path(args.output) / 'releases'}: run the same command again to resume",
               file=sys.stderr)
-        return 130
+        return _interrupted()
     if not args.quiet:
         runs = (f"{outcome.table.id.nunique()} releases x {len(region.scenarios)} scenarios"
                 if region.with_scenarios else f"{len(outcome.table)} releases")
@@ -428,7 +428,7 @@ def _cmd_ensemble(args) -> int:
                                progress=progress, starting=starting)
     except Interrupted as err:  # the cluster is closed; say what finished
         print(f"avflow: {err}", file=sys.stderr)
-        return 130
+        return _interrupted()
     finally:
         if starting is not None:
             close_started(starting)  # closed by now, unless run_ensemble failed early
@@ -529,8 +529,19 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised like Ctrl-C so that every write in progress removes its temporary."""
 
 
+#: Set by SIGTERM: the command's exit code is then 143, also where an ensemble, a region or
+#: a calibration turned the interrupt into its own (saying what finished).
+TERMINATED: list = []
+
+
 def _terminate(signum, frame):
+    TERMINATED.append(signum)
     raise Terminated
+
+
+def _interrupted() -> int:
+    """The exit code of an interrupted command: 143 after SIGTERM, 130 after Ctrl-C."""
+    return 143 if TERMINATED else 130
 
 
 #: What to do when memory ran out, by command (only advice that applies to it).
@@ -562,6 +573,7 @@ def main(argv=None) -> int:
     logging.getLogger("rasterio").addHandler(logging.NullHandler())
     args = build_parser().parse_args(argv)
     _one_line_warnings()
+    TERMINATED.clear()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
     try:
@@ -573,10 +585,10 @@ def main(argv=None) -> int:
         advice = OUT_OF_MEMORY.get(args.command, OUT_OF_MEMORY["run"])
         print(f"avflow: error: out of memory; {advice}", file=sys.stderr)
         return 1
-    except Terminated:
-        print("avflow: terminated", file=sys.stderr)
-        return 143
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
+        if isinstance(err, Terminated) or TERMINATED:
+            print("avflow: terminated", file=sys.stderr)
+            return 143
         print("avflow: interrupted", file=sys.stderr)
         return 130
 

@@ -410,3 +410,111 @@ def test_a_full_disk_under_region_is_one_line_and_leaves_no_store(region_out, tm
     code, _, err = cli(["region", region_out / "r.yaml", "-o", out, "--workers", "0"], capsys)
     assert code == 1 and "No space left on device" in one_line(err)
     assert not (out / "region.zarr").exists() and not list(out.glob(".region.zarr.*"))
+
+
+@pytest.mark.parametrize("nested", ["[" * 5000 + "]" * 5000, "{a: " * 3000 + "1" + "}" * 3000])
+def test_yaml_nested_thousands_of_levels_is_one_line_everywhere(tmp_path, capsys, nested):
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("name: " + nested + "\n")
+    for argv in (["run", deep], ["ensemble", deep, "-o", tmp_path / "o"],
+                 ["calibrate", deep, "-o", tmp_path / "o"],
+                 ["region", deep, "-o", tmp_path / "o"],
+                 ["run", DAMBREAK, "--set", "rheology.delta_deg=" + nested],
+                 ["ensemble", deep, "-o", tmp_path / "o", "--set", "x=" + nested]):
+        code, _, err = cli(argv, capsys)
+        assert code == 2 and "nested more than 64 levels deep" in one_line(err), argv
+        assert len(err) < 400  # a few characters of the value, not 10 KB of it
+    assert not (tmp_path / "o").exists()
+
+
+def _until(path_glob, folder: Path, seconds=120):
+    deadline = time.monotonic() + seconds
+    while not list(folder.glob(path_glob)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert list(folder.glob(path_glob)), f"{path_glob} never appeared in {folder}"
+
+
+LONG = ["--set", "time.end=1e6", "--set", "output.every=1e5", "--set", "grid.dx=1"]
+
+
+def _terminated(argv, folder: Path, wait=0.0):
+    process = subprocess.Popen([sys.executable, "-m", "avflow.cli", *map(str, argv)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _until("**/.*.tmp", folder)  # a member is being written
+        time.sleep(wait)
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    return process.returncode, err
+
+
+def test_sigterm_of_ensemble_calibrate_and_region_exits_143(tmp_path):
+    long = tmp_path / "long.yaml"
+    long.write_text(DAMBREAK.read_text().replace("end: 137.0", "end: 1.0e6")
+                    .replace("every: 1.0", "every: 1.0e5").replace("dx: 20.0", "dx: 1.0"))
+    (tmp_path / "e.yaml").write_text("base: long.yaml\nvary: {rheology.delta_deg: [0.0, 1.0]}\n")
+    code, err = _terminated(["ensemble", tmp_path / "e.yaml", "-o", tmp_path / "ens",
+                             "--workers", "0", "-q"], tmp_path / "ens")
+    assert code == 143 and "Traceback" not in err, err
+    (tmp_path / "c.yaml").write_text(
+        "base: long.yaml\nparameters:\n  rheology.delta_deg: [0.0, 10.0]\nobservations:\n"
+        "  - {kind: runout, station: 1100.0}\nmethod: lhs\nbudget: 3\n")
+    code, err = _terminated(["calibrate", tmp_path / "c.yaml", "-o", tmp_path / "cal",
+                             "--workers", "0", "-q"], tmp_path / "cal")
+    assert code == 143 and "Traceback" not in err, err
+    assert not list((tmp_path / "cal").glob("**/*.tmp"))
+
+
+def test_sigterm_of_a_region_exits_143(region_out, tmp_path):
+    text = (region_out / "r.yaml").read_text().replace("time: {end: 120.0}", "time: {end: 1e5}")
+    text = text.replace("delta_deg: 24.0", "delta_deg: 1.0").replace("buffer: 40.0",
+                                                                      "buffer: 1000.0")
+    shutil.copy(region_out / "dem.tif", tmp_path / "dem.tif")
+    shutil.copy(region_out / "rel.gpkg", tmp_path / "rel.gpkg")
+    (tmp_path / "r.yaml").write_text(text)
+    code, err = _terminated(["region", tmp_path / "r.yaml", "-o", tmp_path / "out",
+                             "--workers", "0", "-q"], tmp_path / "out")
+    assert code == 143 and "Traceback" not in err, err
+
+
+def test_sigterm_of_a_two_worker_ensemble_is_143_without_dask_tracebacks(tmp_path):
+    long = tmp_path / "long.yaml"
+    long.write_text(DAMBREAK.read_text().replace("end: 137.0", "end: 1.0e6")
+                    .replace("every: 1.0", "every: 1.0e5").replace("dx: 20.0", "dx: 1.0"))
+    (tmp_path / "e.yaml").write_text("base: long.yaml\nvary: {rheology.delta_deg: [0.0, 1.0]}\n")
+    code, err = _terminated(["ensemble", tmp_path / "e.yaml", "-o", tmp_path / "ens",
+                             "--workers", "2", "-q"], tmp_path / "ens", wait=1.0)
+    assert code == 143, err
+    assert "Traceback" not in err and "CommClosedError" not in err, err
+
+
+def test_a_scenario_from_a_pipe_runs_and_a_device_that_never_ends_is_refused(tmp_path):
+    text = DAMBREAK.read_text().replace("end: 137.0", "end: 2.0")
+    done = subprocess.run([sys.executable, "-m", "avflow.cli", "run", "/dev/stdin", "-q", "-o",
+                           str(tmp_path / "x.nc")], input=text, capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "x.nc").is_file()
+    started = time.monotonic()
+    done = subprocess_cli("run", "/dev/zero", "-o", tmp_path / "y.nc")
+    assert done.returncode == 2 and "not a regular file" in one_line(done.stderr)
+    fifo = tmp_path / "named.yaml"  # a named pipe nobody writes to: would block for ever
+    os.mkfifo(fifo)
+    done = subprocess_cli("run", fifo, "-o", tmp_path / "y.nc")
+    assert done.returncode == 2 and "not a regular file" in one_line(done.stderr)
+    assert time.monotonic() - started < 60
+
+
+def test_an_unparsable_csv_line_shows_the_field_and_a_few_characters(slope, tmp_path, capsys):
+    secret = "confidential-survey-note-" * 40
+    line = tmp_path / "line.csv"
+    line.write_text(f"x,y\n{X0 + 100},{Y0 - 400}\n{X0 + 900},{secret}\n")
+    code, _, err = cli(["path", slope / "run.nc", "--line", line, "-o", tmp_path / "p"], capsys)
+    assert code == 2 and "line.csv:3: y (column 2) is not a number" in one_line(err)
+    assert secret[:40] not in err and len(err) < 300
+    line.write_text(f"x,y\n{X0 + 100},{Y0 - 400}\n{secret}\n")
+    code, _, err = cli(["path", slope / "run.nc", "--line", line, "-o", tmp_path / "p"], capsys)
+    assert code == 2 and "line.csv:3: x (column 1) is not a number" in one_line(err)
+    assert secret[:40] not in err

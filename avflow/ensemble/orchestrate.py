@@ -1067,24 +1067,36 @@ class _deferred_sigint:
 
     def __enter__(self):
         self.hit = False
+        self.signum = signal.SIGINT
         self.active = threading.current_thread() is threading.main_thread()
         if self.active:
             self.old = signal.signal(signal.SIGINT, self._noted)
+            # SIGTERM too: raised inside distributed's calls it printed CommClosedError
+            # tracebacks; raised at check() by the handler it had (the command line's: 143)
+            self.old_term = signal.signal(signal.SIGTERM, self._noted)
         return self
 
     def _noted(self, signum, frame):
         if self.hit:
-            raise KeyboardInterrupt
-        self.hit = True
+            self._raise(frame)
+        self.hit, self.signum = True, signum
+
+    def _raise(self, frame=None):
+        old = self.old_term if self.signum == signal.SIGTERM else None
+        if callable(old):
+            old(self.signum, frame)
+        raise KeyboardInterrupt
 
     def check(self) -> None:
         if self.hit:
-            raise KeyboardInterrupt
+            self._raise()
 
     def __exit__(self, *exc):
         if self.active:
             signal.signal(signal.SIGINT, signal.default_int_handler if self.old is None
                           else self.old)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if self.old_term is None
+                          else self.old_term)
 
 
 class _sigint_ignored:

@@ -170,7 +170,7 @@ def read_line(path) -> PathLine:
         raise
     except Exception as err:  # noqa: BLE001 - a damaged file: say which
         raise PathError(f"{path}: cannot be read as a path line "
-                        f"({type(err).__name__}: {' '.join(str(err).split())})") from None
+                        f"({type(err).__name__}: {' '.join(str(err).split())[:80]})") from None
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[0] < 2 or points.shape[1] < 2:
         raise PathError(f"{path}: a path line needs at least 2 vertices")
@@ -238,11 +238,23 @@ def _csv_points(path: Path):
         body = rows[1:]
     points = []
     for n, r in enumerate(body, start=len(rows) - len(body) + 1):
-        try:
-            points.append((float(r[ix]), float(r[iy])))
-        except (ValueError, IndexError):
-            raise PathError(f"{path}:{n}: not a pair of numbers x, y: {','.join(r)}") from None
+        for name, i in (("x", ix), ("y", iy)):
+            if i >= len(r):
+                raise PathError(f"{path}:{n}: no {name} (column {i + 1}); each line needs "
+                                "x, y") from None
+            try:
+                float(r[i])
+            except ValueError:  # the field and a few characters, never the user's line
+                raise PathError(f"{path}:{n}: {name} (column {i + 1}) is not a number: "
+                                f"{_few(r[i])}") from None
+        points.append((float(r[ix]), float(r[iy])))
     return points
+
+
+def _few(text: str, n: int = 12) -> str:
+    """At most ``n`` characters of a value from a user's file, quoted."""
+    text = text.strip()
+    return repr(text if len(text) <= n else text[:n] + "...")
 
 
 def com_path(com_x, com_y, top_x: float, top_y: float, spacing: float) -> PathLine:

@@ -1522,7 +1522,11 @@ def parse_scenario(text: str, source_path: str | os.PathLike | None = None,
 def load_scenario(path: str | os.PathLike) -> Scenario:
     """Read and validate a scenario YAML file; any problem is a :class:`ScenarioError`."""
     text = read_text_file(path, "scenario")
-    return parse_scenario(text, source_path=path)
+    from avflow.scenario.yamlio import is_stdin_pipe
+
+    # from a pipe (/dev/stdin): relative data paths start at the working folder, not /dev
+    return parse_scenario(text, source_path=path,
+                          base_dir=os.getcwd() if is_stdin_pipe(path) else None)
 
 
 def write_json_schema(path: str | os.PathLike) -> None:
