@@ -51,9 +51,11 @@ def slope(tmp_path_factory):
 
 def test_plot_writes_png_only_and_never_over_the_runs_own_inputs(slope, capsys, tmp_path):
     before = digests(slope)
-    for target in (slope / "dem.tif", slope / "s.yaml", tmp_path / "x.asc"):
+    for target, why in ((slope / "dem.tif", "is an input"), (slope / "s.yaml", "is an input"),
+                        (tmp_path / "x.asc", "ending in .png")):
         code, out, err = cli(["plot", slope / "run.nc", "-o", target], capsys)
-        assert code == 2 and "ending in .png" in one_line(err) and "wrote" not in out
+        assert code == 2 and why in one_line(err) and "wrote" not in out
+    assert not (tmp_path / "x.asc").exists()
     (tmp_path / "dem.png").symlink_to(slope / "dem.tif")
     (tmp_path / "s.png").symlink_to(slope / "s.yaml")
     for target in (tmp_path / "dem.png", tmp_path / "s.png"):

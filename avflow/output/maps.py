@@ -486,12 +486,12 @@ def plot_run(path, output=None) -> Path:
                         f"{path / 'members'}/<hash>.nc), avflow report {path} draws the "
                         "ensemble")
     target = path.with_suffix(".png") if output is None else Path(output)
-    if target.suffix.lower() != ".png":  # a PNG named dem.asc once replaced the DEM
-        raise MapsError(f"plot {target}: avflow plot writes PNG images; give a name ending "
-                        "in .png")
     with open_run(path) as ds:
         # neither the run file nor the scenario, DEM, release, maps or path line it records
         check_target(target, inputs_of(path, ds.attrs), what="plot")
+        if target.suffix.lower() != ".png":  # a PNG named dem.asc once replaced the DEM
+            raise MapsError(f"plot {target}: avflow plot writes PNG images; give a name "
+                            "ending in .png")
         plt = _plt()
         kind = scene_kind(ds)
         draw = {"grid": _plot_grid, "profile": _plot_profile,
