@@ -520,3 +520,30 @@ def test_an_unparsable_csv_line_shows_the_field_and_a_few_characters(slope, tmp_
     code, _, err = cli(["path", slope / "run.nc", "--line", line, "-o", tmp_path / "p"], capsys)
     assert code == 2 and "line.csv:3: x (column 1) is not a number" in one_line(err)
     assert secret[:40] not in err
+
+
+# --- found by the fuzzer (tests/test_fuzz.py, long profile) ------------------------------------
+
+
+def test_a_garbled_checksum_file_means_run_again_not_a_traceback(region_out, tmp_path, capsys):
+    shutil.copytree(region_out / "out", tmp_path / "out")
+    for name in ("dem.tif", "rel.gpkg", "r.yaml"):
+        shutil.copy(region_out / name, tmp_path / name)
+    checksum = next((tmp_path / "out" / "checksums").iterdir())
+    data = bytearray(checksum.read_bytes())
+    data[0] ^= 0xFF  # not UTF-8 any more: was a UnicodeDecodeError traceback
+    checksum.write_bytes(bytes(data))
+    code, _, err = cli(["region", tmp_path / "r.yaml", "-o", tmp_path / "out", "--workers", "0"],
+                       capsys)
+    assert code == 0 and "checksum does not match" in err and "Traceback" not in err
+
+
+def test_a_garbled_member_checksum_means_run_again_not_a_traceback(tmp_path, capsys):
+    (tmp_path / "base.yaml").write_text(DAMBREAK.read_text().replace("end: 137.0", "end: 5.0"))
+    (tmp_path / "e.yaml").write_text("base: base.yaml\nvary: {rheology.delta_deg: [0.0]}\n")
+    argv = ["ensemble", tmp_path / "e.yaml", "-o", tmp_path / "ens", "--workers", "0"]
+    assert cli(argv + ["-q"], capsys)[0] == 0
+    checksum = next((tmp_path / "ens" / "checksums").iterdir())
+    checksum.write_bytes(b"\xc6" + checksum.read_bytes()[1:])
+    code, _, err = cli(argv, capsys)
+    assert code == 0 and "checksum" in err and "Traceback" not in err

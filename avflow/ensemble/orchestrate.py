@@ -105,8 +105,8 @@ def check_member_file(path: str | os.PathLike,
     if not path.is_file():
         return None, ""
     try:
-        expected = checksum_path(path).read_text().split()[0]
-    except (OSError, IndexError):
+        expected = checksum_path(path).read_text(errors="replace").split()[0]
+    except (OSError, IndexError):  # a damaged checksum file is one that does not match
         return None, "it has no checksum in checksums/ (never finished, or older than checksums)"
     try:
         if file_sha256(path) != expected:
