@@ -547,3 +547,12 @@ def test_a_garbled_member_checksum_means_run_again_not_a_traceback(tmp_path, cap
     checksum.write_bytes(b"\xc6" + checksum.read_bytes()[1:])
     code, _, err = cli(argv, capsys)
     assert code == 0 and "checksum" in err and "Traceback" not in err
+
+
+def test_a_calibration_too_large_for_memory_is_refused_before_its_runs(dam_calibration,
+                                                                       tmp_path, capsys):
+    base = dam_calibration.parent / "base.yaml"
+    base.write_text(base.read_text().replace("dx: 20.0", "dx: 1.0e-6"))
+    code, _, err = cli(["calibrate", dam_calibration, "-o", tmp_path / "out"], capsys)
+    assert code == 2 and "grid.dx" in one_line(err) and "$AVFLOW_MAX_MEMORY" in err
+    assert "--max-memory" not in err and not (tmp_path / "out").exists()

@@ -205,6 +205,9 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     inputs = protected([cal.path, cal.base.source_path, *cal.files.values()])
     for name in ("calibration.nc", "calibration.csv", "report.md"):
         check_target(outdir / name, inputs, what="calibration output")
+    from avflow.simulation.resources import check_resources
+
+    check_resources(cal.base, streamed=True)  # every run's cells: the grid is not calibrated
     # the ensembles' lock: a second calibrate, or an ensemble, into this folder is refused
     with output_lock(outdir, folder=True, what="calibration folder"):
         return _calibrate(cal, outdir, workers, scheduler, quiet, report)
