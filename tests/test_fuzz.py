@@ -126,7 +126,7 @@ def _value_for(schema: dict):
         b = float(hi) if hi is not None else 1e6
         kinds.append(st.floats(min_value=a, max_value=b, allow_nan=False))
         kinds.append(st.sampled_from([a, b, np.nextafter(a, -np.inf), np.nextafter(b, np.inf)]))
-    kinds += [HOSTILE_NUMBERS, WRONG_TYPES]
+    kinds += [HOSTILE_NUMBERS, SIZES, WRONG_TYPES]
     return st.one_of(*kinds)
 
 
