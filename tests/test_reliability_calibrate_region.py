@@ -3,7 +3,7 @@ a region records as its inputs are never written over; calibrate and region boun
 and checked like run and ensemble; results that cannot be physical refused; one line, never
 a traceback.
 
-Each test here failed before its fix (the attack's case, rebuilt small). Scenes: the 1D dam
+Each test here failed before its fix (the attack's case, rebuilt small), but one said so. Scenes: the 1D dam
 break (profile kernel) and a 120 x 40 DEM at 20 m (grid kernel, Coulomb, order 1), both
 compiled by the other tests already.
 """
@@ -387,6 +387,7 @@ def _full_disk(*args, **kwargs):
 
 def test_a_full_disk_under_export_is_one_line_and_leaves_nothing(region_out, slope, tmp_path,
                                                                  capsys, monkeypatch):
+    # (passed before too: kept beside the region's case, which did not)
     import rasterio.shutil
 
     store = _copy_store(region_out, tmp_path)
