@@ -505,7 +505,7 @@ def _cmd_region(args) -> int:
         print("avflow: interrupted; the finished releases are kept in "
               f"{Path(args.output) / 'releases'}: run the same command again to resume",
               file=sys.stderr)
-        return 130
+        return _interrupted()
     if not args.quiet:
         runs = (f"{outcome.table.id.nunique()} releases x {len(region.scenarios)} scenarios"
                 if region.with_scenarios else f"{len(outcome.table)} releases")
@@ -577,7 +577,7 @@ def _cmd_ensemble(args) -> int:
                                progress=progress, starting=starting)
     except Interrupted as err:  # the cluster is closed; say what finished
         print(f"avflow: {err}", file=sys.stderr)
-        return 130
+        return _interrupted()
     finally:
         if starting is not None:
             close_started(starting)  # closed by now, unless run_ensemble failed early
@@ -695,8 +695,38 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised like Ctrl-C so that every write in progress removes its temporary."""
 
 
+#: Set by SIGTERM: the command's exit code is then 143, also where an ensemble, a region or
+#: a calibration turned the interrupt into its own (saying what finished).
+TERMINATED: list = []
+
+
 def _terminate(signum, frame):
+    TERMINATED.append(signum)
     raise Terminated
+
+
+def _interrupted() -> int:
+    """The exit code of an interrupted command: 143 after SIGTERM, 130 after Ctrl-C."""
+    return 143 if TERMINATED else 130
+
+
+#: What to do when memory ran out, by command (only advice that applies to it).
+OUT_OF_MEMORY = {
+    "run": "give the run fewer cells (a larger grid.dx), or leave --max-memory on to be "
+           "told before it starts",
+    "ensemble": "give the members fewer cells (a larger grid.dx), use fewer workers, or "
+                "leave --max-memory on to be told before they start",
+    "calibrate": "give the base scenario fewer cells (a larger grid.dx), or ask for less "
+                 "(budget, posterior.walkers and steps, sensitivity.n), or use fewer "
+                 "workers",
+    "region": "crop or coarsen the DEM and the release raster, give smaller windows "
+              "(window.buffer) or fewer workers",
+    "export": "the maps are larger than this machine's memory; export fewer at a time "
+              "(--variables) on a machine with more memory",
+    "plot": "the run file is larger than this machine's memory can draw",
+    "path": "the run file is larger than this machine's memory can analyse",
+    "report": "the ensemble is larger than this machine's memory can draw",
+}
 
 
 def main(argv=None) -> int:
@@ -709,6 +739,7 @@ def main(argv=None) -> int:
     logging.getLogger("rasterio").addHandler(logging.NullHandler())
     args = build_parser().parse_args(argv)
     _one_line_warnings()
+    TERMINATED.clear()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
     try:
@@ -717,13 +748,13 @@ def main(argv=None) -> int:
         print(f"avflow: error: {err}", file=sys.stderr)
         return err.exit_code
     except MemoryError:  # past the estimate (--max-memory none, or a bigger need than it)
-        print("avflow: error: out of memory; give the run fewer cells (a larger grid.dx), "
-              "or leave --max-memory on to be told before it starts", file=sys.stderr)
+        advice = OUT_OF_MEMORY.get(args.command, OUT_OF_MEMORY["run"])
+        print(f"avflow: error: out of memory; {advice}", file=sys.stderr)
         return 1
-    except Terminated:
-        print("avflow: terminated", file=sys.stderr)
-        return 143
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
+        if isinstance(err, Terminated) or TERMINATED:
+            print("avflow: terminated", file=sys.stderr)
+            return 143
         print("avflow: interrupted", file=sys.stderr)
         return 130
     finally:

@@ -374,3 +374,70 @@ def remove_stale_temporaries(path) -> list[Path]:
                 continue
             removed.append(Path(entry.path))
     return removed
+
+
+# --- the inputs an output records -----------------------------------------------------------
+
+#: Attributes of avflow's outputs that name one input file each (an ensemble's, a
+#: calibration's, its base scenario's).
+_PATH_ATTRIBUTES = ("ensemble_file", "calibration_file", "base_scenario", "region_file")
+
+
+def recorded_inputs(attrs, beside=None) -> list[Path]:
+    """The files an avflow output says it was made from: a run file's scenario and data
+    files (DEM, release, maps, path line), an ensemble's, a calibration's (observations
+    too), a region's. A command reading the output writes over none of them. Run files
+    written before they recorded ``input_files``: the data paths of their scenario text,
+    from the folder ``beside`` (the run file's)."""
+    found: list = []
+    listed = attrs.get("input_files")
+    if isinstance(listed, str):
+        found += listed.splitlines()
+    elif isinstance(listed, (list, tuple)):
+        found += [str(p) for p in listed]
+    for key in _PATH_ATTRIBUTES:
+        value = attrs.get(key)
+        if isinstance(value, str) and value and "\n" not in value and len(value) < 4096:
+            found.append(value)
+    observed = attrs.get("observation_files")  # "label.key: PATH sha256:HEX" per line
+    if isinstance(observed, str):
+        for line in observed.splitlines():
+            found.append(line.partition(": ")[2].rsplit(" sha256:", 1)[0])
+    if listed is None and beside is not None and isinstance(attrs.get("scenario"), str):
+        found += _paths_in_yaml(attrs["scenario"], Path(beside))
+    return [Path(p) for p in found if str(p).strip()]
+
+
+def _paths_in_yaml(text: str, folder: Path) -> list[Path]:
+    """Every string of a scenario's YAML that names an existing file from ``folder``."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(text[:1 << 20])
+    except (yaml.YAMLError, RecursionError, ValueError):
+        return []
+    out, stack = [], [data]
+    while stack and len(out) < 1000:
+        item = stack.pop()
+        if isinstance(item, dict):
+            stack += list(item.values())
+        elif isinstance(item, list):
+            stack += item
+        elif isinstance(item, str) and 0 < len(item) < 4096 and "\n" not in item:
+            path = folder / Path(item).expanduser()
+            try:
+                if path.is_file():
+                    out.append(path)
+            except OSError:  # a name too long for the file system
+                continue
+    return out
+
+
+def inputs_of(path, attrs=None) -> dict[tuple[int, int], Path]:
+    """:func:`protected` of an avflow output ``path`` that a command reads, and of the
+    inputs it records (:func:`recorded_inputs` of its ``attrs``, with their sidecars)."""
+    found = protected([path], with_sidecars=False)
+    if attrs is not None:
+        for key, value in protected(recorded_inputs(attrs, Path(path).parent)).items():
+            found.setdefault(key, value)
+    return found

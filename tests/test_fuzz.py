@@ -1,6 +1,9 @@
-"""Property-based fuzzing of the command line (issue 33): mutated scenario and ensemble files
-and ``--set`` values generated from the pydantic schema, hostile output paths, and truncated
-or foreign NetCDF and GeoTIFF inputs to ``export``, ``plot``, ``path`` and ``report``.
+"""Property-based fuzzing of the command line: mutated scenario, ensemble, calibration and
+region files and ``--set`` values generated from the pydantic schema (with nesting thousands
+of levels deep and sizes past every bound: budgets, counts, depths), hostile output paths,
+and truncated or foreign NetCDF, GeoTIFF and Zarr inputs to ``export``, ``plot``, ``path``,
+``report``, ``region`` (its own release files and store) and ``ensemble`` (a calibration's
+calibration.nc).
 
 Four invariants, whatever the input:
 - never a Python traceback (``main`` returns 0, 1, 2 or 130; nothing escapes it);
@@ -8,8 +11,10 @@ Four invariants, whatever the input:
 - never a file left at a temporary name (``*.tmp``, ``*.lock``);
 - never an existing file changed by a failed command.
 
-Profiles (``AVFLOW_FUZZ``): ``ci`` (default, a few hundred examples in all, about two
-minutes here) and ``long`` (thousands: ``AVFLOW_FUZZ=long pytest tests/test_fuzz.py``).
+Profiles (``AVFLOW_FUZZ``): ``ci`` (default: derandomized, the same few hundred examples
+every time, a few minutes here) and ``long`` (thousands, random:
+``AVFLOW_FUZZ=long pytest tests/test_fuzz.py``); what the long profile finds becomes a test
+of its own in tests/test_reliability*.py.
 Scenes stay on the 1D profile kernel at order 1 with Coulomb friction (structural choices
 such as the terrain kind or the law are fuzzed with wrong values, not with other valid
 ones, whose first compilation would take a minute each), ``time.max_steps`` is capped and
@@ -18,6 +23,7 @@ ones, whose first compilation would take a minute each), ``time.max_steps`` is c
 
 import hashlib
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -34,10 +40,16 @@ from conftest import SCENARIOS
 
 settings.register_profile("ci", max_examples=80, deadline=None, derandomize=True,
                           suppress_health_check=list(HealthCheck))
+#: The newer commands run members (calibrate, region): fewer examples in CI.
+settings.register_profile("ci-slow", max_examples=25, deadline=None, derandomize=True,
+                          suppress_health_check=list(HealthCheck))
+settings.register_profile("long-slow", max_examples=400, deadline=None,
+                          suppress_health_check=list(HealthCheck))
 settings.register_profile("long", max_examples=1500, deadline=None,
                           suppress_health_check=list(HealthCheck))
 PROFILE = os.environ.get("AVFLOW_FUZZ", "ci")
 FUZZ = settings.get_profile(PROFILE)
+SLOW = settings.get_profile("long-slow" if PROFILE == "long" else "ci-slow")
 
 BASE = yaml.safe_load((SCENARIOS / "seed_dambreak_flat_dx20.yaml").read_text())
 BASE["time"] = {"end": 4.0, "cfl": 0.5}
@@ -76,6 +88,25 @@ LEAVES = {k: v for k, v in _leaves(SCHEMA, SCHEMA["$defs"]).items()
 HOSTILE_NUMBERS = st.sampled_from([0, -1, 1e-300, 1e-200, 5e-324, 1e300, 1e308, -1e308,
                                    float("nan"), float("inf"), float("-inf"), 2**63, -2**63,
                                    10**400, 0.0, -0.0, 1e-9, 1e9, 3.5, 100])
+#: Sizes around and far past the bounds (members, budgets, walkers, chunks, depths).
+SIZES = st.sampled_from([-1, 0, 1, 2, 3, 16, 10_000, 10_001, 10**6, 10**9, 10**18, 2**63,
+                         1e16, 1e308])
+#: Nesting depths of a value (a scenario needs 4; 64 is the bound; PyYAML recursed past 1000).
+DEPTHS = st.sampled_from([1, 5, 63, 64, 65, 200, 3000])
+#: Stands for a deeply nested value in a structure, replaced in its text by :func:`_dump`
+#: (PyYAML's dumper recurses too: it cannot write them).
+DEEP = "__avflow_fuzz_deep_{}__"
+
+
+def _nested(depth: int, mapping: bool) -> str:
+    """A flow-style YAML value nested ``depth`` levels deep."""
+    return ("{a: " * depth + "1" + "}" * depth) if mapping else ("[" * depth + "]" * depth)
+
+
+@st.composite
+def deep_values(draw):
+    """A placeholder :func:`_dump` turns into a value nested DEPTHS deep."""
+    return DEEP.format(f"{draw(DEPTHS)}_{'m' if draw(st.booleans()) else 'l'}")
 WRONG_TYPES = st.one_of(st.text(max_size=20), st.booleans(), st.none(),
                         st.lists(st.integers(), max_size=3),
                         st.dictionaries(st.text(max_size=5), st.integers(), max_size=2),
@@ -95,7 +126,7 @@ def _value_for(schema: dict):
         b = float(hi) if hi is not None else 1e6
         kinds.append(st.floats(min_value=a, max_value=b, allow_nan=False))
         kinds.append(st.sampled_from([a, b, np.nextafter(a, -np.inf), np.nextafter(b, np.inf)]))
-    kinds += [HOSTILE_NUMBERS, WRONG_TYPES]
+    kinds += [HOSTILE_NUMBERS, SIZES, WRONG_TYPES]
     return st.one_of(*kinds)
 
 
@@ -121,9 +152,12 @@ def _delete(data: dict, dotted: str) -> None:
 def mutated_scenarios(draw):
     data = yaml.safe_load(yaml.safe_dump(BASE))
     for _ in range(draw(st.integers(1, 4))):
-        what = draw(st.sampled_from(["value", "value", "value", "missing", "extra", "junk"]))
+        what = draw(st.sampled_from(["value", "value", "value", "missing", "extra", "junk",
+                                     "deep"]))
         key = draw(st.sampled_from(sorted(LEAVES)))
-        if what == "value":
+        if what == "deep":
+            _set(data, key, draw(deep_values()))
+        elif what == "value":
             if key in STRUCTURAL:
                 _set(data, key, draw(WRONG_TYPES))
             else:
@@ -140,37 +174,59 @@ def mutated_scenarios(draw):
 
 def _dump(data) -> str:
     try:
-        return yaml.safe_dump(data, allow_unicode=True)
+        text = yaml.safe_dump(data, allow_unicode=True, width=10**6)
     except (yaml.YAMLError, ValueError):  # 10**400 and the like: as text
-        return str(data)
+        text = str(data)
+    return re.sub(r"'?__avflow_fuzz_deep_(\d+)_([ml])__'?",
+                  lambda m: _nested(int(m.group(1)), m.group(2) == "m"), text)
 
 
 # --- the invariants ---------------------------------------------------------------------------
 
 
-def _digests(folder: Path) -> dict:
+def _digests(folder: Path, skip: Path | None = None) -> dict:
     return {p: hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in folder.rglob("*") if p.is_file()}
+            for p in folder.rglob("*") if p.is_file()
+            and (skip is None or skip not in p.parents)}
 
 
-def _check(argv, folder: Path, outputs=()) -> int:
-    """Run ``avflow argv``; assert the four invariants; return the exit code."""
-    before = _digests(folder)
+def _no_inf(out: Path) -> None:
+    """No infinite number in an output reported as a success (NetCDF, Zarr, CSV)."""
+    out = Path(out)
+    if out.suffix == ".nc" and out.is_file():
+        with xr.open_dataset(out, decode_times=False) as ds:
+            for name, var in ds.variables.items():
+                if var.dtype.kind == "f":
+                    assert not np.isinf(var.values).any(), name
+    elif out.suffix == ".zarr" and out.is_dir():
+        with xr.open_zarr(out) as ds:
+            for name, var in ds.variables.items():
+                if var.dtype.kind == "f":
+                    assert not np.isinf(var.values).any(), name
+    elif out.suffix == ".csv" and out.is_file():
+        import pandas as pd
+
+        table = pd.read_csv(out)
+        numbers = table.select_dtypes("number").to_numpy(dtype=float)
+        assert not np.isinf(numbers).any(), out
+
+
+def _check(argv, folder: Path, outputs=(), own: Path | None = None) -> int:
+    """Run ``avflow argv``; assert the four invariants; return the exit code. ``own``: the
+    command's output folder, whose files a run that ends in error may have written (a
+    region's finished releases, a calibration's members); every other file must stay."""
+    before = _digests(folder, own)
     code = main([str(a) for a in argv])  # any exception escaping main fails the example
     assert code in (0, 1, 2, 130)
     left = [p for p in folder.rglob("*") if p.name.endswith((".tmp", ".lock"))]
     assert not left, left
     if code != 0:
-        after = _digests(folder)
+        after = _digests(folder, own)
         changed = [p for p, d in before.items() if after.get(p) != d]
         assert not changed, changed
     else:
         for out in outputs:
-            if Path(out).suffix == ".nc" and Path(out).is_file():
-                with xr.open_dataset(out, decode_times=False) as ds:
-                    for name, var in ds.variables.items():
-                        if var.dtype.kind == "f":
-                            assert not np.isinf(var.values).any(), name
+            _no_inf(out)
     return code
 
 
@@ -202,7 +258,9 @@ def test_mutated_scenario_files(tmp_path_factory, work, capsys, data):
 
 @FUZZ
 @given(sets=st.lists(st.tuples(st.sampled_from(sorted(LEAVES) + ["grid", "x.y.z", "", "time."]),
-                               st.one_of(st.text(max_size=12), HOSTILE_NUMBERS.map(repr))),
+                               st.one_of(st.text(max_size=12), HOSTILE_NUMBERS.map(repr),
+                                         SIZES.map(repr),
+                                         DEPTHS.map(lambda d: _nested(d, d % 2 == 0)))),
                      min_size=1, max_size=3))
 def test_set_values(tmp_path_factory, work, capsys, sets):
     case = _fresh(tmp_path_factory, work)
@@ -223,8 +281,8 @@ def ensemble_files(draw):
                                               "nope.field", "release.thickness"])):
                         draw(st.one_of(st.lists(HOSTILE_NUMBERS, max_size=3), WRONG_TYPES))}
     if draw(st.booleans()) or "vary" not in spec:
-        spec["sample"] = {"n": draw(st.one_of(st.integers(-2, 4), st.just(10**12),
-                                              WRONG_TYPES)),
+        spec["sample"] = {"n": draw(st.one_of(st.integers(-2, 4), st.just(10**12), SIZES,
+                                              WRONG_TYPES, deep_values())),
                           "seed": draw(st.one_of(st.integers(-1, 5), WRONG_TYPES)),
                           "ranges": {"rheology.delta_deg": draw(st.one_of(
                               st.lists(HOSTILE_NUMBERS, min_size=2, max_size=2), WRONG_TYPES))}}
@@ -300,4 +358,212 @@ def test_truncated_and_foreign_inputs(tmp_path_factory, work, capsys, source, cu
         (case / "in.nc").write_bytes(data)
         argv = [command, case / "in.nc"]
     _check(argv, case)
+    capsys.readouterr()
+
+
+# --- calibration files -----------------------------------------------------------------------
+
+#: The calibration's base: the fuzzed profile, capped in the file itself (calibrate has no
+#: --set): 400 steps at most a run.
+CAL_BASE = {**BASE, "time": {**BASE["time"], "max_steps": 400}}
+METHODS = ["grid", "lhs", "bayes-opt", "posterior"]
+
+
+@st.composite
+def observations(draw):
+    kind = draw(st.sampled_from(["runout", "area", "deposit", "points", "volume"]))
+    obs = {"kind": kind}
+    if kind == "runout":
+        obs["station"] = draw(st.one_of(st.floats(0, 2000), HOSTILE_NUMBERS, WRONG_TYPES))
+    elif kind in ("area", "deposit"):
+        a = draw(st.one_of(st.floats(0, 2000), HOSTILE_NUMBERS))
+        obs["interval"] = draw(st.one_of(st.just([a, 1100.0]), st.lists(HOSTILE_NUMBERS,
+                                                                          max_size=3)))
+    elif kind == "points":
+        n = draw(st.integers(1, 3))
+        obs["points"] = [[draw(st.one_of(st.floats(0, 2000), HOSTILE_NUMBERS)), 0.0]
+                         for _ in range(n)]
+        obs["values"] = draw(st.lists(st.one_of(st.floats(-10, 100), HOSTILE_NUMBERS),
+                                      min_size=n, max_size=n + draw(st.integers(0, 1))))
+        obs["field"] = draw(st.sampled_from(["speed", "arrival_time", "thickness",
+                                             "pressure", "nope"]))
+    for key in draw(st.lists(st.sampled_from(["error", "weight", "threshold", "score"]),
+                             max_size=2)):
+        obs[key] = draw(st.one_of(HOSTILE_NUMBERS, WRONG_TYPES))
+    return obs
+
+
+@st.composite
+def calibration_files(draw):
+    lo = draw(st.one_of(st.just(0.0), HOSTILE_NUMBERS))
+    hi = draw(st.one_of(st.just(8.0), HOSTILE_NUMBERS))
+    spec = {"base": "base.yaml",
+            "parameters": {draw(st.sampled_from(["rheology.delta_deg", "time.end", "grid.dx",
+                                                 "nope.x", "physics.density"])): [lo, hi]},
+            "observations": draw(st.lists(observations(), min_size=0, max_size=2)),
+            "method": draw(st.sampled_from(METHODS + ["annealing"])),
+            "budget": draw(st.one_of(st.sampled_from([2, 3]), SIZES, WRONG_TYPES)),
+            "sensitivity": {"enabled": draw(st.booleans()),
+                            "n": draw(st.one_of(st.just(16), SIZES))}}
+    if draw(st.booleans()):
+        spec["posterior"] = {"walkers": draw(st.one_of(st.just(8), SIZES)),
+                             "steps": draw(st.one_of(st.just(100), SIZES)),
+                             "burn": draw(st.one_of(st.just(10), SIZES)),
+                             "checks": draw(st.one_of(st.just(0), SIZES))}
+    if draw(st.booleans()):
+        key = draw(st.sampled_from(["initial", "batch", "seed", "name", "extra"]))
+        spec[key] = draw(st.one_of(SIZES, WRONG_TYPES, deep_values()))
+    if draw(st.integers(0, 4)) == 0:
+        spec[draw(st.sampled_from(sorted(spec)))] = draw(deep_values())
+    return spec
+
+
+@SLOW
+@given(spec=calibration_files())
+def test_mutated_calibration_files(tmp_path_factory, work, capsys, spec):
+    case = _fresh(tmp_path_factory, work)
+    (case / "base.yaml").write_text(_dump(CAL_BASE))
+    (case / "c.yaml").write_text(_dump(spec))
+    out = case / "cal"
+    _check(["calibrate", case / "c.yaml", "-o", out, "--workers", "0", "-q"], case,
+           [out / "calibration.nc", out / "calibration.csv"], own=out)
+    capsys.readouterr()
+
+
+# --- region files and their outputs --------------------------------------------------------------
+
+REGION_BASE = {"name": "fuzz", "dem": "dem.tif",
+               "releases": {"path": "rel.gpkg", "id_field": "id"},
+               "scenario": {"rheology": {"law": "coulomb", "delta_deg": 24.0},
+                            "time": {"end": 20.0, "max_steps": 400},
+                            "numerics": {"order": 1}},
+               "window": {"buffer": 40.0}, "merge": {"chunk": 16}}
+REGION_KEYS = ["name", "dem", "releases.path", "releases.id_field", "releases.thickness",
+               "releases.thickness_field", "releases.raster", "scenario.rheology.delta_deg",
+               "scenario.time.end", "scenario.time.max_steps", "scenario.grid.dx",
+               "window.buffer", "window.growth", "window.max_retries", "window.min_buffer",
+               "window.search_radius", "merge.chunk", "merge.fields", "merge.thresholds",
+               "scenarios.vary", "scenarios.sample.n", "scenarios.return_periods",
+               "scenario.entrainment.layer.depth", "extra"]
+
+
+@st.composite
+def region_files(draw):
+    data = yaml.safe_load(yaml.safe_dump(REGION_BASE))
+    for _ in range(draw(st.integers(1, 3))):
+        key = draw(st.sampled_from(REGION_KEYS))
+        what = draw(st.sampled_from(["value", "value", "size", "missing", "deep"]))
+        if what == "missing":
+            _delete(data, key)
+        elif what == "deep":
+            _set(data, key, draw(deep_values()))
+        elif what == "size":
+            _set(data, key, draw(SIZES))
+        else:
+            _set(data, key, draw(st.one_of(HOSTILE_NUMBERS, WRONG_TYPES)))
+    if "scenarios" in data and isinstance(data["scenarios"], dict) \
+            and isinstance(data["scenarios"].get("sample"), dict):
+        data["scenarios"]["sample"].setdefault("ranges", {"rheology.delta_deg": [20, 26]})
+    return data
+
+
+@pytest.fixture(scope="module")
+def region_work(tmp_path_factory):
+    """A DEM, a release layer, and a finished region (store, tables, release files)."""
+    from test_region import BOXES, _dem, _releases
+
+    folder = tmp_path_factory.mktemp("fuzz-region")
+    _dem(folder)
+    _releases(folder / "rel.gpkg", BOXES[:1])
+    (folder / "r.yaml").write_text(_dump(REGION_BASE))
+    assert main(["region", str(folder / "r.yaml"), "-o", str(folder / "out"), "--workers", "0",
+                 "-q"]) == 0
+    return folder
+
+
+def _region_case(tmp_path_factory, region_work, with_output=False) -> Path:
+    case = tmp_path_factory.mktemp("rcase")
+    for name in ("dem.tif", "rel.gpkg", "r.yaml"):
+        shutil.copy(region_work / name, case / name)
+    if with_output:
+        shutil.copytree(region_work / "out", case / "out")
+    return case
+
+
+@SLOW
+@given(data=region_files())
+def test_mutated_region_files(tmp_path_factory, region_work, capsys, data):
+    case = _region_case(tmp_path_factory, region_work)
+    (case / "r.yaml").write_text(_dump(data))
+    out = case / "out"
+    _check(["region", case / "r.yaml", "-o", out, "--workers", "0", "-q"], case,
+           [out / "region.zarr", out / "releases.csv"], own=out)
+    capsys.readouterr()
+
+
+@SLOW
+@given(pick=st.integers(0, 10**6), how=st.sampled_from(["flip", "cut", "delete", "empty"]),
+       where=st.sampled_from(["region.zarr", "releases", "checksums", "releases.csv"]),
+       flips=st.lists(st.integers(0, 10**6), min_size=1, max_size=4), cut=st.floats(0, 1),
+       command=st.sampled_from(["export", "region"]))
+def test_damaged_region_outputs(tmp_path_factory, region_work, capsys, pick, how, where, flips,
+                                cut, command):
+    case = _region_case(tmp_path_factory, region_work, with_output=True)
+    out = case / "out"
+    files = sorted(p for p in (out / where).rglob("*") if p.is_file()) if (out / where).is_dir() \
+        else [out / where]
+    target = files[pick % len(files)]
+    data = bytearray(target.read_bytes())
+    if how == "delete":
+        target.unlink()
+    elif how == "empty":
+        target.write_bytes(b"")
+    elif how == "cut":
+        target.write_bytes(bytes(data[:int(cut * len(data))]))
+    elif data:
+        for f in flips:
+            data[f % len(data)] ^= 0xFF
+        target.write_bytes(bytes(data))
+    if command == "export":
+        code = _check(["export", out, "-o", case / "gis", "-q"], case)
+        if where == "region.zarr" and how == "delete" and not target.name.startswith("."):
+            assert code == 2  # a chunk missing: the store is damaged, never an empty map
+    else:  # the rerun: a damaged release file is run again, the store made anew
+        _check(["region", case / "r.yaml", "-o", out, "--workers", "0", "-q"], case,
+               [out / "region.zarr", out / "releases.csv"], own=out)
+    capsys.readouterr()
+
+
+# --- a calibration's output as the input of a forecast -----------------------------------------
+
+
+@pytest.fixture(scope="module")
+def calibration_work(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("fuzz-cal")
+    (folder / "base.yaml").write_text(_dump(CAL_BASE))
+    (folder / "c.yaml").write_text(
+        "base: base.yaml\nparameters:\n  rheology.delta_deg: [0.0, 0.5]\nobservations:\n"
+        "  - {kind: points, field: speed, points: [[1010.0, 0.0]], values: [3.0]}\n"
+        "method: lhs\nbudget: 3\nsensitivity: {enabled: false}\n")
+    assert main(["calibrate", str(folder / "c.yaml"), "-o", str(folder / "cal"), "--workers",
+                 "0", "-q"]) == 0
+    return folder
+
+
+@SLOW
+@given(cut=st.floats(0, 1), flips=st.lists(st.integers(0, 10**6), max_size=4),
+       use=st.sampled_from(["best", "posterior", "junk"]))
+def test_damaged_calibration_file_in_a_forecast(tmp_path_factory, calibration_work, capsys,
+                                                cut, flips, use):
+    case = tmp_path_factory.mktemp("ccase")
+    shutil.copy(calibration_work / "base.yaml", case / "base.yaml")
+    data = bytearray((calibration_work / "cal" / "calibration.nc").read_bytes())
+    for f in flips:
+        data[f % len(data)] ^= 0xFF
+    (case / "calibration.nc").write_bytes(bytes(data[:max(1, int(cut * len(data)))]))
+    (case / "e.yaml").write_text(f"base: base.yaml\nsample: {{calibration: calibration.nc, "
+                                 f"use: {use}, n: 2}}\n")
+    _check(["ensemble", case / "e.yaml", "-o", case / "ens", "--workers", "0", "-q",
+            "--max-members", "3", "--set", "time.max_steps=400"], case,
+           list((case / "ens").glob("*.nc")), own=case / "ens")
     capsys.readouterr()

@@ -254,7 +254,7 @@ def test_bad_line_files_are_one_line_errors(tmp_path):
     with pytest.raises(PathError, match="holds 2 lines"):
         read_line(tmp_path / "two.geojson")
     (tmp_path / "bad.csv").write_text("x,y\n0,0\n1,oops\n")
-    with pytest.raises(PathError, match=r"bad.csv:3: not a pair of numbers"):
+    with pytest.raises(PathError, match=r"bad.csv:3: y \(column 2\) is not a number: .oops."):
         read_line(tmp_path / "bad.csv")
     with shapefile.Writer(str(tmp_path / "pts"), shapeType=shapefile.POINT) as w:
         w.field("name", "C")

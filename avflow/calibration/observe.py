@@ -45,6 +45,7 @@ def check_observations(cal, fail) -> None:
     from avflow.terrain.raster import same_crs
 
     frame = map_frame(cal.base)
+    _check_values(cal, frame, fail)
     if frame is None:
         length = float(cal.base.terrain.length)
         for k, obs in enumerate(cal.spec.observations):
@@ -97,6 +98,8 @@ def check_observations(cal, fail) -> None:
                 raise fail(("observations", k, "raster"), str(err)) from None
             crs, bx, by = r.crs_wkt, r.x, r.y
             key = "raster"
+            if obs.kind == "deposit":
+                _check_deposit(r.values, frame, lambda m: fail(("observations", k, key), m))
         else:
             from avflow.terrain.polygons import PolygonError, read_polygons
 
@@ -116,6 +119,46 @@ def check_observations(cal, fail) -> None:
                 or float(np.min(by)) > ymax):
             raise fail(("observations", k, key), f"lies outside {where} (x {np.min(bx):g} to "
                        f"{np.max(bx):g}, y {np.min(by):g} to {np.max(by):g})")
+
+
+#: Largest observed value taken at a point, by field (beyond: not a measurement of an
+#: avalanche; 1e308 overflowed the misfit of every run): m/s, s, m (the map's extent), kPa.
+POINT_BOUNDS = {"speed": (1e3, "m/s"), "arrival_time": (1e7, "s"), "pressure": (1e6, "kPa")}
+
+
+def _extent(cal, frame) -> float:
+    if frame is None:
+        return float(cal.base.terrain.length)
+    xmin, xmax, ymin, ymax, _ = frame
+    return max(xmax - xmin, ymax - ymin)
+
+
+def _check_values(cal, frame, fail) -> None:
+    """Observed values that no avalanche has: negative speeds, times, thicknesses or
+    pressures, and values past :data:`POINT_BOUNDS` (a thickness: past the map's extent)."""
+    for k, obs in enumerate(cal.spec.observations):
+        if obs.kind != "points":
+            continue
+        bound, unit = POINT_BOUNDS.get(obs.field, (_extent(cal, frame), "m"))
+        for i, value in enumerate(obs.values):
+            if not 0.0 <= value <= bound:
+                raise fail(("observations", k, "values", i), f"an observed {obs.field} of "
+                           f"{value:g} {unit} is not physical (0 to {bound:g} {unit})")
+
+
+def _check_deposit(values: np.ndarray, frame, fail) -> None:
+    """An observed deposit: no negative thickness, none deeper than the map is long."""
+    seen = values[np.isfinite(values)]
+    if seen.size and float(seen.min()) < 0.0:
+        raise fail(f"holds negative deposit thicknesses (down to {float(seen.min()):g} m): "
+                   "a thickness is >= 0 (write NODATA where nothing was observed)")
+    xmin, xmax, ymin, ymax, _ = frame
+    extent = max(xmax - xmin, ymax - ymin)
+    if seen.size and float(seen.max()) > extent:
+        raise fail(f"holds a deposit {float(seen.max()):g} m thick, more than the map's "
+                   f"{extent:g} m extent: not physical (check the raster and its units)")
+    if values.size and np.isinf(values).any():
+        raise fail("holds infinite values: not physical")
 
 
 # =========================================================================================

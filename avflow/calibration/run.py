@@ -120,7 +120,7 @@ class _Runner:
         line = ProgressLine(len(members), quiet=True, unit=f"{stage} runs")
         line.live = not self.quiet and sys.stderr.isatty()
         outcome = run_ensemble(ensemble, self.outdir, workers=workers, client=self.client,
-                               progress=line, write_outputs=False)
+                               progress=line, write_outputs=False, held_lock=True)
         self.model_time += time.perf_counter() - clock
         if self.client is None and self.workers is None and not self.rows \
                 and outcome.where == "local cluster":
@@ -209,13 +209,22 @@ def calibrate(calibration, outdir, *, workers: int | None = None,
     ``report``) ``report.md`` and its PNGs, each atomically.
     """
     cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-    from avflow.files import check_folder, check_target, protected
+    from avflow.files import check_folder, check_target, output_lock, protected
 
     outdir = check_folder(Path(outdir), "calibration folder")
     inputs = protected([cal.path, cal.base.source_path, *cal.files.values()])
     for name in ("calibration.nc", "calibration.csv", "report.md"):
         check_target(outdir / name, inputs, what="calibration output")
-    outdir.mkdir(parents=True, exist_ok=True)
+    from avflow.simulation.resources import check_resources
+
+    check_resources(cal.base, streamed=True)  # every run's cells: the grid is not calibrated
+    # the ensembles' lock: a second calibrate, or an ensemble, into this folder is refused
+    with output_lock(outdir, folder=True, what="calibration folder"):
+        return _calibrate(cal, outdir, workers, scheduler, quiet, report)
+
+
+def _calibrate(cal: Calibration, outdir: Path, workers, scheduler, quiet: bool,
+               report: bool) -> CalibrationResult:
     spec = cal.spec
     d = len(cal.names)
     runner = _Runner(cal, outdir, workers, scheduler, quiet)
@@ -308,6 +317,13 @@ def _analyse(cal: Calibration, runner: _Runner, outdir: Path, timings: dict
     if not np.isfinite(misfit).any():
         raise AvflowError(f"{cal.path}: no run could be scored (every member failed); "
                           "see the failures above")
+    scored = misfit[np.isfinite(misfit)]
+    if scored.size > 1 and float(np.ptp(scored)) == 0.0:
+        # no run is better than another: the first one would be called the best fit
+        raise AvflowError(f"{cal.path}: every run has the same misfit ({scored[0]:.6g}): "
+                          "the observations do not tell the parameters apart (an observed "
+                          "area or point that no run reaches?); no best fit. Check the "
+                          "observations against the base scenario's map")
     ib = int(np.nanargmin(misfit))
     best = {n: runner.rows[ib][n] for n in cal.names}
     result = CalibrationResult(cal, None, best, outdir)

@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from avflow.errors import ScenarioError
 from avflow.scenario.schema import Scenario, load_scenario
-from avflow.scenario.yamlio import position, read_yaml
+from avflow.scenario.yamlio import position, read_text_file, read_yaml
 
 __all__ = ["CalibrationError", "CalibrationFile", "Calibration", "load_calibration",
            "parse_calibration", "METHODS"]
@@ -244,12 +244,8 @@ class Calibration:
 
 
 def load_calibration(path: str | os.PathLike) -> Calibration:
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise CalibrationError("calibration file not found", path) from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise CalibrationError(f"cannot read the calibration file: {err}", path) from None
+    # a regular file of at most 1 MiB, as scenario files (/dev/zero read without end)
+    text = read_text_file(path, "calibration", CalibrationError)
     return parse_calibration(text, source_path=path)
 
 
@@ -350,11 +346,55 @@ def parse_calibration(text: str, source_path: str | os.PathLike | None = None,
         if levels < 2:
             raise fail(("budget",), f"a grid over {len(names)} parameters needs at least "
                                     f"{2 ** len(names)} runs (2 per axis), got {spec.budget}")
+    _check_sizes(spec, len(names), fail)
     cal = Calibration(spec, path, text, base, names, bounds, files)
     from avflow.calibration.observe import check_observations
 
     check_observations(cal, fail)
     return cal
+
+
+#: Posterior draws kept (walkers x steps; 8 bytes per parameter each, and one emulator
+#: evaluation each): 1e7 is some 30 s of emcee here and 80 MB per parameter.
+MAX_POSTERIOR_DRAWS = 10_000_000
+#: Emulator evaluations of the Sobol indices (SALib: n (d + 2) points).
+MAX_SOBOL_POINTS = 10_000_000
+
+
+def _check_sizes(spec: CalibrationFile, d: int, fail) -> None:
+    """What the file asks for, counted before anything runs (a budget of 1e9 grew to
+    20 GB before the system killed it, with nothing said): model runs against the
+    ensembles' member limit, posterior draws and Sobol points against their bounds."""
+    from avflow.ensemble.spec import ENV_MAX_MEMBERS, member_limit
+    from avflow.simulation.resources import human
+
+    try:
+        limit = member_limit()
+    except ScenarioError as err:
+        raise fail((), err.message) from None
+    checks = spec.posterior.checks if spec.method == "posterior" else 0
+    for keys, runs in ((("budget",), spec.budget), (("posterior", "checks"), checks),
+                       (("budget",), spec.budget + checks)):
+        if runs > limit:
+            raise fail(keys, f"{runs:,} model runs, more than the limit of {limit:,} (each "
+                             "run is a member file of the calibration; a larger limit: "
+                             f"${ENV_MAX_MEMBERS})")
+    if spec.method == "posterior":
+        post = spec.posterior
+        walkers = max(post.walkers, 2 * d + 2)
+        draws = walkers * post.steps
+        if draws > MAX_POSTERIOR_DRAWS:
+            raise fail(("posterior",), f"walkers x steps = {walkers:,} x {post.steps:,} = "
+                                       f"{draws:,} draws (about {human(8 * d * draws)} in "
+                                       f"memory), more than the limit of "
+                                       f"{MAX_POSTERIOR_DRAWS:,}: use fewer steps or walkers")
+    if spec.sensitivity.enabled:
+        points = spec.sensitivity.n * (d + 2)
+        if points > MAX_SOBOL_POINTS:
+            raise fail(("sensitivity", "n"), f"n (d + 2) = {spec.sensitivity.n:,} x {d + 2} = "
+                                             f"{points:,} emulator evaluations (about "
+                                             f"{human(8 * (d + 1) * points)} in memory), "
+                                             f"more than the limit of {MAX_SOBOL_POINTS:,}")
 
 
 def _levels(budget: int, d: int) -> int:

@@ -147,6 +147,7 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike,
         "ensemble_name": ensemble.name,
         "ensemble": ensemble.text,
         "ensemble_file": ensemble.path or "",
+        "input_files": "\n".join(str(p) for p in _input_files(ensemble)),
         "base_scenario": ensemble.base.source_text,
         "base_scenario_hash": ensemble.base.scenario_hash(),
         "varied": " ".join(ensemble.varied),
@@ -163,6 +164,16 @@ def ensemble_dataset(ensemble: Ensemble, table, outdir: str | os.PathLike,
                         calibration_sha256=ensemble.sample["calibration_sha256"],
                         calibration_use=ensemble.sample["use"])
     return ds
+
+
+def _input_files(ensemble) -> list:
+    """Every file the ensemble read (report, export and path refuse to write over them)."""
+    paths = {ensemble.path, *ensemble.base.input_files()}
+    for member in ensemble.members:
+        paths.update(member.scenario.input_files())
+    if ensemble.sample.get("calibration"):
+        paths.add(ensemble.sample["calibration"])
+    return sorted(p for p in paths if p)
 
 
 def _stacked_maps(ensemble: Ensemble, table, outdir: Path, profile: bool,

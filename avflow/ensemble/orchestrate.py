@@ -105,8 +105,8 @@ def check_member_file(path: str | os.PathLike,
     if not path.is_file():
         return None, ""
     try:
-        expected = checksum_path(path).read_text().split()[0]
-    except (OSError, IndexError):
+        expected = checksum_path(path).read_text(errors="replace").split()[0]
+    except (OSError, IndexError):  # a damaged checksum file is one that does not match
         return None, "it has no checksum in checksums/ (never finished, or older than checksums)"
     try:
         if file_sha256(path) != expected:
@@ -485,7 +485,7 @@ def ensemble_inputs(ensemble: Ensemble) -> dict:
     scenario and data files of its base and of every member (a member may vary a DEM)."""
     from avflow.files import protected
 
-    paths = {ensemble.path, *ensemble.base.input_files()}
+    paths = {ensemble.path, *ensemble.base.input_files(), ensemble.sample.get("calibration")}
     for member in ensemble.members:
         paths.update(member.scenario.input_files())
     return protected(sorted(p for p in paths if p))
@@ -505,7 +505,10 @@ def run_ensemble(ensemble: Ensemble, outdir: str | os.PathLike, **options) -> Ou
         check_target(outdir / name, inputs, what="ensemble output")
     members = outdir / "members"
     fresh = not members.exists()
-    with output_lock(outdir, folder=True, what="ensemble folder"):
+    # held_lock: the caller (a calibration) holds the folder's lock already
+    held = options.pop("held_lock", False)
+    with (contextlib.nullcontext() if held
+          else output_lock(outdir, folder=True, what="ensemble folder")):
         try:
             return _run_locked(ensemble, outdir, **options)
         except BaseException:
@@ -1087,24 +1090,36 @@ class _deferred_sigint:
 
     def __enter__(self):
         self.hit = False
+        self.signum = signal.SIGINT
         self.active = threading.current_thread() is threading.main_thread()
         if self.active:
             self.old = signal.signal(signal.SIGINT, self._noted)
+            # SIGTERM too: raised inside distributed's calls it printed CommClosedError
+            # tracebacks; raised at check() by the handler it had (the command line's: 143)
+            self.old_term = signal.signal(signal.SIGTERM, self._noted)
         return self
 
     def _noted(self, signum, frame):
         if self.hit:
-            raise KeyboardInterrupt
-        self.hit = True
+            self._raise(frame)
+        self.hit, self.signum = True, signum
+
+    def _raise(self, frame=None):
+        old = self.old_term if self.signum == signal.SIGTERM else None
+        if callable(old):
+            old(self.signum, frame)
+        raise KeyboardInterrupt
 
     def check(self) -> None:
         if self.hit:
-            raise KeyboardInterrupt
+            self._raise()
 
     def __exit__(self, *exc):
         if self.active:
             signal.signal(signal.SIGINT, signal.default_int_handler if self.old is None
                           else self.old)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if self.old_term is None
+                          else self.old_term)
 
 
 class _sigint_ignored:

@@ -57,7 +57,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
     import xarray as xr
 
     from avflow.errors import AvflowError
-    from avflow.files import check_folder, check_target, protected
+    from avflow.files import check_folder, check_target, inputs_of
 
     outdir = Path(outdir)
     if outdir.name == "ensemble.nc" and outdir.is_file():  # the file named, not its folder
@@ -75,7 +75,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
                           f"({type(err).__name__}); run the ensemble again to write it"
                           ) from None
     figdir = check_folder(outdir / "report", "report folder")
-    check_target(outdir / "report.md", protected([path], with_sidecars=False), what="report")
+    check_target(outdir / "report.md", inputs_of(path, ds.attrs), what="report")
     plt = _plt()
 
     n = ds.sizes["realization"]

@@ -201,7 +201,11 @@ def parse_overrides(items) -> dict[str, tuple[Any, str]]:
                               "e.g. --set grid.dx=5 or --set rheology.delta_deg=18")
         try:
             value = read_yaml(f"value: {text}\n", None)[0]["value"]
-        except (ScenarioError, TypeError, KeyError):
+        except ScenarioError as err:  # a few characters of the value, and why
+            shown = repr(text) if len(text) <= 40 else repr(text[:37] + "...")
+            raise AvflowError(f"--set {key}: the value {shown} is not a YAML value "
+                              f"({err.message})") from None
+        except (TypeError, KeyError):
             raise AvflowError(f"--set {key}: the value {text!r} is not a YAML value") from None
         overrides[key] = (value, text)
     return overrides

@@ -234,4 +234,6 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
     link_coordinates(ds)
     if part != "fields":
         ds.attrs = global_attributes(result)
+        # what commands reading this file (plot, export, path) must never write over
+        ds.attrs["input_files"] = "\n".join(result.scenario.input_files())
     return ds

@@ -211,13 +211,14 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
     """
     from avflow.terrain.raster import RasterError, write_asc, write_tif
 
-    from avflow.files import check_folder, check_target, protected
+    from avflow.files import check_folder, check_target, inputs_of
 
     path = Path(path)
     if fmt not in FORMATS:
         raise MapsError(f"unknown format {fmt!r} (use one of {', '.join(FORMATS)})")
     ds, ensemble = _open_any(path)
     with ds:
+        inputs = inputs_of(path, ds.attrs)  # the file, and the files it was made from
         rasters = (_ensemble_rasters if ensemble else _run_rasters)(ds, path, variables)
         wkt = crs_wkt(ds)
         x = np.asarray(ds["x"].values, dtype=float)
@@ -228,7 +229,6 @@ def export_maps(path, fmt: str = "tif", outdir=None, variables=None, warn=None) 
         _refuse_infinite(path, name, values)
     outdir = check_folder(path.parent if outdir is None else Path(outdir))
     targets = [outdir / f"{path.stem}_{name}.{fmt}" for name, _, _ in rasters]
-    inputs = protected([path], with_sidecars=False)
     for target in targets + ([t.with_suffix(".prj") for t in targets] if fmt == "asc" and wkt
                              else []):
         check_target(target, inputs, what="raster")  # every one before the first is written
@@ -481,7 +481,7 @@ def _save(fig, target: Path) -> Path:
 
 def plot_run(path, output=None) -> Path:
     """Draw the run file ``path`` to a PNG (default: next to it, same stem); returns its path."""
-    from avflow.files import check_target, protected
+    from avflow.files import check_target, inputs_of
 
     path = Path(path)
     if path.is_dir():  # an ensemble's folder: say what plot and report each take
@@ -492,9 +492,13 @@ def plot_run(path, output=None) -> Path:
         raise MapsError(f"{path}: a folder; avflow plot draws one run file (.nc) or a "
                         "region's output folder")
     target = path.with_suffix(".png") if output is None else Path(output)
-    plt = _plt()
     with open_run(path) as ds:
-        check_target(target, protected([path], with_sidecars=False), what="plot")
+        # neither the run file nor the scenario, DEM, release, maps or path line it records
+        check_target(target, inputs_of(path, ds.attrs), what="plot")
+        if target.suffix.lower() != ".png":  # a PNG named dem.asc once replaced the DEM
+            raise MapsError(f"plot {target}: avflow plot writes PNG images; give a name "
+                            "ending in .png")
+        plt = _plt()
         kind = scene_kind(ds)
         draw = {"grid": _plot_grid, "profile": _plot_profile,
                 "triangles": _plot_triangles}.get(kind)

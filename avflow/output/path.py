@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from avflow.errors import AvflowError
-from avflow.files import atomic_write, protected
+from avflow.files import atomic_write, inputs_of, protected
 
 __all__ = ["FIELDS", "LINE_SUFFIXES", "PathError", "PathLine", "PathResult", "PathSettings",
            "RunPoints", "analyse", "analyse_run", "analyse_target", "com_path",
@@ -170,7 +170,7 @@ def read_line(path) -> PathLine:
         raise
     except Exception as err:  # noqa: BLE001 - a damaged file: say which
         raise PathError(f"{path}: cannot be read as a path line "
-                        f"({type(err).__name__}: {' '.join(str(err).split())})") from None
+                        f"({type(err).__name__}: {' '.join(str(err).split())[:80]})") from None
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[0] < 2 or points.shape[1] < 2:
         raise PathError(f"{path}: a path line needs at least 2 vertices")
@@ -238,11 +238,23 @@ def _csv_points(path: Path):
         body = rows[1:]
     points = []
     for n, r in enumerate(body, start=len(rows) - len(body) + 1):
-        try:
-            points.append((float(r[ix]), float(r[iy])))
-        except (ValueError, IndexError):
-            raise PathError(f"{path}:{n}: not a pair of numbers x, y: {','.join(r)}") from None
+        for name, i in (("x", ix), ("y", iy)):
+            if i >= len(r):
+                raise PathError(f"{path}:{n}: no {name} (column {i + 1}); each line needs "
+                                "x, y") from None
+            try:
+                float(r[i])
+            except ValueError:  # the field and a few characters, never the user's line
+                raise PathError(f"{path}:{n}: {name} (column {i + 1}) is not a number: "
+                                f"{_few(r[i])}") from None
+        points.append((float(r[ix]), float(r[iy])))
     return points
+
+
+def _few(text: str, n: int = 12) -> str:
+    """At most ``n`` characters of a value from a user's file, quoted."""
+    text = text.strip()
+    return repr(text if len(text) <= n else text[:n] + "...")
 
 
 def com_path(com_x, com_y, top_x: float, top_y: float, spacing: float) -> PathLine:
@@ -1079,7 +1091,8 @@ def analyse_target(target, line=None, field=None, threshold=None, width=None, ou
             ds.attrs.get("scenario", ""), target.parent, need_line=line is None)
         settings = merge_settings(base, line, field, threshold, width, regression)
         stem = Path(output) if output else target.with_name(target.stem + "_path")
-        inputs = protected([target, settings.line])
+        inputs = inputs_of(target, ds.attrs)  # the run file and the files it records
+        inputs.update(protected([settings.line]))
         result, written = write_run_path(ds, settings, stem, inputs)
         farthest = float(ds["runout"]) if "runout" in ds else math.nan
         truncated = bool(int(ds.attrs.get("runout_truncated", 0)))
@@ -1115,7 +1128,7 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output, regress
         raise PathError(f"{summary}: cannot be read as an avflow summary table "
                         f"({type(err).__name__})") from None
     # The ensemble's own analysis (ensemble.nc) gives the defaults: its path and settings.
-    recorded, base = None, PathSettings()
+    recorded, base, made_from = None, PathSettings(), {}
     ens_nc = outdir / "ensemble.nc"
     if ens_nc.is_file():
         try:
@@ -1125,6 +1138,7 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output, regress
                             "run the ensemble again to write it") from None
         with ens:
             a = ens.attrs
+            made_from = inputs_of(ens_nc, a)  # the ensemble's own inputs
             if "path_x" in ens and "path_field" in a:
                 threshold_set = a.get("path_threshold_setting", "default")
                 width_set = float(a.get("path_width_m", math.nan))
@@ -1137,7 +1151,8 @@ def _analyse_folder(outdir: Path, line, field, threshold, width, output, regress
     settings = merge_settings(base, line, field, threshold, width, regression)
     stem = Path(output) if output else outdir / "path"
     members = [outdir / str(f) for f in table.get("file", ()) if isinstance(f, str) and f]
-    check_path_outputs(stem, protected([summary, ens_nc, settings.line, *members]))
+    check_path_outputs(stem, {**made_from,
+                              **protected([summary, ens_nc, settings.line, *members])})
     _, results, rows, points = _ensemble_results(table, outdir, settings, recorded)
     written = _write_tables(rows, stem)
     written.append(_write_profiles([(k, r.profile) for k, r in results],

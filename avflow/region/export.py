@@ -35,20 +35,65 @@ class RegionExportError(AvflowError):
     """A region store that cannot be exported (one line naming it); exit code 2."""
 
 
+#: The list of the chunks avflow region wrote, beside the store's own metadata.
+MANIFEST = ".avflow-chunks.json"
+
+
+def damaged(store: Path, why: str) -> RegionExportError:
+    return RegionExportError(f"{store}: the store is damaged ({why}); run avflow region "
+                             "again to write it anew")
+
+
 def find_store(path) -> Path | None:
     """The region store ``path`` names (the store, or the region's output folder), or
-    None when it names no region store."""
+    None when it names no region store; a store whose metadata cannot be read (truncated)
+    is said to be damaged."""
     path = Path(path)
     for store in (path, path / STORE):
-        if store.is_dir() and (store / ".zmetadata").is_file():
-            try:
-                meta = json.loads((store / ".zmetadata").read_text())
-                attrs = meta["metadata"][".zattrs"]
-            except (OSError, ValueError, KeyError, TypeError):
-                continue
-            if attrs.get("source") == "avflow region":
-                return store
+        if not store.is_dir():
+            continue
+        if not (store / ".zmetadata").is_file():
+            if (store / ".zgroup").is_file() and (store / MANIFEST).is_file():
+                raise damaged(store, "its metadata .zmetadata is missing")
+            continue
+        try:
+            meta = json.loads((store / ".zmetadata").read_text())
+            attrs = meta["metadata"][".zattrs"]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            if store.name.endswith(".zarr") or (store / MANIFEST).is_file():
+                raise damaged(store, f"its metadata .zmetadata cannot be read: "
+                                     f"{type(err).__name__}") from None
+            continue
+        if isinstance(attrs, dict) and attrs.get("source") == "avflow region":
+            return store
     return None
+
+
+def write_manifest(store: Path) -> None:
+    """Record every chunk file of every array of ``store`` (those never written are
+    absent by design: no release reached them), so that a chunk lost later is found."""
+    chunks = {}
+    for zarray in sorted(Path(store).rglob(".zarray")):
+        folder = zarray.parent
+        chunks[folder.relative_to(store).as_posix()] = sorted(
+            p.relative_to(folder).as_posix() for p in folder.rglob("*")
+            if p.is_file() and not p.name.startswith("."))
+    (Path(store) / MANIFEST).write_text(json.dumps(chunks))
+
+
+def check_chunks(store: Path, names) -> None:
+    """Every chunk the manifest lists for the arrays ``names`` is there (a store written
+    before the manifest: not checked)."""
+    try:
+        listed = json.loads((store / MANIFEST).read_text())
+    except FileNotFoundError:
+        return
+    except (OSError, ValueError) as err:
+        raise damaged(store, f"{MANIFEST} cannot be read: {type(err).__name__}") from None
+    for name in names:
+        for key in listed.get(name, ()) if isinstance(listed, dict) else ():
+            if not (store / name / key).is_file():
+                raise damaged(store, f"chunk {name}/{key} is missing")
 
 
 def region_rasters(ds, store: Path, variables=None) -> list[tuple]:
@@ -106,7 +151,7 @@ def export_region(path, outdir=None, variables=None) -> list[Path]:
     the store unless ``outdir``); returns the paths written."""
     import xarray as xr
 
-    from avflow.files import check_folder, check_target
+    from avflow.files import check_folder, check_target, inputs_of
 
     store = find_store(path)
     if store is None:
@@ -117,18 +162,29 @@ def export_region(path, outdir=None, variables=None) -> list[Path]:
         raise RegionExportError(f"{store}: cannot be read as Zarr ({type(err).__name__}: "
                                 f"{' '.join(str(err).split())[:120]})") from None
     with ds:
+        inputs = inputs_of(store, ds.attrs)
         rasters = region_rasters(ds, store, variables)
+        check_chunks(store, dict.fromkeys(var.name for _, var, _ in rasters))
         outdir = check_folder(store.parent if outdir is None else Path(outdir))
         stem = store.name.removesuffix(".zarr")
         targets = [outdir / f"{stem}_{name}.tif" for name, _, _ in rasters]
         for target in targets:
-            check_target(target, (), what="raster")  # every one before the first is written
+            # every one before the first is written; none the region's DEM, releases, file
+            check_target(target, inputs, what="raster")
         wkt = _crs_wkt(ds)
         x, y = ds["x"].values, ds["y"].values
         chunk = int(next(iter(ds.data_vars.values())).encoding.get("chunks", (256,))[-1])
         written = []
         for target, (_, var, options) in zip(targets, rasters):
-            write_cog(target, var, x, y, wkt, chunk, **options)
+            try:
+                write_cog(target, var, x, y, wkt, chunk, **options)
+            except AvflowError:
+                raise
+            except Exception as err:  # noqa: BLE001 - a chunk that cannot be decoded
+                if isinstance(err, OSError):
+                    raise
+                raise damaged(store, f"{var.name} cannot be read: {type(err).__name__}: "
+                                     f"{' '.join(str(err).split())[:80]}") from None
             written.append(target)
     return written
 

@@ -189,6 +189,7 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
                               "dem": str(Path(region.dem).absolute()),
                               **({"region_file": str(Path(region.path).absolute())}
                                  if region.path else {}),
+                              "input_files": "\n".join(map(str, region.input_files())),
                               **_scenario_attrs(region)},
                              thresholds=region.thresholds, scenarios=len(scenarios)
                              if region.with_scenarios or region.thresholds else None)
@@ -237,8 +238,13 @@ def _run_locked(region, outdir: Path, workers, scheduler, quiet, client) -> Regi
         _write_parquet(table, outdir / PARQUET, progress)
         _publish_store(tmp_store, outdir / STORE)
         timings["tables"] = time.perf_counter() - clock
-    except BaseException:
+    except BaseException as err:
         shutil.rmtree(tmp_store, ignore_errors=True)
+        from avflow.files import write_error
+
+        error = write_error(outdir / STORE, err)  # a full disk: one line, exit 1
+        if error is not None:
+            raise error from None
         raise
     finally:
         shutil.rmtree(outdir / "work", ignore_errors=True)
@@ -437,6 +443,9 @@ def _fresh_store_path(outdir: Path) -> Path:
 def _publish_store(tmp: Path, target: Path) -> None:
     """The finished store renamed into place; an old one is moved aside first, then
     removed (two renames: a reader sees the old store or the new one, never a mix)."""
+    from avflow.region.export import write_manifest
+
+    write_manifest(tmp)  # the chunks written: one deleted later is found, not read as NaN
     old = None
     if target.exists():
         old = target.with_name(f".{target.name}.old-{os.getpid()}.tmp")

@@ -58,8 +58,8 @@ def read_result(path, key: str | None = None, arrays: bool = True):
     if not path.is_file():
         return None, None, ""
     try:
-        expected = checksum_path(path).read_text().split()[0]
-    except (OSError, IndexError):
+        expected = checksum_path(path).read_text(errors="replace").split()[0]
+    except (OSError, IndexError):  # a damaged checksum file is one that does not match
         return None, None, "it has no checksum (never finished)"
     if file_sha256(path) != expected:
         return None, None, "its checksum does not match (changed or damaged)"

@@ -459,6 +459,13 @@ def _scenarios(rules: ScenarioRules, stand_in, path, positions, fail) -> tuple:
             raise fail(("scenarios", "return_periods", k, "years"), f"{years} years twice: "
                        "give each return period once")
         seen.add(years)
+    from avflow.ensemble.spec import member_limit
+
+    limit = member_limit()  # counted before they are made, as ensembles count members
+    if len(periods) * len(members) > limit:
+        raise fail(("scenarios",), f"{len(periods):,} return periods x {len(members):,} "
+                                   f"members = {len(periods) * len(members):,} scenarios, more "
+                                   f"than the limit of {limit:,} runs of each release")
     out = []
     for period, thickness in periods:
         for updates in members:

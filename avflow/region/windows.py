@@ -161,6 +161,7 @@ def read_raster_releases(region, dem: DemInfo) -> list[ReleaseArea]:
     spec = region.releases
     with rasterio.open(spec.raster) as src:
         t = src.transform
+        _check_raster_fits(region, src.width, src.height)
         h = src.read(1, masked=True).astype(float).filled(0.0)
     orow, ocol = round((t.f - dem.y0) / -dem.dy), round((t.c - dem.x0) / dem.dx)
     h = np.where(np.isfinite(h) & (h > 0), h, 0.0)
@@ -228,6 +229,27 @@ def read_dem_releases(region) -> list[ReleaseArea]:
                                float(geom.area), tuple(float(v) for v in geom.bounds),
                                problem))
     return out
+
+
+#: Bytes a cell of a release raster takes while it is read whole: the values, their mask,
+#: as floats, the connected-component labels.
+RASTER_BYTES_PER_CELL = 22
+
+
+def _check_raster_fits(region, width: int, height: int) -> None:
+    """A release raster too large to be read whole is refused before it is read (a
+    100,000 x 100,000 raster ran out of memory), with the advice that applies to it."""
+    from avflow.region.spec import RegionError
+    from avflow.simulation.resources import default_max_memory, human
+
+    limit, source = default_max_memory()
+    need = float(width) * float(height) * RASTER_BYTES_PER_CELL
+    if limit is not None and need > limit:
+        raise RegionError(f"{region.releases.raster}: {width:,} x {height:,} cells; reading "
+                          f"it whole needs about {human(need)}, more than the memory limit "
+                          f"of {human(limit)} ({source}): crop the raster to the release "
+                          "areas, coarsen it, or give them as polygons (releases.path)",
+                          region.path, "releases.raster")
 
 
 def read_releases(region, dem: DemInfo) -> list[ReleaseArea]:

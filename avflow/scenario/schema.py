@@ -1243,6 +1243,14 @@ class Scenario(_Model):
                 raise _problem(f"a release {h:g} m thick{scaled} is thicker than the map is "
                                f"long ({size:g} m): the depth-averaged equations need a layer "
                                "thin compared with the flow's length", f"release.{field}")
+        layer = self.entrainment.layer if self.entrainment is not None else None
+        for name in ("depth", "thickness", "default") if spans and layer is not None else ():
+            size, depth = max(span for span, _, _ in spans.values()), getattr(layer, name)
+            if depth is not None and depth > size:  # 1e16 m made a flow out of nothing
+                raise _problem(f"an erodible layer {depth:g} m deep is deeper than the map "
+                               f"is long ({size:g} m): the depth-averaged equations need a "
+                               "layer thin compared with the flow's length",
+                               f"entrainment.layer.{name}")
         n = self.time.end / self.output.every
         if n > MAX_SNAPSHOTS:
             raise _problem(f"time.end / output.every = {n:.4g} snapshots, more than the "
@@ -1592,7 +1600,11 @@ def parse_scenario(text: str, source_path: str | os.PathLike | None = None,
 def load_scenario(path: str | os.PathLike) -> Scenario:
     """Read and validate a scenario YAML file; any problem is a :class:`ScenarioError`."""
     text = read_text_file(path, "scenario")
-    return parse_scenario(text, source_path=path)
+    from avflow.scenario.yamlio import is_stdin_pipe
+
+    # from a pipe (/dev/stdin): relative data paths start at the working folder, not /dev
+    return parse_scenario(text, source_path=path,
+                          base_dir=os.getcwd() if is_stdin_pipe(path) else None)
 
 
 def write_json_schema(path: str | os.PathLike) -> None:

@@ -68,11 +68,11 @@ def read_text_file(path, what: str, error=ScenarioError) -> str:
     missing, not a regular file (a device, a pipe, a folder), over :data:`MAX_FILE_BYTES`,
     not UTF-8."""
     try:
-        mode = os.stat(path).st_mode  # before opening: a pipe would block the open
-        if not stat.S_ISREG(mode):
+        mode = os.stat(path).st_mode  # before opening: a named pipe would block the open
+        if not stat.S_ISREG(mode) and not (stat.S_ISFIFO(mode) and is_stdin_pipe(path)):
             raise error(f"not a {what} file: "
                         f"{'a folder' if stat.S_ISDIR(mode) else 'not a regular file'}", path)
-        with open(path, "rb") as f:
+        with open(path, "rb") as f:  # a pipe too is read to MAX_FILE_BYTES at most
             data = f.read(MAX_FILE_BYTES + 1)
     except FileNotFoundError:
         raise error(f"{what} file not found", path) from None
@@ -85,6 +85,12 @@ def read_text_file(path, what: str, error=ScenarioError) -> str:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
         raise error(f"not a UTF-8 text file ({err.reason})", path) from None
+
+
+def is_stdin_pipe(path) -> bool:
+    """``/dev/stdin`` (or ``/dev/fd/N``) fed by a pipe (``cat s.yaml | avflow run
+    /dev/stdin``): a stream that ends, unlike a device or a named pipe nobody writes to."""
+    return re.fullmatch(r"pipe:\[\d+\]", os.path.basename(os.path.realpath(path))) is not None
 
 
 def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, int]]]:
@@ -157,6 +163,7 @@ def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, 
 
     loader = None
     try:
+        _check_depth(text, path)  # before composing: PyYAML's composer recurses
         loader = YamlLoader(text)  # a control character is refused here already
         root = loader.get_single_node()
         if root is not None:
@@ -179,6 +186,27 @@ def read_yaml(text: str, path: str | None) -> tuple[Any, dict[tuple, tuple[int, 
         raise ScenarioError(f"expected a mapping of fields (name: ..., terrain: ..., ...), "
                             f"got {show(data)}", path, None, *positions[()])
     return data, positions
+
+
+#: Deepest nesting of mappings and lists read (a scenario needs 4; PyYAML and the checks
+#: after it recurse, and a file nested a few thousand levels was a RecursionError).
+MAX_DEPTH = 64
+
+
+def _check_depth(text: str, path: str | None) -> None:
+    """Refuse YAML nested deeper than :data:`MAX_DEPTH`, from PyYAML's events (its parser
+    does not recurse; its composer does)."""
+    depth = 0
+    for event in yaml.parse(text, Loader=YamlLoader):
+        if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            depth += 1
+            if depth > MAX_DEPTH:
+                mark = event.start_mark
+                raise ScenarioError(f"nested more than {MAX_DEPTH} levels deep (mappings and "
+                                    "lists): not a file avflow reads", path, None,
+                                    mark.line + 1, mark.column + 1)
+        elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+            depth -= 1
 
 
 def dotted(keys: tuple) -> str | None:

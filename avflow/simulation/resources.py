@@ -241,7 +241,10 @@ def check_resources(scenario, max_memory: int | str | None = None, *,
     else:  # the mesh fits, its snapshots do not
         field = "output.every"
         fix = "store fewer snapshots (a larger output.every) or use a larger grid.dx"
-    raise ScenarioError.at(scenario, field, f"{need}: {fix}, or raise --max-memory")
+    # calibrate and region have no --max-memory: the variable is what applies everywhere
+    raise_it = ("raise --max-memory" if source == "--max-memory" else
+                f"raise the limit with ${ENV_MAX_MEMORY}")
+    raise ScenarioError.at(scenario, field, f"{need}: {fix}, or {raise_it}")
 
 
 def release_freed_memory() -> None:
