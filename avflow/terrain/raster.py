@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -275,7 +276,11 @@ def cf_grid_mapping(wkt: str | None) -> dict | None:
         code = crs.to_epsg(min_confidence=70)  # an ESRI .prj of an EPSG CRS: write EPSG's
         if code is not None:
             crs = CRS.from_epsg(code)
-        attrs = crs.to_cf()
+        with warnings.catch_warnings():
+            # an oblique Mercator's (LV95) skew angle has no CF name; crs_wkt keeps it
+            warnings.filterwarnings("ignore", "angle from rectified to skew grid",
+                                    UserWarning)
+            attrs = crs.to_cf()
         attrs["crs_wkt"] = crs.to_wkt()
     except Exception:  # an unknown or broken CRS still travels as text
         attrs = {"crs_wkt": wkt}
