@@ -106,9 +106,9 @@ def summary_line(ds) -> str:
 def moving_share(ds) -> str:
     """The volume still moving at the end over the volume there was (released plus
     entrained), as a percentage with enough digits to be nonzero when it is."""
-    total = float(ds["release_volume"]) + (float(ds["entrained_volume"])
-                                           if "entrained_volume" in ds else 0.0)
-    share = 100 * float(ds["moving_volume_end"]) / max(total, 1e-300)
+    from avflow.output.maps import moving_percent
+
+    share = float(moving_percent(ds))
     return "0%" if share == 0 else f"{share:.2g}%" if share < 10 else f"{share:.0f}%"
 
 

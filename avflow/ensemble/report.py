@@ -58,6 +58,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
 
     from avflow.errors import AvflowError
     from avflow.files import check_folder, check_target, inputs_of
+    from avflow.output.maps import moving_percent
 
     outdir = Path(outdir)
     if outdir.name == "ensemble.nc" and outdir.is_file():  # the file named, not its folder
@@ -262,9 +263,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
         if entrained is not None and np.any(entrained[ok] > 0.0):
             names.insert(4, "entrained_volume")
         # the share of the volume still moving at the end, whatever the status
-        moving = (100 * ds["moving_volume_end"].values / (ds["release_volume"].values + (
-            np.nan_to_num(entrained) if entrained is not None else 0.0))
-            if "moving_volume_end" in ds else np.full(n, np.nan))
+        moving = (moving_percent(ds) if "moving_volume_end" in ds else np.full(n, np.nan))
         md += [_md_table(["realization", "law", *params, "status",
                           "still moving at the end (% of the volume)", *names],
                          [[int(i), laws[i], *[float(ds[p].values[i]) for p in params],

@@ -180,9 +180,8 @@ def specialize(fn, suffix: str, parallel: bool = False, nrt: bool = True,
     replaced (constants Numba then folds, branches it drops before typing, or the copies of
     what it calls). Its own name: Numba's cache files are named after the function (name
     and line), not after its globals or flags, so two copies under one name would load each
-    other's machine code (a "serial" sweep once ran on the thread pool that way). Make the
-    copies as the module is imported: Numba fixes a dispatcher's cache folder then
-    (:mod:`avflow.numerics`).
+    other's machine code (a "serial" sweep once ran on the thread pool that way). Its cache
+    folder is the package's (:mod:`avflow.numerics`).
 
     Every name in ``names`` must be a global that ``fn``'s code reads: a misspelt name would
     otherwise leave the original in place, silently (:class:`UnknownPlaceholder`)."""

@@ -365,6 +365,17 @@ def _plt():
     return plt
 
 
+def moving_percent(ds):
+    """The volume still moving at the end (``moving_volume_end``) in percent of the volume
+    there was, released plus entrained: a number for a run file, one per member for an
+    ``ensemble.nc``. What the summary line, the plot title and the report say."""
+    total = np.asarray(ds["release_volume"].values, dtype=float)
+    if "entrained_volume" in ds:
+        total = total + np.nan_to_num(np.asarray(ds["entrained_volume"].values, dtype=float))
+    return 100 * np.asarray(ds["moving_volume_end"].values, dtype=float) / np.maximum(total,
+                                                                                      1e-300)
+
+
 def hillshade(z: np.ndarray, dx: float, dy: float, azimuth_deg: float = 315.0,
               altitude_deg: float = 45.0) -> np.ndarray:
     """Shade in [0, 1] of a surface on ascending (y, x) by ``matplotlib.colors.LightSource``
@@ -444,7 +455,7 @@ def _title(ds) -> str:
     name = ds.attrs.get("scenario_name", "?")
     status = ds.attrs.get("status")
     if status and not at_rest(ds) and status != "failed":
-        moved = (100 * float(ds["moving_volume_end"]) / max(float(ds["release_volume"]), 1e-300)
+        moved = (float(moving_percent(ds))
                  if "moving_volume_end" in ds and "release_volume" in ds else math.nan)
         status += (f", {moved:.2g}% of the volume still moving" if math.isfinite(moved)
                    else ", still moving")

@@ -758,15 +758,13 @@ def plot_path(points: RunPoints, results: list[tuple[str, PathResult]], target: 
                             zorder=3)
         fig.colorbar(sc, ax=ax_map, shrink=0.8, label=f"peak {first.field} ({units})")
     elif points.grid is not None:
-        from matplotlib.colors import LightSource
+        from avflow.output.maps import hillshade
 
         xg, yg, bed = points.grid
         dx, dy = abs(xg[1] - xg[0]), abs(yg[1] - yg[0])
-        shade = LightSource(azdeg=315, altdeg=45).hillshade(np.nan_to_num(
-            bed, nan=np.nanmin(bed)), dx=dx, dy=dy)
+        shade = hillshade(bed, dx, dy)  # rows south to north, as drawn (origin "lower")
         extent = (xg[0] - dx / 2, xg[-1] + dx / 2, yg[0] - dy / 2, yg[-1] + dy / 2)
-        ax_map.imshow(np.where(np.isfinite(bed), shade, np.nan), cmap="gray", origin="lower",
-                      extent=extent, vmin=0, vmax=1)
+        ax_map.imshow(shade, cmap="gray", origin="lower", extent=extent, vmin=0, vmax=1)
         full = np.full(bed.shape, np.nan)
         full[np.isfinite(bed)] = np.where(wet, values, np.nan)
         im = ax_map.imshow(full, origin="lower", extent=extent, cmap="viridis", alpha=0.8)

@@ -33,17 +33,6 @@ class CompareError(AvflowError):
     """Two runs that cannot be compared; one line, exit 2."""
 
 
-def cell_coordinates(terrain):
-    """Horizontal x, y of every cell (grid centres, or the nodes of a triangle mesh)."""
-    if terrain.kind == "triangles":
-        return np.asarray(terrain.x, float), np.asarray(terrain.y, float)
-    X, Y = np.meshgrid(terrain.x, terrain.y)
-    X, Y = X.ravel(), Y.ravel()
-    if terrain.cell_index is not None:
-        X, Y = X[terrain.cell_index], Y[terrain.cell_index]
-    return X, Y
-
-
 def structure_variables(result, space) -> dict:
     """The run file's structure variables (see the module), or {} without structures."""
     from avflow.terrain.structures import structure_volumes
@@ -53,7 +42,7 @@ def structure_variables(result, space) -> dict:
     if built is None:
         return {}
     area = terrain.mesh.cell_area
-    x, y = cell_coordinates(terrain)
+    x, y = terrain.cell_xy()
     rows = structure_volumes(built, x, y, result.state.h * area, result.h0 * area)
     dim = "structure"
     data = {
@@ -194,7 +183,9 @@ def _plot(a, b, pa, pb, target: Path, name_a: str, name_b: str) -> Path:
 
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
-    from matplotlib.colors import LightSource, TwoSlopeNorm
+    from matplotlib.colors import TwoSlopeNorm
+
+    from avflow.output.maps import hillshade
 
     x, y = a["x"].values, a["y"].values
     dx, dy = abs(x[1] - x[0]), abs(y[1] - y[0])
@@ -203,10 +194,10 @@ def _plot(a, b, pa, pb, target: Path, name_a: str, name_b: str) -> Path:
     fig, axes = plt.subplots(1, 3, figsize=(15, 5), layout="constrained")
     for ax, ds, p, title in ((axes[0], a, pa, f"A: {name_a}"), (axes[1], b, pb, f"B: {name_b}")):
         bed = ds["bed_elevation"].values.astype(float)
-        shade = LightSource(azdeg=315, altdeg=45).hillshade(
-            np.nan_to_num(bed, nan=np.nanmin(bed)), dx=dx, dy=dy)
-        ax.imshow(np.where(np.isfinite(bed), shade, np.nan), cmap="gray", extent=extent,
-                  origin=origin, vmin=0, vmax=1)
+        # hillshade takes rows south to north: light from the north-west either way
+        shade = (hillshade(bed, dx, dy) if origin == "lower"
+                 else hillshade(bed[::-1], dx, dy)[::-1])
+        ax.imshow(shade, cmap="gray", extent=extent, origin=origin, vmin=0, vmax=1)
         im = ax.imshow(np.where(p >= 1.0, p, np.nan), cmap="viridis", extent=extent,
                        origin=origin, alpha=0.85)
         if "structure_height" in ds:

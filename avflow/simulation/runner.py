@@ -450,7 +450,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
 
     ``progress(t, t_end)`` is called after every output time; ``on_compile(what)`` as
     Numba starts compiling kernels that are neither in this process nor in the kernel cache,
-    ``on_compiled(seconds)`` after the run where it did. A non-finite state (h, hu,
+    ``on_compiled(seconds)`` once the first call of the time loop (the warm-up) has
+    compiled them. A non-finite state (h, hu,
     hv, checked at every output time, or the mass balance) or a step that cannot keep
     h >= 0 raises :class:`~avflow.errors.RunFailed`: a blow-up is never a result.
     ``snapshots`` records the output times (default: a new :class:`Snapshots`, every field

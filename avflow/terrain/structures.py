@@ -269,11 +269,11 @@ def structure_volumes(built: BuiltStructures, cell_x, cell_y, volume, volume0) -
     line (``volume0``'s centroid: retained upstream) and beyond it (overtopped, or gone round
     its ends); the line continued straight beyond its ends decides the side."""
     volume, volume0 = np.asarray(volume, float), np.asarray(volume0, float)
+    total0 = volume0.sum()  # the release's centroid, the same for every structure
+    cx = float((volume0 * cell_x).sum() / total0)
+    cy = float((volume0 * cell_y).sum() / total0)
     out = []
     for name, kind, line in zip(built.names, built.kinds, built.lines):
-        total0 = volume0.sum()
-        cx = float((volume0 * cell_x).sum() / total0)
-        cy = float((volume0 * cell_y).sum() / total0)
         side = _side(line, np.append(cell_x, cx), np.append(cell_y, cy))
         release_side = side[-1]
         upstream = side[:-1] == release_side
