@@ -18,6 +18,9 @@ loop that takes functions as arguments, measured: it compiles it again in every 
 - ``region_source(region, ctx, loop, nxt, when)`` -> the largest inverse CFL limit of the
   cells the source changed: the mass source over the step's cells (only wet cells gain),
   its volume added to ``stats``;
+- ``region_observe(region, ctx, loop, nxt, when)``: the running maps of the cells the step
+  changed, from their accepted state (:mod:`avflow.numerics.observers`): once per accepted
+  step, after the source, so that a step redone with half the time step writes no map;
 - ``region_after(region, ctx, loop, nxt)`` -> ``region``: the wet cells after the step;
 - ``region_end(region, ctx, loop, cur, t, steps)``: the newest state back in the fields
   where it sits in the work buffers, and the call's time and step count into ``stats``.
@@ -40,7 +43,7 @@ Loop = namedtuple("Loop", "mesh fields work physics run extra")
 
 #: Placeholders of a region's hooks (see the module's docstring)
 region_start = region_before = region_step = region_source = region_after = None
-region_end = None
+region_observe = region_end = None
 
 
 def advance(mesh, fields, work, physics, run, extra):
@@ -77,6 +80,7 @@ def advance(mesh, fields, work, physics, run, extra):
             break
         if source[SRC_KIND] != SOURCE_NONE:  # the source hook, once per accepted step
             lim = min(lim, dt_from_inverse(region_source(region, ctx, loop, nxt, when)))
+        region_observe(region, ctx, loop, nxt, when)  # the accepted state, source included
         t = t_target if last else t + dt
         steps += 1
         region = region_after(region, ctx, loop, nxt)

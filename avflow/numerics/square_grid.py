@@ -59,6 +59,7 @@ from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, cell_moves,
                                  observe, observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
 from avflow.numerics.loop import advance
+from avflow.numerics.observers import observe_span
 from avflow.numerics.sources import SPAN, add_span  # noqa: F401 (each copy's own)
 from avflow.numerics.stepping import ST_SOURCE, Conserved, Observers, record_end
 from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
@@ -1211,7 +1212,8 @@ def _loops() -> dict:
                 # inlined into the loop (compiled once there), but for the step: inlined,
                 # order 2 ran 8% slower (measured, docs/performance.md)
                 fns = {"start": _grid_start, "before": _grid_before, "step": _grid_step,
-                       "source": _grid_source, "after": _grid_after, "end": _grid_end}
+                       "source": _grid_source, "observe": _grid_observe,
+                       "after": _grid_after, "end": _grid_end}
                 given = shared_names(fns, **names)
                 hooks = {f"region_{hook}": specialize(fn, suffix, **given[hook],
                                                       inline="never" if hook == "step"
@@ -1376,6 +1378,17 @@ def _grid_source(region, ctx, loop, nxt, when):
         f.stats[ST_SOURCE] += gained
         inv_lim = max(inv_lim, inv)
     return inv_lim
+
+
+def _grid_observe(region, ctx, loop, nxt, when):
+    """The running maps of the cells swept last (every cell the step changed), row by row,
+    from their accepted state (:mod:`avflow.numerics.observers`)."""
+    nx, f, h_dry = loop.mesh.nx, loop.fields, loop.physics.h_dry
+    s_lo = ctx.reg.lo2 if ORDER2 else ctx.lo
+    s_hi = ctx.reg.hi2 if ORDER2 else ctx.hi
+    for r in range(region.q0, region.q1 + 1):
+        observe_span(r * nx + s_lo[r], r * nx + s_hi[r] + 1, nxt.h, nxt.hu, nxt.hv, f.peak_h,
+                     f.peak_speed, f.arrival, f.last_moved, f.maps, when.t_new, h_dry)
 
 
 def _grid_after(region, ctx, loop, nxt):

@@ -10,9 +10,10 @@ import numpy as np
 from numba import njit
 
 #: What every time loop takes by name (Numba types named tuples of arrays and scalars):
-#: the state and observers of a run, changed in place (``stats``: the ``ST_*`` slots)
+#: the state and observers of a run, changed in place (``stats``: the ``ST_*`` slots;
+#: ``maps``: the registered maps, a row each, :mod:`avflow.numerics.observers`)
 Fields = namedtuple("Fields", "h hu hv flag peak_h peak_speed arrival last_moved erodible "
-                    "stats")
+                    "maps stats")
 #: the physics: friction law and its parameters (numerics.rheology), gravity, the Dirac
 #: flux on or off, the dry and zero thresholds, the mass source (numerics.sources)
 Physics = namedtuple("Physics", "law params g dirac h_dry h_zero source")

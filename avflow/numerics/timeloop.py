@@ -30,6 +30,7 @@ from avflow.numerics.profile import STEP as _PROFILE_STEP
 from avflow.numerics.reconstruction import (reconstruct_cells, reconstruct_profile,
                                             reconstruct_cells_parallel as _recon_par)
 from avflow.numerics.loop import advance
+from avflow.numerics.observers import observe_listed, observe_span
 from avflow.numerics.sources import add_listed, add_span
 from avflow.numerics.stepping import (STAMPS_PER_STEP, ST_SOURCE, Conserved, Lists,
                                       Observers, end_loop, record_end)
@@ -288,6 +289,19 @@ def _source(region, ctx, loop, nxt, when):
     return inv
 
 
+def _observe(region, ctx, loop, nxt, when):
+    """The running maps of the cells the step changed (a profile: all of them), from their
+    accepted state (:mod:`avflow.numerics.observers`)."""
+    f, h_dry = loop.fields, loop.physics.h_dry
+    if STRUCTURED:
+        observe_span(0, nxt.h.size, nxt.h, nxt.hu, nxt.hv, f.peak_h, f.peak_speed, f.arrival,
+                     f.last_moved, f.maps, when.t_new, h_dry)
+    else:
+        observe_listed(ctx.o2.union if ORDER2 else region.touched, region.n_changed, nxt.h,
+                       nxt.hu, nxt.hv, f.peak_h, f.peak_speed, f.arrival, f.last_moved, f.maps,
+                       when.t_new, h_dry)
+
+
 def _after(region, ctx, loop, nxt):
     """The wet cells after a step (only the changed ones can be). At order 1 also those that
     became wet or dry: a next step on the same wet cells keeps this step's active lists (a
@@ -504,7 +518,7 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
     if parallel:
         suffix += "_parallel"
     fns = {"start": _start, "before": _before, "step": _step, "source": _source,
-           "after": _after, "end": _end}
+           "observe": _observe, "after": _after, "end": _end}
     given = shared_names(fns, STRUCTURED=structured, ORDER2=order2, PARALLEL=parallel,
                          order2_faces=ORDER2_FACES[parallel], **names)
     hooks = {f"region_{hook}": specialize(fn, suffix, inline="always", **given[hook])
