@@ -25,6 +25,8 @@ from enum import IntEnum
 import numpy as np
 from numba import njit
 
+from avflow.scenario.extensions import FRICTION_LAWS, law_by_code
+
 __all__ = [
     "Law",
     "friction",
@@ -83,9 +85,26 @@ _REFERENCES = {
 }
 
 
-def law_reference(law: Law) -> str:
-    """Bibliographic reference of a friction law, for the NetCDF ``references`` attribute."""
+def law_reference(law: int) -> str:
+    """Bibliographic reference of a friction law (built in or registered), for the NetCDF
+    ``references`` attribute."""
+    registered = law_by_code(int(law))
+    if registered is not None:
+        return registered.reference
     return _REFERENCES[Law(law)]
+
+
+def law_name(law: int) -> str:
+    """The name of a friction law's code, as a scenario writes it (``coulomb``, or the name
+    a law was registered under)."""
+    registered = law_by_code(int(law))
+    return registered.name if registered is not None else Law(law).name.lower()
+
+
+def law_code(name: str) -> int:
+    """The kernels' code of the law ``name`` (built in or registered)."""
+    registered = FRICTION_LAWS.get(name)
+    return registered.code if registered is not None else int(Law[name.upper()])
 
 
 def _tan_deg(angle: float) -> float:
@@ -128,8 +147,10 @@ def _transform_map(how: str | None, values: np.ndarray, density: float | None) -
 
 
 def friction_parameters(rheology, density: float | None = None,
-                        maps: dict | None = None) -> tuple[Law, np.ndarray]:
-    """Map a validated rheology block (``scenario.rheology``) to ``(Law, params)``.
+                        maps: dict | None = None) -> tuple[int, np.ndarray]:
+    """Map a validated rheology block (``scenario.rheology``) to ``(law, params)``: a
+    :class:`Law`, or the code of a law registered through :mod:`avflow.extend` (its
+    parameters in its slots, in the order it was registered with).
 
     ``density`` (kg/m^3, ``scenario.physics.density``) is needed by samosAT only, whose
     stresses (Pa) are divided by it. Parameter vectors (float64, length N_PARAMS = 8, zeros
@@ -147,12 +168,14 @@ def friction_parameters(rheology, density: float | None = None,
     slot holds its transformed values (:data:`PARAMETER_SLOTS`), every other slot the
     number's, the same bits in every row.
     """
-    law = Law[rheology.law.upper()]
+    registered = FRICTION_LAWS.get(rheology.law)
+    law = Law[rheology.law.upper()] if registered is None else registered.code
     maps = dict(maps or {})
-    slots = PARAMETER_SLOTS[law]
+    slots = (PARAMETER_SLOTS[law] if registered is None
+             else {p: (slot, None) for slot, p in enumerate(registered.parameters)})
     unknown = sorted(set(maps) - set(slots))
     if unknown:
-        raise ValueError(f"{law.name.lower()} has no parameter {unknown[0]!r} to map; its "
+        raise ValueError(f"{law_name(law)} has no parameter {unknown[0]!r} to map; its "
                          f"parameters: {', '.join(slots)}")
     if law is Law.SAMOSAT and (density is None or not density > 0.0):
         raise ValueError("samosAT needs the density (kg/m^3, physics.density), "

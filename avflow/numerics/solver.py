@@ -21,7 +21,7 @@ from avflow.numerics.sources import MassSource, no_source
 from avflow.numerics.physics import DRY, UNDER_THRESHOLD
 from avflow.numerics.stepping import (ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, FaceMesh,
                                       FaceWork, GridMesh, GridWork, Statistics)
-from avflow.numerics.rheology import FOREST_SLOT, N_PARAMS, PER_CELL, Law
+from avflow.numerics.rheology import FOREST_SLOT, N_PARAMS, PER_CELL, Law, law_name
 from avflow.numerics.kinetic import density_factor
 from avflow.numerics.reconstruction import LIMITERS
 from avflow.terrain.bed import Terrain
@@ -78,6 +78,17 @@ class State:
         with np.errstate(invalid="ignore", divide="ignore"):
             s = np.hypot(self.hu, self.hv) / self.h
         return np.where(self.h > 0.0, s, 0.0)
+
+
+def registered_maps(n: int) -> np.ndarray:
+    """The registered maps' storage for ``n`` cells: a row per map (avflow.extend), at its
+    initial value."""
+    from avflow.scenario.extensions import MAPS
+
+    maps = np.empty((len(MAPS), n))
+    for k, entry in enumerate(MAPS.values()):
+        maps[k] = entry.initial
+    return maps
 
 
 def face_offsets(terrain: Terrain) -> np.ndarray:
@@ -405,7 +416,11 @@ class Solver:
             full[layout.place] = getattr(state, name)
         self._g_flag.fill(DRY)
         self._g_flag[layout.place] = state.flag
-        return self._fields(state, dict(arrays, flag=self._g_flag))
+        maps = state.maps
+        if maps.shape[0]:  # the registered maps, on the full grid too
+            maps = np.zeros((maps.shape[0], layout.nx * layout.ny))
+            maps[:, layout.place] = state.maps
+        return self._fields(state, dict(arrays, flag=self._g_flag, maps=maps))
 
     def _off_grid(self, state: State, fields: stepping.Fields) -> None:
         """The kernel's answer back into ``state`` where it ran on the full-grid arrays."""
@@ -414,6 +429,8 @@ class Solver:
             for name in self._grid_fields():
                 getattr(state, name)[:] = getattr(fields, name)[layout.place]
             state.flag[:] = fields.flag[layout.place]
+            if state.maps.shape[0]:
+                state.maps[:] = fields.maps[:, layout.place]
 
     def _advance_grid(self, state: State, t_target, stop_volume, stop_kinetic, max_steps,
                       threads):
@@ -459,15 +476,23 @@ class Solver:
         return STATUS_NAMES[status]
 
     def _loop(self, threads: int):
-        """The compiled time loop of this solver's kernel, law and threads."""
-        return self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
+        """The compiled time loop of this solver's kernel, law and threads, with what was
+        registered through avflow.extend built in where the run uses it."""
+        loop = self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
                                  threads > 1 and self._kernel.name != "profile")
+        if self._kernel.backend != "cpu":
+            return loop
+        from avflow.numerics.variants import with_registered
+
+        return with_registered(loop, self._law_code)
 
     def describe_kernel(self) -> str:
         """What runs this solver, for the user: kernel, order, law, threads."""
         threads = 1 if self.threads is None else self.threads_used()
-        law = {"samosat": "samosAT", "velocity_weakening": "velocity-weakening"}.get(
-            Law(self.law).name.lower(), Law(self.law).name.title())
+        name = law_name(self.law)
+        law = {"samosat": "samosAT", "velocity_weakening": "velocity-weakening",
+               "coulomb": "Coulomb", "pouliquen": "Pouliquen", "voellmy": "Voellmy"}.get(
+            name, name)
         if self._kernel.backend == "cuda":
             return (f"the {self._kernel.name} kernel at order {self.order} with {law} "
                     "friction on the GPU")
@@ -493,6 +518,7 @@ class Solver:
             last_moved=np.full(n, np.nan),
             erodible=(self.source.erodible.copy() if self.source is not None
                       else np.zeros(0)),
+            maps=registered_maps(n),
         )
         self.reset_limits(state)
         state.stats[ST_DT_MIN] = np.inf

@@ -15,6 +15,7 @@ import numpy as np
 from avflow import __version__
 from avflow.terrain.raster import cf_grid_mapping
 from avflow.numerics.rheology import law_reference
+from avflow.scenario.extensions import REGISTERED_MAP
 from avflow.simulation.runner import FLAG_DRY, FLAG_FLOWING, FLAG_STOPPED
 
 SEED_REFERENCE = (
@@ -99,6 +100,19 @@ FIELDS = {
                 "deposition onto the bed). The bed elevation the run used was not changed "
                 "(bed_elevation is the initial bed); entrainment runs only"),
 }
+
+def registered_maps(state) -> dict:
+    """The maps registered through :mod:`avflow.extend` that ``state`` kept, by name:
+    ``(values per cell, CF attributes)``."""
+    from avflow.scenario.extensions import MAPS
+
+    if state.maps.shape[0] != len(MAPS):  # a state made before a map was registered
+        return {}
+    return {entry.name: (state.maps[k], {
+        "long_name": entry.long_name, "units": entry.units,
+        "cell_methods": f"{RUN}: {entry.cell_methods}", "comment": OVER_THE_RUN,
+        REGISTERED_MAP: "yes"}) for k, entry in enumerate(MAPS.values())}
+
 
 SUMMARIES = {
     "runout": ("m", "downslope end of the deposit (h > runout_threshold); along the bed "

@@ -11,7 +11,8 @@ import numpy as np
 import xarray as xr
 
 from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, grid_mapping,
-                              link_coordinates, per_width, run_bounds, time_coords)
+                              link_coordinates, per_width, registered_maps, run_bounds,
+                              time_coords)
 from avflow.output.fields import (cell_values, entrainment_variables, horizontal_basis,
                                   snapshot_fields)
 from avflow.output.ugrid import to_ugrid_dataset
@@ -198,6 +199,8 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         at_rest = (state.h > 0.0) & (state.hu == 0.0) & (state.hv == 0.0)
         data["rest_time"] = (space, grid(np.where(at_rest, state.last_moved, np.nan)),
                              attrs("rest_time"))
+        for name, (values, attributes) in registered_maps(state).items():
+            data[name] = (space, grid(values), attributes)
         com = np.asarray(snaps.center_of_mass, dtype=float)
         for k, axis in enumerate("xyz"):
             data[f"center_of_mass_{axis}"] = ("time", com[:, k],

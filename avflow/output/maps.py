@@ -28,11 +28,12 @@ from pathlib import Path
 import numpy as np
 
 from avflow.errors import AvflowError
+from avflow.scenario.extensions import REGISTERED_MAP
 
 __all__ = ["DEFAULT_EXPORT", "MapsError", "export_maps", "plot_run", "scene_kind",
            "pressure_classes", "pressure_class_map", "pressure_class_labels"]
 
-#: Maps exported when no ``--variables`` are given.
+#: Maps exported when no ``--variables`` are given (and every registered map of the file).
 DEFAULT_EXPORT = ("peak_thickness", "peak_speed", "peak_pressure", "peak_pressure_class",
                   "deposit_thickness", "arrival_time", "rest_time")
 #: Maps exported as well when the run has them (entrainment: the bed's change, the layer).
@@ -277,7 +278,10 @@ def _run_rasters(ds, path: Path, variables):
     """``(name, values, write_tif options)`` of the maps of a run file to export."""
     _need_grid(ds, path, "run")
     available = _map_names(ds)
-    names = [n for n in (variables or DEFAULT_EXPORT + EXPORT_IF_PRESENT)
+    # the maps a user registered (avflow.extend) go with the built-in ones
+    registered = tuple(n for n in available
+                       if n in ds.data_vars and ds[n].attrs.get(REGISTERED_MAP) == "yes")
+    names = [n for n in (variables or DEFAULT_EXPORT + EXPORT_IF_PRESENT + registered)
              if variables or n in available]  # files before a map existed: skip it
     unknown = [n for n in names if n not in available]
     if unknown:

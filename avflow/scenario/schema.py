@@ -648,8 +648,32 @@ class VelocityWeakening(_MapsChecked):
         return self
 
 
-Rheology = Annotated[Union[Coulomb, Pouliquen, Voellmy, SamosAT, VelocityWeakening],
-                     Field(discriminator="law")]
+#: The built-in laws; a law registered through avflow.extend joins them (:func:`add_law`)
+RHEOLOGY_MODELS: list[type[BaseModel]] = [Coulomb, Pouliquen, Voellmy, SamosAT,
+                                          VelocityWeakening]
+Rheology = Annotated[Union[tuple(RHEOLOGY_MODELS)], Field(discriminator="law")]
+
+
+def add_law(name: str, parameters: tuple[str, ...], bounds: dict, doc: str) -> None:
+    """A friction law registered through :mod:`avflow.extend` becomes a value of
+    ``rheology.law``: a block of its parameters (numbers, within ``bounds``), checked like
+    the built-in laws' (the scenario model is rebuilt with it)."""
+    from pydantic import create_model
+
+    fields: dict[str, Any] = {"law": (Literal[name], ...)}
+    for p in parameters:
+        lo, hi = bounds.get(p, (None, None))
+        kind = (_interval(lo, hi) if lo is not None or hi is not None
+                else Annotated[float, Field(strict=True, allow_inf_nan=False)])
+        fields[p] = (kind, ...)
+    model = create_model("".join(w.title() for w in name.split("_")), __base__=_Model,
+                         __doc__=doc.strip() or f"The friction law {name}.", **fields)
+    RHEOLOGY_MODELS.append(model)
+    info = FieldInfo.from_annotation(
+        Annotated[Union[tuple(RHEOLOGY_MODELS)], Field(discriminator="law")])
+    info.description = Scenario.model_fields["rheology"].description
+    Scenario.model_fields["rheology"] = info
+    Scenario.model_rebuild(force=True)
 
 # =========================================================================================
 # Entrainment and forest (issue 30; the laws are avflow.numerics.physics.source_rate)

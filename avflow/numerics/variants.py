@@ -1,0 +1,183 @@
+"""Kernels with what a user registered built in (:mod:`avflow.extend`): one mechanism, made
+on demand, checked.
+
+A compiled time loop calls its passes, and they the pointwise physics, by global name. A
+*variant* of a loop is a copy of it, and of every compiled function below it that reads one
+of the names being replaced (directly or through what it calls), with those names bound to
+new functions; everything that reads none of them is shared with the loop as it is.
+Each copy is named after a digest of what was put in (:func:`avflow.scenario.extensions.digest`),
+so Numba's cache keeps it beside the built-in kernels and a changed function is compiled
+afresh. Nothing is made at import: a variant is made the first time a run asks for it, and
+compiled for that run alone.
+
+Two names are replaced today, each a placeholder of the built-in kernels:
+
+- ``law_friction`` (:func:`avflow.numerics.rheology.law_friction`): the registered laws'
+  branches, then the built-in laws' (the loop that reads the law at run time is the root);
+- ``more_maps`` (:func:`avflow.numerics.observers.more_maps`): the registered maps, each
+  updated once per accepted step.
+
+A name no function below the root reads is refused (:class:`UnknownPlaceholder`): a
+misspelt name cannot leave the built-in one in place silently.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import types
+
+from numba import njit
+from numba.core.caching import NullCache
+from numba.core.registry import CPUDispatcher
+
+from avflow.numerics.vectorize import UnknownPlaceholder, noalias
+from avflow.scenario.extensions import FRICTION_LAWS, MAPS, digest
+
+#: variants made so far in this process, by (root, tag): a second run takes the same
+#: dispatchers (and their machine code), never new ones
+_MADE: dict = {}
+
+
+def _ours(value) -> bool:
+    return (isinstance(value, CPUDispatcher)
+            and (value.py_func.__module__ or "").startswith("avflow."))
+
+
+def _copy(dispatcher, names: dict, tag: str):
+    """``dispatcher``'s function with ``names`` over its globals, compiled with its options
+    (threads, inlining, reference counting, no-alias) under the name ``<name>_<tag>``."""
+    py = dispatcher.py_func
+    scope = dict(py.__globals__)
+    scope.update(names)
+    fn = types.FunctionType(py.__code__, scope, f"{py.__name__}_{tag}", py.__defaults__,
+                            py.__closure__)
+    fn.__qualname__ = f"{py.__qualname__}_{tag}"
+    fn.__module__, fn.__doc__ = py.__module__, py.__doc__
+    options = {k: v for k, v in dispatcher.targetoptions.items() if k != "nopython"}
+    copy = njit(cache=not isinstance(dispatcher._cache, NullCache), **options)(fn)
+    if "_customize_flags" in vars(getattr(dispatcher, "_compiler", None) or object()):
+        noalias(copy)
+    return copy
+
+
+def variant(root, tag: str, **replace):
+    """``root`` (a compiled function) with the globals ``replace`` bound anew in every
+    function below it that reads them (see the module's docstring)."""
+    key = (id(root), tag, tuple(sorted(replace)))
+    if key in _MADE:
+        return _MADE[key][1]
+    done: dict = {}
+    read: set = set()
+
+    def visit(dispatcher):
+        if id(dispatcher) in done:
+            return done[id(dispatcher)]
+        done[id(dispatcher)] = dispatcher  # (no cycles among kernels; guards anyway)
+        py = dispatcher.py_func
+        names = {}
+        for name in py.__code__.co_names:
+            if name in replace and name in py.__globals__:
+                names[name] = replace[name]
+                read.add(name)
+                continue
+            value = py.__globals__.get(name)
+            if _ours(value):
+                below = visit(value)
+                if below is not value:
+                    names[name] = below
+        made = _copy(dispatcher, names, tag) if names else dispatcher
+        done[id(dispatcher)] = made
+        return made
+
+    made = visit(root)
+    unread = sorted(set(replace) - read)
+    if unread:
+        raise UnknownPlaceholder(f"no function below {root.py_func.__qualname__} reads a "
+                                 f"global named {', '.join(unread)}: nothing to replace")
+    _MADE[key] = (root, made)  # (the root kept alive: its id stays its own)
+    return made
+
+
+# --- what replaces the placeholders ----------------------------------------------------------
+
+_LAW_SOURCE = '''
+def law_friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g):
+{branches}    return built_in(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g)
+'''
+
+_MAPS_SOURCE = '''
+def more_maps(maps, i, h, hu, hv, speed, t_new):
+{lines}    return None
+'''
+
+
+def _generated(source: str, name: str, scope: dict, decorate):
+    """The function ``name`` of ``source`` (a template filled in above), compiled by
+    ``decorate`` with ``scope`` as its globals."""
+    namespace = dict(scope)
+    exec(compile(source, f"<avflow {name}>", "exec"), namespace)
+    return decorate(namespace[name])
+
+
+def law_friction_with(laws, built_in, decorate):
+    """:func:`~avflow.numerics.rheology.law_friction` with the registered ``laws``' branches
+    before the built-in ones (``built_in``), each law's function compiled by ``decorate``."""
+    branches = ""
+    scope = {"built_in": built_in}
+    for law in laws:
+        args = ", ".join(f"p{k}" for k in range(len(law.parameters)))
+        branches += (f"    if law == {law.code}:\n        return law_{law.code}("
+                     f"{args}{', ' if args else ''}h, speed, normal_accel, g)\n")
+        scope[f"law_{law.code}"] = decorate(law.function)
+    return _generated(_LAW_SOURCE.format(branches=branches), "law_friction", scope, decorate)
+
+
+def more_maps_with(maps, decorate):
+    """:func:`~avflow.numerics.observers.more_maps` writing the registered ``maps`` (a row
+    of ``maps`` each, in their order), each map's function compiled by ``decorate``."""
+    lines = ""
+    scope = {}
+    for k, entry in enumerate(maps):
+        lines += f"    maps[{k}, i] = map_{k}(maps[{k}, i], h, hu, hv, speed, t_new)\n"
+        scope[f"map_{k}"] = decorate(entry.function)
+    return _generated(_MAPS_SOURCE.format(lines=lines), "more_maps", scope, decorate)
+
+
+def _inline(fn):
+    return njit(error_model="numpy", inline="always")(fn)
+
+
+def registered(law: int):
+    """What of the registry a run with the law ``law`` (its kernel code, PER_CELL included)
+    compiles in: ``(laws, maps)``, the registered law it runs (or none) and every registered
+    map."""
+    from avflow.numerics.rheology import PER_CELL
+
+    base = law - PER_CELL if law >= PER_CELL else law
+    laws = tuple(entry for entry in FRICTION_LAWS.values() if entry.code == base)
+    return laws, tuple(MAPS.values())
+
+
+def tag_of(laws, maps) -> str:
+    """The suffix of the copies made with ``laws`` and ``maps``: a digest of their names,
+    codes and functions' code."""
+    names = repr([(e.name, getattr(e, "code", None)) for e in (*laws, *maps)])
+    functions = digest([e.function for e in (*laws, *maps)])
+    return "x" + hashlib.sha256((names + functions).encode()).hexdigest()[:12]
+
+
+def with_registered(loop, law: int):
+    """The time loop ``loop`` (a compiled :func:`avflow.numerics.loop.advance` copy) with the
+    registered law of ``law`` and the registered maps built in; ``loop`` itself where the run
+    uses none of them."""
+    laws, maps = registered(law)
+    if not laws and not maps:
+        return loop
+    from avflow.numerics import rheology
+
+    replace = {}
+    if laws:
+        replace["law_friction"] = law_friction_with(laws, rheology.law_friction, _inline)
+    if maps:
+        replace["more_maps"] = more_maps_with(maps, _inline)
+    return variant(loop, tag_of(laws, maps), **replace)

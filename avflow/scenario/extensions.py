@@ -1,0 +1,211 @@
+"""What a user adds to avflow without editing it: friction laws, mass sources and output maps,
+each a plain Python function of scalars registered by name (the public API is
+:mod:`avflow.extend`).
+
+This module only keeps the registry (it sits below every stage, so the scenario schema, the
+numerics and the output all read it). The numerics compile what is registered into the
+kernels a run needs (:mod:`avflow.numerics.variants`); the scenario schema accepts a
+registered law by its name (:func:`avflow.scenario.schema.add_law`); the output writes a
+registered map with its CF attributes.
+
+Registration must come before the first run that uses it, in the same process; a name is
+registered once (a second registration of the same name is refused, so two plug-ins cannot
+silently replace each other).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import types
+from dataclasses import dataclass
+from typing import Callable
+
+#: Codes of registered friction laws: after the built-in ones, below the flag the kernels add
+#: for parameters per cell (numerics.rheology.PER_CELL = 16)
+FIRST_LAW_CODE = 6
+LAST_LAW_CODE = 15
+#: Parameter slots a registered law may use (the last of the kernels' 8 is the forest's)
+MAX_LAW_PARAMETERS = 7
+#: Parameters a registered source may take
+MAX_SOURCE_PARAMETERS = 4
+
+
+class ExtensionError(ValueError):
+    """A registration that cannot be accepted (one line: what and why)."""
+
+
+@dataclass(frozen=True)
+class FrictionLaw:
+    """A registered friction law: ``function(*parameters, h, speed, normal_accel, g)`` returns
+    ``(tau, drag)`` as the built-in laws do (numerics.rheology: ``tau`` the Coulomb-type
+    threshold over the density, m^2/s^2; ``drag`` an implicit rate, 1/s)."""
+
+    name: str
+    function: Callable
+    parameters: tuple[str, ...]
+    bounds: dict
+    reference: str
+    code: int
+
+
+@dataclass(frozen=True)
+class OutputMap:
+    """A registered running map: ``function(old, h, hu, hv, speed, t)`` returns the cell's
+    new value after each accepted step (``old``: its value so far, ``initial`` at the start)."""
+
+    name: str
+    function: Callable
+    units: str
+    long_name: str
+    cell_methods: str
+    initial: float
+
+
+@dataclass(frozen=True)
+class Source:
+    """A registered mass source: ``function(*parameters, h, speed, t)`` returns the rate
+    (m/s of flow thickness) it adds to a cell with ``weight > 0`` (dry cells included),
+    times that cell's weight (0..1: the share of the cell inside the source's area)."""
+
+    name: str
+    function: Callable
+    parameters: tuple[str, ...]
+    reference: str
+    index: int
+
+
+#: The attribute that marks a registered map in a run's file (export takes such maps too)
+REGISTERED_MAP = "avflow_registered_map"
+
+FRICTION_LAWS: dict[str, FrictionLaw] = {}
+MAPS: dict[str, OutputMap] = {}
+SOURCES: dict[str, Source] = {}
+
+BUILT_IN_LAWS = ("coulomb", "pouliquen", "voellmy", "samosat", "velocity_weakening")
+#: Names the output already uses (a map may not take one of them)
+BUILT_IN_FIELDS = ("h", "hu", "hv", "u", "v", "speed", "flag", "peak_h", "peak_speed",
+                   "peak_pressure", "arrival_time", "rest_time", "deposit", "erodible",
+                   "forest", "entrained", "x", "y", "time", "mask", "dem", "flow_thickness")
+
+
+def _check_name(name: str, kind: str) -> None:
+    if not (isinstance(name, str) and name.isidentifier() and name == name.lower()):
+        raise ExtensionError(f"a {kind} name must be a lower-case identifier, got {name!r}")
+
+
+def _check_function(function: Callable, kind: str, n_args: int) -> None:
+    if not isinstance(function, types.FunctionType):
+        raise ExtensionError(f"a {kind} is a plain Python function, got {function!r}")
+    taken = function.__code__.co_argcount
+    if taken != n_args:
+        raise ExtensionError(f"the {kind} {function.__name__} takes {taken} arguments; it "
+                             f"must take {n_args}")
+
+
+def register_friction_law(name: str, function: Callable, parameters, reference: str,
+                          bounds: dict | None = None) -> FrictionLaw:
+    """Register ``function`` as the friction law ``name`` (see :class:`FrictionLaw`);
+    ``parameters``: its parameters' names, in the order the function takes them (at most
+    7); ``bounds``: ``{parameter: (lo, hi)}``, checked when a scenario is read."""
+    _check_name(name, "friction law")
+    if name in BUILT_IN_LAWS or name in FRICTION_LAWS:
+        raise ExtensionError(f"a friction law named {name!r} exists already")
+    parameters = tuple(parameters)
+    if len(parameters) > MAX_LAW_PARAMETERS:
+        raise ExtensionError(f"a friction law takes at most {MAX_LAW_PARAMETERS} parameters, "
+                             f"{name} has {len(parameters)}")
+    for p in parameters:
+        _check_name(p, "parameter")
+        if p == "law":
+            raise ExtensionError("a parameter may not be called 'law'")
+    _check_function(function, "friction law", len(parameters) + 4)
+    code = FIRST_LAW_CODE + len(FRICTION_LAWS)
+    if code > LAST_LAW_CODE:
+        raise ExtensionError(f"at most {LAST_LAW_CODE - FIRST_LAW_CODE + 1} friction laws "
+                             "can be registered")
+    bounds = dict(bounds or {})
+    unknown = sorted(set(bounds) - set(parameters))
+    if unknown:
+        raise ExtensionError(f"bounds given for {', '.join(unknown)}, not a parameter of {name}")
+    law = FrictionLaw(name, function, parameters, bounds, str(reference), code)
+    from avflow.scenario.schema import add_law
+
+    add_law(name, parameters, bounds, function.__doc__ or "")
+    FRICTION_LAWS[name] = law
+    return law
+
+
+def register_map(name: str, function: Callable, units: str, long_name: str,
+                 cell_methods: str = "maximum", initial: float = 0.0) -> OutputMap:
+    """Register ``function`` as the running map ``name`` (see :class:`OutputMap`), written to
+    every run's file with these CF attributes and exported like the built-in maps;
+    ``cell_methods``: how it sums up the run (CF 7.3: ``maximum``, ``minimum``, ``sum``,
+    ``mean`` or ``point``)."""
+    _check_name(name, "map")
+    if name in BUILT_IN_FIELDS or name in MAPS:
+        raise ExtensionError(f"a map named {name!r} exists already")
+    _check_function(function, "map", 6)
+    if cell_methods not in ("maximum", "minimum", "sum", "mean", "point"):
+        raise ExtensionError(f"cell_methods of {name} must be maximum, minimum, sum, mean or "
+                             f"point, got {cell_methods!r}")
+    if not isinstance(initial, (int, float)) or isinstance(initial, bool):
+        raise ExtensionError(f"the initial value of {name} must be a number, got {initial!r}")
+    entry = OutputMap(name, function, str(units), str(long_name), str(cell_methods),
+                      float(initial))
+    MAPS[name] = entry
+    return entry
+
+
+def register_source(name: str, function: Callable, parameters, reference: str) -> Source:
+    """Register ``function`` as the mass source ``name`` (see :class:`Source`)."""
+    _check_name(name, "source")
+    if name in SOURCES:
+        raise ExtensionError(f"a source named {name!r} exists already")
+    parameters = tuple(parameters)
+    if len(parameters) > MAX_SOURCE_PARAMETERS:
+        raise ExtensionError(f"a source takes at most {MAX_SOURCE_PARAMETERS} parameters, "
+                             f"{name} has {len(parameters)}")
+    _check_function(function, "source", len(parameters) + 3)
+    entry = Source(name, function, parameters, str(reference), len(SOURCES))
+    SOURCES[name] = entry
+    return entry
+
+
+def law_by_code(code: int) -> FrictionLaw | None:
+    """The registered law of a kernel code (None: a built-in code)."""
+    return next((law for law in FRICTION_LAWS.values() if law.code == code), None)
+
+
+def _code_digest(digest, code: types.CodeType) -> None:
+    """What a function's compiled form depends on: its byte code, names and constants (the
+    nested functions' too), not where it was written."""
+    digest.update(code.co_code)
+    digest.update(repr(code.co_names).encode())
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            _code_digest(digest, const)
+        else:
+            digest.update(repr(const).encode())
+
+
+def digest(functions) -> str:
+    """A short digest of ``functions``' code (:func:`_code_digest`) and of the globals they
+    read that are numbers: the name of a kernel compiled with them, so that a changed
+    function is compiled afresh, never taken from the cache of its old form."""
+    h = hashlib.sha256()
+    for fn in functions:
+        h.update(fn.__name__.encode())
+        _code_digest(h, fn.__code__)
+        for name in fn.__code__.co_names:
+            value = fn.__globals__.get(name)
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                h.update(f"{name}={value!r}".encode())
+            elif isinstance(value, types.FunctionType):
+                h.update(name.encode())
+                _code_digest(h, value.__code__)
+    return h.hexdigest()[:12]
+
+
+__all__ = ["ExtensionError", "FrictionLaw", "OutputMap", "Source", "FRICTION_LAWS", "MAPS",
+           "SOURCES", "register_friction_law", "register_map", "register_source",
+           "law_by_code", "digest"]
