@@ -114,13 +114,17 @@ def moving_share(ds) -> str:
 
 def _entrained_note(ds) -> str:
     """`` (released 1.2e+04 + entrained 3.4e+03 = on the map 1.5e+04 + out 0 m3)``: the
-    balance of a run with entrainment; nothing for the others."""
-    if "entrainment_law" not in ds.attrs or "entrained_volume" not in ds:
+    balance of a run with entrainment or registered sources (``+ supplied ...``); nothing
+    for the others."""
+    supplied = "supplied_volume" in ds
+    if not supplied and ("entrainment_law" not in ds.attrs or "entrained_volume" not in ds):
         return ""
     units = ds["release_volume"].attrs.get("units", "m3")
     v = {name: float(ds[name]) for name in ("release_volume", "entrained_volume",
                                             "deposit_volume", "outflow_volume")}
-    return (f" (released {v['release_volume']:.4g} + entrained {v['entrained_volume']:.4g}"
+    added = (f" + entrained {v['entrained_volume']:.4g}" if "entrainment_law" in ds.attrs
+             else "") + (f" + supplied {float(ds['supplied_volume']):.4g}" if supplied else "")
+    return (f" (released {v['release_volume']:.4g}{added}"
             f" = on the map {v['deposit_volume']:.4g} + out {v['outflow_volume']:.4g} "
             f"{units})")
 

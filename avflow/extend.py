@@ -1,4 +1,4 @@
-"""Add a friction law or an output map to avflow without editing it.
+"""Add a friction law, a mass source or an output map to avflow without editing it.
 
 Each is a plain Python function of scalars, registered by name before the first run that uses
 it, in the same process. avflow compiles it into the kernels a run needs (the profile, the
@@ -35,16 +35,30 @@ is updated on every cell the flow reaches, once per accepted step, and written t
 run's file with its CF attributes (``cell_methods: duration: maximum``), and by
 ``avflow export`` with the built-in maps.
 
-Limits: at most 10 friction laws, of at most 7 parameters each (numbers, not maps); the
-functions are compiled by Numba (nopython mode: numbers, ``math``, no Python objects).
-A mass source registered this way is not available yet.
+A mass source::
+
+    @extend.source("snowfall", parameters=("rate",), reference="snowfall at a constant rate")
+    def snowfall(rate, h, speed, t):
+        return rate
+
+returns the rate (m/s of flow thickness) it adds to each cell of its area, wet or dry, once
+per accepted step after the seed's step (a rate below 0 adds nothing); what lands comes with
+no momentum along the bed. A scenario lists it under ``sources``, with where it falls:
+``sources: [{law: snowfall, rate: 1.0e-4, polygon: area.geojson}]`` (or ``raster:`` a mask,
+or ``x: [xmin, xmax]`` and ``y: [ymin, ymax]``). Several sources may run at once, and with
+entrainment; the mass balance and the summary count what they added (``supplied_volume``).
+
+Limits: at most 10 friction laws, of at most 7 parameters each, and sources of at most 4
+(numbers, not maps); the functions are compiled by Numba (nopython mode: numbers, ``math``,
+no Python objects).
 """
 
 from __future__ import annotations
 
-from avflow.scenario.extensions import ExtensionError, register_friction_law, register_map
+from avflow.scenario.extensions import (ExtensionError, register_friction_law, register_map,
+                                        register_source)
 
-__all__ = ["ExtensionError", "friction_law", "output_map"]
+__all__ = ["ExtensionError", "friction_law", "output_map", "source"]
 
 
 def friction_law(name: str, *, parameters=(), reference: str, bounds: dict | None = None):
@@ -55,6 +69,18 @@ def friction_law(name: str, *, parameters=(), reference: str, bounds: dict | Non
 
     def register(function):
         register_friction_law(name, function, parameters, reference, bounds)
+        return function
+
+    return register
+
+
+def source(name: str, *, parameters=(), reference: str):
+    """Register the decorated function as the mass source ``name`` (see the module's
+    docstring): ``function(*parameters, h, speed, t)`` returns a rate in m/s of flow
+    thickness (below 0: nothing)."""
+
+    def register(function):
+        register_source(name, function, parameters, reference)
         return function
 
     return register

@@ -1,8 +1,8 @@
 """The public extension API (``avflow.extend``), used from outside the package: a friction law
-(a constant plus a term linear in speed) and an output map (peak momentum |h u|), defined
-here, registered through the API, run on the profile, the square-grid and the face kernels
-(and on the CUDA simulator where numba-cuda is installed), with nothing under ``avflow/``
-edited.
+(a constant plus a term linear in speed), a mass source (snowfall: a rate in m/s over a
+polygon, dry cells included) and an output map (peak momentum |h u|), defined here,
+registered through the API, run on the profile, the square-grid and the face kernels (and on
+the CUDA simulator where numba-cuda is installed), with nothing under ``avflow/`` edited.
 
 Registration changes the process for good (every later run writes the map), so the cases
 run in a child process: this file run as a script (``python tests/test_extension_api.py
@@ -39,6 +39,11 @@ def peak_momentum(old, h, hu, hv, speed, t):
     return momentum if momentum > old else old
 
 
+def snowfall(rate, h, speed, t):
+    """Snow falling at a constant rate (m/s of flow thickness), on snow and on bare ground."""
+    return rate
+
+
 def register():
     from avflow import extend
 
@@ -47,6 +52,8 @@ def register():
                         bounds={"mu": (0.0, 5.0), "k": (0.0, 1.0)})(linear_speed)
     extend.output_map("peak_momentum", units="m2 s-1",
                       long_name="maximum momentum per unit width |h u|")(peak_momentum)
+    extend.source("snowfall", parameters=("rate",),
+                  reference="a test source: snowfall at a constant rate")(snowfall)
 
 
 # --- the scenes ---------------------------------------------------------------------------------
@@ -147,6 +154,72 @@ def case_files(folder: str) -> dict:
             "tif_max": float(band.max()), "nc_max": float(np.nanmax(values))}
 
 
+RATE = 2.0e-3  # m/s: 24 mm over the plane's 12 s
+
+
+def _polygon(folder: Path) -> Path:
+    """A GeoJSON square over x 240..340, y 60..180 of the plane (away from the release)."""
+    ring = [[240.0, 60.0], [340.0, 60.0], [340.0, 180.0], [240.0, 60.0 + 120.0],
+            [240.0, 60.0]]
+    path = folder / "snow.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {},
+         "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+    return path
+
+
+def case_sources(folder: str) -> dict:
+    """Snowfall alone and with entrainment, on each kernel: its volume against rate x area x
+    time, the mass balance, snow on cells the flow never reached, the summary line."""
+    import contextlib
+    import io
+
+    import numpy as np
+
+    from avflow.cli import main
+    from avflow.scenario.schema import parse_scenario
+    from avflow.simulation.runner import simulate
+
+    snow = _polygon(Path(folder))
+    where = {"profile": "x: [300.0, 450.0]", "grid": f"polygon: {snow}",
+             "faces": f"polygon: {snow}"}
+    layer = {"profile": "{depth: 0.5, x: [0.0, 400.0]}",
+             "grid": "{depth: 0.5, x: [0.0, 250.0]}", "faces": "{depth: 0.5, x: [0.0, 250.0]}"}
+    out = {}
+    for kernel, (text, choice) in SCENES.items():
+        for with_entrainment in (False, True):
+            extra = (_rheology("coulomb")
+                     + f"numerics: {{kernel: {choice}, threads: 1}}\n"
+                     + f"sources: [{{law: snowfall, rate: {RATE!r}, {where[kernel]}}}]\n")
+            if with_entrainment:
+                extra += ("entrainment: {law: exponential, growth_rate: 0.002, u_min: 0.0, "
+                          f"layer: {layer[kernel]}}}\n")
+            result = simulate(parse_scenario(text + extra, base_dir=folder))
+            state, solver = result.state, result.solver
+            covered = solver.sources[0].weight > 0.0
+            area = math.fsum(solver.terrain.mesh.cell_area[covered])
+            reached_by_flow = state.peak_h > 0.0
+            s = result.summary
+            out[f"{kernel}-{'both' if with_entrainment else 'snow'}"] = {
+                "supplied": s["supplied_volume"], "expected": RATE * state.t * area,
+                "entrained": s["entrained_volume"], "balance": s["mass_balance_error"],
+                "stat": state.statistics.supplied_volume,
+                "covered": int(covered.sum()),
+                "dry_cells_snowed": int(np.count_nonzero(covered & (result.h0 == 0.0)
+                                                         & (state.h > 0.0))),
+                "covered_and_released": int(np.count_nonzero(covered & (result.h0 > 0.0))),
+            }
+    # the summary line of ``avflow run``
+    yaml = Path(folder) / "snow.yaml"
+    yaml.write_text(PLANE + _rheology("coulomb")
+                    + f"sources: [{{law: snowfall, rate: {RATE!r}, polygon: {snow}}}]\n")
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        code = main(["run", str(yaml), "-o", str(Path(folder) / "snow.nc")])
+    out["cli"] = {"code": code, "stdout": buffer.getvalue()}
+    return out
+
+
 def case_cuda() -> dict:
     """On the CUDA simulator: the law and the map against the CPU grid kernel."""
     out = {}
@@ -217,6 +290,33 @@ def test_the_map_is_in_the_file_with_cf_attributes_and_exported(tmp_path):
     assert report["tif_max"] == pytest.approx(report["nc_max"], rel=1e-6)  # float32 GeoTIFF
 
 
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory):
+    return _child("sources", str(tmp_path_factory.mktemp("sources")))
+
+
+@pytest.mark.parametrize("kernel", list(SCENES))
+@pytest.mark.parametrize("together", ["snow", "both"])
+def test_the_source_adds_its_rate_times_area_and_time_and_the_balance_holds(sources, kernel,
+                                                                          together):
+    """Snowfall alone, and with entrainment: what the sources added is rate x area x time
+    (1e-12), the books close to 1e-12, and snow lies on cells the flow never reached."""
+    report = sources[f"{kernel}-{together}"]
+    assert report["covered"] > 0 and report["covered_and_released"] == 0
+    assert report["supplied"] == pytest.approx(report["expected"], rel=1e-12)
+    assert report["stat"] == pytest.approx(report["supplied"], rel=1e-12)
+    assert report["balance"] <= 1e-12
+    assert report["dry_cells_snowed"] == report["covered"]
+    if together == "both":
+        assert report["entrained"] > 0.0
+
+
+def test_the_summary_line_counts_what_the_source_added(sources):
+    report = sources["cli"]
+    assert report["code"] == 0
+    assert "+ supplied" in report["stdout"], report["stdout"]
+
+
 @pytest.mark.skipif(importlib.util.find_spec("numba_cuda") is None,
                     reason="numba-cuda is not installed (pip install 'avflow[cuda]'); the "
                     "GPU backend's tests need its simulator")
@@ -235,6 +335,8 @@ if __name__ == "__main__":
         report = case_kernels()
     elif case == "files":
         report = case_files(sys.argv[2])
+    elif case == "sources":
+        report = case_sources(sys.argv[2])
     else:
         report = case_cuda()
     print(json.dumps(report))

@@ -148,3 +148,25 @@ def test_a_command_run_in_process_stops_announcing_when_it_ends(capsys, tmp_path
     capsys.readouterr()
     four_times(1.0)
     assert "avflow: compiling" not in capsys.readouterr().err
+
+
+def test_the_schema_and_the_command_line_offer_the_registered_backends_and_kernels():
+    """``numerics.backend`` / ``--backend`` and ``numerics.kernel`` list what the registry
+    runs (the scenario schema sits below the numerics and the command line starts without
+    Numba, so each keeps its list, held to the registry here)."""
+    import argparse
+    import typing
+
+    from avflow.cli import build_parser
+    from avflow.numerics import registry
+    from avflow.scenario.schema import Numerics
+
+    assert typing.get_args(Numerics.model_fields["backend"].annotation) == registry.BACKENDS
+    assert typing.get_args(Numerics.model_fields["kernel"].annotation) == registry.CHOICES
+    found = []
+    for action in build_parser()._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                found += [tuple(a.choices) for a in sub._actions
+                          if "--backend" in a.option_strings]
+    assert found and all(choices == registry.BACKENDS for choices in found)

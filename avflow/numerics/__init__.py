@@ -131,9 +131,11 @@ def _shared_locator(folder: Path):
     return SharedLocator
 
 
-def _import_kernels() -> None:
-    """Put :func:`_shared_locator` first among Numba's cache locators (where a dispatcher
-    caches is fixed when it is decorated), then import the kernel modules."""
+def _install_cache() -> None:
+    """Put :func:`_shared_locator` first among Numba's cache locators. Where a dispatcher
+    caches is fixed when it is decorated, and every kernel module lies in this package, so
+    this runs before any of them is imported; nothing else is imported here (a command
+    loads the kernels it runs, when it runs them)."""
     from numba.core import caching
 
     try:
@@ -145,8 +147,6 @@ def _import_kernels() -> None:
     locators = caching.CacheImpl._locator_classes
     if folder is not None and not any(c.__name__ == "SharedLocator" for c in locators):
         locators.insert(0, _shared_locator(folder))
-    from avflow.numerics import (cpu, kernels, reconstruction,  # noqa: F401
-                                 rheology, square_grid, timeloop)
 
 
-_import_kernels()
+_install_cache()

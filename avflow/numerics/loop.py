@@ -1,5 +1,5 @@
 """The one time loop of every kernel (issue 27): step size (eq. 41, cut to land on an
-output time), retry by halving, the mass source, the stop rules and the statistics.
+output time), retry by halving, the mass sources, the stop rules and the statistics.
 
 What differs between kernels is only how they find and walk the cells a step touches, their
 *region*: the face kernel keeps lists of active faces and cells (:mod:`avflow.numerics.timeloop`),
@@ -33,8 +33,9 @@ from collections import namedtuple
 from avflow.numerics.cpu import SOURCE_NONE, dt_from_inverse
 from avflow.numerics.sources import SRC_KIND
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FALLBACK,
-                                      ST_RETRIES, ST_TIME, Conserved, StepTime, record_step,
-                                      step_size)
+                                      ST_RETRIES, ST_SUPPLY, ST_TIME, Conserved, StepTime,
+                                      record_step, step_size)
+from avflow.numerics.supply import supply_cells
 
 #: What a call of the loop runs on: the kernel's mesh, the fields (state, observers,
 #: ``stats``), its work buffers, the physics, the run's control, and the kernel's own extra
@@ -80,7 +81,15 @@ def advance(mesh, fields, work, physics, run, extra):
             break
         if source[SRC_KIND] != SOURCE_NONE:  # the source hook, once per accepted step
             lim = min(lim, dt_from_inverse(region_source(region, ctx, loop, nxt, when)))
-        region_observe(region, ctx, loop, nxt, when)  # the accepted state, source included
+        supply = physics.supply
+        if supply.cells.size:  # registered sources: their cells are in every step's region
+            added, inv = supply_cells(supply.cells, supply.weights, supply.params, nxt.h,
+                                      nxt.hu, nxt.hv, fields.supplied, mesh.cell_area,
+                                      mesh.cfl_factor, mesh.gamma_z, physics.g, when.dt,
+                                      when.t_new)
+            stats[ST_SUPPLY] += added
+            lim = min(lim, dt_from_inverse(inv))
+        region_observe(region, ctx, loop, nxt, when)  # the accepted state, sources included
         t = t_target if last else t + dt
         steps += 1
         region = region_after(region, ctx, loop, nxt)

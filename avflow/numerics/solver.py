@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from avflow.numerics import face_gather, face_sweep, kernels, registry, stepping
+from avflow.numerics import face_gather, face_sweep, kernels, registry, stepping, supply
 from avflow.numerics.sources import MassSource, no_source
 from avflow.numerics.physics import DRY, UNDER_THRESHOLD
 from avflow.numerics.stepping import (ST_DT_LIMIT, ST_DT_MIN, ST_STEPS, ST_TIME, FaceMesh,
@@ -52,6 +52,8 @@ class State:
     erodible: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: the registered maps (avflow.numerics.extend), a row each (none: no rows)
     maps: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: what the registered sources added, m of flow thickness per cell (empty: none)
+    supplied: np.ndarray = field(default_factory=lambda: np.zeros(0))
     stats: np.ndarray = field(default_factory=lambda: np.zeros(stepping.N_STATS))
 
     @property
@@ -195,6 +197,9 @@ class Solver:
     #: forest: the resistance coefficient ``c_f`` per cell (drag ``c_f |u|^2``, AvaFrame's
     #: resistance areas; 0 outside forest), or None
     forest: np.ndarray | None = None
+    #: sources registered through avflow.extend, over their areas
+    #: (:class:`~avflow.numerics.supply.AreaSource`): mass added on wet and dry cells
+    sources: tuple = ()
 
     def __post_init__(self):
         if self.order not in (1, 2):
@@ -212,6 +217,8 @@ class Solver:
             raise ValueError(f"the erodible layer has {self.source.erodible.size} cells, the "
                              f"mesh {n}")
         self._source = no_source()[1] if self.source is None else self.source.vector()
+        self.sources = tuple(self.sources)
+        self._supply = supply.pack(self.sources, n)
         self._grid = None
         self._released = False
         self._auto = None  # ThreadChoice of threads None
@@ -322,6 +329,9 @@ class Solver:
         """Arrays of the square-grid kernel: per-cell factors on the full grid, face fluxes
         by place, work buffers. The face kernel's face buffers are not allocated."""
         self._grid = layout
+        # the registered sources' cells by place on the full grid, and their rows' columns
+        self._supply = supply.pack(self.sources, self.terrain.mesh.n_cells, layout.place,
+                                   layout.nx, layout.nx * layout.ny)
         from avflow.numerics.square_grid import MIN_BLOCK_ROWS, MIN_PARALLEL_CELLS
 
         #: (cells, rows per block) from which a step runs on threads (tests lower them)
@@ -363,7 +373,8 @@ class Solver:
     def _grid_fields(self) -> tuple:
         """The State arrays the square-grid kernel reads and writes."""
         return (("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved")
-                + (("erodible",) if self.source is not None else ()))
+                + (("erodible",) if self.source is not None else ())
+                + (("supplied",) if self.sources else ()))
 
     @property
     def kernel_used(self) -> str:
@@ -484,7 +495,7 @@ class Solver:
             return loop
         from avflow.numerics.variants import with_registered
 
-        return with_registered(loop, self._law_code)
+        return with_registered(loop, self._law_code, self.sources)
 
     def describe_kernel(self) -> str:
         """What runs this solver, for the user: kernel, order, law, threads."""
@@ -519,6 +530,7 @@ class Solver:
             erodible=(self.source.erodible.copy() if self.source is not None
                       else np.zeros(0)),
             maps=registered_maps(n),
+            supplied=np.zeros(n if self.sources else 0),
         )
         self.reset_limits(state)
         state.stats[ST_DT_MIN] = np.inf
@@ -535,6 +547,12 @@ class Solver:
         exact sum, and the sum then costs the flow, not the map."""
         held = np.flatnonzero(state.h)
         return math.fsum(state.h[held] * self.terrain.mesh.cell_area[held])
+
+    def supplied_volume(self, state: State) -> float:
+        """Volume the registered sources have added so far (m^3; m^2 on a profile), from
+        their book per cell."""
+        held = np.flatnonzero(state.supplied)
+        return math.fsum(state.supplied[held] * self.terrain.mesh.cell_area[held])
 
     def entrained_volume(self, state: State) -> float:
         """Volume the source has added to the flow so far (m^3; m^2 on a profile), read from
@@ -644,7 +662,7 @@ class Solver:
         """The friction law, gravity, the Dirac flux, the thresholds and the source."""
         return stepping.Physics(self._law_code, self._rows, float(self.gravity),
                                 bool(self.dirac), float(self.h_dry), float(self.h_zero),
-                                self._source)
+                                self._source, self._supply)
 
     def _control(self, t_target, max_steps, stop_volume, stop_kinetic, parallel_cells,
                  block_rows) -> stepping.Control:

@@ -1320,6 +1320,7 @@ def _grid_start(loop):
             if h[r * nx + c] > h_zero:
                 wet_lo[r] = min(wet_lo[r], c)
                 wet_hi[r] = max(wet_hi[r], c)
+    _with_supply(loop.physics.supply, wet_lo, wet_hi, 0, ny - 1)
     m2 = ny if ORDER2 else 0  # order 2's second band
     reg = Region2(_columns(m2, nx), _columns(m2, -1), _columns(m2, nx), _columns(m2, -1),
                   _columns(m2, nx), _columns(m2, -1))
@@ -1391,6 +1392,20 @@ def _grid_observe(region, ctx, loop, nxt, when):
                      f.peak_speed, f.arrival, f.last_moved, f.maps, when.t_new, h_dry)
 
 
+@njit(error_model="numpy", cache=True)
+def _with_supply(supply, wet_lo, wet_hi, band0, band1):
+    """The registered sources' cells counted as wet, whether they are or not (so that every
+    step sweeps them: mass lands there, numerics.supply). Returns the band of rows
+    ``band0 .. band1`` widened to their rows."""
+    for r in range(supply.row_lo.size):
+        if supply.row_lo[r] <= supply.row_hi[r]:
+            wet_lo[r] = min(wet_lo[r], supply.row_lo[r])
+            wet_hi[r] = max(wet_hi[r], supply.row_hi[r])
+            band0 = min(band0, r)
+            band1 = max(band1, r)
+    return band0, band1
+
+
 def _grid_after(region, ctx, loop, nxt):
     """What the step needed is what the next one compares against (order 2: both stages'),
     and the rows it swept last are the next step's band."""
@@ -1404,7 +1419,9 @@ def _grid_after(region, ctx, loop, nxt):
             known = band0 - 1 <= r <= band1 + 1
             c.prev_lo[r] = min(c.prev_lo[r], c.reg.need2_lo[r]) if known else c.reg.need2_lo[r]
             c.prev_hi[r] = max(c.prev_hi[r], c.reg.need2_hi[r]) if known else c.reg.need2_hi[r]
-    return GridRegion(r0, r1, region.q0, region.q1, region.q0, region.q1)
+    band0, band1 = _with_supply(loop.physics.supply, c.wet_lo, c.wet_hi, region.q0,
+                                region.q1)
+    return GridRegion(r0, r1, region.q0, region.q1, band0, band1)
 
 
 def _grid_end(region, ctx, loop, cur, t, steps):

@@ -11,12 +11,14 @@ from numba import njit
 
 #: What every time loop takes by name (Numba types named tuples of arrays and scalars):
 #: the state and observers of a run, changed in place (``stats``: the ``ST_*`` slots;
-#: ``maps``: the registered maps, a row each, :mod:`avflow.numerics.observers`)
+#: ``maps``: the registered maps, a row each, :mod:`avflow.numerics.observers`;
+#: ``supplied``: what the registered sources added per cell, :mod:`avflow.numerics.supply`)
 Fields = namedtuple("Fields", "h hu hv flag peak_h peak_speed arrival last_moved erodible "
-                    "maps stats")
+                    "maps supplied stats")
 #: the physics: friction law and its parameters (numerics.rheology), gravity, the Dirac
-#: flux on or off, the dry and zero thresholds, the mass source (numerics.sources)
-Physics = namedtuple("Physics", "law params g dirac h_dry h_zero source")
+#: flux on or off, the dry and zero thresholds, the mass source (numerics.sources) and the
+#: registered sources (numerics.supply)
+Physics = namedtuple("Physics", "law params g dirac h_dry h_zero source supply")
 #: how far and how to run: CFL number, target time, step budget, stop rules, order 2's
 #: limiter, and the least cells (and grid rows per block) of a step on threads
 Control = namedtuple("Control", "cfl t_target max_steps stop_volume stop_kinetic limiter "
@@ -82,7 +84,8 @@ ST_KINETIC = 10  #: kinetic energy / density, sum of h A |u|^2 / 2 (m^5 s^-2), a
 ST_KINETIC_PEAK = 11  #: its largest value so far
 ST_FALLBACK = 12  #: cumulative count of cell-steps where order 2 fell back to order 1
 ST_SOURCE = 13  #: cumulative volume the mass source added (numerics.sources)
-N_STATS = 14
+ST_SUPPLY = 14  #: cumulative volume the registered sources added (numerics.supply)
+N_STATS = 15
 
 
 @njit(error_model="numpy", cache=True)
@@ -169,5 +172,7 @@ class Statistics:
     kinetic = _slot(ST_KINETIC, "kinetic energy / density after the last step, m^5 s^-2")
     kinetic_peak = _slot(ST_KINETIC_PEAK, "largest kinetic energy / density, m^5 s^-2")
     order2_fallbacks = _slot(ST_FALLBACK, "cell-steps where order 2 fell back to order 1")
+    supplied_volume = _slot(ST_SUPPLY, "volume the registered sources added, m^3 (as counted "
+                            "by the steps; the balance reads their book per cell)")
     source_volume = _slot(ST_SOURCE, "volume the mass source added, m^3 (as counted by the "
                           "steps; the balance reads the erodible layer itself)")

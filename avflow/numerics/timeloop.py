@@ -76,9 +76,11 @@ def sync_fresh(fresh, n_fresh, call, cell_sync, synced, n_synced, fields, work):
 
 
 @njit(error_model="numpy", cache=True)
-def wet_after(changed, n_changed, h, h_zero, wet, wet_last, n_wet, gained, lost, order2):
+def wet_after(changed, n_changed, h, h_zero, wet, wet_last, n_wet, gained, lost, order2,
+              supplied):
     """The wet cells after a step into ``wet``, in index order: only the ``changed`` cells
-    (sorted) can be wet. At order 1 (not ``order2``) also those that became wet
+    (sorted) can be wet; a cell a registered source covers (``supplied``, a mask; empty
+    without sources) counts as wet, so the lists keep it (mass lands there). At order 1 (not ``order2``) also those that became wet
     (``gained``) or dry (``lost``) against the last step's ``n_wet`` cells (``wet_last``,
     sorted), merged from both lists. Returns ``(n_wet, n_gained, n_lost)``."""
     n_new = 0
@@ -87,7 +89,7 @@ def wet_after(changed, n_changed, h, h_zero, wet, wet_last, n_wet, gained, lost,
     p = 0
     for c in range(n_changed):
         i = changed[c]
-        if h[i] > h_zero:
+        if h[i] > h_zero or (supplied.size > 0 and supplied[i] != 0):
             if not order2:
                 while p < n_wet and wet_last[p] < i:
                     lost[n_lost] = wet_last[p]
@@ -165,8 +167,9 @@ def _start(loop):
     lw = list_work(0 if STRUCTURED else n, 0 if STRUCTURED else nf,
                    not (STRUCTURED or ORDER2))
     n_wet = 0
+    supplied = loop.physics.supply.mask  # (registered sources' cells: wet for the lists)
     for i in range(lw.wet_last.size):
-        if h[i] > loop.physics.h_zero:
+        if h[i] > loop.physics.h_zero or (supplied.size > 0 and supplied[i] != 0):
             lw.wet[n_wet] = i
             n_wet += 1
     region = FaceRegion(lw.wet, lw.wet_last, lw.touched, lw.active_faces, lw.new_faces,
@@ -319,7 +322,7 @@ def _after(region, ctx, loop, nxt):
         wet, wet_last = wet_last, wet
         n_wet, n_gained, n_lost = wet_after(changed, r.n_changed, nxt.h, loop.physics.h_zero,
                                             wet, wet_last, n_wet, ctx.lw.gained, ctx.lw.lost,
-                                            ORDER2)
+                                            ORDER2, loop.physics.supply.mask)
     same_wet = not ORDER2 and n_gained == 0 and n_lost == 0
     return FaceRegion(wet, wet_last, r.touched, r.active_faces, r.new_faces, r.new_cells,
                       r.fresh, n_wet, r.n_changed, r.n_active, r.n_touched, r.n_fresh,

@@ -10,12 +10,14 @@ so Numba's cache keeps it beside the built-in kernels and a changed function is 
 afresh. Nothing is made at import: a variant is made the first time a run asks for it, and
 compiled for that run alone.
 
-Two names are replaced today, each a placeholder of the built-in kernels:
+Three names are replaced today, each a placeholder of the built-in kernels:
 
 - ``law_friction`` (:func:`avflow.numerics.rheology.law_friction`): the registered laws'
   branches, then the built-in laws' (the loop that reads the law at run time is the root);
 - ``more_maps`` (:func:`avflow.numerics.observers.more_maps`): the registered maps, each
-  updated once per accepted step.
+  updated once per accepted step;
+- ``supply_rate`` (:func:`avflow.numerics.supply.supply_rate`): the rate of the registered
+  sources a run has, each with its weight per cell.
 
 A name no function below the root reads is refused (:class:`UnknownPlaceholder`): a
 misspelt name cannot leave the built-in one in place silently.
@@ -143,35 +145,58 @@ def more_maps_with(maps, decorate):
     return _generated(_MAPS_SOURCE.format(lines=lines), "more_maps", scope, decorate)
 
 
+_SUPPLY_SOURCE = '''
+def supply_rate(weights, params, c, h, speed, t):
+    rate = 0.0
+{lines}    return rate
+'''
+
+
+def supply_rate_with(entries, decorate):
+    """:func:`~avflow.numerics.supply.supply_rate` summing the run's registered sources
+    (``entries``, in the order of the solver's sources: a row of ``weights`` and ``params``
+    each), a rate below 0 counted as 0, each source's function compiled by ``decorate``."""
+    lines = ""
+    scope = {}
+    for k, entry in enumerate(entries):
+        args = "".join(f"params[{k}, {j}], " for j in range(len(entry.parameters)))
+        lines += (f"    r = source_{k}({args}h, speed, t)\n"
+                  f"    rate += weights[{k}, c] * (r if r > 0.0 else 0.0)\n")
+        scope[f"source_{k}"] = decorate(entry.function)
+    return _generated(_SUPPLY_SOURCE.format(lines=lines), "supply_rate", scope, decorate)
+
+
 def _inline(fn):
     return njit(error_model="numpy", inline="always")(fn)
 
 
-def registered(law: int):
-    """What of the registry a run with the law ``law`` (its kernel code, PER_CELL included)
-    compiles in: ``(laws, maps)``, the registered law it runs (or none) and every registered
-    map."""
+def registered(law: int, sources=()):
+    """What of the registry a run compiles in: ``(laws, maps, sources)``, the registered law
+    of its law code ``law`` (PER_CELL included; none for a built-in law), every registered
+    map, and the registered sources it runs (``sources``: its
+    :class:`~avflow.numerics.supply.AreaSource`, in order)."""
     from avflow.numerics.rheology import PER_CELL
 
     base = law - PER_CELL if law >= PER_CELL else law
     laws = tuple(entry for entry in FRICTION_LAWS.values() if entry.code == base)
-    return laws, tuple(MAPS.values())
+    return laws, tuple(MAPS.values()), tuple(s.entry for s in sources)
 
 
-def tag_of(laws, maps) -> str:
-    """The suffix of the copies made with ``laws`` and ``maps``: a digest of their names,
-    codes and functions' code."""
-    names = repr([(e.name, getattr(e, "code", None)) for e in (*laws, *maps)])
-    functions = digest([e.function for e in (*laws, *maps)])
+def tag_of(laws, maps, sources=()) -> str:
+    """The suffix of the copies made with ``laws``, ``maps`` and ``sources``: a digest of
+    their names, codes and functions' code."""
+    entries = (*laws, *maps, *sources)
+    names = repr([(type(e).__name__, e.name, getattr(e, "code", None)) for e in entries])
+    functions = digest([e.function for e in entries])
     return "x" + hashlib.sha256((names + functions).encode()).hexdigest()[:12]
 
 
-def with_registered(loop, law: int):
-    """The time loop ``loop`` (a compiled :func:`avflow.numerics.loop.advance` copy) with the
-    registered law of ``law`` and the registered maps built in; ``loop`` itself where the run
-    uses none of them."""
-    laws, maps = registered(law)
-    if not laws and not maps:
+def with_registered(loop, law: int, sources=()):
+    """The time loop ``loop`` (a compiled :func:`avflow.numerics.loop.advance` copy) with
+    what the run uses of the registry built in (:func:`registered`); ``loop`` itself where
+    it uses none of it."""
+    laws, maps, entries = registered(law, sources)
+    if not (laws or maps or entries):
         return loop
     from avflow.numerics import rheology
 
@@ -180,4 +205,6 @@ def with_registered(loop, law: int):
         replace["law_friction"] = law_friction_with(laws, rheology.law_friction, _inline)
     if maps:
         replace["more_maps"] = more_maps_with(maps, _inline)
-    return variant(loop, tag_of(laws, maps), **replace)
+    if entries:
+        replace["supply_rate"] = supply_rate_with(entries, _inline)
+    return variant(loop, tag_of(laws, maps, entries), **replace)

@@ -129,6 +129,8 @@ SUMMARIES = {
     "entrained_volume": ("m3", "flow volume taken from the erodible layer over the run (the "
                                "layer's depth taken times its density over the flow's), "
                                "from what the layer lost; 0 without entrainment"),
+    "supplied_volume": ("m3", "volume the registered sources (avflow.extend) added over "
+                              "the run, from their book per cell; runs with sources only"),
     "outflow_volume": ("m3", "volume that left through open boundaries"),
     "film_volume": ("m3", "volume still moving at the end with h <= dry_threshold"),
     "mass_balance_error": ("1", "|V_end + V_out - V_0 - V_ent| / (V_0 + V_ent): released "
@@ -230,8 +232,11 @@ def link_coordinates(ds) -> None:
 def mass_balance_text(summary: dict, units: str = "m3") -> str:
     """``released V0 + entrained Ve = on the map Vend + outflow Vout (m3)``, each volume to
     the digits that read back the float (repr): the balance a file states."""
+    supplied = (f" + supplied {summary['supplied_volume']!r}" if "supplied_volume" in summary
+                else "")
     return (f"released {summary['release_volume']!r} + entrained "
-            f"{summary['entrained_volume']!r} = on the map {summary['deposit_volume']!r} + "
+            f"{summary['entrained_volume']!r}{supplied} = on the map "
+            f"{summary['deposit_volume']!r} + "
             f"outflow {summary['outflow_volume']!r} ({units}); relative error "
             f"{summary['mass_balance_error']:.3g}")
 
@@ -258,6 +263,8 @@ def global_attributes(result) -> dict:
         extra["entrainment_law"] = sc.entrainment.law
     if getattr(sc, "forest", None) is not None:
         references += f"; {FOREST_REFERENCE}"
+    for source in getattr(result.solver, "sources", ()):
+        references += f"; source {source.entry.name}: {source.entry.reference}"
     if "entrained_volume" in s:
         units = "m2 per metre of width" if result.terrain.kind == "profile" else "m3"
         extra["mass_balance"] = mass_balance_text(s, units)

@@ -230,6 +230,8 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         data.update(run_bounds(times))
         s = result.summary
         for name, (units, description) in SUMMARIES.items():
+            if name not in s:  # (a summary of some runs only: supplied_volume)
+                continue
             data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
                                                 "units": per_width(units, profile),
                                                 "comment": description})

@@ -371,11 +371,12 @@ def _plt():
 
 def moving_percent(ds):
     """The volume still moving at the end (``moving_volume_end``) in percent of the volume
-    there was, released plus entrained: a number for a run file, one per member for an
+    there was, released plus entrained plus supplied: a number for a run file, one per member for an
     ``ensemble.nc``. What the summary line, the plot title and the report say."""
     total = np.asarray(ds["release_volume"].values, dtype=float)
-    if "entrained_volume" in ds:
-        total = total + np.nan_to_num(np.asarray(ds["entrained_volume"].values, dtype=float))
+    for added in ("entrained_volume", "supplied_volume"):
+        if added in ds:
+            total = total + np.nan_to_num(np.asarray(ds[added].values, dtype=float))
     return 100 * np.asarray(ds["moving_volume_end"].values, dtype=float) / np.maximum(total,
                                                                                       1e-300)
 

@@ -129,5 +129,7 @@ def _add_rest(data, result, space, attrs, on_node, named_crs) -> None:
                       ("time", values, {k: v for k, v in FIELDS[name].items() if k != "kind"}))
     s = result.summary
     for name, (units, description) in SUMMARIES.items():
+        if name not in s:  # (a summary of some runs only: supplied_volume)
+            continue
         data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
                                             "units": units, "comment": description})

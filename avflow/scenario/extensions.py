@@ -165,8 +165,15 @@ def register_source(name: str, function: Callable, parameters, reference: str) -
     if len(parameters) > MAX_SOURCE_PARAMETERS:
         raise ExtensionError(f"a source takes at most {MAX_SOURCE_PARAMETERS} parameters, "
                              f"{name} has {len(parameters)}")
+    for p in parameters:
+        _check_name(p, "parameter")
+        if p in ("law", "raster", "polygon", "x", "y"):
+            raise ExtensionError(f"a source's parameter may not be called {p!r}")
     _check_function(function, "source", len(parameters) + 3)
     entry = Source(name, function, parameters, str(reference), len(SOURCES))
+    from avflow.scenario.schema import add_source
+
+    add_source(name, parameters, function.__doc__ or "")
     SOURCES[name] = entry
     return entry
 

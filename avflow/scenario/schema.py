@@ -839,6 +839,61 @@ class Forest(_Where):
                 raise _problem(f"applies with {owner} only, not with {form}", name)
         return self
 
+class _SourceArea(_Where):
+    """Where a registered source adds mass: polygons, a raster mask (cells > 0), or an x
+    [and y] range; dry cells included."""
+
+    x: Range | None = None
+    """[xmin, xmax] (m; along the bed on a profile) of the area, instead of a file."""
+    y: Range | None = None
+    """With x, 2D terrains: [ymin, ymax] (m) of the area."""
+
+    @model_validator(mode="after")
+    def _one_form(self) -> _SourceArea:
+        given = [k for k in ("raster", "polygon", "x") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise _problem("give one of polygon, raster or x (and y): where the source "
+                           f"adds mass, got {len(given)}" + (f" ({', '.join(given)})"
+                                                            if given else ""))
+        if self.y is not None and given[0] != "x":
+            raise _problem(f"applies with x only, not with {given[0]}", "y")
+        return self
+
+
+class _NoSource(_Model):
+    """No source is registered: ``sources`` must stay empty."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _none(cls, value: Any) -> Any:
+        raise _problem("no source is registered in this process: a source is a function "
+                       "registered through avflow.extend before the scenario is read")
+
+
+#: The sources registered through avflow.extend (:func:`add_source`)
+SOURCE_MODELS: list[type[BaseModel]] = []
+
+
+def add_source(name: str, parameters: tuple[str, ...], doc: str) -> None:
+    """A source registered through :mod:`avflow.extend` becomes a value of
+    ``sources[].law``: its parameters (finite numbers) and where it adds mass
+    (:class:`_SourceArea`); the scenario model is rebuilt with it."""
+    from pydantic import create_model
+
+    fields: dict[str, Any] = {"law": (Literal[name], ...)}
+    for p in parameters:
+        fields[p] = (Annotated[float, Field(strict=True, allow_inf_nan=False)], ...)
+    model = create_model("".join(w.title() for w in name.split("_")), __base__=_SourceArea,
+                         __doc__=doc.strip() or f"The source {name}.", **fields)
+    SOURCE_MODELS.append(model)
+    info = FieldInfo.from_annotation(
+        tuple[Annotated[Union[tuple(SOURCE_MODELS)], Field(discriminator="law")], ...])
+    info.default = ()
+    info.description = Scenario.model_fields["sources"].description
+    Scenario.model_fields["sources"] = info
+    Scenario.model_rebuild(force=True)
+
+
 # =========================================================================================
 # Grid, time, output, boundaries, physics
 # =========================================================================================
@@ -1135,6 +1190,9 @@ class Scenario(_Model):
     """Mass the flow takes from an erodible layer on its way, by ``law``; null: none."""
     forest: Forest | None = None
     """Forest's resistance to the flow, where it stands; null: none."""
+    sources: tuple[_NoSource, ...] = ()
+    """Mass added over an area, dry cells included, by sources registered through
+    avflow.extend (snowfall, a feeding flow), each chosen by ``law``; empty: none."""
     structures: tuple[Structure, ...] = ()
     """Dams and walls built into the bed before the run (2D terrains)."""
     time: Time

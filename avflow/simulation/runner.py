@@ -31,7 +31,8 @@ from avflow.simulation.summary import deposit_extent, runout_truncated, travel_a
 from avflow.terrain.bed import Terrain
 from avflow.terrain.build import build_terrain
 from avflow.terrain.structures import StructureError
-from avflow.terrain.maps import MapError, erodible_depth, forest_coefficient, friction_maps
+from avflow.terrain.maps import (MapError, erodible_depth, forest_coefficient, friction_maps,
+                                 source_weights)
 from avflow.terrain.trimesh import MeshTooLarge
 
 #: Default dry threshold and runout threshold, relative to the largest released thickness.
@@ -297,6 +298,7 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
     try:  # maps, layer and forest sampled at the cell centres, each checked
         maps = friction_maps(scenario.rheology, terrain)
         source = mass_source(scenario, terrain)
+        sources = area_sources(scenario, terrain)
         forest = (forest_coefficient(scenario.forest, terrain)
                   if scenario.forest is not None else None)
     except MapError as err:
@@ -318,7 +320,8 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
     thresholds["min_flow"] = (min(DEFAULT_MIN_FLOW, thresholds["dry"]) if min_flow is None
                               else min_flow)
     try:
-        solver = _solver(scenario, terrain, law, params, thresholds, h_max, source, forest)
+        solver = _solver(scenario, terrain, law, params, thresholds, h_max, source, forest,
+                         sources)
     except ValueError as err:  # numerics.kernel: grid where it does not apply; the backend's
         field = "numerics.backend" if scenario.numerics.backend != "cpu" else "numerics.kernel"
         raise ScenarioError.at(scenario, field, str(err)) from None
@@ -326,7 +329,7 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
 
 
 def _solver(scenario, terrain, law, params, thresholds, h_max, source=None,
-            forest=None) -> Solver:
+            forest=None, sources=()) -> Solver:
     return Solver(terrain, law, params, gravity=scenario.physics.gravity,
                     cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
                     order=scenario.numerics.order, limiter=scenario.numerics.limiter,
@@ -334,7 +337,7 @@ def _solver(scenario, terrain, law, params, thresholds, h_max, source=None,
                     backend=scenario.numerics.backend,
                     h_dry=thresholds["dry"],
                     h_zero=max(ZERO_THICKNESS_FRACTION * h_max, thresholds["min_flow"]),
-                    source=source, forest=forest)
+                    source=source, forest=forest, sources=sources)
 
 
 #: The source kind of each entrainment law (avflow.numerics.physics.source_rate).
@@ -359,6 +362,25 @@ def mass_source(scenario, terrain: Terrain) -> MassSource | None:
         params = (e.k / 1000.0, e.tau_c, rho_flow)
     return MassSource(ENTRAINMENT_KINDS[e.law], erodible_depth(e.layer, terrain), params,
                       density_ratio=ratio, u_min=e.u_min)
+
+
+def area_sources(scenario, terrain: Terrain) -> tuple:
+    """The scenario's registered sources (``sources``, avflow.extend) as the solver's
+    :class:`~avflow.numerics.supply.AreaSource`: each one's parameters and its area, 1 on
+    the cells it covers; an area that covers no cell is one warning line."""
+    from avflow.numerics.supply import AreaSource
+    from avflow.scenario.extensions import SOURCES
+
+    out = []
+    for k, spec in enumerate(scenario.sources):
+        weight = source_weights(spec, terrain, f"sources.{k}")
+        if not weight.any():
+            warnings.warn(f"{scenario.source_path or scenario.name}: sources.{k}: its area "
+                          "covers no cell of the terrain: it adds nothing", AvflowWarning,
+                          stacklevel=3)
+        params = [getattr(spec, p) for p in SOURCES[spec.law].parameters]
+        out.append(AreaSource(spec.law, params, weight))
+    return tuple(out)
 
 
 def _warn_empty(scenario, source, forest) -> None:
@@ -518,8 +540,11 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
         error = result.summary["mass_balance_error"]
         if not error <= MASS_BALANCE_TOLERANCE:  # NaN too
             what = "not finite" if not math.isfinite(error) else f"off by {error:.3g}"
+            supplied = result.summary.get("supplied_volume")
             failure = (f"the mass balance is {what} (released {v0:.6g}, entrained "
-                       f"{result.summary['entrained_volume']:.6g}, on the map "
+                       f"{result.summary['entrained_volume']:.6g}, "
+                       + (f"supplied {supplied:.6g}, " if supplied is not None else "")
+                       + "on the map "
                        f"{result.summary['deposit_volume']:.6g}, out "
                        f"{result.summary['outflow_volume']:.6g}): not a result")
     if failure is not None:
@@ -534,6 +559,8 @@ def summarize(result: RunResult, v0: float) -> dict:
     v_end = result.solver.volume(state)
     v_out = state.statistics.outflow_volume
     v_src = result.solver.entrained_volume(state)
+    supplying = bool(result.solver.sources)
+    v_sup = result.solver.supplied_volume(state) if supplying else 0.0
     rho = result.scenario.physics.density
     truncated = runout_truncated(terrain, state.peak_h, result.thresholds["runout"],
                                  result.scenario.terrain.kind == "dem", v_out, result.h0)
@@ -559,8 +586,10 @@ def summarize(result: RunResult, v0: float) -> dict:
         "ended_by": result.thresholds["stop_rule"]
         if result.status in (AT_REST, ENDED_BY_RULE, "stopped")
         else ENDED_BY.get(result.status, result.status),
-        # released + entrained (read from the erodible layer) = on the map + out
-        "mass_balance_error": abs(v_end + v_out - v0 - v_src) / (v0 + v_src),
+        # released + entrained (read from the erodible layer) + supplied (the registered
+        # sources' book per cell) = on the map + out
+        "mass_balance_error": abs(v_end + v_out - v0 - v_src - v_sup) / (v0 + v_src + v_sup),
+        **({"supplied_volume": v_sup} if supplying else {}),
         "runout_truncated": truncated,
         "status": result.status,
         "steps": state.steps,

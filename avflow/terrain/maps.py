@@ -198,6 +198,18 @@ def erodible_depth(layer, terrain: Terrain, field: str = "entrainment.layer") ->
     return np.ascontiguousarray(values, dtype=float)
 
 
+def source_weights(area, terrain: Terrain, field: str) -> np.ndarray:
+    """Per cell, 1 where a registered source adds mass and 0 elsewhere: its x [and y]
+    range, the cells inside its polygons, or its raster's cells > 0 (NODATA and cells
+    outside the raster: 0)."""
+    if area.x is not None:
+        return np.where(_box(terrain, area.x, area.y), 1.0, 0.0)
+    values, path = _map(area, terrain, field, value=None if area.raster else 1.0, default=0.0)
+    where = f"{field}.{'raster' if area.raster else 'polygon'}"
+    _check(values, None, path, "the source's area", where, terrain)
+    return np.where(values > 0.0, 1.0, 0.0)
+
+
 def forest_coefficient(forest, terrain: Terrain, field: str = "forest") -> np.ndarray:
     """The resistance coefficient c_f per cell (0 outside forest) of a ``Forest`` block."""
     if forest.x is not None:
