@@ -25,7 +25,7 @@ def test_a_change_to_any_kernel_source_is_a_new_cache_folder(monkeypatch):
 
 
 #: the hooks of a kernel's region in its copies of the one time loop (numerics/loop.py)
-HOOKS = ("start", "before", "step", "source", "after", "end")
+HOOKS = ("start", "before", "step", "source", "observe", "after", "end")
 
 
 def _hook(loop, name):

@@ -38,23 +38,24 @@ from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FA
 from avflow.numerics.supply import supply_cells
 
 #: What a call of the loop runs on: the kernel's mesh, the fields (state, observers,
-#: ``stats``), its work buffers, the physics, the run's control, and the kernel's own extra
-#: (grid: the threads; faces: the order-1 sweep's geometry and work)
-Loop = namedtuple("Loop", "mesh fields work physics run extra")
+#: ``stats``), its work buffers, the physics, the run's control, the kernel's own extra
+#: (grid: the threads; faces: the order-1 sweep's geometry and work), and the registered
+#: sources (:data:`avflow.numerics.supply.Supply`, in the kernel's numbering of cells)
+Loop = namedtuple("Loop", "mesh fields work physics run extra supply")
 
 #: Placeholders of a region's hooks (see the module's docstring)
 region_start = region_before = region_step = region_source = region_after = None
 region_observe = region_end = None
 
 
-def advance(mesh, fields, work, physics, run, extra):
+def advance(mesh, fields, work, physics, run, extra, supply):
     """Advance ``fields.h, hu, hv`` in place until ``run.t_target``, a stop, or
     ``run.max_steps``. Returns a status code: REACHED_TARGET, STOPPED, MAX_STEPS or FAILED.
 
     A template: each kernel compiles its copies with its region's hooks (module docstring).
     The arguments are named tuples (:mod:`avflow.numerics.stepping`); ``extra`` is the
-    kernel's own."""
-    loop = Loop(mesh, fields, work, physics, run, extra)
+    kernel's own, ``supply`` the registered sources (:mod:`avflow.numerics.supply`)."""
+    loop = Loop(mesh, fields, work, physics, run, extra, supply)
     stats, source = fields.stats, physics.source
     cfl, t_target = run.cfl, run.t_target
     region, ctx = region_start(loop)
@@ -81,7 +82,6 @@ def advance(mesh, fields, work, physics, run, extra):
             break
         if source[SRC_KIND] != SOURCE_NONE:  # the source hook, once per accepted step
             lim = min(lim, dt_from_inverse(region_source(region, ctx, loop, nxt, when)))
-        supply = physics.supply
         if supply.cells.size:  # registered sources: their cells are in every step's region
             added, inv = supply_cells(supply.cells, supply.weights, supply.params, nxt.h,
                                       nxt.hu, nxt.hv, fields.supplied, mesh.cell_area,

@@ -467,7 +467,7 @@ class Solver:
         work = GridWork(self._h_work, self._hu_work, self._hv_work, self._g_rings,
                         *self._g_order2)
         status = self._loop(threads)(self._g_mesh, fields, work, self._physics(), run,
-                                     threads)
+                                     threads, self._supply)
         if chunk is not None:
             numba.set_parallel_chunksize(chunk)
         self._off_grid(state, fields)
@@ -662,7 +662,7 @@ class Solver:
         """The friction law, gravity, the Dirac flux, the thresholds and the source."""
         return stepping.Physics(self._law_code, self._rows, float(self.gravity),
                                 bool(self.dirac), float(self.h_dry), float(self.h_zero),
-                                self._source, self._supply)
+                                self._source)
 
     def _control(self, t_target, max_steps, stop_volume, stop_kinetic, parallel_cells,
                  block_rows) -> stepping.Control:
@@ -686,5 +686,5 @@ class Solver:
         run = self._control(t_target, max_steps, stop_volume, stop_kinetic,
                             self._gather_from if threads > 1 else np.iinfo(np.int64).max, 0)
         status = self._loop(threads)(self._face_mesh, self._fields(state), self._face_work,
-                                     self._physics(), run, self._sweep)
+                                     self._physics(), run, self._sweep, self._supply)
         return STATUS_NAMES[status]

@@ -1320,7 +1320,7 @@ def _grid_start(loop):
             if h[r * nx + c] > h_zero:
                 wet_lo[r] = min(wet_lo[r], c)
                 wet_hi[r] = max(wet_hi[r], c)
-    _with_supply(loop.physics.supply, wet_lo, wet_hi, 0, ny - 1)
+    _with_supply(loop.supply, wet_lo, wet_hi, 0, ny - 1)
     m2 = ny if ORDER2 else 0  # order 2's second band
     reg = Region2(_columns(m2, nx), _columns(m2, -1), _columns(m2, nx), _columns(m2, -1),
                   _columns(m2, nx), _columns(m2, -1))
@@ -1419,7 +1419,7 @@ def _grid_after(region, ctx, loop, nxt):
             known = band0 - 1 <= r <= band1 + 1
             c.prev_lo[r] = min(c.prev_lo[r], c.reg.need2_lo[r]) if known else c.reg.need2_lo[r]
             c.prev_hi[r] = max(c.prev_hi[r], c.reg.need2_hi[r]) if known else c.reg.need2_hi[r]
-    band0, band1 = _with_supply(loop.physics.supply, c.wet_lo, c.wet_hi, region.q0,
+    band0, band1 = _with_supply(loop.supply, c.wet_lo, c.wet_hi, region.q0,
                                 region.q1)
     return GridRegion(r0, r1, region.q0, region.q1, band0, band1)
 

@@ -16,9 +16,10 @@ from numba import njit
 Fields = namedtuple("Fields", "h hu hv flag peak_h peak_speed arrival last_moved erodible "
                     "maps supplied stats")
 #: the physics: friction law and its parameters (numerics.rheology), gravity, the Dirac
-#: flux on or off, the dry and zero thresholds, the mass source (numerics.sources) and the
-#: registered sources (numerics.supply)
-Physics = namedtuple("Physics", "law params g dirac h_dry h_zero source supply")
+#: flux on or off, the dry and zero thresholds, the mass source (numerics.sources); the
+#: registered sources are an argument of their own (numerics.supply.Supply: a structure
+#: of arrays inside this one would keep it from Numba's threads)
+Physics = namedtuple("Physics", "law params g dirac h_dry h_zero source")
 #: how far and how to run: CFL number, target time, step budget, stop rules, order 2's
 #: limiter, and the least cells (and grid rows per block) of a step on threads
 Control = namedtuple("Control", "cfl t_target max_steps stop_volume stop_kinetic limiter "

@@ -167,7 +167,7 @@ def _start(loop):
     lw = list_work(0 if STRUCTURED else n, 0 if STRUCTURED else nf,
                    not (STRUCTURED or ORDER2))
     n_wet = 0
-    supplied = loop.physics.supply.mask  # (registered sources' cells: wet for the lists)
+    supplied = loop.supply.mask  # (registered sources' cells: wet for the lists)
     for i in range(lw.wet_last.size):
         if h[i] > loop.physics.h_zero or (supplied.size > 0 and supplied[i] != 0):
             lw.wet[n_wet] = i
@@ -322,7 +322,7 @@ def _after(region, ctx, loop, nxt):
         wet, wet_last = wet_last, wet
         n_wet, n_gained, n_lost = wet_after(changed, r.n_changed, nxt.h, loop.physics.h_zero,
                                             wet, wet_last, n_wet, ctx.lw.gained, ctx.lw.lost,
-                                            ORDER2, loop.physics.supply.mask)
+                                            ORDER2, loop.supply.mask)
     same_wet = not ORDER2 and n_gained == 0 and n_lost == 0
     return FaceRegion(wet, wet_last, r.touched, r.active_faces, r.new_faces, r.new_cells,
                       r.fresh, n_wet, r.n_changed, r.n_active, r.n_touched, r.n_fresh,

@@ -860,8 +860,10 @@ class _SourceArea(_Where):
         return self
 
 
-class _NoSource(_Model):
-    """No source is registered: ``sources`` must stay empty."""
+class NoSourceRegistered(_Model):
+    """No source is registered in this process: ``sources`` stays empty. A source is a
+    Python function registered through avflow.extend (user guide: your own friction law,
+    source or map); each registered source then has its block here, chosen by ``law``."""
 
     @model_validator(mode="before")
     @classmethod
@@ -1190,7 +1192,7 @@ class Scenario(_Model):
     """Mass the flow takes from an erodible layer on its way, by ``law``; null: none."""
     forest: Forest | None = None
     """Forest's resistance to the flow, where it stands; null: none."""
-    sources: tuple[_NoSource, ...] = ()
+    sources: tuple[NoSourceRegistered, ...] = ()
     """Mass added over an area, dry cells included, by sources registered through
     avflow.extend (snowfall, a feeding flow), each chosen by ``law``; empty: none."""
     structures: tuple[Structure, ...] = ()
