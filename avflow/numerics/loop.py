@@ -36,7 +36,7 @@ from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FA
                                       ST_RETRIES, ST_TIME, Conserved, StepTime, record_step,
                                       step_size)
 
-#: What a call of the loop runs on: the kernel's mesh, the fields (state, observers,
+#: What a call of the loop runs on: the kernel's mesh, the fields (state, running maps,
 #: ``stats``), its work buffers, the physics, the run's control, and the kernel's own extra
 #: (grid: the threads; faces: the order-1 sweep's geometry and work)
 Loop = namedtuple("Loop", "mesh fields work physics run extra")
