@@ -1355,8 +1355,8 @@ def _grid_source(region, ctx, loop, nxt, when):
     inv_lim = 0.0
     for r in range(region.q0, region.q1 + 1):
         gained, inv = add_span(r * nx + s_lo[r], r * nx + s_hi[r] + 1, nxt.h, nxt.hu, nxt.hv,
-                               f.erodible, loop.physics, when.dt, when.t_new, g.cell_area,
-                               g.cfl_factor, g.gamma_z, f.peak_h, f.arrival)
+                               f.erodible, loop.physics, when.dt, g.cell_area, g.cfl_factor,
+                               g.gamma_z)
         f.stats[ST_SOURCE] += gained
         inv_lim = max(inv_lim, inv)
     return inv_lim

@@ -277,13 +277,11 @@ def _source(region, ctx, loop, nxt, when):
     mesh, fields, physics = loop.mesh, loop.fields, loop.physics
     if STRUCTURED:
         volume, inv = add_span(0, nxt.h.size, nxt.h, nxt.hu, nxt.hv, fields.erodible, physics,
-                               when.dt, when.t_new, mesh.cell_area, mesh.cfl_factor,
-                               mesh.gamma_z, fields.peak_h, fields.arrival)
+                               when.dt, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z)
     else:
         volume, inv = add_listed(ctx.o2.union if ORDER2 else region.touched, region.n_changed,
                                  nxt.h, nxt.hu, nxt.hv, fields.erodible, physics, when.dt,
-                                 when.t_new, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z,
-                                 fields.peak_h, fields.arrival)
+                                 mesh.cell_area, mesh.cfl_factor, mesh.gamma_z)
     fields.stats[ST_SOURCE] += volume
     return inv
 
