@@ -85,6 +85,15 @@ def test_pile_at_rest_stays_at_rest_bit_for_bit(cases):
     assert report["at_rest"] and report["steps_cuda"] > 0
 
 
+def test_a_step_redone_writes_no_map(cases):
+    """A step whose first attempts empty a cell (its CFL limit set far above its own) and
+    are redone with half the step: the running maps are those of the accepted state, as
+    on the CPU kernel, the retries the same."""
+    report = cases["retry"]
+    _assert_same(report)
+    assert report["retries_cpu"] == report["retries_cuda"] > 0
+
+
 def test_state_stays_on_the_device_between_calls(cases):
     """A second call on the same state uploads nothing (the device holds it)."""
     assert cases["plane"]["uploads"] == 1
@@ -182,10 +191,11 @@ try:
     launches = {"emit": (mesh, st, work.emit, 9.81, 1e-3),
                 "faces": (mesh, work.emit, work.xf, work.yf),
                 "trial": (mesh, sc, st, work, 0.1, 0.1),
-                "final": (mesh, sc, st, st, obs, work, 0.1, 0.2),
+                "final": (mesh, sc, st, st, obs, work, 0.1),
                 "reduce": (work.terms, work.partials, n),
-                "source": (mesh, sc, st, obs, f(n), work.terms, (0.0,) * 8,
-                           (3, 0.5, 0.0, 5000.0, 0.0, 0.0, 0.0, 1e-3, 1e-3, 9.81), 0.1, 0.2)}
+                "source": (mesh, sc, st, f(n), work.terms, (0.0,) * 8,
+                           (3, 0.5, 0.0, 5000.0, 0.0, 0.0, 0.0, 1e-3, 9.81), 0.1),
+                "observe": (mesh, sc, st, obs, 0.2)}
     fused = {}
     for name, args in launches.items():
         ptx, _ = cuda.compile_ptx(k[name].py_func, tuple(typeof(a) for a in args), cc=(9, 0))
@@ -201,9 +211,10 @@ print("OK", fused)
 
 def test_kernels_compile_for_a_gpu():
     """Every kernel typed and compiled to PTX for sm_90 by the real CUDA target (no GPU
-    needed, but NVVM and NVRTC: the CUDA toolkit's wheels, ``avflow[cuda]``). Emit, faces
-    and the sums fuse no multiply-add (the CPU's bits); trial and final only inside
-    libdevice's exp and log (trial, final and the source read the friction laws)."""
+    needed, but NVVM and NVRTC: the CUDA toolkit's wheels, ``avflow[cuda]``). Emit, faces,
+    the sums and the running maps fuse no multiply-add (the CPU's bits); trial and final
+    only inside libdevice's exp and log (trial, final and the source read the friction
+    laws)."""
     done = subprocess.run([sys.executable, "-c", PTX_CHECK], capture_output=True, text=True,
                           env=_child_env(False), timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -211,16 +222,19 @@ def test_kernels_compile_for_a_gpu():
         pytest.skip(f"no NVVM / NVRTC here ({done.stdout.split()[1]}): pip install "
                     "'avflow[cuda]'")
     fused = eval(done.stdout.split("OK", 1)[1])
-    assert fused["emit"] == fused["faces"] == fused["reduce"] == 0
+    assert fused["emit"] == fused["faces"] == fused["reduce"] == fused["observe"] == 0
 
 
 # --- the child process ----------------------------------------------------------------------
 
-def _compare(terrain, h0, law, params, targets, max_steps, **kw):
-    """The same solver on both backends over ``targets``: a report of their differences."""
+def _compare(terrain, h0, law, params, targets, max_steps, limit_times=None, **kw):
+    """The same solver on both backends over ``targets``: a report of their differences.
+    ``limit_times``: before the last call, the state's CFL limit is set that many times
+    its own (its next step's first attempts then fail and are redone)."""
     import numpy as np
 
     from avflow.numerics.solver import Solver
+    from avflow.numerics.stepping import ST_DT_LIMIT, ST_RETRIES
 
     states, statuses = [], []
     uploads = []
@@ -229,7 +243,9 @@ def _compare(terrain, h0, law, params, targets, max_steps, **kw):
                         threads=1, backend=backend, **kw)
         state = solver.new_state(h0)
         status = []
-        for t in targets:
+        for k, t in enumerate(targets):
+            if limit_times is not None and k == len(targets) - 1:
+                state.stats[ST_DT_LIMIT] *= limit_times
             status.append(solver.advance(state, t, max_steps=max_steps))
             if backend == "cuda":
                 uploads.append(solver._cuda.uploads)
@@ -255,6 +271,7 @@ def _compare(terrain, h0, law, params, targets, max_steps, **kw):
         "uploads": uploads[-1] if uploads else 0,
         "equal_erodible": bool(np.array_equal(a.erodible, b.erodible)),
         "entrained_cpu": float(a.stats[13]), "entrained_cuda": float(b.stats[13]),
+        "retries_cpu": float(a.stats[ST_RETRIES]), "retries_cuda": float(b.stats[ST_RETRIES]),
     }
 
 
@@ -293,6 +310,8 @@ def _cases() -> dict:
     h0 = cylinder(ter, (70.0, 50.0), radius=30.0, thickness=4.0)
     out["plane"] = _compare(ter, h0, Law.COULOMB, (tan20,), (2.0, 6.0), 8, h_zero=1e-3,
                             h_dry=1e-3)
+    out["retry"] = _compare(ter, h0, Law.COULOMB, (tan20,), (2.0, 6.0), 4, limit_times=64.0,
+                            h_zero=1e-3, h_dry=1e-3)
     z, x, y = _bumpy()
     dem = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="outflow")
     xx, yy = dem.cell_xy()

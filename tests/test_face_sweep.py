@@ -1,6 +1,6 @@
 """The face kernel's order-1 step with vectorised cell passes (avflow.numerics.face_sweep)
 against its reference, kernels.step_faces, step after step on triangles and on a DEM: the
-same bits everywhere (state, flags, observers, and every value the step returns). So is its
+same bits everywhere (state, flags, and every value the step returns). So is its
 step on threads (face_sweep._step_threads: each thread scatters into the cells of its own
 piece of the faces, the cells shared by two pieces sum their faces afterwards), run
 serially and on 2 threads, its lists cut into pieces of a few cells (pieces_of) so that
@@ -89,7 +89,6 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
     cell_stamp = np.full(n, -1, dtype=np.int64)
     emit = np.zeros((n, 7))
     h, hu, hv, flag = state.h.copy(), state.hu.copy(), state.hv.copy(), state.flag.copy()
-    obs = {name: getattr(state, name).copy() for name in OBSERVERS}
     t = 0.0
     flags_seen = set()
     outflow = 0.0
@@ -116,19 +115,16 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
         for kernel in KERNELS:
             new = [h.copy(), hu.copy(), hv.copy()]  # the buffers agree where nothing is touched
             fl = flag.copy()
-            ob = {name: obs[name].copy() for name in OBSERVERS}
             flux = np.zeros((n_faces, 5))
             transport = np.zeros(n)
             phys = stepping.Physics(int(law), solver._rows, G, dirac, h_dry, h_zero,
                                     solver._source)
             cur, nxt = stepping.Conserved(h, hu, hv), stepping.Conserved(*new)
-            observers = stepping.Observers(*[ob[name] for name in OBSERVERS])
             when = stepping.StepTime(dt, dt, t_new)
             lists = stepping.Lists(active, n_active, touched, n_touched, same, face_stamp, k)
             if kernel == "reference":
-                r = K.step_faces(solver._face_mesh, phys, cur, nxt, flux, transport, fl,
-                                 observers, when, lists, False, np.zeros((0, 2, 3)), True,
-                                 emit)
+                r = K.step_faces(solver._face_mesh, phys, cur, nxt, flux, transport, fl, when,
+                                 lists, False, np.zeros((0, 2, 3)), emit)
             else:
                 step, sweep = step_new, (solver._sweep.geometry, works[kernel])
                 if kernel in THREAD_KERNELS:
@@ -137,25 +133,24 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
                     sweep = (geo, works[kernel])
                     numba.set_num_threads(1 if kernel == "pieces serially" else 2)
                 try:
-                    r = step(solver._face_mesh, phys, cur, nxt, transport, fl, observers,
-                             when, lists, *sweep)
+                    r = step(solver._face_mesh, phys, cur, nxt, transport, fl, when, lists,
+                             *sweep)
                 finally:
                     numba.set_num_threads(threads)
             results.append(r)
-            outputs.append((new, fl, ob))
+            outputs.append((new, fl))
             if kernel in THREAD_KERNELS:
                 wk = sweep[1]  # a cell shared in this step carries its number
                 shared = wk.shared_mark[touched[:n_touched]] == wk.cut[face_sweep.CUT_MARK]
                 shares.add((kernel, bool(shared.any()), not shared.all()))
-        (ref_new, ref_fl, ref_ob) = outputs[0]
+        (ref_new, ref_fl) = outputs[0]
         if np.all(ref_fl[touched[:n_touched]] == physics.FLOWING):
             steps_all_flowing += 1
             out_all_flowing += results[0][1]
         else:
             steps_with_cold += 1
         assert results[0][0], f"step {k} failed"
-        for kernel, r, (vec_new, vec_fl, vec_ob) in zip(KERNELS[1:], results[1:],
-                                                        outputs[1:]):
+        for kernel, r, (vec_new, vec_fl) in zip(KERNELS[1:], results[1:], outputs[1:]):
             where = f"{kernel}, step {k}"
             assert results[0] == r[:7], f"{where}: {results[0]} != {r}"
             # and the touched cells that became wet or dry
@@ -165,15 +160,12 @@ def compare_steps(terrain, law, params, h0, n_steps, *, h_zero=0.0, h_dry=0.0, d
             for name, a, b in zip(("h", "hu", "hv"), ref_new, vec_new):
                 np.testing.assert_array_equal(bits(a), bits(b), err_msg=f"{name}, {where}")
             np.testing.assert_array_equal(ref_fl, vec_fl, err_msg=f"flags, {where}")
-            for name in OBSERVERS:
-                np.testing.assert_array_equal(bits(ref_ob[name]), bits(vec_ob[name]),
-                                              err_msg=f"{name}, {where}")
         runs = np.empty(2 * (n + n_faces) + 4, dtype=np.int64)
         pieces_seen = max(pieces_seen, face_sweep.pieces_of(
             runs, face_sweep.runs_of(touched, n_touched, runs), n_touched, 8, 32,
             np.empty(2 * (n_touched + 32), dtype=np.int64), np.empty(33, dtype=np.int64)))
         h, hu, hv = vec_new
-        flag, obs, t = vec_fl, vec_ob, t_new
+        flag, t = vec_fl, t_new
         outflow += results[1][1]
         flags_seen.update(np.unique(flag[touched[:n_touched]]).tolist())
     assert pieces_seen >= 4  # the cell passes on threads ran on several pieces

@@ -10,14 +10,16 @@ cell's four faces, the per-cell friction parameters) are the same Python functio
 retargeted the same way (:func:`_retarget`). What is written here is only the traversal:
 which thread computes which cell or face, and the sums over the grid.
 
-One step is five or six launches, every cell or face of the grid (no swept region, a first
-version): what each cell emits (:func:`_emit`), the flux of every face (:func:`_faces`),
-the trial momentum and Coulomb flag of each cell (:func:`_trial`), the final update with
-Dirac faces, projection, film rule and observers (:func:`_final`), and the grid's sums in
-one or two passes of a block reduction (:func:`_reduce`). The host reads seven numbers a step
-(the sums) and applies the stop rules to them with the CPU loops' own
-:func:`~avflow.numerics.stepping.record_step`; it sees the state only when a call ends
-(an output time), and the state stays on the device for the next call.
+One step is six or seven launches, every cell or face of the grid (no swept region, a
+first version): what each cell emits (:func:`_emit`), the flux of every face
+(:func:`_faces`), the trial momentum and Coulomb flag of each cell (:func:`_trial`), the
+final update with Dirac faces, projection and film rule (:func:`_final`), the grid's sums
+in one or two passes of a block reduction (:func:`_reduce`), and once the step is accepted
+(and its source added) the running maps of each cell (:func:`_observe`, the CPU kernels'
+observer pass). The host reads seven numbers a step (the sums) and applies the stop rules
+to them with the CPU loops' own :func:`~avflow.numerics.stepping.record_step`; it sees the
+state only when a call ends (an output time), and the state stays on the device for the
+next call.
 
 Compared with the CPU square-grid kernel: thickness, discharge, flags and observers are
 the same arithmetic, the grid-wide sums (moving volume, film, kinetic energy, outflow) are
@@ -30,10 +32,10 @@ there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws
 in the last bit); no GPU has run it yet.
 
 Entrainment is the CPU kernels' own source hook (:func:`_source`: numerics.sources' gain
-per cell, after each accepted step). Not served (refused at load time, one line): order 2,
-meshes other than square grids. Cells with no wet cell around them are computed too (all cells
-traversal): their update changes nothing, and they are left out of the CFL limit, as the
-CPU kernel does by not sweeping them.
+per cell, after each accepted step, before the maps are observed). Not served (refused
+at load time, one line): order 2, meshes other than square grids. Cells with no wet cell
+around them are computed too (all cells traversal): their update changes nothing, and they
+are left out of the CFL limit, as the CPU kernel does by not sweeping them.
 """
 
 from __future__ import annotations
@@ -264,10 +266,10 @@ def _trial(mesh, sc, cur, work, dt, dt_decide):
     work.trial_flag[i] = DRY if (mesh.valid[i] == 0 or dry) else fi
 
 
-def _final(mesh, sc, cur, nxt, obs, work, dt, t_new):
+def _final(mesh, sc, cur, nxt, obs, work, dt):
     """Per cell, the final update (the CPU kernel's _final_cells, its two loops one after
-    the other): mass through the faces that are not Dirac, the projection, the flags, the
-    observers, and the cell's terms of the step's sums (``work.terms``)."""
+    the other): mass through the faces that are not Dirac, the projection, the flags, and
+    the cell's terms of the step's sums (``work.terms``)."""
     i = cuda.grid(1)
     n = cur.h.size
     if i >= n:
@@ -336,11 +338,8 @@ def _final(mesh, sc, cur, nxt, obs, work, dt, t_new):
     nxt.h[i] = h_w
     nxt.hu[i] = qx
     nxt.hv[i] = qy
-    # the observers and the sums, from what was written
+    # the sums, from what was written
     speed, inv_i = observe_cell(h_w, math.sqrt(qx * qx + qy * qy), mesh.cfl_factor[i], gz, g)
-    (obs.peak_h[i], obs.peak_speed[i], obs.arrival[i], obs.last_moved[i]) = observe(
-        good, h_w, speed, t_new, sc.h_dry, obs.peak_h[i], obs.peak_speed[i], obs.arrival[i],
-        obs.last_moved[i])
     len_w, len_e = mesh.x_length[r, c], mesh.x_length[r, c + 1]
     len_s, len_n = mesh.y_length[r, c], mesh.y_length[r + 1, c]
     limit = TRANSPORT_EPS * h_w * speed_n
@@ -373,7 +372,7 @@ def _final(mesh, sc, cur, nxt, obs, work, dt, t_new):
     terms[T_SOURCE, i] = 0.0
 
 
-def _source(mesh, sc, nxt, obs, erodible, terms, law_row, src, dt, t_new):
+def _source(mesh, sc, nxt, erodible, terms, law_row, src, dt):
     """Per cell, after an accepted step, what it takes from its erodible layer
     (numerics.sources' gain: the CPU kernels' own, the same bits), its volume and the new
     inverse CFL limit into the cell's terms."""
@@ -381,11 +380,24 @@ def _source(mesh, sc, nxt, obs, erodible, terms, law_row, src, dt, t_new):
     if i >= nxt.h.size:
         return
     added, inv = gain(i, nxt.h, nxt.hu, nxt.hv, erodible, sc.law, mesh.params, law_row, src,
-                      dt, t_new, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z, obs.peak_h,
-                      obs.arrival)
+                      dt, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z)
     old = terms[T_INV, i]
     terms[T_INV, i] = inv if inv > old else old
     terms[T_SOURCE, i] = added
+
+
+def _observe(mesh, sc, nxt, obs, t_new):
+    """Per cell inside the DEM, once per accepted step (its source added), the running maps
+    from its new state: physics.observe, the rule of the CPU kernels' observer pass
+    (numerics.observers), so a step redone with half the step writes none."""
+    i = cuda.grid(1)
+    if i >= nxt.h.size:
+        return
+    h = nxt.h[i]
+    speed = speed_of(h, nxt.hu[i], nxt.hv[i])
+    (obs.peak_h[i], obs.peak_speed[i], obs.arrival[i], obs.last_moved[i]) = observe(
+        mesh.valid[i] != 0, h, speed, t_new, sc.h_dry, obs.peak_h[i], obs.peak_speed[i],
+        obs.arrival[i], obs.last_moved[i])
 
 
 def _reduce(src, dst, n):
@@ -479,7 +491,7 @@ def _build():
     _KERNELS = {name: _retarget(fn, names, cuda.jit)
                 for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
                                  ("final", _final), ("reduce", _reduce),
-                                 ("source", _source))}
+                                 ("source", _source), ("observe", _observe))}
     return _KERNELS
 
 
@@ -582,7 +594,7 @@ class CudaGrid:
             src = (int(source[SRC_KIND]), float(source[SRC_RATIO]), float(source[SRC_UMIN]),
                    float(source[SRC_PARAMS]), float(source[SRC_PARAMS + 1]),
                    float(source[SRC_PARAMS + 2]), float(source[SRC_PARAMS + 3]),
-                   sc.h_zero, sc.h_dry, sc.g)
+                   sc.h_zero, sc.g)
         t = stats[ST_TIME]
         status = REACHED_TARGET
         steps = 0
@@ -599,7 +611,7 @@ class CudaGrid:
             for _ in range(MAX_RETRIES):
                 t_new = t_target if last else t + dt
                 k["trial"][bc, THREADS](m, sc, cur, work, dt, dt_decide)
-                k["final"][bc, THREADS](m, sc, cur, nxt, obs, work, dt, t_new)
+                k["final"][bc, THREADS](m, sc, cur, nxt, obs, work, dt)
                 self._sums()
                 sums = work.totals.copy_to_host()[:, 0]  # the few numbers the host sees
                 ok = sums[T_BAD] == 0.0
@@ -612,11 +624,13 @@ class CudaGrid:
                 status = FAILED
                 break
             if entraining:  # the source after the accepted step, on its new state
-                k["source"][bc, THREADS](m, sc, nxt, obs, self.erodible, work.terms, law_row,
-                                         src, dt, t_new)
+                k["source"][bc, THREADS](m, sc, nxt, self.erodible, work.terms, law_row, src,
+                                         dt)
                 self._sums()
                 sums = work.totals.copy_to_host()[:, 0]
                 stats[ST_SOURCE] += sums[T_SOURCE]
+            # the maps of the accepted state, the source's mass included
+            k["observe"][bc, THREADS](m, sc, nxt, obs, t_new)
             t = t_target if last else t + dt
             steps += 1
             self.current = 1 - self.current
@@ -646,10 +660,11 @@ class CudaGrid:
         k["faces"][_blocks(self.ny * (self.nx + 1) + (self.ny + 1) * self.nx), THREADS](
             m, work.emit, work.xf, work.yf)
         k["trial"][bc, THREADS](m, sc, cur, work, 0.0, 0.0)
-        k["final"][bc, THREADS](m, sc, cur, nxt, scratch, work, 0.0, 0.0)
+        k["final"][bc, THREADS](m, sc, cur, nxt, scratch, work, 0.0)
         if source is not None:  # ``(law_row, src)``: on the spare buffer, a scratch layer
-            k["source"][bc, THREADS](m, sc, nxt, scratch, like(self.erodible), work.terms,
-                                     source[0], source[1], 0.0, 0.0)
+            k["source"][bc, THREADS](m, sc, nxt, like(self.erodible), work.terms, source[0],
+                                     source[1], 0.0)
+        k["observe"][bc, THREADS](m, sc, nxt, scratch, 0.0)
         self._sums()
         self.cuda.synchronize()
 

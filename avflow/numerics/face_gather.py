@@ -38,7 +38,7 @@ from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_average,
                                  dirac_face, dt_from_inverse, emitted_state, final_momentum,
-                                 observe, observe_cell, open_mass, speed_of, step_terms,
+                                 observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.cpu import half_flux_in, half_flux_out
@@ -271,16 +271,15 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
     return True, outflow, lim, moving, film, clamped, kinetic
 
 
-def heun_cells(cells, n_cells, mesh, physics, start, stage2, flag1, transport, obs, t_new,
-               new, cell_sums):
+def heun_cells(cells, n_cells, mesh, physics, start, stage2, flag1, transport, new,
+               cell_sums):
     """:func:`avflow.numerics.kernels.heun_faces` on threads: Heun's average of the two
-    stages and the observers per cell, each cell's terms of the sums into ``cell_sums``,
+    stages per cell, each cell's terms of the sums into ``cell_sums``,
     added afterwards in the list's order (the same bits). Returns ``(dt_limit, moving, film,
     kinetic, fallbacks)``."""
     h0, hu0, hv0, h2, hu2, hv2 = start.h, start.hu, start.hv, stage2.h, stage2.hu, stage2.hv
     cell_area, cfl_factor, gamma_z = mesh.cell_area, mesh.cfl_factor, mesh.gamma_z
-    g, h_dry, h_zero, peak_h = physics.g, physics.h_dry, physics.h_zero, obs.peak_h
-    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    g, h_dry, h_zero = physics.g, physics.h_dry, physics.h_zero
     h_new, hu_new, hv_new = new.h, new.hu, new.hv
     for c in prange(n_cells):
         i = cells[c]
@@ -292,9 +291,6 @@ def heun_cells(cells, n_cells, mesh, physics, start, stage2, flag1, transport, o
         hu_new[i] = qx
         hv_new[i] = qy
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
-        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-            True, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
-            last_moved[i])
         _keep_terms(cell_sums, i, False, inv_i, hn, cell_area[i], speed,
                     cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn), h_dry,
                     fell_back)

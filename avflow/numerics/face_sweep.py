@@ -2,8 +2,8 @@
 
 The same step as :func:`avflow.numerics.kernels.step_faces` at order 1 (seed eqs. 26-56:
 rectangular fluxes, trial momentum and Coulomb threshold, Dirac faces, projection,
-curvature and film rules, walls, open sides), bit for bit: thickness, discharge, flags,
-observers and the step's sums. ``step_faces`` stays as the reference (and runs order 2).
+curvature and film rules, walls, open sides), bit for bit: thickness, discharge, flags
+and the step's sums. ``step_faces`` stays as the reference (and runs order 2).
 
 The active lists are sorted, so they are runs of consecutive indices (on an all-wet mesh,
 one run). Each pass over cells is one loop without jumps over a run, which LLVM vectorises
@@ -18,8 +18,8 @@ one run). Each pass over cells is one loop without jumps over a run, which LLVM 
    that are not Dirac (eqs. 51-53) and what a dry side takes back through a Dirac face
    (:func:`_add_masses`; a flowing cell has no Dirac face, so its sum of pass 2 stands,
    and a step whose touched cells all flow skips this pass: pass 2 summed its outflow);
-5. per touched cell, the new thickness, the projection of eq. 50, the observers, and the
-   step's sums, added cell after cell in the lists' order (step_faces' order).
+5. per touched cell, the new thickness, the projection of eq. 50 and the step's sums,
+   added cell after cell in the lists' order (step_faces' order).
 
 The vector cell passes cost less than step_faces' cell loops; the face pass, scalar and
 bound by its arithmetic, is step_faces' own, and is most of the step (the figures:
@@ -42,7 +42,7 @@ import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dirac_face, dt_from_inverse,
-                                 final_momentum, observe, observe_cell, open_mass, step_terms,
+                                 final_momentum, observe_cell, open_mass, step_terms,
                                  trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.cpu import half_flux_in, half_flux_out
@@ -396,14 +396,13 @@ def _trial_cells(runs, n_runs, inv_area, e_u1, e_u2, e_speed, k11, k12, k22, h, 
 
 
 def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h,
-                 gamma_x, gamma_y, gamma_z, flag, law, params, g, h_dry, h_zero, dt, t_new,
-                 h_new, hu_new, hv_new, transport, peak_h, peak_speed, arrival, last_moved,
-                 t_inv, t_kin, t_mov, t_film):
+                 gamma_x, gamma_y, gamma_z, flag, law, params, g, h_dry, h_zero, dt, h_new,
+                 hu_new, hv_new, transport, t_inv, t_kin, t_mov, t_film):
     """The cells of the runs: the new thickness from the mass sum in ``h_new``, eq. 50's
-    projection of the trial discharge in ``hu_new, hv_new``, the observers and what the
-    step's sums need (step_faces sweep 2b), every write a select. Returns ``(cells below
-    0, clamped, cells that became wet or dry)``: a cell below 0 makes the step be redone,
-    whatever it wrote; with none wet or dry anew, the wet cells and the lists hold."""
+    projection of the trial discharge in ``hu_new, hv_new`` and what the step's sums need
+    (step_faces sweep 2b), every write a select. Returns ``(cells below 0, clamped, cells
+    that became wet or dry)``: a cell below 0 makes the step be redone, whatever it wrote;
+    with none wet or dry anew, the wet cells and the lists hold."""
     lw = friction_law(law)
     p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
     p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
@@ -419,7 +418,6 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             fi = flag[i]
             hn = h_old + dt / area * h_new[i]
             bad = hn < 0.0  # (as step_faces: a NaN goes on)
-            good = not bad
             n_bad += 1 if bad else 0
             flips += 1 if (h_old > h_zero) != (hn > h_zero) else 0
             qx = hu_new[i]
@@ -437,22 +435,15 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
                                          pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_old, False)
             speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gz, g)
-            old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
-            old_arrival, old_moved = arrival[i], last_moved[i]
             h_new[i] = hn
             hu_new[i] = qx
             hv_new[i] = qy
-            peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-                good, hn, speed, t_new, h_dry, old_peak_h, old_peak_speed, old_arrival,
-                old_moved)
             clamped += cl
             # physics.cell_moves with the largest |F_h| / L of the faces that carried mass
             moves = (speed > 0.0) & ((speed_n == 0.0)
                                      | (transport[i] > TRANSPORT_EPS * hn * speed_n))
             t_inv[i] = inv_i
             t_kin[i], t_mov[i], t_film[i] = step_terms(hn, area, speed, moves, h_dry)
-    # (a step with a cell below 0 is redone; every run was updated all the same, so the
-    # observers it leaves do not depend on how the runs were cut for the threads)
     return n_bad, clamped, flips
 
 
@@ -565,7 +556,7 @@ def _open_outflow(open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt):
     return outflow
 
 
-def _step(mesh, physics, cur, nxt, transport, flag, obs, when, lists, geo, wk):
+def _step(mesh, physics, cur, nxt, transport, flag, when, lists, geo, wk):
     """One order-1 step over the active lists (sorted): the numbers of
     :func:`~avflow.numerics.kernels.step_faces`, with ``geo`` from :func:`geometry` and
     ``wk`` from :func:`work`; ``same``: the lists are those of the last step with ``wk``,
@@ -581,8 +572,7 @@ def _step(mesh, physics, cur, nxt, transport, flag, obs, when, lists, geo, wk):
     gamma_y, gamma_z, h, hu, hv = mesh.gamma_y, mesh.gamma_z, cur.h, cur.hu, cur.hv
     h_new, hu_new, hv_new, law, params = nxt.h, nxt.hu, nxt.hv, physics.law, physics.params
     g, dirac, h_dry, h_zero = physics.g, physics.dirac, physics.h_dry, physics.h_zero
-    dt, dt_decide, t_new, peak_h = when.dt, when.dt_decide, when.t_new, obs.peak_h
-    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    dt, dt_decide = when.dt, when.dt_decide
     active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
     n_touched, same, face_stamp = lists.n_touched, lists.same, lists.face_stamp
     stamp = lists.stamp
@@ -622,12 +612,11 @@ def _step(mesh, physics, cur, nxt, transport, flag, obs, when, lists, geo, wk):
         outflow = add_masses(runs, n_runs, n_face_runs, pairs, face_frame, face_length, emit,
                              mass, flag, dirac, dt, h_new, hu_new, hv_new, none, 0, 0, 0,
                              geo.near_edge)
-    # 5. the new state, the observers
+    # 5. the new state
     n_bad, clamped, flips = final_cells(
         runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, k12, k22, h, gamma_x,
-        gamma_y, gamma_z, flag, law, params, g, h_dry, h_zero, dt, t_new, h_new, hu_new,
-        hv_new, transport, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov,
-        t_film)
+        gamma_y, gamma_z, flag, law, params, g, h_dry, h_zero, dt, h_new, hu_new, hv_new,
+        transport, t_inv, t_kin, t_mov, t_film)
     if n_bad > 0:
         return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0
     lim, moving, film, kinetic = _step_sums(runs, n_runs, per_cell)
@@ -878,7 +867,7 @@ def _cut_lists(active_faces, n_active, touched, n_touched, same, pairs, face_ptr
     return n_runs, n_face_runs, n_cp, n_fp, n_shared
 
 
-def _step_threads(mesh, physics, cur, nxt, transport, flag, obs, when, lists, geo, wk):
+def _step_threads(mesh, physics, cur, nxt, transport, flag, when, lists, geo, wk):
     """:func:`_step` on Numba's threads (its arguments, its returns, its bits; ``geo`` and
     ``wk`` from :func:`geometry` and :func:`work` with ``threads``):
 
@@ -892,7 +881,7 @@ def _step_threads(mesh, physics, cur, nxt, transport, flag, obs, when, lists, ge
     3. per piece of the faces, :func:`_add_masses`; per shared cell at zero temperature
        its own faces (:func:`_cold_masses`); where few cells are at zero temperature, each
        of those sums its own faces instead, and where none, nothing;
-    4. per piece of the cells, the new state and the observers (:func:`_final_cells`);
+    4. per piece of the cells, the new state (:func:`_final_cells`);
        then, serially, the volume through the open faces (in face order) and the step's
        sums (in the lists' order).
     """
@@ -901,8 +890,7 @@ def _step_threads(mesh, physics, cur, nxt, transport, flag, obs, when, lists, ge
     gamma_y, gamma_z, h, hu, hv = mesh.gamma_y, mesh.gamma_z, cur.h, cur.hu, cur.hv
     h_new, hu_new, hv_new, law, params = nxt.h, nxt.hu, nxt.hv, physics.law, physics.params
     g, dirac, h_dry, h_zero = physics.g, physics.dirac, physics.h_dry, physics.h_zero
-    dt, dt_decide, t_new, peak_h = when.dt, when.dt_decide, when.t_new, obs.peak_h
-    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    dt, dt_decide = when.dt, when.dt_decide
     active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
     n_touched, same, face_stamp = lists.n_touched, lists.same, lists.face_stamp
     stamp = lists.stamp
@@ -968,7 +956,7 @@ def _step_threads(mesh, physics, cur, nxt, transport, flag, obs, when, lists, ge
             if flag[i] != FLOWING:
                 _cold_masses(i, face_ptr, face_idx, face_stamp, stamp, pairs, face_frame,
                              face_length, emit, mass, flag, dirac, h_new, hu_new, hv_new)
-    # 4. the new state, the observers
+    # 4. the new state
     n_bad = 0
     clamped = 0
     flips = 0
@@ -977,8 +965,7 @@ def _step_threads(mesh, physics, cur, nxt, transport, flag, obs, when, lists, ge
         bad, cl, fl = final_cells(
             cell_seg[2 * s0:], cell_bounds[p + 1] - s0, cell_area, cfl_factor, e_u1, e_u2,
             e_speed, k11, k12, k22, h, gamma_x, gamma_y, gamma_z, flag, law, params, g, h_dry,
-            h_zero, dt, t_new, h_new, hu_new, hv_new, transport, peak_h, peak_speed, arrival,
-            last_moved, t_inv, t_kin, t_mov, t_film)
+            h_zero, dt, h_new, hu_new, hv_new, transport, t_inv, t_kin, t_mov, t_film)
         n_bad += bad
         clamped += cl
         flips += fl

@@ -39,7 +39,7 @@ from numba import njit
 from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_average,
                                  dirac_face, dt_from_inverse, emitted_state, emitting,
                                  final_momentum, half_flux_in, half_flux_out, half_fluxes,
-                                 observe, observe_cell, open_mass, side_fluxes, sound_speed,
+                                 observe_cell, open_mass, side_fluxes, sound_speed,
                                  speed_of, step_terms, trial_momentum)
 from avflow.numerics.vectorize import cell_law
 from avflow.terrain.mesh import OUTFLOW, WALL
@@ -93,7 +93,7 @@ def _profile_fluxes2(recon, h, h_zero, density, gamma_z, g, left, right, flux):
 
 
 @njit(error_model="numpy", cache=True)
-def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, watch):
+def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
     """One step on a profile (faces in line order, uniform dx), the face loop fused into the
     cell loops: the time loop runs it at order 2; at order 1 it runs the vectorised
     :func:`avflow.numerics.profile.step`, and this fused sweep is the reference that one is
@@ -102,8 +102,8 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
     Same arithmetic as :func:`step_faces`.
     With ``order2`` the faces see the reconstructed states ``recon`` (h_L, u_L, h_R, u_R per
     cell, :func:`avflow.numerics.reconstruction.reconstruct_profile`) instead of the averages.
-    ``watch``: update the observers (peaks, arrival, last motion); False for a
-    Runge-Kutta stage, whose state is not one of the run's.
+    The running maps are not written here: the time loop observes each accepted step
+    (:mod:`avflow.numerics.observers`).
     ``flux[k, 0]`` is the mass flux (m^2/s) through face k towards +x, ``flux[k, 1]`` its
     momentum flux. Returns
     ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)`` (see :func:`step_faces`).
@@ -113,8 +113,7 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
     curvature, h, hu, h_new = mesh.curvature, cur.h, cur.hu, nxt.h
     hu_new, hv_new, law, params, g = nxt.hu, nxt.hv, physics.law, physics.params, physics.g
     dirac, h_dry, h_zero, dt = physics.dirac, physics.h_dry, physics.h_zero, when.dt
-    dt_decide, t_new, peak_h = when.dt_decide, when.t_new, obs.peak_h
-    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    dt_decide = when.dt_decide
     n = h.size
     dx = cell_area[0]
     r = dt / dx
@@ -193,7 +192,7 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
             fl_q = fr_q
             fp_h, fp_q = np_h, np_q
 
-    # --- sweep 2: mass with the Dirac switch, projection, observers
+    # --- sweep 2: mass with the Dirac switch, projection
     outflow = 0.0
     inv_lim = 0.0
     moving = 0.0
@@ -231,10 +230,6 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, obs, when, order2, recon, 
         clamped += cl
         speed, inv_k = observe_cell(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
         inv_lim = max(inv_lim, inv_k)
-        if watch:
-            peak_h[k], peak_speed[k], arrival[k], last_moved[k] = observe(
-                True, hn, speed, t_new, h_dry, peak_h[k], peak_speed[k], arrival[k],
-                last_moved[k])
         kin, mov, fil = step_terms(hn, dx, speed, cell_moves(speed, speed_n,
                                                              max(abs(fl), abs(fr)), hn), h_dry)
         kinetic += kin
@@ -409,9 +404,9 @@ def _face_mass(mesh, physics, nxt, flux, transport, flag, when, lists):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _face_finals(mesh, physics, cur, nxt, transport, flag, obs, when, lists, order2, watch):
-    """Sweep 2b of :func:`step_faces`: the new thickness, the projection of eq. 50, the
-    observers and the step's sums. Returns ``(ok, dt_limit, moving, film, clamped,
+def _face_finals(mesh, physics, cur, nxt, transport, flag, when, lists, order2):
+    """Sweep 2b of :func:`step_faces`: the new thickness, the projection of eq. 50 and the
+    step's sums. Returns ``(ok, dt_limit, moving, film, clamped,
     kinetic)``."""
     cell_area, cfl_factor, gamma_x = mesh.cell_area, mesh.cfl_factor, mesh.gamma_x
     gamma_y, gamma_z, curvature = mesh.gamma_y, mesh.gamma_z, mesh.curvature
@@ -419,12 +414,10 @@ def _face_finals(mesh, physics, cur, nxt, transport, flag, obs, when, lists, ord
     h_new, hu_new, hv_new = nxt.h, nxt.hu, nxt.hv
     law, params, g = physics.law, physics.params, physics.g
     h_dry, h_zero, dt = physics.h_dry, physics.h_zero, when.dt
-    t_new, peak_h, peak_speed = when.t_new, obs.peak_h, obs.peak_speed
-    arrival, last_moved = obs.arrival, obs.last_moved
     touched, n_touched = lists.touched, lists.n_touched
     p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
     p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
-    # --- sweep 2b: new thickness, projection, observers
+    # --- sweep 2b: new thickness, projection
     inv_lim = 0.0
     moving = 0.0
     film = 0.0
@@ -453,10 +446,6 @@ def _face_finals(mesh, physics, cur, nxt, transport, flag, obs, when, lists, ord
         clamped += cl
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
-        if watch:
-            peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-                True, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
-                last_moved[i])
         kin, mov, fil = step_terms(hn, area, speed, cell_moves(speed, speed_n, transport[i], hn),
                                    h_dry)
         kinetic += kin
@@ -466,8 +455,8 @@ def _face_finals(mesh, physics, cur, nxt, transport, flag, obs, when, lists, ord
 
 
 @njit(error_model="numpy", cache=True)
-def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, order2,
-               face_state, watch, emit):
+def step_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, order2,
+               face_state, emit):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
 
     Only the ``n_active`` faces of ``active_faces`` (those of the wet cells) and the
@@ -491,7 +480,7 @@ def step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists,
     _face_trials(mesh, physics, cur, nxt, flag, when, lists, order2)
     outflow = _face_mass(mesh, physics, nxt, flux, transport, flag, when, lists)
     ok, lim, moving, film, clamped, kinetic = _face_finals(mesh, physics, cur, nxt, transport,
-                                                          flag, obs, when, lists, order2, watch)
+                                                          flag, when, lists, order2)
     return ok, outflow if ok else 0.0, lim, moving, film, clamped, kinetic
 
 
@@ -508,17 +497,15 @@ def profile_transport(flag, flux, dirac, transport):
 
 
 @njit(error_model="numpy", cache=True)
-def heun_faces(cells, n_cells, mesh, physics, start, stage2, flag1, transport, obs, t_new,
-               new):
+def heun_faces(cells, n_cells, mesh, physics, start, stage2, flag1, transport, new):
     """Order 2: Heun's average of the two stages over the ``n_cells``
     listed ``cells`` (those either stage changed; all cells on a profile) and the step's
-    observers. ``transport`` holds the face fluxes of the stage that last swept each cell.
+    sums. ``transport`` holds the face fluxes of the stage that last swept each cell.
     Returns ``(dt_limit, moving, film, kinetic, fallbacks)`` as the step kernels do (moving
     cells: u != 0 and a face that carried mass)."""
     h0, hu0, hv0, h2, hu2, hv2 = start.h, start.hu, start.hv, stage2.h, stage2.hu, stage2.hv
     cell_area, cfl_factor, gamma_z = mesh.cell_area, mesh.cfl_factor, mesh.gamma_z
-    g, h_dry, h_zero, peak_h = physics.g, physics.h_dry, physics.h_zero, obs.peak_h
-    peak_speed, arrival, last_moved = obs.peak_speed, obs.arrival, obs.last_moved
+    g, h_dry, h_zero = physics.g, physics.h_dry, physics.h_zero
     h_new, hu_new, hv_new = new.h, new.hu, new.hv
     inv_lim = 0.0
     moving = 0.0
@@ -535,9 +522,6 @@ def heun_faces(cells, n_cells, mesh, physics, start, stage2, flag1, transport, o
         hv_new[i] = qy
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
-        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-            True, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
-            last_moved[i])
         area = cell_area[i]
         moves = cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn)
         kin, mov, fil = step_terms(hn, area, speed, moves, h_dry)

@@ -37,7 +37,7 @@ from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FA
                                       record_step, step_size)
 from avflow.numerics.supply import supply_cells
 
-#: What a call of the loop runs on: the kernel's mesh, the fields (state, observers,
+#: What a call of the loop runs on: the kernel's mesh, the fields (state, running maps,
 #: ``stats``), its work buffers, the physics, the run's control, the kernel's own extra
 #: (grid: the threads; faces: the order-1 sweep's geometry and work), and the registered
 #: sources (:data:`avflow.numerics.supply.Supply`, in the kernel's numbering of cells)

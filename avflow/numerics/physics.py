@@ -187,8 +187,10 @@ def observe_cell(h, q_norm, cfl_factor, gz, g):
 def observe(write, h, speed, t_new, h_dry, peak_h, peak_speed, arrival, last_moved):
     """The running observers of a cell after a step, each a select (no branch, so the cell
     loops vectorise): peak thickness and speed, arrival (first time above ``h_dry``) and
-    the last time it moved. ``write`` False keeps them as they were (a step to be redone).
-    Every traversal's final pass calls this: a new running map is one more value here."""
+    the last time it moved, from its accepted state. ``write`` False keeps them as they
+    were (the cuda backend: a cell outside the DEM). The observer pass calls this once per
+    accepted step (:mod:`avflow.numerics.observers`, and the cuda backend's): a new running
+    map is one more value here."""
     return (h if write & (h > peak_h) else peak_h,
             speed if write & (speed > peak_speed) else peak_speed,
             t_new if write & (h > h_dry) & math.isnan(arrival) else arrival,

@@ -9,12 +9,12 @@ four passes over contiguous lines, each free of jumps (:mod:`avflow.numerics.vec
 2. per face, the flux: the half flux of the cell on its left plus that of the cell on its
    right (the two ends: wall or open side, apart);
 3. per cell, the trial momentum and the flag of eq. 49;
-4. per cell, mass through the faces that keep the rectangular density, the projection and
-   the observers; the step's sums per cell, added line by line afterwards.
+4. per cell, mass through the faces that keep the rectangular density and the projection;
+   the step's sums per cell, added line by line afterwards.
 
 ``step_profile`` fused passes 1-3 in one loop carrying the left face from one cell to the
 next, which LLVM cannot vectorise. Every value kept is computed with the operations of
-``step_profile``: the state, the flags and the observers are its bits (tested); the sums
+``step_profile``: the state and the flags are its bits (tested); the sums
 over the line (moving volume, film, kinetic energy) are added in another order and differ
 by round-off.
 """
@@ -27,7 +27,7 @@ from collections import namedtuple
 from numba import njit
 
 from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
-                                 observe, observe_cell, open_mass, step_terms, trial_momentum)
+                                 observe_cell, open_mass, step_terms, trial_momentum)
 from avflow.numerics.cpu import SQRT3, half_fluxes, sound_speed
 from avflow.numerics.vectorize import (cell_law, friction_law, in_select, law_copies, law_kind,
                                        law_label, line_sum, noalias, out_select, specialize)
@@ -126,10 +126,10 @@ def _trial(n, h, hu, gamma_x, gamma_z, kappa, speed, flux_h, flux_q, law, params
 
 
 def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag,
-           law, params, g, dirac, h_dry, h_zero, dx, dt, t_new, watch, h_new, hu_new, hv_new,
-           flag, peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film):
+           law, params, g, dirac, h_dry, h_zero, dx, dt, h_new, hu_new, hv_new, flag, t_inv,
+           t_kin, t_mov, t_film):
     """Pass 4: per cell, the new thickness (Dirac faces carry nothing), the momentum of
-    eq. 50, the observers (``watch``: False for a Runge-Kutta stage), what the sums need.
+    eq. 50, what the sums need.
     Returns ``(cells below 0, clamped)``; a cell below 0 makes the step be redone,
     whatever it wrote."""
     lw = friction_law(law)
@@ -149,8 +149,6 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         q = q_trial[k]
         kap = kappa[k]
         cfl_k = cfl_factor[k]
-        old_peak_h, old_peak_speed = peak_h[k], peak_speed[k]
-        old_arrival, old_moved = arrival[k], last_moved[k]
         cold = dirac & (fk != FLOWING)  # dirac_face(); the ends' ghosts share the flag
         dirac_l = cold & (f_l != FLOWING)
         dirac_r = cold & (f_r != FLOWING)
@@ -175,9 +173,6 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         flag[k] = fk
         clamped += cl
         speed_k, inv_k = observe_cell(hn, abs(qx), cfl_k, gz, g)
-        peak_h[k], peak_speed[k], arrival[k], last_moved[k] = observe(
-            watch, hn, speed_k, t_new, h_dry, old_peak_h, old_peak_speed, old_arrival,
-            old_moved)
         # physics.cell_moves with the transport max(|fl|, |fr|)
         transport = max(abs(fl), abs(fr))
         moves = (speed_k > 0.0) & ((speed_n == 0.0) | (transport > TRANSPORT_EPS * hn * speed_n))
@@ -201,7 +196,7 @@ ProfileLine = namedtuple("ProfileLine", "left right dx cfl_factor density gamma_
                          "kappa work pflag")
 
 
-def _step(line, physics, cur, nxt, flag, obs, when, watch):
+def _step(line, physics, cur, nxt, flag, when):
     """One order-1 step on a profile of uniform ``dx`` with end conditions ``left`` and
     ``right`` (WALL or OUTFLOW): :func:`~avflow.numerics.kernels.step_profile`'s numbers.
     ``kappa``: the curvature line (``curvature[:, 0]``, contiguous); ``work``: float lines
@@ -211,9 +206,8 @@ def _step(line, physics, cur, nxt, flag, obs, when, watch):
     density, gamma_x, gamma_z, kappa = line.density, line.gamma_x, line.gamma_z, line.kappa
     h, hu, h_new, hu_new, hv_new, law = cur.h, cur.hu, nxt.h, nxt.hu, nxt.hv, physics.law
     params, g, dirac, h_dry = physics.params, physics.g, physics.dirac, physics.h_dry
-    h_zero, dt, dt_decide, t_new = physics.h_zero, when.dt, when.dt_decide, when.t_new
-    peak_h, peak_speed, arrival = obs.peak_h, obs.peak_speed, obs.arrival
-    last_moved, work, pflag = obs.last_moved, line.work, line.pflag
+    h_zero, dt, dt_decide = physics.h_zero, when.dt, when.dt_decide
+    work, pflag = line.work, line.pflag
     n = h.size
     up_h, up_q, down_h, down_q = work[W_UP_H], work[W_UP_Q], work[W_DOWN_H], work[W_DOWN_Q]
     speed, flux_h, flux_q = work[W_SPEED], work[W_FLUX_H], work[W_FLUX_Q]
@@ -232,8 +226,8 @@ def _step(line, physics, cur, nxt, flag, obs, when, watch):
     pflag[n + 1] = pflag[n]
     n_bad, clamped = final_pass(
         n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_trial, pflag, law,
-        params, g, dirac, h_dry, h_zero, dx, dt, t_new, watch, h_new, hu_new, hv_new, flag,
-        peak_h, peak_speed, arrival, last_moved, t_inv, t_kin, t_mov, t_film)
+        params, g, dirac, h_dry, h_zero, dx, dt, h_new, hu_new, hv_new, flag, t_inv, t_kin,
+        t_mov, t_film)
     if n_bad > 0:
         return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
     # what left through open ends (the fluxes of faces that are not Dirac)
@@ -260,7 +254,7 @@ STEP = {kind: specialize(_step, "_" + law_label(kind), trial_pass=TRIAL[kind],
         for kind in TRIAL}
 
 
-def step(line, physics, cur, nxt, flag, obs, when, watch):
+def step(line, physics, cur, nxt, flag, when):
     """:func:`_step` in the copy for the law (from Python; the time loop calls its law's
     copy itself)."""
-    return STEP[law_kind(physics.law)](line, physics, cur, nxt, flag, obs, when, watch)
+    return STEP[law_kind(physics.law)](line, physics, cur, nxt, flag, when)

@@ -41,17 +41,18 @@ def no_source() -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, t_new, cell_area, cfl_factor,
-          gamma_z, peak_h, arrival):
+def _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, cell_area, cfl_factor,
+          gamma_z):
     """Cell i takes from its layer: ``(volume added, its new inverse CFL limit)``.
     ``law_row``: the run's own parameters (``p0..p7``), ``src``: the source's scalars
-    ``(kind, ratio, u_min, s0..s3, h_zero, h_dry, g)``, both loaded once per span.
+    ``(kind, ratio, u_min, s0..s3, h_zero, g)``, both loaded once per span. The running
+    maps see the added mass in the time loop's observer pass, after this one.
 
     Without jumps (every value computed, the one that applies selected, every array
     written, with what it holds where nothing is taken), so that LLVM may vectorise a
     row's loop in the law-constant copies (:data:`SPAN`; what it gained:
     docs/performance.md)."""
-    kind, ratio, u_min, s0, s1, s2, s3, h_zero, h_dry, g = src
+    kind, ratio, u_min, s0, s1, s2, s3, h_zero, g = src
     p0, p1, p2, p3, p4, p5, p6, p7 = law_row
     hi = h[i]
     e = erodible[i]
@@ -68,10 +69,6 @@ def _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, t_new, cell_are
     erodible[i] = e - take if take > 0.0 else e  # exactly 0 where the layer is used up
     hn = hi + ratio * take if take > 0.0 else hi
     h[i] = hn
-    peak = peak_h[i]
-    peak_h[i] = hn if hn > peak else peak
-    first = arrival[i]
-    arrival[i] = t_new if (take > 0.0) & (hn > h_dry) & math.isnan(first) else first
     _, inv = observe_cell(hn, q_norm, cfl_factor[i], gamma_z[i], g)
     return ratio * take * cell_area[i], (inv if take > 0.0 else 0.0)
 
@@ -84,12 +81,11 @@ def _scalars(physics):
                params[0, 5], params[0, 6], params[0, 7])
     src = (int(source[SRC_KIND]), source[SRC_RATIO], source[SRC_UMIN], source[SRC_PARAMS],
            source[SRC_PARAMS + 1], source[SRC_PARAMS + 2], source[SRC_PARAMS + 3],
-           physics.h_zero, physics.h_dry, physics.g)
+           physics.h_zero, physics.g)
     return law_row, src
 
 
-def _add_span(a, b, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_factor, gamma_z,
-             peak_h, arrival):
+def _add_span(a, b, h, hu, hv, erodible, physics, dt, cell_area, cfl_factor, gamma_z):
     """The source over cells ``a .. b - 1`` (a profile, a square grid's row): the volume
     added and the largest inverse CFL limit of the cells it changed."""
     law_row, src = _scalars(physics)
@@ -97,8 +93,8 @@ def _add_span(a, b, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_fact
     added = 0.0
     inv_lim = 0.0
     for i in range(a, b):
-        v, inv = _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, t_new,
-                       cell_area, cfl_factor, gamma_z, peak_h, arrival)
+        v, inv = _gain(i, h, hu, hv, erodible, law, params, law_row, src, dt, cell_area,
+                       cfl_factor, gamma_z)
         added += v
         inv_lim = inv if inv > inv_lim else inv_lim
     return added, inv_lim
@@ -113,8 +109,7 @@ add_span = SPAN[ANY_LAW]
 
 
 @njit(error_model="numpy", cache=True, _nrt=False)
-def add_listed(cells, n, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl_factor,
-               gamma_z, peak_h, arrival):
+def add_listed(cells, n, h, hu, hv, erodible, physics, dt, cell_area, cfl_factor, gamma_z):
     """The source over the ``n`` listed ``cells`` (the face kernel's touched cells, a
     superset of the wet ones): as :func:`add_span`."""
     law_row, src = _scalars(physics)
@@ -122,8 +117,8 @@ def add_listed(cells, n, h, hu, hv, erodible, physics, dt, t_new, cell_area, cfl
     added = 0.0
     inv_lim = 0.0
     for c in range(n):
-        v, inv = _gain(cells[c], h, hu, hv, erodible, law, params, law_row, src, dt, t_new,
-                       cell_area, cfl_factor, gamma_z, peak_h, arrival)
+        v, inv = _gain(cells[c], h, hu, hv, erodible, law, params, law_row, src, dt,
+                       cell_area, cfl_factor, gamma_z)
         added += v
         inv_lim = max(inv_lim, inv)
     return added, inv_lim

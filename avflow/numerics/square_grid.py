@@ -11,7 +11,7 @@ One step is a wavefront over the rows of the *swept region* (the rows and column
 covers, one cell around, see :func:`_advance_grid`): at stage k, the faces of row k (its x
 faces and the y faces below it, from what each cell emits, computed once per cell), the
 trial momentum and Coulomb flag of row k - 1 (eqs. 47, 49), the final update of row k - 2
-(Dirac faces, projection of eq. 50, observers). A row's fluxes and flags live in a ring of
+(Dirac faces, projection of eq. 50). A row's fluxes and flags live in a ring of
 four rows, still in cache when they are used: there is no flux array of the whole grid.
 
 The band of rows is cut into blocks, one task each (Numba's threads): a block also computes
@@ -20,7 +20,7 @@ from its neighbours and no two threads write the same place. Every value is comp
 the same arithmetic whoever computes it, and the sums over the grid are made per row, then
 over the rows in order: the answer is bit for bit the same on 1 or N threads. Those grid-wide
 diagnostics (moving volume, film, kinetic energy, outflow) differ from the face kernel's
-(which adds cell after cell) by round-off; everything else (thickness, discharge, observers,
+(which adds cell after cell) by round-off; everything else (thickness, discharge, flags,
 time steps) is the face kernel's, bit for bit: each cell adds its faces in the order of their
 indices in the mesh, W, E, S, N on a square grid (:mod:`avflow.terrain.mesh`), as the face
 kernel does.
@@ -56,12 +56,12 @@ from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, cell_moves,
                                  dt_from_inverse, final_momentum, heun_average,
-                                 observe, observe_cell, open_mass, speed_of, step_terms,
+                                 observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_span
 from avflow.numerics.sources import SPAN, add_span  # noqa: F401 (each copy's own)
-from avflow.numerics.stepping import ST_SOURCE, Conserved, Observers, record_end
+from avflow.numerics.stepping import ST_SOURCE, Conserved, record_end
 from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, cell_law, friction_law, in_select,
@@ -83,7 +83,7 @@ N_ROW = 8
 
 #: Whether a copy of the row passes runs a stage of order 2 (a constant in each copy,
 #: :func:`_block_for`): gravity and friction explicit in the stage (physics.trial_momentum),
-#: no observers, each cell's transport kept for Heun's merge
+#: each cell's transport kept for Heun's merge
 ORDER2 = False
 
 
@@ -609,13 +609,12 @@ M_W, M_E, M_S, M_N, M_GOOD = 1, 2, 4, 8, 16
 def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len,
                  yn_len, xf, ys, yn, em, fl_s, fl, fl_n, qx_in, qy_in, cell_area, cfl_factor,
                  gamma_x, gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
-                 params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed, arrival,
-                 last_moved, rows, wet_lo, wet_hi, marks, t_inv, t_kin, t_mov, t_film, t_out,
-                 em_s, em_n, transport):
+                 params, g, dirac, h_dry, h_zero, dt, rows, wet_lo, wet_hi, marks, t_inv, t_kin,
+                 t_mov, t_film, t_out, em_s, em_n, transport):
     """Final update of row r, in two loops: (1) mass through the faces that keep the
     rectangular density, the projection; h, q and the flag of each cell, and ``marks[c]``
     (its Dirac faces and whether its update was kept, ``M_*``); (2) from what (1) wrote, the
-    observers, the row's sums (``rows[r]``) and the columns of its wet cells. ``fl_s, fl,
+    row's sums (``rows[r]``) and the columns of its wet cells. ``fl_s, fl,
     fl_n``: the flags of the rows below, of this one and above (cell c at ``c + 1``).
 
     Each loop is without jumps, so that LLVM vectorises it: every write is a select (a cell
@@ -630,11 +629,11 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
     fixed overhead (both measured: docs/performance.md).
 
     In a stage of order 2 (``ORDER2``, a constant of the copy): friction with the stage's
-    own thickness (physics.final_momentum's ``explicit``), no observers (a stage's state is
-    not one of the run's), and ``transport[i]``, the largest mass flux per metre through
-    the cell's faces that are not Dirac, written where the face kernel's stage would touch
-    the cell (it or a neighbour across an inner face wet: ``em_s``, ``em``, ``em_n``, the
-    emitted thickness of the rows below, of this one and above) for Heun's merge."""
+    own thickness (physics.final_momentum's ``explicit``), and ``transport[i]``, the
+    largest mass flux per metre through the cell's faces that are not Dirac, written where
+    the face kernel's stage would touch the cell (it or a neighbour across an inner face
+    wet: ``em_s``, ``em``, ``em_n``, the emitted thickness of the rows below, of this one
+    and above) for Heun's merge."""
     lw = friction_law(law)  # a constant in the copies of by_law
     p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
     p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
@@ -711,7 +710,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         clamped += cl if good else 0
         marks[c] = (((M_W if d_w else 0) | (M_E if d_e else 0)) | ((M_S if d_s else 0)
                     | (M_N if d_n else 0))) | (M_GOOD if good else 0)
-    # 2. the observers and the row's sums, from what the first loop wrote
+    # 2. the row's sums, from what the first loop wrote
     w_lo = x_len.size
     w_hi = -1
     for j in range(c1 + 1 - c0):
@@ -733,13 +732,8 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         qy = hv_new[i]
         speed_n = e_speed[c]
         len_w, len_e, len_s, len_n = x_len[c], x_len[c + 1], ys_len[c], yn_len[c]
-        old_peak_h, old_peak_speed = peak_h[i], peak_speed[i]
-        old_arrival, old_moved = arrival[i], last_moved[i]
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
-                                g)
-        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-            good & (not ORDER2), hn, speed, t_new, h_dry, old_peak_h, old_peak_speed,
-            old_arrival, old_moved)
+                                    g)
         # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
         # per metre (physics.cell_moves; compared as |fh| > eps h |u^n| L: no division)
         limit = TRANSPORT_EPS * hn * speed_n
@@ -805,9 +799,8 @@ def _span(r, r0, r1, lo, hi, nx):
 def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame,
                  y_length, cell_area, inv_area, cfl_factor, density, gamma_x, gamma_y,
                  gamma_z, curvature, h, hu, hv, h_new, hu_new, hv_new, flag, law, params, g, dirac,
-                 h_dry, h_zero, dt, dt_decide, t_new, peak_h, peak_speed, arrival, last_moved,
-                 r0, r1, lo, hi, rows, wet_lo, wet_hi, emit, xf, yf, fl, scratch, qx, qy, marks,
-                 x_off, y_off, transport, recon):
+                 h_dry, h_zero, dt, dt_decide, r0, r1, lo, hi, rows, wet_lo, wet_hi, emit, xf,
+                 yf, fl, scratch, qx, qy, marks, x_off, y_off, transport, recon):
     """One step on the rows ``a..b`` of the swept band ``r0..r1``, as a wavefront: at stage
     k the faces of row k (its x faces, the y faces below it), the trial of row k - 1, the
     final update of row k - 2, so that a row's fluxes and flags are still in cache when they
@@ -891,8 +884,8 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
                              fl[(f - 1) % ring], fl[f % ring], fl[(f + 1) % ring],
                              qx[f % ring], qy[f % ring], cell_area, cfl_factor, gamma_x,
                              gamma_y, gamma_z, curvature, h, h_new, hu_new, hv_new, flag, law,
-                             params, g, dirac, h_dry, h_zero, dt, t_new, peak_h, peak_speed,
-                             arrival, last_moved, rows, wet_lo, wet_hi, marks, scratch[0],
+                             params, g, dirac, h_dry, h_zero, dt, rows, wet_lo, wet_hi, marks,
+                             scratch[0],
                              scratch[1], scratch[2], scratch[3], scratch[4],
                              emit[(f - 1) % ring], emit[(f + 1) % ring], transport)
             else:
@@ -966,8 +959,7 @@ _BLOCKS = {(kind, order2): _block_for(None if kind == ANY_LAW else kind, law_lab
 Band = namedtuple("Band", "r0 r1 lo hi rows wet_lo wet_hi")
 
 
-def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, band, rings,
-           transport):
+def _sweep(n_blocks, grid, physics, cur, nxt, flag, dt, dt_decide, band, rings, transport):
     """One step on the band ``r0..r1`` (``band``: :data:`Band`), from ``cur`` into ``nxt``
     (:data:`~avflow.numerics.stepping.Conserved`), cut in ``n_blocks`` blocks of rows, one
     per task; ``rings``: the ring buffers (:func:`_rings`), a set per thread; ``transport``:
@@ -987,8 +979,7 @@ def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, b
                 grid.cfl_factor, grid.density, grid.gamma_x, grid.gamma_y, grid.gamma_z,
                 grid.curvature, cur.h, cur.hu, cur.hv, nxt.h, nxt.hu, nxt.hv, flag,
                 physics.law, physics.params, physics.g, physics.dirac, physics.h_dry,
-                physics.h_zero, dt, dt_decide, t_new, obs.peak_h, obs.peak_speed,
-                obs.arrival, obs.last_moved, r0, r1, band.lo, band.hi, band.rows,
+                physics.h_zero, dt, dt_decide, r0, r1, band.lo, band.hi, band.rows,
                 band.wet_lo, band.wet_hi, rings.emit[slot], rings.x_faces[slot],
                 rings.y_faces[slot], rings.flags[slot], rings.scratch[slot], rings.qx[slot],
                 rings.qy[slot], rings.marks[slot], grid.x_offset, grid.y_offset, transport,
@@ -998,9 +989,8 @@ def _sweep(n_blocks, grid, physics, cur, nxt, flag, obs, dt, dt_decide, t_new, b
 @noalias
 @njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
 def _heun_cells(r, base, c0, c1, lo1, hi1, valid, h0, hu0, hv0, h2, hu2, hv2, flag1,
-                transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, t_new, h_new,
-                hu_new, hv_new, peak_h, peak_speed, arrival, last_moved, rows, wet_lo, wet_hi,
-                t_inv, t_kin, t_mov, t_film, t_fb):
+                transport, cell_area, cfl_factor, gamma_z, g, h_dry, h_zero, h_new, hu_new,
+                hv_new, rows, wet_lo, wet_hi, t_inv, t_kin, t_mov, t_film, t_fb):
     """Heun's merge of the cells ``c0..c1`` of row r (:func:`_heun_rows`), one loop without
     jumps (every value loaded whichever is kept), each cell's terms of the row's sums kept
     in ``t_*`` and added line by line, as :func:`_final_cells` does."""
@@ -1022,9 +1012,6 @@ def _heun_cells(r, base, c0, c1, lo1, hi1, valid, h0, hu0, hv0, h2, hu2, hv2, fl
         inside = valid[i] != 0
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i],
                                     gamma_z[i], g)
-        peak_h[i], peak_speed[i], arrival[i], last_moved[i] = observe(
-            inside, hn, speed, t_new, h_dry, peak_h[i], peak_speed[i], arrival[i],
-            last_moved[i])
         moves = cell_moves(speed, speed_of(a, qa, qb), transport[i], hn)
         t_kin[c], t_mov[c], t_film[c] = step_terms(hn, cell_area[i], speed, moves, h_dry)
         t_inv[c] = inv_i
@@ -1043,11 +1030,10 @@ def _heun_cells(r, base, c0, c1, lo1, hi1, valid, h0, hu0, hv0, h2, hu2, hv2, fl
 
 @njit(error_model="numpy", cache=True, _nrt=False)
 def _heun_rows(r0, r1, lo, hi, lo1, hi1, nx, valid, cell_area, cfl_factor, gamma_z, physics,
-               start, stage2, flag1, transport, new, obs, t_new, rows, wet_lo, wet_hi,
-               scratch):
+               start, stage2, flag1, transport, new, rows, wet_lo, wet_hi, scratch):
     """Order 2: Heun's merge (:func:`~avflow.numerics.physics.heun_average`) of the swept
     rows ``r0..r1`` (columns ``lo..hi``) from ``start`` and ``stage2`` into ``new``, with
-    the step's observers and each row's sums (``rows``: R_INV, R_MOVING, R_FILM,
+    each row's sums (``rows``: R_INV, R_MOVING, R_FILM,
     R_KINETIC, R_FALLBACK) and wet columns, as :func:`~avflow.numerics.kernels.heun_faces`
     per cell (the same bits; the sums added per row, then over the rows: round-off).
     ``flag1``: the first stage's flags, read where it swept (``lo1..hi1``), DRY beyond
@@ -1061,10 +1047,9 @@ def _heun_rows(r0, r1, lo, hi, lo1, hi1, nx, valid, cell_area, cfl_factor, gamma
             continue
         _heun_cells(r, r * nx, lo[r], hi[r], lo1[r], hi1[r], valid, start.h, start.hu,
                     start.hv, stage2.h, stage2.hu, stage2.hv, flag1, transport, cell_area,
-                    cfl_factor, gamma_z, physics.g, physics.h_dry, physics.h_zero, t_new,
-                    new.h, new.hu, new.hv, obs.peak_h, obs.peak_speed, obs.arrival,
-                    obs.last_moved, rows, wet_lo, wet_hi, scratch[0], scratch[1],
-                    scratch[2], scratch[3], scratch[4])
+                    cfl_factor, gamma_z, physics.g, physics.h_dry, physics.h_zero, new.h,
+                    new.hu, new.hv, rows, wet_lo, wet_hi, scratch[0], scratch[1], scratch[2],
+                    scratch[3], scratch[4])
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -1097,7 +1082,7 @@ def _row_sums(rows, r0, r1):
 Region2 = namedtuple("Region2", "lo2 hi2 need2_lo need2_hi prev2_lo prev2_hi")
 
 
-def _order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs, when, band, reg,
+def _order2_step(threads, grid, fields, work, physics, run, cur, nxt, when, band, reg,
                  sync_lo, sync_hi):
     """One step of order 2 on the grid: stage 1 (``cur`` -> ``nxt``, flags into the work's
     ``flag1``) on the swept band ``band``; stage 2 (``nxt`` -> the work's ``s_*``) on that
@@ -1110,13 +1095,12 @@ def _order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs, when,
     r0, r1)`` (the second band's rows)."""
     nx, ny = grid.nx, grid.ny
     s = Conserved(work.s_h, work.s_hu, work.s_hv)
-    t_new = when.t_new
     r0, r1, lo, hi = band.r0, band.r1, band.lo, band.hi
     rows, wet_lo, wet_hi = band.rows, band.wet_lo, band.wet_hi
     fail = (False, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, r0, r1)
     if r1 < r0:  # nothing wet: nothing moves
         return (True, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0, r0, r1)
-    _stage(threads, grid, physics, cur, nxt, work.flag1, obs, when, band, work.rings,
+    _stage(threads, grid, physics, cur, nxt, work.flag1, when, band, work.rings,
            work.transport, run)
     ok, out1, _, _, _, _, clamped1, _ = _row_sums(rows, r0, r1)
     if not ok:
@@ -1130,20 +1114,20 @@ def _order2_step(threads, grid, fields, work, physics, run, cur, nxt, obs, when,
     _sync_work(nx, ny, q0, q1, reg.lo2, reg.hi2, sync_lo, sync_hi, fields.h, fields.hu,
                fields.hv, work.h_work, work.hu_work, work.hv_work)
     band2 = Band(q0, q1, reg.lo2, reg.hi2, rows, wet_lo, wet_hi)
-    _stage(threads, grid, physics, nxt, s, fields.flag, obs, when, band2, work.rings,
+    _stage(threads, grid, physics, nxt, s, fields.flag, when, band2, work.rings,
            work.transport, run)
     ok, out2, _, _, _, _, clamped2, _ = _row_sums(rows, q0, q1)
     if not ok:
         return fail
     _heun_rows(q0, q1, reg.lo2, reg.hi2, lo, hi, nx, grid.valid, grid.cell_area,
                grid.cfl_factor, grid.gamma_z, physics, cur, s, work.flag1, work.transport,
-               nxt, obs, t_new, rows, wet_lo, wet_hi, work.rings.scratch[0])
+               nxt, rows, wet_lo, wet_hi, work.rings.scratch[0])
     _, _, inv_lim, moving, film, kinetic, _, fallbacks = _row_sums(rows, q0, q1)
     return (True, 0.5 * (out1 + out2), inv_lim, moving, film, kinetic, clamped1 + clamped2,
             fallbacks, q0, q1)
 
 
-def _stage(threads, grid, physics, cur, nxt, flag, obs, when, band, rings, transport, run):
+def _stage(threads, grid, physics, cur, nxt, flag, when, band, rings, transport, run):
     """A step of the seed's scheme (a stage at order 2) on ``band``: on Numba's threads
     where it sweeps at least ``min_parallel_cells`` cells and two blocks of
     ``min_block_rows`` rows (in the copies with threads), else on the serial sweep."""
@@ -1156,11 +1140,11 @@ def _stage(threads, grid, physics, cur, nxt, flag, obs, when, band, rings, trans
     if band.r1 < band.r0:
         return
     if PARALLEL and n_blocks > 1:
-        sweep_parallel(n_blocks, grid, physics, cur, nxt, flag, obs, when.dt, when.dt_decide,
-                       when.t_new, band, rings, transport)
+        sweep_parallel(n_blocks, grid, physics, cur, nxt, flag, when.dt, when.dt_decide, band,
+                       rings, transport)
     else:
-        sweep_serial(1, grid, physics, cur, nxt, flag, obs, when.dt, when.dt_decide,
-                     when.t_new, band, rings, transport)
+        sweep_serial(1, grid, physics, cur, nxt, flag, when.dt, when.dt_decide, band, rings,
+                     transport)
 
 
 #: Placeholder of the constant of the copies of :func:`_advance_grid` (whether it has the
@@ -1293,9 +1277,9 @@ MIN_BLOCK_ROWS = 16
 GridRegion = namedtuple("GridRegion", "r0 r1 q0 q1 band0 band1")
 #: ... and what does not: the threads, the per-row results, the wet extents per row, the
 #: columns the next step needs, those the last one swept (``prev``), those swept now, the
-#: columns the work buffers hold, order 2's second band, the observers
+#: columns the work buffers hold, order 2's second band
 GridContext = namedtuple("GridContext", "threads rows wet_lo wet_hi need_lo need_hi prev_lo "
-                         "prev_hi lo hi sync_lo sync_hi reg obs")
+                         "prev_hi lo hi sync_lo sync_hi reg")
 
 
 @njit(error_model="numpy", cache=True)
@@ -1324,14 +1308,12 @@ def _grid_start(loop):
     m2 = ny if ORDER2 else 0  # order 2's second band
     reg = Region2(_columns(m2, nx), _columns(m2, -1), _columns(m2, nx), _columns(m2, -1),
                   _columns(m2, nx), _columns(m2, -1))
-    obs = Observers(loop.fields.peak_h, loop.fields.peak_speed, loop.fields.arrival,
-                    loop.fields.last_moved)
     # the work buffers hold h, hu, hv wherever a step may read them: per row the columns
     # sync_lo .. sync_hi, copied from (h, hu, hv) as the flow first comes near them (a copy
     # of the whole map at each call was the one cost left that grew with the map)
     ctx = GridContext(threads, np.zeros((ny, N_ROW)), wet_lo, wet_hi, _columns(ny, nx),
                       _columns(ny, -1), _columns(ny, nx), _columns(ny, -1), _columns(ny, nx),
-                      _columns(ny, -1), _columns(ny, nx), _columns(ny, -1), reg, obs)
+                      _columns(ny, -1), _columns(ny, nx), _columns(ny, -1), reg)
     return GridRegion(0, -1, 0, -1, 0, ny - 1), ctx  # the first step looks at every row
 
 
@@ -1356,10 +1338,10 @@ def _grid_step(region, ctx, loop, cur, nxt, when, steps, attempt):
     if ORDER2:  # Heun's two stages and merge
         (ok, outflow, inv_lim, moving, film, kinetic, clamped, fallbacks, q0,
          q1) = order2_step(c.threads, loop.mesh, loop.fields, loop.work, loop.physics,
-                           loop.run, cur, nxt, c.obs, when, band, c.reg, c.sync_lo, c.sync_hi)
+                           loop.run, cur, nxt, when, band, c.reg, c.sync_lo, c.sync_hi)
     else:
-        _stage(c.threads, loop.mesh, loop.physics, cur, nxt, loop.fields.flag, c.obs, when,
-               band, loop.work.rings, loop.work.transport, loop.run)
+        _stage(c.threads, loop.mesh, loop.physics, cur, nxt, loop.fields.flag, when, band,
+               loop.work.rings, loop.work.transport, loop.run)
         ok, outflow, inv_lim, moving, film, kinetic, clamped, _ = _row_sums(c.rows, r0, r1)
     return (ok, outflow, dt_from_inverse(inv_lim), moving, film, clamped, kinetic, fallbacks,
             GridRegion(r0, r1, q0, q1, region.band0, region.band1))
@@ -1374,8 +1356,8 @@ def _grid_source(region, ctx, loop, nxt, when):
     inv_lim = 0.0
     for r in range(region.q0, region.q1 + 1):
         gained, inv = add_span(r * nx + s_lo[r], r * nx + s_hi[r] + 1, nxt.h, nxt.hu, nxt.hv,
-                               f.erodible, loop.physics, when.dt, when.t_new, g.cell_area,
-                               g.cfl_factor, g.gamma_z, f.peak_h, f.arrival)
+                               f.erodible, loop.physics, when.dt, g.cell_area, g.cfl_factor,
+                               g.gamma_z)
         f.stats[ST_SOURCE] += gained
         inv_lim = max(inv_lim, inv)
     return inv_lim

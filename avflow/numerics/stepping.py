@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 #: What every time loop takes by name (Numba types named tuples of arrays and scalars):
-#: the state and observers of a run, changed in place (``stats``: the ``ST_*`` slots;
+#: the state and running maps of a run, changed in place (``stats``: the ``ST_*`` slots;
 #: ``maps``: the registered maps, a row each, :mod:`avflow.numerics.observers`;
 #: ``supplied``: what the registered sources added per cell, :mod:`avflow.numerics.supply`)
 Fields = namedtuple("Fields", "h hu hv flag peak_h peak_speed arrival last_moved erodible "
@@ -48,8 +48,6 @@ GridMesh = namedtuple("GridMesh", "nx ny valid x_code x_frame x_length y_code y_
 GridWork = namedtuple("GridWork", "h_work hu_work hv_work rings s_h s_hu s_hv flag1 transport")
 #: one buffer of the conserved variables (the time loops swap two each step)
 Conserved = namedtuple("Conserved", "h hu hv")
-#: the running observers, changed in place by every step
-Observers = namedtuple("Observers", "peak_h peak_speed arrival last_moved")
 
 #: one step's times: the step, the CFL step the threshold is tested with (eq. 49: the
 #: decision depends on the state alone), and the time the step lands on

@@ -32,8 +32,8 @@ from avflow.numerics.reconstruction import (reconstruct_cells, reconstruct_profi
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_listed, observe_span
 from avflow.numerics.sources import add_listed, add_span
-from avflow.numerics.stepping import (STAMPS_PER_STEP, ST_SOURCE, Conserved, Lists,
-                                      Observers, end_loop, record_end)
+from avflow.numerics.stepping import (STAMPS_PER_STEP, ST_SOURCE, Conserved, Lists, end_loop,
+                                      record_end)
 from avflow.numerics.vectorize import law_kind, law_label, shared_names, specialize
 
 
@@ -118,9 +118,9 @@ def wet_after(changed, n_changed, h, h_zero, wet, wet_last, n_wet, gained, lost,
 FaceRegion = namedtuple("FaceRegion", "wet wet_last touched active_faces new_faces new_cells "
                         "fresh n_wet n_previous n_active n_touched n_fresh n_changed n_gained "
                         "n_lost n_synced list_stamp listed same_wet wet_changes")
-#: ... and what does not: order 2's work, the profile's line, the lists' work, the
-#: observers, and this call's number (:func:`sync_fresh`)
-FaceContext = namedtuple("FaceContext", "o2 line lw obs call")
+#: ... and what does not: order 2's work, the profile's line, the lists' work, and this
+#: call's number (:func:`sync_fresh`)
+FaceContext = namedtuple("FaceContext", "o2 line lw call")
 
 
 @njit(error_model="numpy", cache=True)
@@ -147,7 +147,6 @@ def _start(loop):
     face_cells, h = mesh.face_cells, fields.h
     o2 = order2_work(h.size if ORDER2 else 0, face_cells.shape[0] if ORDER2 else 0,
                      STRUCTURED, PARALLEL)
-    obs = Observers(fields.peak_h, fields.peak_speed, fields.arrival, fields.last_moved)
     # order-1 profile sweep (avflow.numerics.profile): its work lines, once per call
     m1 = h.size if STRUCTURED and not ORDER2 else 0
     p_kappa = np.empty(m1)
@@ -175,7 +174,7 @@ def _start(loop):
     region = FaceRegion(lw.wet, lw.wet_last, lw.touched, lw.active_faces, lw.new_faces,
                         lw.new_cells, lw.touched, n_wet, 0, 0, 0, 0, 0, 0, 0, 0, 0, False,
                         False, -1)
-    return region, FaceContext(o2, line, lw, obs, work.clock[1])
+    return region, FaceContext(o2, line, lw, work.clock[1])
 
 
 def _before(region, ctx, loop, cur, nxt, steps):
@@ -237,7 +236,7 @@ def _step(region, ctx, loop, cur, nxt, when, steps, attempt):
     two stages and merge."""
     r = region
     mesh, work, physics, fields = loop.mesh, loop.work, loop.physics, loop.fields
-    flag, obs, o2 = fields.flag, ctx.obs, ctx.o2
+    flag, o2 = fields.flag, ctx.o2
     min_parallel_cells = loop.run.min_parallel_cells
     # the lists are the last step's (or this step's last attempt's): the order-1 face step
     # keeps what it made of them (their runs and pieces)
@@ -249,28 +248,28 @@ def _step(region, ctx, loop, cur, nxt, when, steps, attempt):
                   work.face_stamp, r.list_stamp)
     if STRUCTURED and not ORDER2:
         ok, out, lim, moving, film, clamped, kinetic = profile_step(
-            ctx.line, physics, cur, nxt, flag, obs, when, True)
+            ctx.line, physics, cur, nxt, flag, when)
     elif (not ORDER2 and PARALLEL and r.n_touched >= min_parallel_cells
           and (same_lists or r.n_touched // 2 >= min_parallel_cells)):
         # on threads, each on its piece of the faces (the same bits); on lists that changed,
         # from twice as many cells (it cuts them and finds the cells its pieces share again,
         # a cost the threads must win back: docs/performance.md)
         ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step_threads(
-            mesh, physics, cur, nxt, work.transport, flag, obs, when, lists, loop.extra.geometry,
+            mesh, physics, cur, nxt, work.transport, flag, when, lists, loop.extra.geometry,
             loop.extra.work)
     elif not ORDER2:  # step_faces with its cell passes vectorised, its law's copy
         ok, out, lim, moving, film, clamped, kinetic, wet_changes = faces_step(
-            mesh, physics, cur, nxt, work.transport, flag, obs, when, lists, loop.extra.geometry,
+            mesh, physics, cur, nxt, work.transport, flag, when, lists, loop.extra.geometry,
             loop.extra.work)
     elif STRUCTURED:  # order 2, profile: stage 1 (cur -> nxt), stage 2 (nxt -> s)
         ok, out, lim, moving, film, clamped, kinetic, fallbacks = heun_profile(
-            mesh, physics, cur, nxt, work.flux, work.transport, flag, obs, o2,
-            loop.run.limiter, when)
+            mesh, physics, cur, nxt, work.flux, work.transport, flag, o2, loop.run.limiter,
+            when)
     else:  # order 2 on faces, each stage on its own active lists
         stamp = STAMPS_PER_STEP * (work.clock[0] + steps) + 2 * attempt
         ok, out, lim, moving, film, clamped, kinetic, fallbacks, n_changed = order2_faces(
-            mesh, physics, cur, nxt, work.flux, work.transport, flag, obs, work, o2, lists,
-            stamp, when, min_parallel_cells)
+            mesh, physics, cur, nxt, work.flux, work.transport, flag, work, o2, lists, stamp,
+            when, min_parallel_cells)
     return (ok, out, lim, moving, film, clamped, kinetic, fallbacks,
             _counted(r, n_changed, wet_changes))
 
@@ -281,13 +280,11 @@ def _source(region, ctx, loop, nxt, when):
     mesh, fields, physics = loop.mesh, loop.fields, loop.physics
     if STRUCTURED:
         volume, inv = add_span(0, nxt.h.size, nxt.h, nxt.hu, nxt.hv, fields.erodible, physics,
-                               when.dt, when.t_new, mesh.cell_area, mesh.cfl_factor,
-                               mesh.gamma_z, fields.peak_h, fields.arrival)
+                               when.dt, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z)
     else:
         volume, inv = add_listed(ctx.o2.union if ORDER2 else region.touched, region.n_changed,
                                  nxt.h, nxt.hu, nxt.hv, fields.erodible, physics, when.dt,
-                                 when.t_new, mesh.cell_area, mesh.cfl_factor, mesh.gamma_z,
-                                 fields.peak_h, fields.arrival)
+                                 mesh.cell_area, mesh.cfl_factor, mesh.gamma_z)
     fields.stats[ST_SOURCE] += volume
     return inv
 
@@ -383,7 +380,7 @@ def order2_work(m2, f2, structured, parallel):
 
 
 @njit(error_model="numpy", cache=True)
-def heun_profile(mesh, physics, cur, nxt, flux, transport, flag, obs, o2, limiter, when):
+def heun_profile(mesh, physics, cur, nxt, flux, transport, flag, o2, limiter, when):
     """An order-2 step on a profile: stage 1 (``cur`` -> ``nxt``), stage 2 (``nxt`` -> o2's
     ``s_*``), each a full step of the seed's scheme on its reconstruction, and Heun's average
     into ``nxt``. Returns ``(ok, outflow, dt_limit, moving, film, clamped, kinetic,
@@ -391,25 +388,24 @@ def heun_profile(mesh, physics, cur, nxt, flux, transport, flag, obs, o2, limite
     s = Conserved(o2.s_h, o2.s_hu, o2.s_hv)
     reconstruct_profile(cur.h, cur.hu, physics.h_zero, limiter, o2.recon)
     ok, out, lim, moving, film, clamped, kinetic = step_profile(
-        mesh, physics, cur, nxt, flux, flag, obs, when, True, o2.recon, False)
+        mesh, physics, cur, nxt, flux, flag, when, True, o2.recon)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0
     o2.flag1[:] = flag
     reconstruct_profile(nxt.h, nxt.hu, physics.h_zero, limiter, o2.recon)
     ok, out2, lim, moving, film, clamped2, kinetic = step_profile(
-        mesh, physics, nxt, s, flux, flag, obs, when, True, o2.recon, False)
+        mesh, physics, nxt, s, flux, flag, when, True, o2.recon)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0
     profile_transport(flag, flux, physics.dirac, transport)
     lim, moving, film, kinetic, fallbacks = heun_faces(
-        o2.all_cells, cur.h.size, mesh, physics, cur, s, o2.flag1, transport, obs, when.t_new,
-        nxt)
+        o2.all_cells, cur.h.size, mesh, physics, cur, s, o2.flag1, transport, nxt)
     return (ok, 0.5 * (out + out2), lim, moving, film, clamped + clamped2, kinetic,
             fallbacks)
 
 
-def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2, lists,
-                  stamp, when, min_parallel_cells):
+def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, work, o2, lists, stamp,
+                  when, min_parallel_cells):
     """An order-2 step on faces: stage 1 on the step's ``lists``, stage 2 on lists of its
     own (stamped ``stamp + 1``), Heun's average over the cells either touched (their union
     in o2's ``union``, stamped ``stamp + 2``). A template: compiled with and without threads
@@ -419,8 +415,7 @@ def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2,
     s = Conserved(o2.s_h, o2.s_hu, o2.s_hv)
     flag1, touched, n_touched = o2.flag1, lists.touched, lists.n_touched
     ok, out, lim, moving, film, clamped, kinetic = order2_stage(
-        mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, o2,
-        min_parallel_cells)
+        mesh, physics, cur, nxt, flux, transport, flag, when, lists, o2, min_parallel_cells)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0, n_touched
     n_wet2 = 0
@@ -439,8 +434,7 @@ def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2,
     lists2 = Lists(o2.active2, n_active2, o2.touched2, n_touched2, False, work.face_stamp,
                    stamp + 1)
     ok, out2, lim, moving, film, clamped2, kinetic = order2_stage(
-        mesh, physics, nxt, s, flux, transport, flag, obs, when, lists2, o2,
-        min_parallel_cells)
+        mesh, physics, nxt, s, flux, transport, flag, when, lists2, o2, min_parallel_cells)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0, n_touched
     union = o2.union
@@ -448,18 +442,17 @@ def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, work, o2,
                             stamp + 2, union)
     if PARALLEL and n_changed >= min_parallel_cells:
         lim, moving, film, kinetic, fallbacks = heun_cells_parallel(
-            union, n_changed, mesh, physics, cur, s, flag1, transport, obs, when.t_new, nxt,
-            o2.cell_sums)
+            union, n_changed, mesh, physics, cur, s, flag1, transport, nxt, o2.cell_sums)
     else:
         lim, moving, film, kinetic, fallbacks = heun_faces(
-            union, n_changed, mesh, physics, cur, s, flag1, transport, obs, when.t_new, nxt)
+            union, n_changed, mesh, physics, cur, s, flag1, transport, nxt)
     for c in range(n_changed):
         flag1[union[c]] = DRY
     return (ok, 0.5 * (out + out2), lim, moving, film, clamped + clamped2, kinetic,
             fallbacks, n_changed)
 
 
-def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, o2,
+def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, o2,
                  min_parallel_cells):
     """One stage of order 2 on faces, from ``cur`` into ``nxt`` on the listed faces and
     cells: the reconstruction (o2's ``face_state``), then the step.
@@ -478,8 +471,8 @@ def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, list
     reconstruct_cells(m.face_cells, m.face_frame, m.face_length, m.face_offset, m.cell_area,
                       cur.h, cur.hu, cur.hv, physics.h_zero, m.cell_face_ptr, m.cell_face_idx,
                       lists.touched, lists.n_touched, o2.velocity, o2.face_state)
-    return step_faces(mesh, physics, cur, nxt, flux, transport, flag, obs, when, lists, True,
-                      o2.face_state, False, o2.no_emit)
+    return step_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, True,
+                      o2.face_state, o2.no_emit)
 
 
 #: Placeholders of the constants of the copies of :func:`_advance`, :func:`_order2_faces`
