@@ -195,7 +195,9 @@ try:
                 "reduce": (work.terms, work.partials, n),
                 "source": (mesh, sc, st, f(n), work.terms, (0.0,) * 8,
                            (3, 0.5, 0.0, 5000.0, 0.0, 0.0, 0.0, 1e-3, 9.81), 0.1),
-                "observe": (mesh, sc, st, obs, 0.2)}
+                "observe": (mesh, sc, st, obs, f(0, n), 0.2),
+                "supply": (np.zeros(2, np.int64), f(1, 2), f(1, 4), f(n), f(n), f(n), f(n),
+                           f(n), f(n), f(n), 9.81, 0.1, 0.2, f(t, 2))}
     fused = {}
     for name, args in launches.items():
         ptx, _ = cuda.compile_ptx(k[name].py_func, tuple(typeof(a) for a in args), cc=(9, 0))

@@ -221,15 +221,24 @@ def case_sources(folder: str) -> dict:
 
 
 def case_cuda() -> dict:
-    """On the CUDA simulator: the law and the map against the CPU grid kernel."""
+    """On the CUDA simulator: the law, the map and the source (with entrainment) against
+    the CPU grid kernel."""
+    snow = (f"sources: [{{law: snowfall, rate: {RATE!r}, x: [240.0, 340.0], "
+            "y: [60.0, 180.0]}]\nentrainment: {law: exponential, growth_rate: 0.002, "
+            "u_min: 0.0, layer: {depth: 0.5, x: [0.0, 250.0]}}\n")
     out = {}
-    for law, k in (("linear_speed", 0.0), ("linear_speed", 0.05)):
-        cpu = _run(PLANE, "grid", law, k)
-        gpu = _run(PLANE, "grid", law, k, backend="cuda")
-        names = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved", "maps")
-        out[f"{law}-{k}"] = {n: _same(getattr(cpu.state, n), getattr(gpu.state, n))
-                             for n in names}
-        out[f"{law}-{k}"]["steps"] = [cpu.state.steps, gpu.state.steps]
+    for name, law, k, text in (("law", "linear_speed", 0.0, PLANE),
+                               ("law-speed", "linear_speed", 0.05, PLANE),
+                               ("sources", "coulomb", 0.0, PLANE + snow)):
+        cpu = _run(text, "grid", law, k)
+        gpu = _run(text, "grid", law, k, backend="cuda")
+        names = ("h", "hu", "hv", "peak_h", "peak_speed", "arrival", "last_moved", "maps",
+                 "supplied", "erodible")
+        out[name] = {n: _same(getattr(cpu.state, n), getattr(gpu.state, n)) for n in names}
+        out[name]["steps"] = [cpu.state.steps, gpu.state.steps]
+        out[name]["balance"] = gpu.summary["mass_balance_error"]
+        out[name]["supplied_volume"] = [cpu.summary.get("supplied_volume", 0.0),
+                                 gpu.summary.get("supplied_volume", 0.0)]
     return out
 
 
@@ -320,12 +329,18 @@ def test_the_summary_line_counts_what_the_source_added(sources):
 @pytest.mark.skipif(importlib.util.find_spec("numba_cuda") is None,
                     reason="numba-cuda is not installed (pip install 'avflow[cuda]'); the "
                     "GPU backend's tests need its simulator")
-def test_the_law_and_the_map_on_the_cuda_simulator():
+def test_the_law_the_map_and_the_source_on_the_cuda_simulator():
+    """The GPU backend against the CPU grid kernel, bit for bit on the simulator; the
+    sources' volume to round-off (summed in another order), the balance closed."""
     report = _child("cuda", simulate_cuda=True)
     for name, equal in report.items():
         steps = equal.pop("steps")
+        balance = equal.pop("balance")
+        cpu, gpu = equal.pop("supplied_volume")
         assert steps[0] == steps[1] > 0, name
         assert all(equal.values()), (name, equal)
+        assert balance <= 1e-12
+        assert gpu == pytest.approx(cpu, rel=1e-12)
 
 
 if __name__ == "__main__":

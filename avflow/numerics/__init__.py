@@ -41,7 +41,8 @@ _KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/physics.py", "numerics/cpu.p
                    "numerics/rheology.py", "numerics/kernels.py",
                    "numerics/reconstruction.py", "numerics/square_grid.py", "numerics/vectorize.py",
                    "numerics/profile.py", "numerics/face_sweep.py", "numerics/face_gather.py",
-                   "numerics/sources.py",
+                   "numerics/sources.py", "numerics/observers.py", "numerics/supply.py",
+                   "numerics/variants.py",
                    "terrain/mesh.py", "terrain/squaregrid.py")
 
 

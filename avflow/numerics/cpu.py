@@ -15,10 +15,12 @@ from numba import njit
 from avflow.numerics import kinetic, physics
 
 
-def compile_pointwise(modules, decorate) -> dict:
+def compile_pointwise(modules, decorate, replace=None) -> dict:
     """Every public function of ``modules`` compiled by ``decorate``, in one namespace: a
     compiled function calls the compiled versions of its siblings (``trial_momentum`` the
-    compiled ``normal_accel``), and the modules themselves are left as they are."""
+    compiled ``normal_accel``), and the modules themselves are left as they are.
+    ``replace(compiled)``: names bound anew in that namespace once the functions are
+    compiled (a registered law's ``law_friction`` calling the compiled built-in one)."""
     namespace: dict = {}
     for module in modules:
         namespace.update({k: v for k, v in vars(module).items() if not k.startswith("__")})
@@ -33,6 +35,10 @@ def compile_pointwise(modules, decorate) -> dict:
                     fn.__qualname__, fn.__module__, fn.__doc__)
                 compiled[name] = decorate(copy)
     namespace.update(compiled)  # looked up when a caller is typed, so the order is free
+    if replace is not None:
+        changed = replace(dict(compiled))
+        namespace.update(changed)
+        compiled.update(changed)
     return compiled
 
 
@@ -54,6 +60,7 @@ final_momentum = _POINTWISE["final_momentum"]
 emitting = _POINTWISE["emitting"]
 speed_of = _POINTWISE["speed_of"]
 cell_moves = _POINTWISE["cell_moves"]
+carries = _POINTWISE["carries"]
 observe_cell = _POINTWISE["observe_cell"]
 observe = _POINTWISE["observe"]
 step_terms = _POINTWISE["step_terms"]

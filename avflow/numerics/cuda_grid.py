@@ -15,11 +15,13 @@ first version): what each cell emits (:func:`_emit`), the flux of every face
 (:func:`_faces`), the trial momentum and Coulomb flag of each cell (:func:`_trial`), the
 final update with Dirac faces, projection and film rule (:func:`_final`), the grid's sums
 in one or two passes of a block reduction (:func:`_reduce`), and once the step is accepted
-(and its source added) the running maps of each cell (:func:`_observe`, the CPU kernels'
-observer pass). The host reads seven numbers a step (the sums) and applies the stop rules
-to them with the CPU loops' own :func:`~avflow.numerics.stepping.record_step`; it sees the
-state only when a call ends (an output time), and the state stays on the device for the
-next call.
+(and its sources added) the running maps of each cell (:func:`_observe`, the CPU kernels'
+observer pass). These launches are the hooks of a region (:class:`CudaGrid`'s ``_start`` ..
+``_end``) run by the CPU kernels' own time loop, :func:`avflow.numerics.loop.advance`,
+executed as Python on the host: step size, retry by halving, the sources, the stop rules
+and the statistics are one piece of code for every backend. The host reads seven numbers a
+step (the sums); it sees the state only when a call ends (an output time), and the state
+stays on the device for the next call.
 
 Compared with the CPU square-grid kernel: thickness, discharge, flags and observers are
 the same arithmetic, the grid-wide sums (moving volume, film, kinetic energy, outflow) are
@@ -32,7 +34,9 @@ there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws
 in the last bit); no GPU has run it yet.
 
 Entrainment is the CPU kernels' own source hook (:func:`_source`: numerics.sources' gain
-per cell, after each accepted step, before the maps are observed). Not served (refused
+per cell, after each accepted step, before the maps are observed), the registered sources
+their pass (:func:`_supply`: numerics.supply's supply_at per cell), and a registered law
+or map is built into the device copies as into the CPU kernels (:func:`_build`). Not served (refused
 at load time, one line): order 2, meshes other than square grids. Cells with no wet cell
 around them are computed too (all cells traversal): their update changes nothing, and they
 are left out of the CFL limit, as the CPU kernel does by not sweeping them.
@@ -47,12 +51,10 @@ from collections import namedtuple
 import numpy as np
 
 from avflow.numerics import kinetic, physics, rheology, stepping
-from avflow.numerics.physics import DRY, FLOWING, TRANSPORT_EPS
+from avflow.numerics.physics import DRY
 from avflow.numerics.physics import SOURCE_NONE
 from avflow.numerics.sources import SRC_KIND, SRC_PARAMS, SRC_RATIO, SRC_UMIN
-from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_RETRIES,
-                                      ST_SOURCE,
-                                      ST_TIME, record_end, record_step, step_size)
+from avflow.numerics.stepping import ST_SOURCE, ST_TIME, record_end
 from avflow.terrain.squaregrid import HIGH_OPEN, HIGH_WALL, INNER, KIND, LOW_OPEN, NO_FACE
 
 #: Rows of the emitted values of each cell (those of the CPU kernel's ``E_*`` lines)
@@ -133,6 +135,7 @@ def _retarget(fn, namespace: dict, decorate):
 # Written against the names below, which :func:`_build` binds to the device copies.
 
 emitted_state = speed_of = trial_momentum = final_momentum = observe_cell = observe = None
+dirac_face = carries = cell_moves = None
 step_terms = face_flux = in_face_order = cell_law = cuda = float64 = gain = None
 
 
@@ -302,11 +305,10 @@ def _final(mesh, sc, cur, nxt, obs, work, dt):
     u1 = emit[E_U1, i]
     u2 = emit[E_U2, i]
     # Dirac faces (eqs. 51-53): both sides at zero temperature
-    cold = sc.dirac and (fi != FLOWING)
-    d_w = cold and (f_w != FLOWING)
-    d_e = cold and (f_e != FLOWING)
-    d_s = cold and (f_s != FLOWING)
-    d_n = cold and (f_n != FLOWING)
+    d_w = dirac_face(sc.dirac, fi, f_w)
+    d_e = dirac_face(sc.dirac, fi, f_e)
+    d_s = dirac_face(sc.dirac, fi, f_s)
+    d_n = dirac_face(sc.dirac, fi, f_n)
     acc = in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
                         0.0 if d_s else sm, 0.0 if d_n else nm)
     hn = h_old + dt / area * acc
@@ -342,12 +344,11 @@ def _final(mesh, sc, cur, nxt, obs, work, dt):
     speed, inv_i = observe_cell(h_w, math.sqrt(qx * qx + qy * qy), mesh.cfl_factor[i], gz, g)
     len_w, len_e = mesh.x_length[r, c], mesh.x_length[r, c + 1]
     len_s, len_n = mesh.y_length[r, c], mesh.y_length[r + 1, c]
-    limit = TRANSPORT_EPS * h_w * speed_n
-    carried = (((not d_w) and (abs(wm) > limit * len_w))
-               or ((not d_e) and (abs(e_m) > limit * len_e))
-               or ((not d_s) and (abs(sm) > limit * len_s))
-               or ((not d_n) and (abs(nm) > limit * len_n)))
-    moves = good and (speed > 0.0) and ((speed_n == 0.0) or carried)
+    carried = (((not d_w) and carries(wm, h_w, speed_n, len_w))
+               or ((not d_e) and carries(e_m, h_w, speed_n, len_e))
+               or ((not d_s) and carries(sm, h_w, speed_n, len_s))
+               or ((not d_n) and carries(nm, h_w, speed_n, len_n)))
+    moves = good and cell_moves(speed, speed_n, carried)
     # the CFL limit counts the cells the CPU kernel sweeps: wet, or by a wet cell
     eh = emit[E_H]
     touched = ((eh[i] > 0.0) or (w_in and eh[i - 1] > 0.0) or (e_in and eh[i + 1] > 0.0)
@@ -386,18 +387,42 @@ def _source(mesh, sc, nxt, erodible, terms, law_row, src, dt):
     terms[T_SOURCE, i] = added
 
 
-def _observe(mesh, sc, nxt, obs, t_new):
-    """Per cell inside the DEM, once per accepted step (its source added), the running maps
-    from its new state: physics.observe, the rule of the CPU kernels' observer pass
-    (numerics.observers), so a step redone with half the step writes none."""
+def _observe(mesh, sc, nxt, obs, maps, t_new):
+    """Per cell inside the DEM, once per accepted step (its sources added), the running maps
+    from its new state: physics.observe and the registered maps (``more_maps``), the rule of
+    the CPU kernels' observer pass (numerics.observers), so a step redone with half the step
+    writes none."""
     i = cuda.grid(1)
     if i >= nxt.h.size:
         return
     h = nxt.h[i]
-    speed = speed_of(h, nxt.hu[i], nxt.hv[i])
+    hu = nxt.hu[i]
+    hv = nxt.hv[i]
+    speed = speed_of(h, hu, hv)
+    inside = mesh.valid[i] != 0
     (obs.peak_h[i], obs.peak_speed[i], obs.arrival[i], obs.last_moved[i]) = observe(
-        mesh.valid[i] != 0, h, speed, t_new, sc.h_dry, obs.peak_h[i], obs.peak_speed[i],
+        inside, h, speed, t_new, sc.h_dry, obs.peak_h[i], obs.peak_speed[i],
         obs.arrival[i], obs.last_moved[i])
+    if inside:
+        more_maps(maps, i, h, hu, hv, speed, t_new)
+
+
+def _supply(cells, weights, params, h, hu, hv, supplied, cell_area, cfl_factor, gamma_z, g,
+            dt, t_new, terms):
+    """Per cell of the registered sources, what they add (numerics.supply's supply_at, the
+    CPU kernels' own), its volume and new inverse CFL limit into the sources' terms."""
+    c = cuda.grid(1)
+    if c >= cells.size:
+        return
+    added, inv = supply_at(c, cells, weights, params, h, hu, hv, supplied, cell_area,
+                           cfl_factor, gamma_z, g, dt, t_new)
+    for k in range(N_TERMS):
+        terms[k, c] = 0.0
+    terms[T_INV, c] = inv
+    terms[T_SOURCE, c] = added
+
+
+more_maps = supply_at = None
 
 
 def _reduce(src, dst, n):
@@ -438,7 +463,8 @@ def _reduce(src, dst, n):
             dst[k, b] = part[k, 0]
 
 
-_KERNELS = None
+#: the kernels made in this process, by the registered law, maps and sources built in
+_KERNELS: dict = {}
 
 
 def _no_fused_multiply_add() -> None:
@@ -462,12 +488,18 @@ def _no_fused_multiply_add() -> None:
     nvvm.compile_ir = compile_ir
 
 
-def _build():
+def _build(law: int = 0, sources=()):
     """The device copies of the pointwise physics and the CPU kernel's helpers, and the
-    kernels (made once per process, at the first cuda run: numba.cuda is imported then)."""
-    global _KERNELS, THREADS, RED_THREADS, MAX_PARTIALS
-    if _KERNELS is not None:
-        return _KERNELS
+    kernels, with what the run uses of the registry (avflow.extend: a registered law, the
+    maps, its sources) built in as on the CPU (numerics.variants); made once per process and
+    registry, at the first cuda run (numba.cuda is imported then)."""
+    global THREADS, RED_THREADS, MAX_PARTIALS
+    from avflow.numerics import variants
+
+    laws, maps, entries = variants.registered(law, sources)
+    key = variants.tag_of(laws, maps, entries) if (laws or maps or entries) else ""
+    if key in _KERNELS:
+        return _KERNELS[key]
     from numba import config, cuda, float64
 
     if config.ENABLE_CUDASIM:
@@ -475,11 +507,17 @@ def _build():
     else:
         _no_fused_multiply_add()
 
-    from avflow.numerics import sources, square_grid, vectorize
+    from avflow.numerics import observers, sources as entrainment, square_grid, supply
+    from avflow.numerics import vectorize
     from avflow.numerics.cpu import compile_pointwise
 
     device = cuda.jit(device=True)
-    names = compile_pointwise((kinetic, physics, _plain_rheology()), device)
+
+    def registered_law(compiled):  # the registered law's branch before the built-in ones
+        return ({"law_friction": variants.law_friction_with(laws, compiled["law_friction"],
+                                                            device)} if laws else {})
+
+    names = compile_pointwise((kinetic, physics, _plain_rheology()), device, registered_law)
     names["face_flux"] = _retarget(square_grid._face_flux, names, device)
     names["in_face_order"] = _retarget(square_grid._in_face_order, names, device)
     names["cell_law"] = _retarget(vectorize.cell_law, names, device)
@@ -487,12 +525,18 @@ def _build():
     names["float64"] = float64
     names["side_terms"] = _retarget(_side_terms, names, device)
     names["centripetal"] = _retarget(_centripetal, names, device)
-    names["gain"] = _retarget(sources._gain, names, device)
-    _KERNELS = {name: _retarget(fn, names, cuda.jit)
-                for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
-                                 ("final", _final), ("reduce", _reduce),
-                                 ("source", _source), ("observe", _observe))}
-    return _KERNELS
+    names["gain"] = _retarget(entrainment._gain, names, device)
+    names["more_maps"] = (variants.more_maps_with(maps, device) if maps
+                          else _retarget(observers.more_maps, names, device))
+    names["supply_rate"] = (variants.supply_rate_with(entries, device) if entries
+                            else _retarget(supply.supply_rate, names, device))
+    names["supply_at"] = _retarget(supply.supply_at, names, device)
+    _KERNELS[key] = {name: _retarget(fn, names, cuda.jit)
+                     for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
+                                      ("final", _final), ("reduce", _reduce),
+                                      ("source", _source), ("observe", _observe),
+                                      ("supply", _supply))}
+    return _KERNELS[key]
 
 
 def _blocks(n: int) -> int:
@@ -504,15 +548,28 @@ def _partials(n: int) -> int:
     return max(1, min((n + RED_THREADS - 1) // RED_THREADS, MAX_PARTIALS))
 
 
+#: The spare buffer of the device state, as the time loop reads a kernel's work buffers
+DeviceSpare = namedtuple("DeviceSpare", "h_work hu_work hv_work")
+#: What a call of the time loop keeps: the physics' scalars, and the entrainment's
+#: (``(law_row, src)``, None without entrainment)
+DeviceCall = namedtuple("DeviceCall", "sc entrainment")
+
+
 class CudaGrid:
     """A solver's grid on the device: the geometry uploaded once, the state uploaded at the
     first call and kept there from call to call (downloaded at the end of each call, which
-    the runner makes at output times); :meth:`advance` is the CPU kernel's time loop."""
+    the runner makes at output times). :meth:`advance` runs the CPU kernels' own time loop
+    (:func:`avflow.numerics.loop.advance`, as Python) with this backend's region: its
+    hooks launch the kernels, so step size, retry by halving, the sources, the stop rules
+    and the statistics are the same code on every backend."""
 
-    def __init__(self, mesh: stepping.GridMesh, params: np.ndarray):
+    def __init__(self, mesh: stepping.GridMesh, params: np.ndarray, law: int = 0,
+                 sources=()):
         from numba import cuda
 
-        self.k = _build()
+        from avflow.numerics.loop import advance
+
+        self.k = _build(law, sources)
         self.cuda = cuda
         self.nx, self.ny = int(mesh.nx), int(mesh.ny)
         n = self.nx * self.ny
@@ -533,30 +590,39 @@ class CudaGrid:
         self.buffers = [DeviceState(z(n), z(n), z(n)), DeviceState(z(n), z(n), z(n))]
         self.obs = DeviceObservers(z(n, dtype=np.uint8), z(n), z(n), z(n), z(n))
         self.erodible = z(n)  # the erodible layer (read and written where there is a source)
+        self.maps = z((0, n))  # the registered maps, and the registered sources' book,
+        self.supplied = z(n)  # sized at the first upload
+        self.supply = None  # (the host's Supply, its device copy and the sources' terms)
         self.current = 0  # the buffer that holds the state
         self.held = None  # (owner, the fields' arrays, the stats) as last downloaded
         self.uploads = 0  # calls that copied the state to the device
+        hooks = {"region_start": self._start, "region_before": self._before,
+                 "region_step": self._step, "region_source": self._source,
+                 "region_observe": self._observe, "region_after": self._after,
+                 "region_end": self._end, "supply_cells": self._supply}
+        scope = dict(advance.__globals__)
+        scope.update(hooks)
+        #: the CPU kernels' time loop, run as Python with this backend's hooks
+        self.loop = types.FunctionType(advance.__code__, scope, "advance_cuda")
+
+    def _pairs(self, fields: stepping.Fields):
+        cur = self.buffers[self.current]
+        return ((cur.h, fields.h), (cur.hu, fields.hu), (cur.hv, fields.hv),
+                (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
+                (self.obs.peak_speed, fields.peak_speed), (self.obs.arrival, fields.arrival),
+                (self.obs.last_moved, fields.last_moved), (self.erodible, fields.erodible),
+                (self.maps, fields.maps), (self.supplied, fields.supplied))
 
     def _upload(self, fields: stepping.Fields) -> None:
         self.uploads += 1
-        cur = self.buffers[self.current]
-        for dev, host in ((cur.h, fields.h), (cur.hu, fields.hu), (cur.hv, fields.hv),
-                          (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
-                          (self.obs.peak_speed, fields.peak_speed),
-                          (self.obs.arrival, fields.arrival),
-                          (self.obs.last_moved, fields.last_moved),
-                          (self.erodible, fields.erodible)):
-            if host.size:  # (no erodible layer without a source)
+        if self.maps.shape != fields.maps.shape:
+            self.maps = self.cuda.device_array(fields.maps.shape)
+        for dev, host in self._pairs(fields):
+            if host.size:  # (no erodible layer without a source, no book without sources)
                 dev.copy_to_device(np.ascontiguousarray(host))
 
     def _download(self, fields: stepping.Fields) -> None:
-        cur = self.buffers[self.current]
-        for dev, host in ((cur.h, fields.h), (cur.hu, fields.hu), (cur.hv, fields.hv),
-                          (self.obs.flag, fields.flag), (self.obs.peak_h, fields.peak_h),
-                          (self.obs.peak_speed, fields.peak_speed),
-                          (self.obs.arrival, fields.arrival),
-                          (self.obs.last_moved, fields.last_moved),
-                          (self.erodible, fields.erodible)):
+        for dev, host in self._pairs(fields):
             if host.size:
                 host[:] = dev.copy_to_host()
 
@@ -567,86 +633,115 @@ class CudaGrid:
         if self.held is None:
             return False
         who, arrays, stats = self.held
-        return (who is owner and all(a is b for a, b in zip(arrays, fields[:9]))
+        return (who is owner and all(a is b for a, b in zip(arrays, fields[:-1]))
                 and np.array_equal(stats, fields.stats))
 
+    def _device_supply(self, supply):
+        """The registered sources' arrays on the device (uploaded once per ``supply``)."""
+        if self.supply is None or self.supply[0] is not supply:
+            from avflow.numerics.supply import Supply
+
+            to = self.cuda.to_device
+            on = Supply(*(to(np.ascontiguousarray(a)) for a in supply))
+            m = max(int(supply.cells.size), 1)
+            z = self.cuda.device_array
+            self.supply = (supply, on, z((N_TERMS, m)), z((N_TERMS, _partials(m))))
+        return self.supply[1]
+
     def advance(self, fields: stepping.Fields, physics: stepping.Physics,
-                run: stepping.Control, owner=None) -> int:
-        """The time loop (the CPU kernel's: same arguments where they mean the same, same
+                run: stepping.Control, owner=None, supply=None) -> int:
+        """The time loop (the CPU kernels': same arguments where they mean the same, same
         status codes and ``stats`` slots, ``fields`` on the full ``ny x nx`` grid).
-        ``owner``: the state the fields are of; None: uploaded at every call."""
-        k = self.k
+        ``owner``: the state the fields are of; None: uploaded at every call. ``supply``:
+        the registered sources (numerics.supply; None: none)."""
+        from avflow.numerics.supply import no_supply
+
         if owner is None or not self._is_held(fields, owner):
             self._upload(fields)
-        stats = fields.stats
-        sc = Scalars(int(physics.law), float(physics.g), bool(physics.dirac),
-                     float(physics.h_dry), float(physics.h_zero))
-        cfl, t_target, max_steps = run.cfl, run.t_target, run.max_steps
-        n = self.n
-        n_faces = self.ny * (self.nx + 1) + (self.ny + 1) * self.nx
-        bc, bf = _blocks(n), _blocks(n_faces)
-        work, obs, m = self.work, self.obs, self.mesh
-        source = physics.source
-        entraining = int(source[SRC_KIND]) != SOURCE_NONE
-        if entraining:  # what every cell's gain reads (numerics.sources._scalars)
-            p = physics.params
-            law_row = tuple(float(p[0, j]) for j in range(8))
-            src = (int(source[SRC_KIND]), float(source[SRC_RATIO]), float(source[SRC_UMIN]),
-                   float(source[SRC_PARAMS]), float(source[SRC_PARAMS + 1]),
-                   float(source[SRC_PARAMS + 2]), float(source[SRC_PARAMS + 3]),
-                   sc.h_zero, sc.g)
-        t = stats[ST_TIME]
-        status = REACHED_TARGET
-        steps = 0
-        if not t < t_target:  # a call that takes no step (the runner's warm-up): compile
-            self._warm(sc, (law_row, src) if entraining else None)
-        while t < t_target:
-            dt, dt_decide, last = step_size(stats, cfl, t, t_target)
-            cur = self.buffers[self.current]
-            nxt = self.buffers[1 - self.current]
-            # what cells emit and the face fluxes depend on the state alone: once a step
-            k["emit"][bc, THREADS](m, cur, work.emit, sc.g, sc.h_zero)
-            k["faces"][bf, THREADS](m, work.emit, work.xf, work.yf)
-            ok = False
-            for _ in range(MAX_RETRIES):
-                t_new = t_target if last else t + dt
-                k["trial"][bc, THREADS](m, sc, cur, work, dt, dt_decide)
-                k["final"][bc, THREADS](m, sc, cur, nxt, obs, work, dt)
-                self._sums()
-                sums = work.totals.copy_to_host()[:, 0]  # the few numbers the host sees
-                ok = sums[T_BAD] == 0.0
-                if ok:
-                    break
-                dt *= 0.5
-                last = False
-                stats[ST_RETRIES] += 1
-            if not ok:
-                status = FAILED
-                break
-            if entraining:  # the source after the accepted step, on its new state
-                k["source"][bc, THREADS](m, sc, nxt, self.erodible, work.terms, law_row, src,
-                                         dt)
-                self._sums()
-                sums = work.totals.copy_to_host()[:, 0]
-                stats[ST_SOURCE] += sums[T_SOURCE]
-            # the maps of the accepted state, the source's mass included
-            k["observe"][bc, THREADS](m, sc, nxt, obs, t_new)
-            t = t_target if last else t + dt
-            steps += 1
-            self.current = 1 - self.current
-            status = record_step(stats, dt, physics_dt(sums[T_INV]), sums[T_MOV],
-                                 sums[T_FILM], sums[T_KIN], int(sums[T_CLAMPED]),
-                                 sums[T_OUT], run.stop_volume, run.stop_kinetic, steps,
-                                 max_steps)
-            if status != REACHED_TARGET:
-                break
-        record_end(stats, t, steps)
+        cur, nxt, obs = self.buffers[self.current], self.buffers[1 - self.current], self.obs
+        on_device = stepping.Fields(cur.h, cur.hu, cur.hv, obs.flag, obs.peak_h,
+                                    obs.peak_speed, obs.arrival, obs.last_moved,
+                                    self.erodible, self.maps, self.supplied, fields.stats)
+        status = self.loop(self.mesh, on_device, DeviceSpare(nxt.h, nxt.hu, nxt.hv), physics,
+                           run, None, self._device_supply(supply or no_supply()))
         self._download(fields)
-        self.held = (owner, tuple(fields[:9]), stats.copy())
+        self.held = (owner, tuple(fields[:-1]), fields.stats.copy())
         return status
 
+    # --- the region's hooks (numerics.loop): each launches the kernels of its part ---------
 
-    def _warm(self, sc: Scalars, source=None) -> None:
+    def _start(self, loop):
+        """The call's scalars; a call that takes no step (the runner's warm-up) compiles
+        every kernel."""
+        physics, source = loop.physics, loop.physics.source
+        sc = Scalars(int(physics.law), float(physics.g), bool(physics.dirac),
+                     float(physics.h_dry), float(physics.h_zero))
+        entrainment = None
+        if int(source[SRC_KIND]) != SOURCE_NONE:  # what every cell's gain reads
+            p = physics.params
+            entrainment = (tuple(float(p[0, j]) for j in range(8)),
+                           (int(source[SRC_KIND]), float(source[SRC_RATIO]),
+                            float(source[SRC_UMIN]), float(source[SRC_PARAMS]),
+                            float(source[SRC_PARAMS + 1]), float(source[SRC_PARAMS + 2]),
+                            float(source[SRC_PARAMS + 3]), sc.h_zero, sc.g))
+        if not loop.fields.stats[ST_TIME] < loop.run.t_target:
+            self._warm(sc, entrainment, loop.supply)
+        return None, DeviceCall(sc, entrainment)
+
+    def _before(self, region, ctx, loop, cur, nxt, steps):
+        """What cells emit and the face fluxes depend on the state alone: once a step."""
+        k, m, work = self.k, self.mesh, self.work
+        k["emit"][_blocks(self.n), THREADS](m, cur, work.emit, ctx.sc.g, ctx.sc.h_zero)
+        k["faces"][_blocks(self._n_faces()), THREADS](m, work.emit, work.xf, work.yf)
+        return region
+
+    def _step(self, region, ctx, loop, cur, nxt, when, steps, attempt):
+        """One attempt: trial momentum, final update, the grid's sums (the few numbers the
+        host sees)."""
+        k, m, work, bc = self.k, self.mesh, self.work, _blocks(self.n)
+        k["trial"][bc, THREADS](m, ctx.sc, cur, work, when.dt, when.dt_decide)
+        k["final"][bc, THREADS](m, ctx.sc, cur, nxt, self.obs, work, when.dt)
+        sums = self._sums(work.terms, work.partials, self.n)
+        return (sums[T_BAD] == 0.0, sums[T_OUT], physics_dt(sums[T_INV]), sums[T_MOV],
+                sums[T_FILM], int(sums[T_CLAMPED]), sums[T_KIN], 0, region)
+
+    def _source(self, region, ctx, loop, nxt, when):
+        """The entrainment after the accepted step, on its new state."""
+        law_row, src = ctx.entrainment
+        work = self.work
+        self.k["source"][_blocks(self.n), THREADS](self.mesh, ctx.sc, nxt, self.erodible,
+                                                   work.terms, law_row, src, when.dt)
+        sums = self._sums(work.terms, work.partials, self.n)
+        loop.fields.stats[ST_SOURCE] += sums[T_SOURCE]
+        return sums[T_INV]
+
+    def _supply(self, cells, weights, params, h, hu, hv, supplied, cell_area, cfl_factor,
+                gamma_z, g, dt, t_new):
+        """The registered sources (the loop's call of numerics.supply.supply_cells, on the
+        device): ``(volume added, the largest new inverse CFL limit)``."""
+        _, _, terms, partials = self.supply
+        self.k["supply"][_blocks(cells.size), THREADS](
+            cells, weights, params, h, hu, hv, supplied, cell_area, cfl_factor, gamma_z, g,
+            dt, t_new, terms)
+        sums = self._sums(terms, partials, cells.size)
+        return sums[T_SOURCE], sums[T_INV]
+
+    def _observe(self, region, ctx, loop, nxt, when):
+        self.k["observe"][_blocks(self.n), THREADS](self.mesh, ctx.sc, nxt, self.obs,
+                                                    self.maps, when.t_new)
+
+    def _after(self, region, ctx, loop, nxt):
+        return region
+
+    def _end(self, region, ctx, loop, cur, t, steps):
+        """The call's time and steps into ``stats``; the buffer that holds the state."""
+        record_end(loop.fields.stats, t, steps)
+        self.current = 0 if cur.h is self.buffers[0].h else 1
+
+    def _n_faces(self) -> int:
+        return self.ny * (self.nx + 1) + (self.ny + 1) * self.nx
+
+    def _warm(self, sc: Scalars, source=None, supply=None) -> None:
         """Every kernel launched once on the state, into scratch observers and the spare
         buffer, so that the first call of a run times no compilation (numba.cuda compiles a
         kernel at its first launch); the state and its observers are left as they are."""
@@ -657,26 +752,31 @@ class CudaGrid:
         scratch = DeviceObservers(*(like(a) for a in self.obs))
         bc = _blocks(self.n)
         k["emit"][bc, THREADS](m, cur, work.emit, sc.g, sc.h_zero)
-        k["faces"][_blocks(self.ny * (self.nx + 1) + (self.ny + 1) * self.nx), THREADS](
-            m, work.emit, work.xf, work.yf)
+        k["faces"][_blocks(self._n_faces()), THREADS](m, work.emit, work.xf, work.yf)
         k["trial"][bc, THREADS](m, sc, cur, work, 0.0, 0.0)
         k["final"][bc, THREADS](m, sc, cur, nxt, scratch, work, 0.0)
         if source is not None:  # ``(law_row, src)``: on the spare buffer, a scratch layer
             k["source"][bc, THREADS](m, sc, nxt, like(self.erodible), work.terms, source[0],
                                      source[1], 0.0)
-        k["observe"][bc, THREADS](m, sc, nxt, scratch, 0.0)
-        self._sums()
+        if supply is not None and supply.cells.size:  # nothing falls in a step of 0 s
+            self._supply(supply.cells, supply.weights, supply.params, nxt.h, nxt.hu, nxt.hv,
+                         like(self.supplied), m.cell_area, m.cfl_factor, m.gamma_z, sc.g,
+                         0.0, 0.0)
+        k["observe"][bc, THREADS](m, sc, nxt, scratch, like(self.maps), 0.0)
+        self._sums(work.terms, work.partials, self.n)
         self.cuda.synchronize()
 
-    def _sums(self) -> None:
-        """The step's sums of the cells' terms into ``work.totals`` (two passes)."""
-        k, work = self.k, self.work
-        nb = work.partials.shape[1]
+    def _sums(self, terms, partials, n: int) -> np.ndarray:
+        """The sums of the terms of ``n`` cells (two passes of a block reduction), copied to
+        the host: the ``T_*`` slots."""
+        k, totals = self.k, self.work.totals
+        nb = min(partials.shape[1], _partials(n))
         if nb == 1:  # one block adds them all
-            k["reduce"][1, RED_THREADS](work.terms, work.totals, self.n)
-            return
-        k["reduce"][nb, RED_THREADS](work.terms, work.partials, self.n)
-        k["reduce"][1, RED_THREADS](work.partials, work.totals, nb)
+            k["reduce"][1, RED_THREADS](terms, totals, n)
+        else:
+            k["reduce"][nb, RED_THREADS](terms, partials, n)
+            k["reduce"][1, RED_THREADS](partials, totals, nb)
+        return totals.copy_to_host()[:, 0]
 
 
 def physics_dt(inv_lim: float) -> float:

@@ -36,7 +36,7 @@ import math
 
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_average,
+from avflow.numerics.cpu import (DRY, carries, cell_moves, centripetal_accel, heun_average,
                                  dirac_face, dt_from_inverse, emitted_state, final_momentum,
                                  observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
@@ -241,7 +241,8 @@ def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_s
         hv_new[i] = qy
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         _keep_terms(cell_sums, i, hn < 0.0, inv_i, hn, area, speed,
-                    cell_moves(speed, speed_n, transport[i], hn), h_dry, cl)
+                    cell_moves(speed, speed_n, carries(transport[i], hn, speed_n, 1.0)), h_dry,
+                    cl)
 
 
 def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face_state,
@@ -291,8 +292,9 @@ def heun_cells(cells, n_cells, mesh, physics, start, stage2, flag1, transport, n
         hu_new[i] = qx
         hv_new[i] = qy
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
+        speed_n = speed_of(h0[i], hu0[i], hv0[i])
         _keep_terms(cell_sums, i, False, inv_i, hn, cell_area[i], speed,
-                    cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn), h_dry,
+                    cell_moves(speed, speed_n, carries(transport[i], hn, speed_n, 1.0)), h_dry,
                     fell_back)
     _, lim, moving, film, kinetic, fallbacks = _add_terms(cells, n_cells, cell_sums)
     return lim, moving, film, kinetic, fallbacks

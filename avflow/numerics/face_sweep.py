@@ -41,9 +41,9 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dirac_face, dt_from_inverse,
-                                 final_momentum, observe_cell, open_mass, step_terms,
-                                 trial_momentum)
+from avflow.numerics.cpu import (DRY, FLOWING, carries, cell_moves, dirac_face,
+                                 dt_from_inverse, final_momentum, observe_cell, open_mass,
+                                 step_terms, trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
@@ -439,9 +439,8 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             hu_new[i] = qx
             hv_new[i] = qy
             clamped += cl
-            # physics.cell_moves with the largest |F_h| / L of the faces that carried mass
-            moves = (speed > 0.0) & ((speed_n == 0.0)
-                                     | (transport[i] > TRANSPORT_EPS * hn * speed_n))
+            # the moving rule with the largest |F_h| / L of the faces that carried mass
+            moves = cell_moves(speed, speed_n, carries(transport[i], hn, speed_n, 1.0))
             t_inv[i] = inv_i
             t_kin[i], t_mov[i], t_film[i] = step_terms(hn, area, speed, moves, h_dry)
     return n_bad, clamped, flips

@@ -36,7 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.cpu import (DRY, cell_moves, centripetal_accel, heun_average,
+from avflow.numerics.cpu import (DRY, carries, cell_moves, centripetal_accel, heun_average,
                                  dirac_face, dt_from_inverse, emitted_state, emitting,
                                  final_momentum, half_flux_in, half_flux_out, half_fluxes,
                                  observe_cell, open_mass, side_fluxes, sound_speed,
@@ -230,8 +230,8 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
         clamped += cl
         speed, inv_k = observe_cell(hn, abs(qx), cfl_factor[k], gamma_z[k], g)
         inv_lim = max(inv_lim, inv_k)
-        kin, mov, fil = step_terms(hn, dx, speed, cell_moves(speed, speed_n,
-                                                             max(abs(fl), abs(fr)), hn), h_dry)
+        moves = cell_moves(speed, speed_n, carries(max(abs(fl), abs(fr)), hn, speed_n, 1.0))
+        kin, mov, fil = step_terms(hn, dx, speed, moves, h_dry)
         kinetic += kin
         moving += mov
         film += fil
@@ -446,8 +446,8 @@ def _face_finals(mesh, physics, cur, nxt, transport, flag, when, lists, order2):
         clamped += cl
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
-        kin, mov, fil = step_terms(hn, area, speed, cell_moves(speed, speed_n, transport[i], hn),
-                                   h_dry)
+        moves = cell_moves(speed, speed_n, carries(transport[i], hn, speed_n, 1.0))
+        kin, mov, fil = step_terms(hn, area, speed, moves, h_dry)
         kinetic += kin
         moving += mov
         film += fil
@@ -523,7 +523,8 @@ def heun_faces(cells, n_cells, mesh, physics, start, stage2, flag1, transport, n
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i], g)
         inv_lim = max(inv_lim, inv_i)
         area = cell_area[i]
-        moves = cell_moves(speed, speed_of(h0[i], hu0[i], hv0[i]), transport[i], hn)
+        speed_n = speed_of(h0[i], hu0[i], hv0[i])
+        moves = cell_moves(speed, speed_n, carries(transport[i], hn, speed_n, 1.0))
         kin, mov, fil = step_terms(hn, area, speed, moves, h_dry)
         kinetic += kin
         moving += mov

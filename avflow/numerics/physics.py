@@ -8,7 +8,7 @@ target compiles the same functions the same way.
 - the Dirac face of eqs. 51-53 (:func:`dirac_face`), the open side (:func:`open_mass`);
 - the curvature term of eqs. 61-62 (:func:`centripetal_accel`, :func:`normal_accel`);
 - what a cell emits and how fast it moves (:func:`emitted_state`, :func:`observe_cell`,
-  :func:`cell_moves`);
+  :func:`cell_moves` with :func:`carries`: the moving rule);
 
 The kinetic half fluxes are in :mod:`avflow.numerics.kinetic`, the friction laws in
 :mod:`avflow.numerics.rheology`.
@@ -166,10 +166,18 @@ def speed_of(h, hu, hv):
     return math.sqrt(hu * hu + hv * hv) / h
 
 
-def cell_moves(speed, speed_n, transport, h):
+def carries(flux, h, speed_n, length):
+    """True when a face of ``length`` (1: ``flux`` is per metre) carried the cell's material
+    in this step: a mass flux above TRANSPORT_EPS h |u^n| per metre of face (compared as
+    ``|flux| > eps h |u^n| L``: no division)."""
+    return abs(flux) > TRANSPORT_EPS * h * speed_n * length
+
+
+def cell_moves(speed, speed_n, carried):
     """True when a cell moves material: u != 0 now, and either it just set off (u^n = 0)
-    or one of its faces carried a mass flux above TRANSPORT_EPS h |u^n| in this step."""
-    return speed > 0.0 and (speed_n == 0.0 or transport > TRANSPORT_EPS * h * speed_n)
+    or one of its faces carried its material in this step (``carried``, :func:`carries`).
+    Without jumps (``&``, ``|``), so that the cell loops that call it vectorise."""
+    return (speed > 0.0) & ((speed_n == 0.0) | carried)
 
 
 def observe_cell(h, q_norm, cfl_factor, gz, g):
@@ -223,7 +231,7 @@ def dirac_face(dirac, flag_i, flag_j):
 
     Eqs. 51-53 and section 3.3 (Figs. 4-5); a boundary ghost shares the flag of its cell.
     """
-    return dirac and flag_i != FLOWING and flag_j != FLOWING
+    return dirac & (flag_i != FLOWING) & (flag_j != FLOWING)
 
 
 def emitted_state(h, q1, q2, h_zero, g_normal, dens):

@@ -26,8 +26,9 @@ from collections import namedtuple
 
 from numba import njit
 
-from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, dt_from_inverse, final_momentum,
-                                 observe_cell, open_mass, step_terms, trial_momentum)
+from avflow.numerics.cpu import (DRY, carries, cell_moves, dirac_face,
+                                 dt_from_inverse, final_momentum, observe_cell, open_mass,
+                                 step_terms, trial_momentum)
 from avflow.numerics.cpu import SQRT3, half_fluxes, sound_speed
 from avflow.numerics.vectorize import (cell_law, friction_law, in_select, law_copies, law_kind,
                                        law_label, line_sum, noalias, out_select, specialize)
@@ -149,9 +150,8 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         q = q_trial[k]
         kap = kappa[k]
         cfl_k = cfl_factor[k]
-        cold = dirac & (fk != FLOWING)  # dirac_face(); the ends' ghosts share the flag
-        dirac_l = cold & (f_l != FLOWING)
-        dirac_r = cold & (f_r != FLOWING)
+        dirac_l = dirac_face(dirac, fk, f_l)  # the ends' ghosts share the flag
+        dirac_r = dirac_face(dirac, fk, f_r)
         fl = 0.0 if dirac_l else fl
         fr = 0.0 if dirac_r else fr
         hn = h_old + r * (fl - fr)
@@ -173,9 +173,8 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         flag[k] = fk
         clamped += cl
         speed_k, inv_k = observe_cell(hn, abs(qx), cfl_k, gz, g)
-        # physics.cell_moves with the transport max(|fl|, |fr|)
-        transport = max(abs(fl), abs(fr))
-        moves = (speed_k > 0.0) & ((speed_n == 0.0) | (transport > TRANSPORT_EPS * hn * speed_n))
+        # the moving rule with the transport max(|fl|, |fr|)
+        moves = cell_moves(speed_k, speed_n, carries(max(abs(fl), abs(fr)), hn, speed_n, 1.0))
         t_inv[k] = inv_k
         t_kin[k], t_mov[k], t_film[k] = step_terms(hn, dx, speed_k, moves, h_dry)
     return n_bad, clamped
@@ -234,11 +233,11 @@ def _step(line, physics, cur, nxt, flag, when):
     outflow = 0.0
     if left == OUTFLOW:
         fk = pflag[1]
-        if not (dirac and fk != FLOWING):
+        if not dirac_face(dirac, fk, fk):
             outflow += max(-flux_h[0], 0.0) * dt
     if right == OUTFLOW:
         fk = pflag[n]
-        if not (dirac and fk != FLOWING):
+        if not dirac_face(dirac, fk, fk):
             outflow += max(flux_h[n], 0.0) * dt
     inv_lim = 0.0
     for k in range(n):

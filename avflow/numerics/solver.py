@@ -480,9 +480,10 @@ class Solver:
         square-grid kernel's layout and full-grid arrays."""
         fields = self._on_grid(state)
         run = self._control(t_target, max_steps, stop_volume, stop_kinetic, 0, 0)
-        if self._cuda is None:
-            self._cuda = self._loop(1)(self._g_mesh, self._rows)
-        status = self._cuda.advance(fields, self._physics(), run, owner=state)
+        if self._cuda is None:  # (what the run uses of avflow.extend built in, as on the CPU)
+            self._cuda = self._loop(1)(self._g_mesh, self._rows, self._law_code, self.sources)
+        status = self._cuda.advance(fields, self._physics(), run, owner=state,
+                                    supply=self._supply)
         self._off_grid(state, fields)
         return STATUS_NAMES[status]
 

@@ -54,7 +54,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, FLOWING, TRANSPORT_EPS, cell_moves,
+from avflow.numerics.cpu import (DRY, carries, cell_moves, dirac_face,
                                  dt_from_inverse, final_momentum, heun_average,
                                  observe_cell, open_mass, speed_of, step_terms,
                                  trial_momentum)
@@ -673,11 +673,10 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         old_flag = flag[i]
         # Dirac faces (eqs. 51-53): both sides at zero temperature; a boundary ghost shares
         # its cell's flag
-        cold = dirac & (fi != FLOWING)
-        d_w = cold & ((f_w if w_in else fi) != FLOWING)
-        d_e = cold & ((f_e if e_in else fi) != FLOWING)
-        d_s = cold & ((f_s if s_in else fi) != FLOWING)
-        d_n = cold & ((f_n if n_in else fi) != FLOWING)
+        d_w = dirac_face(dirac, fi, f_w if w_in else fi)  # a boundary's ghost: the cell's flag
+        d_e = dirac_face(dirac, fi, f_e if e_in else fi)
+        d_s = dirac_face(dirac, fi, f_s if s_in else fi)
+        d_n = dirac_face(dirac, fi, f_n if n_in else fi)
         acc = _in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
                              0.0 if d_s else sm, 0.0 if d_n else nm)
         hn = h_old + dt / area * acc
@@ -734,14 +733,12 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         len_w, len_e, len_s, len_n = x_len[c], x_len[c + 1], ys_len[c], yn_len[c]
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gamma_z[i],
                                     g)
-        # moving: u != 0, and just set off or a face carried more than TRANSPORT_EPS h |u^n|
-        # per metre (physics.cell_moves; compared as |fh| > eps h |u^n| L: no division)
-        limit = TRANSPORT_EPS * hn * speed_n
-        carried = (((not d_w) & (abs(wm) > limit * len_w))
-                   | ((not d_e) & (abs(e_m) > limit * len_e))
-                   | ((not d_s) & (abs(sm) > limit * len_s))
-                   | ((not d_n) & (abs(nm) > limit * len_n)))
-        moves = good & (speed > 0.0) & ((speed_n == 0.0) | carried)
+        # the moving rule (physics.cell_moves) through the faces that are not Dirac
+        carried = (((not d_w) & carries(wm, hn, speed_n, len_w))
+                   | ((not d_e) & carries(e_m, hn, speed_n, len_e))
+                   | ((not d_s) & carries(sm, hn, speed_n, len_s))
+                   | ((not d_n) & carries(nm, hn, speed_n, len_n)))
+        moves = good & cell_moves(speed, speed_n, carried)
         t_inv[c] = inv_i if good else 0.0
         kin, t_mov[c], t_film[c] = step_terms(hn, area, speed, moves, h_dry)
         t_kin[c] = kin if good else 0.0
@@ -1012,7 +1009,8 @@ def _heun_cells(r, base, c0, c1, lo1, hi1, valid, h0, hu0, hv0, h2, hu2, hv2, fl
         inside = valid[i] != 0
         speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i],
                                     gamma_z[i], g)
-        moves = cell_moves(speed, speed_of(a, qa, qb), transport[i], hn)
+        speed_n = speed_of(a, qa, qb)
+        moves = cell_moves(speed, speed_n, carries(transport[i], hn, speed_n, 1.0))
         t_kin[c], t_mov[c], t_film[c] = step_terms(hn, cell_area[i], speed, moves, h_dry)
         t_inv[c] = inv_i
         t_fb[c] = fell_back

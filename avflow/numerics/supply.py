@@ -48,26 +48,38 @@ def supply_rate(weights, params, c, h, speed, t):
     return 0.0
 
 
+@njit(error_model="numpy", cache=True, inline="always")
+def supply_at(c, cells, weights, params, h, hu, hv, supplied, cell_area, cfl_factor, gamma_z,
+              g, dt, t_new):
+    """The sources on their ``c``-th cell: it takes ``rate * dt``, into ``h`` and into its
+    book ``supplied``. Returns ``(volume added, its new inverse CFL limit)`` (0, 0 where
+    nothing falls). Every kernel's pass calls this, the GPU's too."""
+    i = cells[c]
+    hi = h[i]
+    rate = supply_rate(weights, params, c, hi, speed_of(hi, hu[i], hv[i]), t_new)
+    if not rate > 0.0:
+        return 0.0, 0.0
+    take = rate * dt
+    hn = hi + take
+    h[i] = hn
+    supplied[i] += take
+    _, inv = observe_cell(hn, math.sqrt(hu[i] * hu[i] + hv[i] * hv[i]), cfl_factor[i],
+                          gamma_z[i], g)
+    return take * cell_area[i], inv
+
+
 @njit(error_model="numpy", cache=True, _nrt=False)
 def supply_cells(cells, weights, params, h, hu, hv, supplied, cell_area, cfl_factor, gamma_z,
                  g, dt, t_new):
-    """The sources over their ``cells``: each takes ``rate * dt``, into ``h`` and into its
-    book ``supplied``. Returns ``(volume added, the largest new inverse CFL limit)``."""
+    """The sources over their ``cells`` (:func:`supply_at`). Returns ``(volume added, the
+    largest new inverse CFL limit)``."""
     added = 0.0
     inv_lim = 0.0
     for c in range(cells.size):
-        i = cells[c]
-        hi = h[i]
-        rate = supply_rate(weights, params, c, hi, speed_of(hi, hu[i], hv[i]), t_new)
-        if rate > 0.0:
-            take = rate * dt
-            hn = hi + take
-            h[i] = hn
-            supplied[i] += take
-            added += take * cell_area[i]
-            _, inv = observe_cell(hn, math.sqrt(hu[i] * hu[i] + hv[i] * hv[i]), cfl_factor[i],
-                                  gamma_z[i], g)
-            inv_lim = max(inv_lim, inv)
+        v, inv = supply_at(c, cells, weights, params, h, hu, hv, supplied, cell_area,
+                           cfl_factor, gamma_z, g, dt, t_new)
+        added += v
+        inv_lim = max(inv_lim, inv)
     return added, inv_lim
 
 
