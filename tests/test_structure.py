@@ -84,3 +84,100 @@ def test_a_stage_imports_only_itself_and_the_stages_below(stage):
     wrong = sorted(f"{m} imports {d}" for m, deps in GRAPH.items() if _stage(m) == stage
                    for d in deps if d not in BASE and _stage(d) not in allowed)
     assert wrong == []
+
+
+# --- the physics written once ------------------------------------------------------------------
+
+NUMERICS = PACKAGE / "numerics"
+#: the running maps: written by the observer pass alone (the GPU's copy: cuda_grid._observe)
+MAPS = {"peak_h", "peak_speed", "arrival", "last_moved"}
+
+
+def _functions(path):
+    """``(function name, node)`` of every function of a module, nested ones included."""
+    tree = ast.parse(path.read_text())
+    return [(n.name, n) for n in ast.walk(tree)
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+
+
+def _names(node) -> set:
+    return {n.id if isinstance(n, ast.Name) else n.attr for n in ast.walk(node)
+            if isinstance(n, (ast.Name, ast.Attribute))}
+
+
+def _where(predicate) -> list:
+    """``module.function`` of the numerics' functions whose body holds a node matching
+    ``predicate`` (in that function itself, not in a function nested in it)."""
+    found = []
+    for path in sorted(NUMERICS.glob("*.py")):
+        for name, fn in _functions(path):
+            inner = {id(n) for sub in ast.walk(fn) if sub is not fn
+                     and isinstance(sub, (ast.FunctionDef, ast.AsyncFunctionDef))
+                     for n in ast.walk(sub)}
+            if any(predicate(n) for n in ast.walk(fn) if id(n) not in inner):
+                found.append(f"{path.stem}.{name}")
+    return sorted(set(found))
+
+
+def test_the_dirac_rule_is_written_once():
+    """A face carries the Dirac (zero) flux when both its sides are at zero temperature
+    (eqs. 51-53): one expression, physics.dirac_face; every traversal calls it."""
+    def rule(n):
+        return (isinstance(n, (ast.BoolOp, ast.BinOp)) and "dirac" in _names(n)
+                and "FLOWING" in _names(n))
+
+    assert _where(rule) == ["physics.dirac_face"]
+    callers = _where(lambda n: isinstance(n, ast.Call) and "dirac_face" in _names(n.func))
+    assert len(callers) >= 6, callers  # profile, faces (3 forms), grid, GPU
+
+
+def test_the_moving_rule_is_written_once():
+    """A cell moves material when u != 0 and it just set off or a face carried its mass
+    above TRANSPORT_EPS h |u^n| (what the stop rules count): physics.carries and
+    physics.cell_moves; no traversal compares with TRANSPORT_EPS itself."""
+    uses = _where(lambda n: isinstance(n, ast.Name) and n.id == "TRANSPORT_EPS")
+    assert uses == ["physics.carries"]
+    callers = _where(lambda n: isinstance(n, ast.Call) and "cell_moves" in _names(n.func))
+    assert len(callers) >= 7, callers
+
+
+def test_the_running_maps_are_written_by_the_observer_pass_alone():
+    """peak thickness and speed, arrival and last motion: written once per accepted step by
+    the observer pass (observers.observe_cell_at; the GPU's copy, cuda_grid._observe), from
+    the rule physics.observe, never by a step that may be redone."""
+    def writes_a_map(n):
+        targets = n.targets if isinstance(n, ast.Assign) else (
+            [n.target] if isinstance(n, ast.AugAssign) else [])
+        for t in targets:
+            for e in (t.elts if isinstance(t, ast.Tuple) else [t]):
+                if isinstance(e, ast.Subscript) and _names(e.value) & MAPS:
+                    return True
+        return False
+
+    assert _where(writes_a_map) == ["cuda_grid._observe", "observers.observe_cell_at"]
+    callers = _where(lambda n: isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+                     and n.func.id == "observe")
+    assert callers == ["cuda_grid._observe", "observers.observe_cell_at"]
+
+
+def test_the_friction_laws_are_chosen_in_one_place():
+    """A law's branch (``law == COULOMB`` ...) only in rheology.law_friction: the kernels
+    call friction() and never test a law themselves (a registered law joins that chain,
+    numerics.variants)."""
+    laws = {"COULOMB", "POULIQUEN", "VOELLMY", "SAMOSAT", "VELOCITY_WEAKENING"}
+
+    def branch(n):
+        return (isinstance(n, ast.Compare) and any(isinstance(o, ast.Eq) for o in n.ops)
+                and _names(n) & laws)
+
+    assert _where(branch) == ["rheology.law_friction"]
+
+
+def test_the_time_loop_is_written_once():
+    """Step size, retry by halving, the sources, the stop rules: loop.advance, for every
+    kernel and backend (the GPU's runs it as Python); nothing else halves a step."""
+    halves = _where(lambda n: isinstance(n, ast.AugAssign) and isinstance(n.op, ast.Mult)
+                    and isinstance(n.value, ast.Constant) and n.value.value == 0.5)
+    assert halves == ["loop.advance"]
+    steps = _where(lambda n: isinstance(n, ast.Call) and "step_size" in _names(n.func))
+    assert steps == ["loop.advance"]
