@@ -42,10 +42,12 @@ def observe_cell_at(i, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps,
 
 def _observe_span(a, b, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps, t_new,
                   h_dry):
-    """The maps of the cells ``a .. b - 1``."""
-    for i in range(max(a, 0), b):
-        observe_cell_at(i, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps, t_new,
-                        h_dry)
+    """The maps of the cells ``a .. b - 1`` (counted from 0 from a start clamped at 0: an
+    index that cannot be negative lets the loop vectorise, vectorize.py)."""
+    a = max(a, 0)
+    for j in range(b - a):
+        observe_cell_at(a + j, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps,
+                        t_new, h_dry)
 
 
 def _observe_listed(cells, n, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps,
