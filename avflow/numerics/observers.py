@@ -40,8 +40,9 @@ def observe_cell_at(i, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps,
     more_maps(maps, i, hi, qx, qy, speed, t_new)
 
 
-def _observe_span(a, b, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps, t_new,
-                  h_dry):
+@njit(error_model="numpy", cache=True, inline="always")
+def _observe_run(a, b, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps, t_new,
+                 h_dry):
     """The maps of the cells ``a .. b - 1`` (counted from 0 from a start clamped at 0: an
     index that cannot be negative lets the loop vectorise, vectorize.py)."""
     a = max(a, 0)
@@ -50,15 +51,28 @@ def _observe_span(a, b, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps
                         t_new, h_dry)
 
 
+def _observe_span(a, b, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps, t_new,
+                  h_dry):
+    """The maps of the cells ``a .. b - 1``."""
+    _observe_run(a, b, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps, t_new, h_dry)
+
+
 def _observe_listed(cells, n, h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps,
                     t_new, h_dry):
-    """The maps of the ``n`` listed ``cells``."""
-    for c in range(n):
-        observe_cell_at(cells[c], h, hu, hv, peak_h, peak_speed, arrival, last_moved, maps,
-                        t_new, h_dry)
+    """The maps of the ``n`` listed ``cells``, a run of consecutive indices at a time (the
+    face kernel's lists are sorted: mostly long runs, whose loop vectorises)."""
+    c = 0
+    while c < n:
+        first = cells[c]
+        e = c
+        while e + 1 < n and cells[e + 1] == cells[e] + 1:
+            e += 1
+        _observe_run(first, cells[e] + 1, h, hu, hv, peak_h, peak_speed, arrival, last_moved,
+                     maps, t_new, h_dry)
+        c = e + 1
 
 
 # no reference counting (called once per row), and the arrays known not to overlap, so a
 # row's loop vectorises (vectorize.noalias)
 observe_span = noalias(njit(error_model="numpy", cache=True, _nrt=False)(_observe_span))
-observe_listed = njit(error_model="numpy", cache=True, _nrt=False)(_observe_listed)
+observe_listed = noalias(njit(error_model="numpy", cache=True, _nrt=False)(_observe_listed))
