@@ -1281,13 +1281,15 @@ class Scenario(_Model):
 
     def data_maps(self) -> dict[str, _Where]:
         """Every map of this scenario that may read a file, by its dotted field: the
-        friction maps, the erodible layer, the forest."""
+        friction maps, the erodible layer, the forest, the registered sources' areas."""
         maps: dict[str, _Where] = {f"rheology.{name}": spec
                                    for name, spec in map_fields(self.rheology).items()}
         if self.entrainment is not None:
             maps["entrainment.layer"] = self.entrainment.layer
         if self.forest is not None:
             maps["forest"] = self.forest
+        for k, source in enumerate(self.sources):  # registered sources' areas
+            maps[f"sources.{k}"] = source
         return maps
 
     @model_validator(mode="after")
@@ -1407,6 +1409,8 @@ class Scenario(_Model):
                 data.pop(block, None)
         if not data.get("structures"):  # none: hashes as before the block
             data.pop("structures", None)
+        if not data.get("sources"):  # none (no registered source): as before the field
+            data.pop("sources", None)
         for k, structure in enumerate(data.get("structures") or ()):  # lines by content
             try:
                 structure["line"] = "sha256:" + _content_digest(structure["line"])
@@ -1416,7 +1420,7 @@ class Scenario(_Model):
         for field, spec in self.data_maps().items():  # maps count by their files' content
             node = data
             for key in field.split("."):
-                node = node[key]
+                node = node[int(key)] if isinstance(node, list) else node[key]
             for key in ("raster", "polygon"):
                 if node.get(key):
                     try:
