@@ -102,6 +102,20 @@ def _check_function(function: Callable, kind: str, n_args: int) -> None:
                              f"must take {n_args}")
 
 
+def _check_parameters(parameters, most: int, kind: str, name: str, reserved) -> tuple:
+    """``parameters`` as a tuple of at most ``most`` identifiers, none of them ``reserved``
+    (the block's own keys)."""
+    parameters = tuple(parameters)
+    if len(parameters) > most:
+        raise ExtensionError(f"a {kind} takes at most {most} parameters, {name} has "
+                             f"{len(parameters)}")
+    for p in parameters:
+        _check_name(p, "parameter")
+        if p in reserved:
+            raise ExtensionError(f"a {kind}'s parameter may not be called {p!r}")
+    return parameters
+
+
 def register_friction_law(name: str, function: Callable, parameters, reference: str,
                           bounds: dict | None = None) -> FrictionLaw:
     """Register ``function`` as the friction law ``name`` (see :class:`FrictionLaw`);
@@ -110,14 +124,8 @@ def register_friction_law(name: str, function: Callable, parameters, reference: 
     _check_name(name, "friction law")
     if name in BUILT_IN_LAWS or name in FRICTION_LAWS:
         raise ExtensionError(f"a friction law named {name!r} exists already")
-    parameters = tuple(parameters)
-    if len(parameters) > MAX_LAW_PARAMETERS:
-        raise ExtensionError(f"a friction law takes at most {MAX_LAW_PARAMETERS} parameters, "
-                             f"{name} has {len(parameters)}")
-    for p in parameters:
-        _check_name(p, "parameter")
-        if p == "law":
-            raise ExtensionError("a parameter may not be called 'law'")
+    parameters = _check_parameters(parameters, MAX_LAW_PARAMETERS, "friction law", name,
+                                   ("law",))
     _check_function(function, "friction law", len(parameters) + 4)
     code = FIRST_LAW_CODE + len(FRICTION_LAWS)
     if code > LAST_LAW_CODE:
@@ -161,14 +169,8 @@ def register_source(name: str, function: Callable, parameters, reference: str) -
     _check_name(name, "source")
     if name in SOURCES:
         raise ExtensionError(f"a source named {name!r} exists already")
-    parameters = tuple(parameters)
-    if len(parameters) > MAX_SOURCE_PARAMETERS:
-        raise ExtensionError(f"a source takes at most {MAX_SOURCE_PARAMETERS} parameters, "
-                             f"{name} has {len(parameters)}")
-    for p in parameters:
-        _check_name(p, "parameter")
-        if p in ("law", "raster", "polygon", "x", "y"):
-            raise ExtensionError(f"a source's parameter may not be called {p!r}")
+    parameters = _check_parameters(parameters, MAX_SOURCE_PARAMETERS, "source", name,
+                                   ("law", "raster", "polygon", "x", "y"))
     _check_function(function, "source", len(parameters) + 3)
     entry = Source(name, function, parameters, str(reference), len(SOURCES))
     from avflow.scenario.schema import add_source

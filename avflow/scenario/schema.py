@@ -827,17 +827,21 @@ class Forest(_Where):
 
     @model_validator(mode="after")
     def _one_form(self) -> Forest:
-        given = [k for k in ("raster", "polygon", "x") if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise _problem("give one of polygon, raster or x (and y): where the forest "
-                           f"stands, got {len(given)}" + (f" ({', '.join(given)})"
-                                                         if given else ""))
-        form = given[0]
+        form = _one_form_of(self, "where the forest stands")
         for name, owner in (("attribute", "polygon"), ("default", "raster"), ("y", "x"),
                             ("values", "raster")):
             if getattr(self, name) is not None and form != owner:
                 raise _problem(f"applies with {owner} only, not with {form}", name)
         return self
+
+def _one_form_of(block: BaseModel, what: str) -> str:
+    """The one form a block's area is given in (raster, polygon or x), else one line."""
+    given = [k for k in ("raster", "polygon", "x") if getattr(block, k) is not None]
+    if len(given) != 1:
+        raise _problem(f"give one of polygon, raster or x (and y): {what}, got {len(given)}"
+                       + (f" ({', '.join(given)})" if given else ""))
+    return given[0]
+
 
 class _SourceArea(_Where):
     """Where a registered source adds mass: polygons, a raster mask (cells > 0), or an x
@@ -850,13 +854,9 @@ class _SourceArea(_Where):
 
     @model_validator(mode="after")
     def _one_form(self) -> _SourceArea:
-        given = [k for k in ("raster", "polygon", "x") if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise _problem("give one of polygon, raster or x (and y): where the source "
-                           f"adds mass, got {len(given)}" + (f" ({', '.join(given)})"
-                                                            if given else ""))
-        if self.y is not None and given[0] != "x":
-            raise _problem(f"applies with x only, not with {given[0]}", "y")
+        form = _one_form_of(self, "where the source adds mass")
+        if self.y is not None and form != "x":
+            raise _problem(f"applies with x only, not with {form}", "y")
         return self
 
 
