@@ -453,10 +453,15 @@ def _terminated(argv, folder: Path, wait=0.0):
     return process.returncode, err
 
 
+def _long_dambreak(folder) -> None:
+    """``folder/long.yaml``: the dam break run for days on 1 m cells (a run to interrupt)."""
+    (folder / "long.yaml").write_text(
+        DAMBREAK.read_text().replace("end: 137.0", "end: 1.0e6")
+        .replace("every: 1.0", "every: 1.0e5").replace("dx: 20.0", "dx: 1.0"))
+
+
 def test_sigterm_of_ensemble_calibrate_and_region_exits_143(tmp_path):
-    long = tmp_path / "long.yaml"
-    long.write_text(DAMBREAK.read_text().replace("end: 137.0", "end: 1.0e6")
-                    .replace("every: 1.0", "every: 1.0e5").replace("dx: 20.0", "dx: 1.0"))
+    _long_dambreak(tmp_path)
     (tmp_path / "e.yaml").write_text("base: long.yaml\nvary: {rheology.delta_deg: [0.0, 1.0]}\n")
     code, err = _terminated(["ensemble", tmp_path / "e.yaml", "-o", tmp_path / "ens",
                              "--workers", "0", "-q"], tmp_path / "ens")
@@ -483,9 +488,7 @@ def test_sigterm_of_a_region_exits_143(region_out, tmp_path):
 
 
 def test_sigterm_of_a_two_worker_ensemble_is_143_without_dask_tracebacks(tmp_path):
-    long = tmp_path / "long.yaml"
-    long.write_text(DAMBREAK.read_text().replace("end: 137.0", "end: 1.0e6")
-                    .replace("every: 1.0", "every: 1.0e5").replace("dx: 20.0", "dx: 1.0"))
+    _long_dambreak(tmp_path)
     (tmp_path / "e.yaml").write_text("base: long.yaml\nvary: {rheology.delta_deg: [0.0, 1.0]}\n")
     code, err = _terminated(["ensemble", tmp_path / "e.yaml", "-o", tmp_path / "ens",
                              "--workers", "2", "-q"], tmp_path / "ens", wait=1.0)

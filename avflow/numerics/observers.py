@@ -8,7 +8,7 @@ Every kernel's time loop calls one of the two passes below through its region's
 row) or a list of cells (the face kernel's touched cells). The rule of each map is the
 pointwise :func:`~avflow.numerics.physics.observe`, written once.
 
-``more_maps`` is where maps registered through :mod:`avflow.numerics.extend` come in: a
+``more_maps`` is where maps registered through :mod:`avflow.extend` come in: a
 placeholder that reads and writes nothing here, replaced in the copies of a run with
 registered maps (:func:`avflow.numerics.variants.variant`). ``maps`` is their storage,
 ``(number of maps, cells)`` (empty when there are none).

@@ -50,7 +50,7 @@ class State:
     last_moved: np.ndarray  #: end of the last step in which u != 0, s (NaN: never moved)
     #: what is left of the erodible layer, m per cell (empty: the run has no mass source)
     erodible: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    #: the registered maps (avflow.numerics.extend), a row each (none: no rows)
+    #: the registered maps (avflow.extend), a row each (none: no rows)
     maps: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     #: what the registered sources added, m of flow thickness per cell (empty: none)
     supplied: np.ndarray = field(default_factory=lambda: np.zeros(0))
