@@ -181,3 +181,35 @@ def test_the_time_loop_is_written_once():
     assert halves == ["loop.advance"]
     steps = _where(lambda n: isinstance(n, ast.Call) and "step_size" in _names(n.func))
     assert steps == ["loop.advance"]
+
+
+def _callers(name):
+    return _where(lambda n: isinstance(n, ast.Call) and name in _names(n.func))
+
+
+def test_the_face_flux_is_written_once():
+    """The flux through a face with the ghost of a wall or an open side (eq. 38, the kinetic
+    half fluxes of eqs. 39-40): physics.face_flux, called by every traversal of a 2D mesh
+    (the grid's rows and the GPU's through square_grid._coded_flux, the face sweep, the
+    gather form, step_faces). The half fluxes are called by it alone and by the profile's
+    per-cell pass: on a line each cell's two half fluxes are computed once and summed per
+    face, and the profile's two ends apply the same open rule (physics.open_mass)."""
+    assert _callers("face_flux") == ["face_gather._gather_fluxes", "face_sweep._face_flux",
+                                     "kernels._face_fluxes", "square_grid._coded_flux"]
+    for half in ("half_flux_out", "half_flux_in"):
+        assert _callers(half) == ["physics.face_flux", "profile._emit"], half
+    assert _callers("open_mass") == ["kernels._profile_fluxes2", "kernels.step_profile",
+                                     "physics.face_flux", "profile._ends"]
+    assert _callers("coded_flux") == ["cuda_grid._faces"]
+
+
+def test_the_cell_update_is_written_once():
+    """A cell's new thickness ``h^n + dt / A sum``, the q~ of a cell dry at time n and the
+    projection of eq. 50: physics.cell_update, called by every traversal (profile, its
+    reference, the grid's rows, the face sweep, step_faces, the gather form, the GPU);
+    nothing else calls the projection."""
+    assert _callers("final_momentum") == ["physics.cell_update"]
+    assert _callers("cell_update") == [
+        "cuda_grid._final", "face_gather._gather_finals", "face_sweep._final_cells",
+        "kernels._face_finals", "kernels.step_profile", "profile._final",
+        "square_grid._final_cells"]

@@ -134,9 +134,9 @@ def _retarget(fn, namespace: dict, decorate):
 # --- the traversal: one thread per cell (or face) ------------------------------------------
 # Written against the names below, which :func:`_build` binds to the device copies.
 
-emitted_state = speed_of = trial_momentum = final_momentum = observe_cell = observe = None
+emitted_state = speed_of = trial_momentum = cell_update = observe_cell = observe = None
 dirac_face = carries = cell_moves = None
-step_terms = face_flux = in_face_order = cell_law = cuda = float64 = gain = None
+step_terms = coded_flux = kind_of = in_face_order = cell_law = cuda = float64 = gain = None
 
 
 def _emit(mesh, cur, emit, g, h_zero):
@@ -193,16 +193,16 @@ def _faces(mesh, emit, xf, yf):
             out[m, r, c] = 0.0
         return
     if kind == INNER:
-        f0, f1, f2, f3, f4 = face_flux(
-            code, emit[E_H, a], emit[E_U1, a], emit[E_U2, a], emit[E_C, a], emit[E_S, a],
-            emit[E_KH, a], emit[E_K3, a], emit[E_H, b], emit[E_U1, b], emit[E_U2, b],
+        f0, f1, f2, f3, f4 = coded_flux(
+            kind_of(code), code, emit[E_H, a], emit[E_U1, a], emit[E_U2, a], emit[E_C, a],
+            emit[E_S, a], emit[E_KH, a], emit[E_K3, a], emit[E_H, b], emit[E_U1, b], emit[E_U2, b],
             emit[E_C, b], emit[E_S, b], emit[E_KH, b], emit[E_K3, b], frame[r, 0, c],
             frame[r, 1, c], frame[r, 2, c], frame[r, 3, c], length)
     else:
         o = b if kind >= HIGH_WALL else a  # the face's owner
-        f0, f1, f2, f3, f4 = face_flux(
-            code, emit[E_H, o], emit[E_U1, o], emit[E_U2, o], emit[E_C, o], emit[E_S, o],
-            emit[E_KH, o], emit[E_K3, o], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        f0, f1, f2, f3, f4 = coded_flux(
+            kind_of(code), code, emit[E_H, o], emit[E_U1, o], emit[E_U2, o], emit[E_C, o],
+            emit[E_S, o], emit[E_KH, o], emit[E_K3, o], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
             frame[r, 0, c], frame[r, 1, c], frame[r, 2, c], frame[r, 3, c],
             length)
     out[0, r, c] = f0
@@ -311,27 +311,20 @@ def _final(mesh, sc, cur, nxt, obs, work, dt):
     d_n = dirac_face(sc.dirac, fi, f_n)
     acc = in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
                         0.0 if d_s else sm, 0.0 if d_n else nm)
-    hn = h_old + dt / area * acc
-    good = inside and (hn >= 0.0)
-    bad = inside and (hn < 0.0)
-    any_dirac = d_w or d_e or d_s or d_n
-    if any_dirac:  # what those faces brought to the trial's sum, taken back in face order
-        qx_b = in_face_order(qx, -wx if d_w else 0.0, -ex if d_e else 0.0,
-                             -sx if d_s else 0.0, -nx_ if d_n else 0.0)
-        qy_b = in_face_order(qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
-                             -sy if d_s else 0.0, -ny_ if d_n else 0.0)
-    else:
-        qx_b = qx
-        qy_b = qy
-    if fi == DRY:
-        qx = dt * (qx_b / area + g * hn * mesh.gamma_x[i])
-        qy = dt * (qy_b / area + g * hn * mesh.gamma_y[i])
+    if d_w or d_e or d_s or d_n:  # what those faces brought to the trial's sum, taken back
+        qx = in_face_order(qx, -wx if d_w else 0.0, -ex if d_e else 0.0,  # in face order
+                           -sx if d_s else 0.0, -nx_ if d_n else 0.0) if fi == DRY else qx
+        qy = in_face_order(qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
+                           -sy if d_s else 0.0, -ny_ if d_n else 0.0) if fi == DRY else qy
     p = mesh.params
     pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(
         sc.law, p, i, p[0, 0], p[0, 1], p[0, 2], p[0, 3], p[0, 4], p[0, 5], p[0, 6], p[0, 7])
-    qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz,
-                                centripetal(mesh, i, u1, u2), sc.law, pc0, pc1, pc2, pc3,
-                                pc4, pc5, pc6, pc7, g, h_old, False)
+    hn, qx, qy, cl = cell_update(fi == DRY, fi, h_old, acc, qx, qy, area, dt, mesh.gamma_x[i],
+                                 mesh.gamma_y[i], gz, centripetal(mesh, i, u1, u2), speed_n,
+                                 sc.law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_zero,
+                                 False)
+    good = inside and (hn >= 0.0)
+    bad = inside and (hn < 0.0)
     if inside:
         obs.flag[i] = fi
     h_w = hn if good else h_old
@@ -518,7 +511,8 @@ def _build(law: int = 0, sources=()):
                                                             device)} if laws else {})
 
     names = compile_pointwise((kinetic, physics, _plain_rheology()), device, registered_law)
-    names["face_flux"] = _retarget(square_grid._face_flux, names, device)
+    names["coded_flux"] = _retarget(square_grid._coded_flux, names, device)
+    names["kind_of"] = _retarget(square_grid._kind_of, names, device)
     names["in_face_order"] = _retarget(square_grid._in_face_order, names, device)
     names["cell_law"] = _retarget(vectorize.cell_law, names, device)
     names["cuda"] = cuda

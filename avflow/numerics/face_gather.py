@@ -36,12 +36,11 @@ import math
 
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, carries, cell_moves, centripetal_accel, heun_average,
-                                 dirac_face, dt_from_inverse, emitted_state, final_momentum,
-                                 observe_cell, open_mass, speed_of, step_terms,
-                                 trial_momentum)
+from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
+                                 centripetal_accel, dirac_face, dt_from_inverse, emitted_state,
+                                 face_flux, cell_update, heun_average, observe_cell,
+                                 speed_of, step_terms, trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
-from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.vectorize import cell_law, specialize
 
 #: A stage (or Heun's merge) that sweeps fewer cells than this runs serially, on step_faces
@@ -67,44 +66,30 @@ def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
         f = active_faces[a]
         i = face_cells[f, 0]
         j = face_cells[f, 1]
-        ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
-        ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
-        length = face_length[f]
+        inner = j >= 0
+        k = j if inner else i  # beyond a boundary: values the flux does not read
         hi = qi1 = qi2 = 0.0
         if h[i] > h_zero:
             hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
-        hi, ui1, ui2, ci, si, khi, k3i = emitted_state(hi, qi1, qi2, 0.0, g * gamma_z[i], density[i])
-        uni = ui1 * ni_x + ui2 * ni_y
-        uti = ui1 * ti_x + ui2 * ti_y
-        fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
-        nj_x = nj_y = tj_x = tj_y = 0.0
-        if j >= 0:
-            nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
-            tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
-            hj = qj1 = qj2 = 0.0
-            if h[j] > h_zero:
-                hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
-            hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[j],
-                                                      density[j])
-            unj = uj1 * nj_x + uj2 * nj_y
-            utj = uj1 * tj_x + uj2 * tj_y
-            gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
-        elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
-            gm_h = -fp_h
-            gm_q = fp_q
-            utj = uti
-        else:  # open side: transmissive for what leaves, closed to what would enter
-            gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-            gm_h = open_mass(fp_h + gm_h) - fp_h
-            utj = uti
-        f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
-        f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
-        flux[f, 0] = (fp_h + gm_h) * length
-        flux[f, 1] = f_n * ni_x + f_t * ti_x
-        flux[f, 2] = f_n * ni_y + f_t * ti_y
-        if j >= 0:
-            flux[f, 3] = f_n * nj_x + f_t * tj_x
-            flux[f, 4] = f_n * nj_y + f_t * tj_y
+        hi, ui1, ui2, ci, si, khi, k3i = emitted_state(hi, qi1, qi2, 0.0, g * gamma_z[i],
+                                                       density[i])
+        hj = qj1 = qj2 = 0.0
+        if inner and h[k] > h_zero:
+            hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
+        hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[k],
+                                                       density[k])
+        fh, qix, qiy, qjx, qjy = face_flux(
+            FACE_INNER if inner else (FACE_WALL if j == WALL else FACE_OPEN), hi, ui1, ui2, ci,
+            si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, face_frame[f, 0, 0, 0],
+            face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1],
+            face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1], face_frame[f, 1, 1, 0],
+            face_frame[f, 1, 1, 1], face_length[f])
+        flux[f, 0] = fh
+        flux[f, 1] = qix
+        flux[f, 2] = qiy
+        if inner:
+            flux[f, 3] = qjx
+            flux[f, 4] = qjy
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -224,18 +209,14 @@ def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_s
     for c in prange(n_touched):
         i = touched[c]
         area = cell_area[i]
-        hn = h[i] + dt / area * h_new[i]
         speed_n = speed_of(h[i], hu[i], hv[i])
-        qx = hu_new[i]
-        qy = hv_new[i]
-        if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
-            qx = dt * (qx / area + g * hn * gamma_x[i])
-            qy = dt * (qy / area + g * hn * gamma_y[i])
         pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, i, p0, p1, p2, p3,
                                                           p4, p5, p6, p7)
-        qx, qy, cl = final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
+        hn, qx, qy, cl = cell_update(flag[i] == DRY, flag[i], h[i], h_new[i], hu_new[i],
+                                     hv_new[i], area, dt, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
-                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h[i], True)
+                                     speed_n, law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g,
+                                     h_zero, True)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

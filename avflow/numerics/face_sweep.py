@@ -41,11 +41,10 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, FLOWING, carries, cell_moves, dirac_face,
-                                 dt_from_inverse, final_momentum, observe_cell, open_mass,
-                                 step_terms, trial_momentum)
+from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, FLOWING, carries,
+                                 cell_moves, cell_update, dirac_face, dt_from_inverse,
+                                 face_flux, observe_cell, step_terms, trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
-from avflow.numerics.cpu import half_flux_in, half_flux_out
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
 from avflow.numerics.vectorize import (cell_law, friction_law, law_copies, law_label, noalias,
@@ -177,38 +176,20 @@ def runs_of(items, count, runs):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3):
-    """The rectangular flux of face f between cells i and j (a wall or an open side when
-    ``j < 0``), step_faces sweep 1a's arithmetic: ``(L F_h, momentum to i (x, y), momentum
-    to j (x, y))``, from what the cells emit (the lines of :func:`_emit_cells`). Written
-    apart from step_faces on purpose: that one is the reference the tests hold this sweep
-    to, bit for bit, and a helper they shared would hide its faults from them."""
-    ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
-    ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
-    length = face_length[f]
-    hi, ui1, ui2, ci = e_h[i], e_u1[i], e_u2[i], e_c[i]
-    si, khi, k3i = e_s[i], e_kh[i], e_k3[i]
-    uni = ui1 * ni_x + ui2 * ni_y
-    uti = ui1 * ti_x + ui2 * ti_y
-    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
-    nj_x = nj_y = tj_x = tj_y = 0.0
-    if j >= 0:
-        nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
-        tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
-        unj = e_u1[j] * nj_x + e_u2[j] * nj_y
-        utj = e_u1[j] * tj_x + e_u2[j] * tj_y
-        gm_h, gm_q = half_flux_in(e_h[j], unj, e_c[j], e_s[j], e_kh[j], e_k3[j])
-    elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
-        gm_h = -fp_h
-        gm_q = fp_q
-        utj = uti
-    else:  # open boundary: transmissive for what leaves, closed to what would enter
-        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-        gm_h = open_mass(fp_h + gm_h) - fp_h
-        utj = uti
-    f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
-    f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
-    return ((fp_h + gm_h) * length, f_n * ni_x + f_t * ti_x, f_n * ni_y + f_t * ti_y,
-            f_n * nj_x + f_t * tj_x, f_n * nj_y + f_t * tj_y)
+    """:func:`~avflow.numerics.physics.face_flux` of face f between cells i and j (a wall or
+    an open side when ``j < 0``), from what the cells emit (the lines of
+    :func:`_emit_cells`) and the face's frames: ``(L F_h, momentum to i (x, y), momentum to
+    j (x, y))``."""
+    inner = j >= 0
+    kind = FACE_INNER if inner else (FACE_WALL if j == WALL else FACE_OPEN)
+    k = j if inner else i  # beyond a boundary: values the flux does not read
+    return face_flux(kind, e_h[i], e_u1[i], e_u2[i], e_c[i], e_s[i], e_kh[i], e_k3[i],
+                     e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
+                     face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0],
+                     face_frame[f, 0, 1, 1], face_frame[f, 1, 0, 0] if inner else 0.0,
+                     face_frame[f, 1, 0, 1] if inner else 0.0,
+                     face_frame[f, 1, 1, 0] if inner else 0.0,
+                     face_frame[f, 1, 1, 1] if inner else 0.0, face_length[f])
 
 
 def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h_sum, x_sum,
@@ -416,15 +397,6 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             area = cell_area[i]
             h_old = h[i]
             fi = flag[i]
-            hn = h_old + dt / area * h_new[i]
-            bad = hn < 0.0  # (as step_faces: a NaN goes on)
-            n_bad += 1 if bad else 0
-            flips += 1 if (h_old > h_zero) != (hn > h_zero) else 0
-            qx = hu_new[i]
-            qy = hv_new[i]
-            dry = fi == DRY  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
-            qx = dt * (qx / area + g * hn * gamma_x[i]) if dry else qx
-            qy = dt * (qy / area + g * hn * gamma_y[i]) if dry else qy
             speed_n = e_speed[i]
             u1 = e_u1[i]
             u2 = e_u2[i]
@@ -432,8 +404,13 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             gz = gamma_z[i]
             pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
                                                               p4, p5, p6, p7)
-            qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
-                                         pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_old, False)
+            hn, qx, qy, cl = cell_update(fi == DRY, fi, h_old, h_new[i], hu_new[i], hv_new[i],
+                                         area, dt, gamma_x[i], gamma_y[i], gz, centripetal,
+                                         speed_n, lw, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g,
+                                         h_zero, False)
+            bad = hn < 0.0  # (as step_faces: a NaN goes on)
+            n_bad += 1 if bad else 0
+            flips += 1 if (h_old > h_zero) != (hn > h_zero) else 0
             speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), cfl_factor[i], gz, g)
             h_new[i] = hn
             hu_new[i] = qx

@@ -36,11 +36,11 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.cpu import (DRY, carries, cell_moves, centripetal_accel, heun_average,
-                                 dirac_face, dt_from_inverse, emitted_state, emitting,
-                                 final_momentum, half_flux_in, half_flux_out, half_fluxes,
-                                 observe_cell, open_mass, side_fluxes, sound_speed,
-                                 speed_of, step_terms, trial_momentum)
+from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
+                                 centripetal_accel, dirac_face, dt_from_inverse, emitted_state,
+                                 emitting, face_flux, cell_update, half_fluxes, heun_average,
+                                 observe_cell, open_mass, side_fluxes, sound_speed, speed_of,
+                                 step_terms, trial_momentum)
 from avflow.numerics.vectorize import cell_law
 from avflow.terrain.mesh import OUTFLOW, WALL
 
@@ -116,7 +116,6 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
     dt_decide = when.dt_decide
     n = h.size
     dx = cell_area[0]
-    r = dt / dx
     left = face_cells[0, 1]
     right = face_cells[n, 1]
     p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
@@ -205,25 +204,25 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
         dirac_r = dirac_face(dirac, fk, flag[k + 1] if k < n - 1 else fk)
         fl = 0.0 if dirac_l else flux[k, 0]
         fr = 0.0 if dirac_r else flux[k + 1, 0]
-        hn = h[k] + r * (fl - fr)
+        # A dry cell takes momentum only with mass: a Dirac face (a resting neighbour)
+        # carries neither, not even its pressure (zero temperature, eq. 53).
+        form_dry = fk == DRY and (dirac_l or dirac_r)
+        q = hu_new[k]
+        if form_dry:
+            q = (0.0 if dirac_l else flux[k, 1]) - (0.0 if dirac_r else flux[k + 1, 1])
+        speed_n = hv_new[k]
+        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, k, p0, p1, p2, p3,
+                                                          p4, p5, p6, p7)
+        hn, qx, _, cl = cell_update(form_dry, fk, h[k], fl - fr, q, 0.0, dx, dt, gamma_x[k], 0.0,
+                                    gamma_z[k], curvature[k, 0] * (speed_n * speed_n), speed_n,
+                                    law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_zero,
+                                    order2)
         if hn < 0.0:
             return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
-        if fk == DRY and (dirac_l or dirac_r):
-            # A dry cell takes momentum only with mass: a Dirac face (a resting neighbour)
-            # carries neither, not even its pressure (zero temperature, eq. 53).
-            ql = 0.0 if dirac_l else flux[k, 1]
-            qr = 0.0 if dirac_r else flux[k + 1, 1]
-            hu_new[k] = dt * ((ql - qr) / dx + g * hn * gamma_x[k])
         if k == 0 and left == OUTFLOW:
             outflow += max(-fl, 0.0) * dt
         if k == n - 1 and right == OUTFLOW:
             outflow += max(fr, 0.0) * dt
-        speed_n = hv_new[k]
-        pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, k, p0, p1, p2, p3,
-                                                          p4, p5, p6, p7)
-        qx, _, cl = final_momentum(fk, speed_n, hn, h_zero, hu_new[k], 0.0, dt, gamma_z[k],
-                                    curvature[k, 0] * (speed_n * speed_n),
-                                    law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h[k], order2)
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0
@@ -269,59 +268,37 @@ def _face_fluxes(mesh, physics, cur, nxt, flux, when, lists, order2, face_state,
         f = active_faces[a]
         i = face_cells[f, 0]
         j = face_cells[f, 1]
-        ni_x, ni_y = face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1]
-        ti_x, ti_y = face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1]
-        length = face_length[f]
-        # both sides written out: a helper taking the arrays slowed the sweep (docs/performance.md)
-        if order2:  # the reconstructed state at the face
+        inner = j >= 0
+        k = j if inner else i  # beyond a boundary: values the flux does not read
+        if order2:  # the reconstructed states at the face
             hi = qi1 = qi2 = 0.0
             if h[i] > h_zero:
                 hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
             hi, ui1, ui2, ci, si, khi, k3i = emitted_state(hi, qi1, qi2, 0.0, g * gamma_z[i],
-                                                      density[i])
+                                                           density[i])
+            hj = qj1 = qj2 = 0.0
+            if inner and h[k] > h_zero:
+                hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
+            hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[k],
+                                                           density[k])
         else:
             hi, ui1, ui2, ci = emit[i, 0], emit[i, 1], emit[i, 2], emit[i, 3]
             si, khi, k3i = emit[i, 4], emit[i, 5], emit[i, 6]
-        uni = ui1 * ni_x + ui2 * ni_y
-        uti = ui1 * ti_x + ui2 * ti_y
-        fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
-        if j >= 0:
-            nj_x, nj_y = face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1]
-            tj_x, tj_y = face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1]
-            if order2:
-                hj = qj1 = qj2 = 0.0
-                if h[j] > h_zero:
-                    hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
-                hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[j],
-                                                          density[j])
-            else:
-                hj, uj1, uj2, cj = emit[j, 0], emit[j, 1], emit[j, 2], emit[j, 3]
-                sj, khj, k3j = emit[j, 4], emit[j, 5], emit[j, 6]
-            unj = uj1 * nj_x + uj2 * nj_y
-            utj = uj1 * tj_x + uj2 * tj_y
-            gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
-        elif j == WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
-            gm_h = -fp_h
-            gm_q = fp_q
-            utj = uti
-        else:  # open boundary: transmissive for what leaves, closed to what would enter
-            gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-            gm_h = open_mass(fp_h + gm_h) - fp_h
-            utj = uti
-        f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
-        f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
-        fh = (fp_h + gm_h) * length
-        qix = f_n * ni_x + f_t * ti_x
-        qiy = f_n * ni_y + f_t * ti_y
+            hj, uj1, uj2, cj = emit[k, 0], emit[k, 1], emit[k, 2], emit[k, 3]
+            sj, khj, k3j = emit[k, 4], emit[k, 5], emit[k, 6]
+        fh, qix, qiy, qjx, qjy = face_flux(
+            FACE_INNER if inner else (FACE_WALL if j == WALL else FACE_OPEN), hi, ui1, ui2, ci,
+            si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, face_frame[f, 0, 0, 0],
+            face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1],
+            face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1], face_frame[f, 1, 1, 0],
+            face_frame[f, 1, 1, 1], face_length[f])
         flux[f, 0] = fh
         flux[f, 1] = qix
         flux[f, 2] = qiy
         h_new[i] -= fh
         hu_new[i] -= qix
         hv_new[i] -= qiy
-        if j >= 0:
-            qjx = f_n * nj_x + f_t * tj_x
-            qjy = f_n * nj_y + f_t * tj_y
+        if inner:
             flux[f, 3] = qjx
             flux[f, 4] = qjy
             h_new[j] += fh
@@ -426,20 +403,16 @@ def _face_finals(mesh, physics, cur, nxt, transport, flag, when, lists, order2):
     for c in range(n_touched):
         i = touched[c]
         area = cell_area[i]
-        hn = h[i] + dt / area * h_new[i]
-        if hn < 0.0:
-            return False, 0.0, 0.0, 0.0, 0, 0.0
         speed_n = speed_of(h[i], hu[i], hv[i])
-        qx = hu_new[i]
-        qy = hv_new[i]
-        if flag[i] == DRY:  # q~ of eq. 47 with q^n = 0 and h* = h^{n+1}
-            qx = dt * (qx / area + g * hn * gamma_x[i])
-            qy = dt * (qy / area + g * hn * gamma_y[i])
         pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(law, params, i, p0, p1, p2, p3,
                                                           p4, p5, p6, p7)
-        qx, qy, cl = final_momentum(flag[i], speed_n, hn, h_zero, qx, qy, dt, gamma_z[i],
+        hn, qx, qy, cl = cell_update(flag[i] == DRY, flag[i], h[i], h_new[i], hu_new[i],
+                                     hv_new[i], area, dt, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
-                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h[i], order2)
+                                     speed_n, law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g,
+                                     h_zero, order2)
+        if hn < 0.0:
+            return False, 0.0, 0.0, 0.0, 0, 0.0
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

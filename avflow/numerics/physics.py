@@ -4,7 +4,9 @@ one thread or many) calls these, compiled for the CPU by :mod:`avflow.numerics.c
 target compiles the same functions the same way.
 
 - the threshold test of eq. 49 on the trial momentum of eq. 47 (:func:`trial_momentum`);
-- the projection of eq. 50 with the law's drag (:func:`project`, :func:`final_momentum`);
+- the projection of eq. 50 with the law's drag (:func:`project`, :func:`final_momentum`),
+  in a cell's update (:func:`cell_update`);
+- the flux through a face, with the ghost of a wall or an open side (:func:`face_flux`);
 - the Dirac face of eqs. 51-53 (:func:`dirac_face`), the open side (:func:`open_mass`);
 - the curvature term of eqs. 61-62 (:func:`centripetal_accel`, :func:`normal_accel`);
 - what a cell emits and how fast it moves (:func:`emitted_state`, :func:`observe_cell`,
@@ -18,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from avflow.numerics.kinetic import SQRT3, half_fluxes, sound_speed
+from avflow.numerics.kinetic import SQRT3, half_flux_in, half_flux_out, half_fluxes, sound_speed
 from avflow.numerics.rheology import friction
 
 # Per-cell flag of sweep 1 (kept for output): which density the cell takes in sweep 2.
@@ -128,6 +130,25 @@ def final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, la
     return qx, qy, clamped
 
 
+def cell_update(form_dry, flag, h_old, mass, qx, qy, area, dt, gx, gy, gz, centripetal, speed_n,
+                law, p0, p1, p2, p3, p4, p5, p6, p7, g, h_zero, explicit):
+    """The second half of a cell's step (sweep 2 of the seed's scheme): its new thickness and
+    momentum. ``mass``: the sum of the mass fluxes through its faces that are not Dirac
+    (eqs. 51-53, inward positive, each ``L F_h``), so ``h^{n+1} = h^n + dt / A mass``;
+    ``qx, qy``: the trial discharge of :func:`trial_momentum` (eq. 47), or with
+    ``form_dry`` (a cell dry at time n, which had no trial) its momentum sum, from which
+    q~ of eq. 47 is formed here with ``q^n = 0`` and ``h* = h^{n+1}``. Then q = 0 under the
+    threshold (eq. 56) or the projection of eq. 50 (:func:`final_momentum`).
+    Returns ``(h^{n+1}, qx, qy, clamped)``; the traversal decides what a negative
+    thickness does (the step is redone)."""
+    hn = h_old + dt / area * mass
+    qx = dt * (qx / area + g * hn * gx) if form_dry else qx
+    qy = dt * (qy / area + g * hn * gy) if form_dry else qy
+    qx, qy, clamped = final_momentum(flag, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal,
+                                     law, p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, explicit)
+    return hn, qx, qy, clamped
+
+
 def heun_average(h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero):
     """Order 2: Heun's average ``U^{n+1} = (U^n + U**) / 2`` of a cell's state at the step's
     start and after its second stage. A cell that the first stage (a step of the seed's
@@ -224,6 +245,45 @@ def open_mass(f_out):
     net is cut at 0 (then the face holds the material like a wall, pressure included).
     """
     return f_out if f_out > 0.0 else 0.0
+
+
+#: What lies beyond a face of cell i (:func:`face_flux`): another cell j, a wall, an open side
+FACE_INNER, FACE_WALL, FACE_OPEN = 0, 1, 2
+
+
+def face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, nix, niy,
+              tix, tiy, njx, njy, tjx, tjy, length):
+    """The rectangular flux through a face of ``length`` between cell i and what lies beyond
+    it (``kind``): ``(L F_h, momentum to i (x, y), momentum to j (x, y))``, ``F_h`` along the
+    normal out of i. Each side is given by what it emits (:func:`emitted_state`: h, u, c,
+    sqrt(3) c, k / 2, k / 3) and its face frame (normal ``n`` and tangent ``t`` in its own
+    basis, so a curved mesh turns the flux into each cell's basis). The normal part is the
+    kinetic flux ``F+(U_i) + F-(U_j)`` (eq. 38), the tangential velocity is carried upwind with
+    the mass. Beyond a wall the mirror ghost ``(h, -u_n, u_t)``: no mass, twice the pressure;
+    beyond an open side the cell's own state leaving (``max(u_n, 0)``), closed to what would
+    enter (:func:`open_mass`). The j side's values are not read there (pass zeros).
+
+    Every traversal calls this one function; with ``kind`` a constant its branch folds away
+    and a line of faces vectorises (the half fluxes are branch-free)."""
+    uni = ui1 * nix + ui2 * niy
+    uti = ui1 * tix + ui2 * tiy
+    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
+    if kind == FACE_INNER:
+        unj = uj1 * njx + uj2 * njy
+        utj = uj1 * tjx + uj2 * tjy
+        gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
+    elif kind == FACE_WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
+        gm_h = -fp_h
+        gm_q = fp_q
+        utj = uti
+    else:  # open: transmissive for what leaves, closed to what would enter
+        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
+        gm_h = open_mass(fp_h + gm_h) - fp_h
+        utj = uti
+    f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame
+    f_t = (uti * fp_h + utj * gm_h) * length  # tangential momentum, carried upwind
+    return ((fp_h + gm_h) * length, f_n * nix + f_t * tix, f_n * niy + f_t * tiy,
+            f_n * njx + f_t * tjx, f_n * njy + f_t * tjy)
 
 
 def dirac_face(dirac, flag_i, flag_j):

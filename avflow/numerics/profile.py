@@ -26,12 +26,12 @@ from collections import namedtuple
 
 from numba import njit
 
-from avflow.numerics.cpu import (DRY, carries, cell_moves, dirac_face,
-                                 dt_from_inverse, final_momentum, observe_cell, open_mass,
+from avflow.numerics.cpu import (DRY, carries, cell_moves, cell_update, dirac_face,
+                                 dt_from_inverse, observe_cell, open_mass,
                                  step_terms, trial_momentum)
-from avflow.numerics.cpu import SQRT3, half_fluxes, sound_speed
-from avflow.numerics.vectorize import (cell_law, friction_law, in_select, law_copies, law_kind,
-                                       law_label, line_sum, noalias, out_select, specialize)
+from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out, half_fluxes, sound_speed
+from avflow.numerics.vectorize import (cell_law, friction_law, law_copies, law_kind, law_label,
+                                       line_sum, noalias, specialize)
 from avflow.terrain.mesh import OUTFLOW, WALL
 
 #: Lines of :func:`step`'s work array, ``(N_WORK, n + 2)``: per cell the half fluxes up
@@ -58,8 +58,8 @@ def _emit(n, h, hu, gamma_z, density, h_zero, g, up_h, up_q, down_h, down_q, spe
         u = hu[k] / hs if wet else 0.0
         kk = c * density[k]
         s = SQRT3 * c
-        fp_h, fp_q = out_select(he, u, c, s, 0.5 * kk, kk / 3.0)
-        fm_h, fm_q = in_select(he, u, c, s, 0.5 * kk, kk / 3.0)
+        fp_h, fp_q = half_flux_out(he, u, c, s, 0.5 * kk, kk / 3.0)
+        fm_h, fm_q = half_flux_in(he, u, c, s, 0.5 * kk, kk / 3.0)
         up_h[k] = fp_h
         up_q[k] = fp_q
         down_h[k] = fm_h
@@ -136,7 +136,6 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
     lw = friction_law(law)
     p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
     p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
-    r = dt / dx
     n_bad = 0
     clamped = 0
     for k in range(n):
@@ -154,19 +153,17 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
         dirac_r = dirac_face(dirac, fk, f_r)
         fl = 0.0 if dirac_l else fl
         fr = 0.0 if dirac_r else fr
-        hn = h_old + r * (fl - fr)
-        n_bad += 1 if hn < 0.0 else 0
         # a dry cell takes momentum only with mass: a Dirac face carries neither, not even
-        # its pressure (zero temperature, eq. 53)
+        # its pressure (zero temperature, eq. 53); beside one, its q~ is formed anew
         ql = 0.0 if dirac_l else ql
         qr = 0.0 if dirac_r else qr
-        dry_q = dt * ((ql - qr) / dx + g * hn * gx)
-        q = dry_q if (fk == DRY) & (dirac_l | dirac_r) else q
+        form_dry = (fk == DRY) & (dirac_l | dirac_r)
         pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, k, p0, p1, p2, p3,
                                                           p4, p5, p6, p7)
-        qx, _, cl = final_momentum(fk, speed_n, hn, h_zero, q, 0.0, dt, gz,
-                                    kap * (speed_n * speed_n), lw, pc0, pc1, pc2, pc3,
-                                    pc4, pc5, pc6, pc7, g, h_old, False)
+        hn, qx, _, cl = cell_update(form_dry, fk, h_old, fl - fr, (ql - qr) if form_dry else q,
+                                    0.0, dx, dt, gx, 0.0, gz, kap * (speed_n * speed_n), speed_n,
+                                    lw, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_zero, False)
+        n_bad += 1 if hn < 0.0 else 0
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0

@@ -54,19 +54,19 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, carries, cell_moves, dirac_face,
-                                 dt_from_inverse, final_momentum, heun_average,
-                                 observe_cell, open_mass, speed_of, step_terms,
+from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
+                                 dirac_face, dt_from_inverse, face_flux, cell_update,
+                                 heun_average, observe_cell, speed_of, step_terms,
                                  trial_momentum)
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_span
 from avflow.numerics.sources import SPAN, add_span  # noqa: F401 (each copy's own)
 from avflow.numerics.stepping import ST_SOURCE, Conserved, record_end
-from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out
+from avflow.numerics.cpu import SQRT3
 from avflow.numerics.rheology import COULOMB, VOELLMY
-from avflow.numerics.vectorize import (ANY_LAW, by_law, cell_law, friction_law, in_select,
-                                       law_kind, law_label, line_max, line_sum, noalias,
-                                       out_select, shared_names, specialize)
+from avflow.numerics.vectorize import (ANY_LAW, by_law, cell_law, friction_law, law_kind,
+                                       law_label, line_max, line_sum, noalias, shared_names,
+                                       specialize)
 from avflow.terrain.squaregrid import (HIGH_OPEN, HIGH_WALL, INNER, KIND,
                                        LOW_OPEN, LOW_WALL, NO_FACE, SIGN0, SIGN1)
 
@@ -140,64 +140,27 @@ def emitted_cell(hc, q1, q2, g_normal, dens, h_wet):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _face_flux(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, n0x, n0y,
-               n1x, n1y, length):
-    """One face, the arithmetic of :func:`~avflow.numerics.kernels.step_faces` sweep 1a:
-    ``(fh, qix, qiy, qjx, qjy)`` with i the face's first cell (frame side 0) and j the second
-    (frame side 1) or the wall / open side beyond a boundary face. Each side's frame is a
-    rotation, the tangent ``t = s (-n_y, n_x)`` with its sign s in the code's bits."""
-    s0 = -1.0 if code & SIGN0 else 1.0
-    s1 = -1.0 if code & SIGN1 else 1.0
-    t0x = s0 * -n0y
-    t0y = s0 * n0x
-    t1x = s1 * -n1y
-    t1y = s1 * n1x
+def _kind_of(code):
+    """What lies beyond a face of a given code (physics.face_flux's ``kind``)."""
     kind = code & KIND
-    uni = ui1 * n0x + ui2 * n0y
-    uti = ui1 * t0x + ui2 * t0y
-    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
     if kind == INNER:
-        unj = uj1 * n1x + uj2 * n1y
-        utj = uj1 * t1x + uj2 * t1y
-        gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
-    elif kind == LOW_WALL or kind == HIGH_WALL:  # mirror ghost: no mass, twice the pressure
-        gm_h = -fp_h
-        gm_q = fp_q
-        utj = uti
-    else:  # open: transmissive for what leaves, closed to what would enter
-        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
-        gm_h = open_mass(fp_h + gm_h) - fp_h
-        utj = uti
-    f_n = (fp_q + gm_q) * length
-    f_t = (uti * fp_h + utj * gm_h) * length
-    fh = (fp_h + gm_h) * length
-    return (fh, f_n * n0x + f_t * t0x, f_n * n0y + f_t * t0y,
-            f_n * n1x + f_t * t1x, f_n * n1y + f_t * t1y)
+        return FACE_INNER
+    if kind == LOW_WALL or kind == HIGH_WALL:
+        return FACE_WALL
+    return FACE_OPEN
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _inner_select(code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, n0x,
-                  n0y, n1x, n1y, length):
-    """:func:`_face_flux` of an INNER face, without branches (:func:`~avflow.numerics.vectorize.out_select`,
-    :func:`~avflow.numerics.vectorize.in_select`): the same operations, the same bits, and a line of them
-    vectorises."""
+def _coded_flux(kind, code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j,
+                n0x, n0y, n1x, n1y, length):
+    """:func:`~avflow.numerics.physics.face_flux` of a grid face: i the face's first cell
+    (frame side 0), j the second (frame side 1), or, beyond a boundary face, its owner.
+    Each side's frame is a rotation: the tangent ``t = s (-n_y, n_x)``, its sign s in the
+    code's bits."""
     s0 = -1.0 if code & SIGN0 else 1.0
     s1 = -1.0 if code & SIGN1 else 1.0
-    t0x = s0 * -n0y
-    t0y = s0 * n0x
-    t1x = s1 * -n1y
-    t1y = s1 * n1x
-    uni = ui1 * n0x + ui2 * n0y
-    uti = ui1 * t0x + ui2 * t0y
-    fp_h, fp_q = out_select(hi, uni, ci, si, khi, k3i)
-    unj = uj1 * n1x + uj2 * n1y
-    utj = uj1 * t1x + uj2 * t1y
-    gm_h, gm_q = in_select(hj, unj, cj, sj, khj, k3j)
-    f_n = (fp_q + gm_q) * length
-    f_t = (uti * fp_h + utj * gm_h) * length
-    fh = (fp_h + gm_h) * length
-    return (fh, f_n * n0x + f_t * t0x, f_n * n0y + f_t * t0y,
-            f_n * n1x + f_t * t1x, f_n * n1y + f_t * t1y)
+    return face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j,
+                     n0x, n0y, s0 * -n0y, s0 * n0x, n1x, n1y, s1 * -n1y, s1 * n1x, length)
 
 
 @noalias
@@ -208,10 +171,10 @@ def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
     emits through its east side, ``east``: what cell k emits through its west side, both
     the row's emitted values at order 1, the reconstructed sides at order 2).
 
-    Two passes: every face inside the map (``1 <= k < nx``) as an INNER face, in one
-    branch-free loop that LLVM vectorises (:func:`_inner_select`), then the few others
-    (walls, open sides, the map's two sides) again with
-    :func:`_face_flux`, which overwrites them (a NO_FACE keeps values nobody reads)."""
+    Two passes: every face inside the map (``1 <= k < nx``) as an inner face, in one
+    loop that LLVM vectorises (the face flux's kind a constant there: no branch is left),
+    then the few others (walls, open sides, the map's two sides) again with their kind,
+    which overwrites them (a NO_FACE keeps values nobody reads)."""
     nx = east.shape[1]
     w_h, w_u1, w_u2, w_c = west[E_H], west[E_U1], west[E_U2], west[E_C]
     w_s, w_kh, w_k3 = west[E_S], west[E_KH], west[E_K3]
@@ -223,8 +186,8 @@ def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
     b = min(k1, nx - 1)
     for j in range(b + 1 - a):
         k = a + j  # >= 1: the west cell k - 1 >= 0, no wraparound
-        f0, f1, f2, f3, f4 = _inner_select(
-            codes[k], w_h[k - 1], w_u1[k - 1], w_u2[k - 1], w_c[k - 1], w_s[k - 1],
+        f0, f1, f2, f3, f4 = _coded_flux(
+            FACE_INNER, codes[k], w_h[k - 1], w_u1[k - 1], w_u2[k - 1], w_c[k - 1], w_s[k - 1],
             w_kh[k - 1], w_k3[k - 1], e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k],
             e_k3[k], n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
@@ -238,13 +201,13 @@ def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
         if kind == INNER or kind == NO_FACE:
             continue
         if kind >= HIGH_WALL:  # the owner: the east cell for HIGH_*, else the west one
-            f0, f1, f2, f3, f4 = _face_flux(
-                code, e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
+            f0, f1, f2, f3, f4 = _coded_flux(
+                _kind_of(code), code, e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         else:
             m = k - 1
-            f0, f1, f2, f3, f4 = _face_flux(
-                code, w_h[m], w_u1[m], w_u2[m], w_c[m], w_s[m], w_kh[m], w_k3[m],
+            f0, f1, f2, f3, f4 = _coded_flux(
+                _kind_of(code), code, w_h[m], w_u1[m], w_u2[m], w_c[m], w_s[m], w_kh[m], w_k3[m],
                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
         o1[k] = f1
@@ -273,8 +236,8 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
     c0 = max(c0, 0)
     for j in range(c1 + 1 - c0):
         c = c0 + j
-        f0, f1, f2, f3, f4 = _inner_select(
-            codes[c], b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
+        f0, f1, f2, f3, f4 = _coded_flux(
+            FACE_INNER, codes[c], b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
             a_h[c], a_u1[c], a_u2[c], a_c[c], a_s[c], a_kh[c], a_k3[c],
             n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
         o0[c] = f0
@@ -288,12 +251,12 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
         if kind == INNER or kind == NO_FACE:
             continue
         if kind >= HIGH_WALL:  # the north cell owns it
-            f0, f1, f2, f3, f4 = _face_flux(
-                code, a_h[c], a_u1[c], a_u2[c], a_c[c], a_s[c], a_kh[c], a_k3[c],
+            f0, f1, f2, f3, f4 = _coded_flux(
+                _kind_of(code), code, a_h[c], a_u1[c], a_u2[c], a_c[c], a_s[c], a_kh[c], a_k3[c],
                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
         else:
-            f0, f1, f2, f3, f4 = _face_flux(
-                code, b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
+            f0, f1, f2, f3, f4 = _coded_flux(
+                _kind_of(code), code, b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
         o0[c] = f0
         o1[c] = f1
@@ -679,9 +642,6 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         d_n = dirac_face(dirac, fi, f_n if n_in else fi)
         acc = _in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
                              0.0 if d_s else sm, 0.0 if d_n else nm)
-        hn = h_old + dt / area * acc
-        good = inside & (hn >= 0.0)
-        n_bad += 1 if inside & (hn < 0.0) else 0
         # a dry side takes no momentum through a Dirac face: the face kernel takes back, in
         # face order, what those faces brought to the sum of the trial
         any_dirac = d_w | d_e | d_s | d_n
@@ -689,16 +649,16 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
                             -sx if d_s else 0.0, -nx_ if d_n else 0.0)
         by = _in_face_order(qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
                             -sy if d_s else 0.0, -ny_ if d_n else 0.0)
-        bx = bx if any_dirac else qx
-        by = by if any_dirac else qy
         dry = fi == DRY
-        qx = dt * (bx / area + g * hn * gx) if dry else qx
-        qy = dt * (by / area + g * hn * gy) if dry else qy
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
         pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
                                                           p4, p5, p6, p7)
-        qx, qy, cl = final_momentum(fi, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal, lw,
-                                     pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_old, ORDER2)
+        hn, qx, qy, cl = cell_update(dry, fi, h_old, acc, bx if dry & any_dirac else qx,
+                                     by if dry & any_dirac else qy, area, dt, gx, gy, gz,
+                                     centripetal, speed_n, lw, pc0, pc1, pc2, pc3, pc4, pc5,
+                                     pc6, pc7, g, h_zero, ORDER2)
+        good = inside & (hn >= 0.0)
+        n_bad += 1 if inside & (hn < 0.0) else 0
         # writes: the new value where the cell is updated, else what is there
         flag[i] = fi if inside else old_flag
         # (a cell outside the DEM keeps h = 0, q = 0; one that went below 0 writes what it

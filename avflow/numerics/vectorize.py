@@ -45,42 +45,6 @@ def noalias(dispatcher):
     return dispatcher
 
 
-@njit(error_model="numpy", cache=True, inline="always")
-def out_select(h, un, c, s, kh, k3):
-    """:func:`~avflow.numerics.kinetic.half_flux_out` without branches: every case computed,
-    the one that applies selected (the same operations on the value kept, so the same
-    bits), so that a line of faces vectorises."""
-    a = un - s
-    b = un + s
-    ap = a if a > 0.0 else 0.0
-    bp = b if b > 0.0 else 0.0
-    rect_h = kh * (bp * bp - ap * ap)
-    rect_q = k3 * (bp * bp * bp - ap * ap * ap)
-    leaving = un > 0.0  # Dirac density (c = 0): all of it or nothing
-    dirac_h = h * un if leaving else 0.0
-    dirac_q = h * un * un if leaving else 0.0
-    f_h = rect_h if c > 0.0 else dirac_h
-    f_q = rect_q if c > 0.0 else dirac_q
-    return (f_h if h > 0.0 else 0.0), (f_q if h > 0.0 else 0.0)
-
-
-@njit(error_model="numpy", cache=True, inline="always")
-def in_select(h, un, c, s, kh, k3):
-    """:func:`~avflow.numerics.kinetic.half_flux_in` without branches, as :func:`out_select`."""
-    a = un - s
-    b = un + s
-    am = a if a < 0.0 else 0.0
-    bm = b if b < 0.0 else 0.0
-    rect_h = kh * (bm * bm - am * am)
-    rect_q = k3 * (bm * bm * bm - am * am * am)
-    leaving = un > 0.0
-    dirac_h = 0.0 if leaving else h * un
-    dirac_q = 0.0 if leaving else h * un * un
-    f_h = rect_h if c > 0.0 else dirac_h
-    f_q = rect_q if c > 0.0 else dirac_q
-    return (f_h if h > 0.0 else 0.0), (f_q if h > 0.0 else 0.0)
-
-
 @njit(error_model="numpy", cache=True, fastmath={"reassoc"}, _nrt=False)
 def line_sum(a, c0, c1):
     """``a[c0] + ... + a[c1]``, reassociated so that LLVM vectorises it (a chain of adds,
