@@ -83,7 +83,7 @@ def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
             si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, face_frame[f, 0, 0, 0],
             face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1],
             face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1], face_frame[f, 1, 1, 0],
-            face_frame[f, 1, 1, 1], face_length[f])
+            face_frame[f, 1, 1, 1], face_length[f], False)
         flux[f, 0] = fh
         flux[f, 1] = qix
         flux[f, 2] = qiy
@@ -216,7 +216,7 @@ def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_s
                                      hv_new[i], area, dt, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
                                      speed_n, law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g,
-                                     h_zero, True)
+                                     h_zero, True, False)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy

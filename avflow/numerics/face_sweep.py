@@ -180,16 +180,16 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
     an open side when ``j < 0``), from what the cells emit (the lines of
     :func:`_emit_cells`) and the face's frames: ``(L F_h, momentum to i (x, y), momentum to
     j (x, y))``."""
-    inner = j >= 0
-    kind = FACE_INNER if inner else (FACE_WALL if j == WALL else FACE_OPEN)
-    k = j if inner else i  # beyond a boundary: values the flux does not read
-    return face_flux(kind, e_h[i], e_u1[i], e_u2[i], e_c[i], e_s[i], e_kh[i], e_k3[i],
-                     e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
+    if j >= 0:  # the kind a constant in each call: the inner faces' path has no branch on it
+        return face_flux(FACE_INNER, e_h[i], e_u1[i], e_u2[i], e_c[i], e_s[i], e_kh[i],
+                         e_k3[i], e_h[j], e_u1[j], e_u2[j], e_c[j], e_s[j], e_kh[j], e_k3[j],
+                         face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0],
+                         face_frame[f, 0, 1, 1], face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1],
+                         face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1], face_length[f], False)
+    return face_flux(FACE_WALL if j == WALL else FACE_OPEN, e_h[i], e_u1[i], e_u2[i], e_c[i],
+                     e_s[i], e_kh[i], e_k3[i], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                      face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0],
-                     face_frame[f, 0, 1, 1], face_frame[f, 1, 0, 0] if inner else 0.0,
-                     face_frame[f, 1, 0, 1] if inner else 0.0,
-                     face_frame[f, 1, 1, 0] if inner else 0.0,
-                     face_frame[f, 1, 1, 1] if inner else 0.0, face_length[f])
+                     face_frame[f, 0, 1, 1], 0.0, 0.0, 0.0, 0.0, face_length[f], False)
 
 
 def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h_sum, x_sum,
@@ -407,7 +407,7 @@ def _final_cells(runs, n_runs, cell_area, cfl_factor, e_u1, e_u2, e_speed, k11, 
             hn, qx, qy, cl = cell_update(fi == DRY, fi, h_old, h_new[i], hu_new[i], hv_new[i],
                                          area, dt, gamma_x[i], gamma_y[i], gz, centripetal,
                                          speed_n, lw, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g,
-                                         h_zero, False)
+                                         h_zero, False, False)
             bad = hn < 0.0  # (as step_faces: a NaN goes on)
             n_bad += 1 if bad else 0
             flips += 1 if (h_old > h_zero) != (hn > h_zero) else 0

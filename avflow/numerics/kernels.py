@@ -216,7 +216,7 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
         hn, qx, _, cl = cell_update(form_dry, fk, h[k], fl - fr, q, 0.0, dx, dt, gamma_x[k], 0.0,
                                     gamma_z[k], curvature[k, 0] * (speed_n * speed_n), speed_n,
                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_zero,
-                                    order2)
+                                    order2, True)
         if hn < 0.0:
             return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
         if k == 0 and left == OUTFLOW:
@@ -291,7 +291,7 @@ def _face_fluxes(mesh, physics, cur, nxt, flux, when, lists, order2, face_state,
             si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, face_frame[f, 0, 0, 0],
             face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1],
             face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1], face_frame[f, 1, 1, 0],
-            face_frame[f, 1, 1, 1], face_length[f])
+            face_frame[f, 1, 1, 1], face_length[f], False)
         flux[f, 0] = fh
         flux[f, 1] = qix
         flux[f, 2] = qiy
@@ -410,7 +410,7 @@ def _face_finals(mesh, physics, cur, nxt, transport, flag, when, lists, order2):
                                      hv_new[i], area, dt, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
                                      speed_n, law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g,
-                                     h_zero, order2)
+                                     h_zero, order2, False)
         if hn < 0.0:
             return False, 0.0, 0.0, 0.0, 0, 0.0
         h_new[i] = hn

@@ -131,7 +131,7 @@ def final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, la
 
 
 def cell_update(form_dry, flag, h_old, mass, qx, qy, area, dt, gx, gy, gz, centripetal, speed_n,
-                law, p0, p1, p2, p3, p4, p5, p6, p7, g, h_zero, explicit):
+                law, p0, p1, p2, p3, p4, p5, p6, p7, g, h_zero, explicit, line):
     """The second half of a cell's step (sweep 2 of the seed's scheme): its new thickness and
     momentum. ``mass``: the sum of the mass fluxes through its faces that are not Dirac
     (eqs. 51-53, inward positive, each ``L F_h``), so ``h^{n+1} = h^n + dt / A mass``;
@@ -139,11 +139,14 @@ def cell_update(form_dry, flag, h_old, mass, qx, qy, area, dt, gx, gy, gz, centr
     ``form_dry`` (a cell dry at time n, which had no trial) its momentum sum, from which
     q~ of eq. 47 is formed here with ``q^n = 0`` and ``h* = h^{n+1}``. Then q = 0 under the
     threshold (eq. 56) or the projection of eq. 50 (:func:`final_momentum`).
+    ``line`` (a constant where it is called): a profile, whose q_y is 0, a constant the
+    projection's test then folds away (with q_y formed at run time, a vectorised profile
+    paid a square root and a division per cell).
     Returns ``(h^{n+1}, qx, qy, clamped)``; the traversal decides what a negative
     thickness does (the step is redone)."""
     hn = h_old + dt / area * mass
     qx = dt * (qx / area + g * hn * gx) if form_dry else qx
-    qy = dt * (qy / area + g * hn * gy) if form_dry else qy
+    qy = 0.0 if line else (dt * (qy / area + g * hn * gy) if form_dry else qy)
     qx, qy, clamped = final_momentum(flag, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal,
                                      law, p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, explicit)
     return hn, qx, qy, clamped
@@ -252,7 +255,7 @@ FACE_INNER, FACE_WALL, FACE_OPEN = 0, 1, 2
 
 
 def face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, nix, niy,
-              tix, tiy, njx, njy, tjx, tjy, length):
+              tix, tiy, njx, njy, tjx, tjy, length, vector):
     """The rectangular flux through a face of ``length`` between cell i and what lies beyond
     it (``kind``): ``(L F_h, momentum to i (x, y), momentum to j (x, y))``, ``F_h`` along the
     normal out of i. Each side is given by what it emits (:func:`emitted_state`: h, u, c,
@@ -263,21 +266,22 @@ def face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k
     beyond an open side the cell's own state leaving (``max(u_n, 0)``), closed to what would
     enter (:func:`open_mass`). The j side's values are not read there (pass zeros).
 
-    Every traversal calls this one function; with ``kind`` a constant its branch folds away
-    and a line of faces vectorises (the half fluxes are branch-free)."""
+    Every traversal calls this one function. ``vector``: the half fluxes' branch-free form
+    (:func:`~avflow.numerics.kinetic.half_flux_out`); with it and ``kind`` constants, the
+    branch on the kind folds away and a line of faces vectorises."""
     uni = ui1 * nix + ui2 * niy
     uti = ui1 * tix + ui2 * tiy
-    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
+    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i, vector)
     if kind == FACE_INNER:
         unj = uj1 * njx + uj2 * njy
         utj = uj1 * tjx + uj2 * tjy
-        gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
+        gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j, vector)
     elif kind == FACE_WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
         gm_h = -fp_h
         gm_q = fp_q
         utj = uti
     else:  # open: transmissive for what leaves, closed to what would enter
-        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
+        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i, vector)
         gm_h = open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame

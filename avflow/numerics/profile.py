@@ -58,8 +58,8 @@ def _emit(n, h, hu, gamma_z, density, h_zero, g, up_h, up_q, down_h, down_q, spe
         u = hu[k] / hs if wet else 0.0
         kk = c * density[k]
         s = SQRT3 * c
-        fp_h, fp_q = half_flux_out(he, u, c, s, 0.5 * kk, kk / 3.0)
-        fm_h, fm_q = half_flux_in(he, u, c, s, 0.5 * kk, kk / 3.0)
+        fp_h, fp_q = half_flux_out(he, u, c, s, 0.5 * kk, kk / 3.0, True)
+        fm_h, fm_q = half_flux_in(he, u, c, s, 0.5 * kk, kk / 3.0, True)
         up_h[k] = fp_h
         up_q[k] = fp_q
         down_h[k] = fm_h
@@ -162,7 +162,8 @@ def _final(n, h, gamma_x, gamma_z, kappa, cfl_factor, speed, flux_h, flux_q, q_t
                                                           p4, p5, p6, p7)
         hn, qx, _, cl = cell_update(form_dry, fk, h_old, fl - fr, (ql - qr) if form_dry else q,
                                     0.0, dx, dt, gx, 0.0, gz, kap * (speed_n * speed_n), speed_n,
-                                    lw, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_zero, False)
+                                    lw, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_zero, False,
+                                    True)
         n_bad += 1 if hn < 0.0 else 0
         h_new[k] = hn
         hu_new[k] = qx

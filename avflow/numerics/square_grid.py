@@ -152,15 +152,16 @@ def _kind_of(code):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _coded_flux(kind, code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j,
-                n0x, n0y, n1x, n1y, length):
+                n0x, n0y, n1x, n1y, length, vector):
     """:func:`~avflow.numerics.physics.face_flux` of a grid face: i the face's first cell
     (frame side 0), j the second (frame side 1), or, beyond a boundary face, its owner.
     Each side's frame is a rotation: the tangent ``t = s (-n_y, n_x)``, its sign s in the
-    code's bits."""
+    code's bits. ``vector``: the half fluxes' branch-free form (a line of inner faces)."""
     s0 = -1.0 if code & SIGN0 else 1.0
     s1 = -1.0 if code & SIGN1 else 1.0
     return face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j,
-                     n0x, n0y, s0 * -n0y, s0 * n0x, n1x, n1y, s1 * -n1y, s1 * n1x, length)
+                     n0x, n0y, s0 * -n0y, s0 * n0x, n1x, n1y, s1 * -n1y, s1 * n1x, length,
+                     vector)
 
 
 @noalias
@@ -189,7 +190,7 @@ def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
         f0, f1, f2, f3, f4 = _coded_flux(
             FACE_INNER, codes[k], w_h[k - 1], w_u1[k - 1], w_u2[k - 1], w_c[k - 1], w_s[k - 1],
             w_kh[k - 1], w_k3[k - 1], e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k],
-            e_k3[k], n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
+            e_k3[k], n0x[k], n0y[k], n1x[k], n1y[k], lengths[k], True)
         o0[k] = f0
         o1[k] = f1
         o2[k] = f2
@@ -203,12 +204,14 @@ def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
         if kind >= HIGH_WALL:  # the owner: the east cell for HIGH_*, else the west one
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k],
+                False)
         else:
             m = k - 1
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, w_h[m], w_u1[m], w_u2[m], w_c[m], w_s[m], w_kh[m], w_k3[m],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k],
+                False)
         o0[k] = f0
         o1[k] = f1
         o2[k] = f2
@@ -239,7 +242,7 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
         f0, f1, f2, f3, f4 = _coded_flux(
             FACE_INNER, codes[c], b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
             a_h[c], a_u1[c], a_u2[c], a_c[c], a_s[c], a_kh[c], a_k3[c],
-            n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
+            n0x[c], n0y[c], n1x[c], n1y[c], lengths[c], True)
         o0[c] = f0
         o1[c] = f1
         o2[c] = f2
@@ -253,11 +256,13 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
         if kind >= HIGH_WALL:  # the north cell owns it
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, a_h[c], a_u1[c], a_u2[c], a_c[c], a_s[c], a_kh[c], a_k3[c],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c],
+                False)
         else:
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c],
+                False)
         o0[c] = f0
         o1[c] = f1
         o2[c] = f2
@@ -656,7 +661,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         hn, qx, qy, cl = cell_update(dry, fi, h_old, acc, bx if dry & any_dirac else qx,
                                      by if dry & any_dirac else qy, area, dt, gx, gy, gz,
                                      centripetal, speed_n, lw, pc0, pc1, pc2, pc3, pc4, pc5,
-                                     pc6, pc7, g, h_zero, ORDER2)
+                                     pc6, pc7, g, h_zero, ORDER2, False)
         good = inside & (hn >= 0.0)
         n_bad += 1 if inside & (hn < 0.0) else 0
         # writes: the new value where the cell is updated, else what is there
