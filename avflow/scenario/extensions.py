@@ -251,7 +251,7 @@ def load_file(path: str | os.PathLike) -> str:
     except FileNotFoundError:
         raise ExtensionFileError(f"{shown}: no such file") from None
     except (OSError, RuntimeError) as err:  # a loop of links, a folder that cannot be read
-        raise ExtensionFileError(f"{shown}: {err.strerror or err}") from None
+        raise ExtensionFileError(f"{shown}: {getattr(err, 'strerror', None) or err}") from None
     key = str(full)
     if key in LOADED_FILES:
         return key
