@@ -10,12 +10,17 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from pathlib import Path
 
 from avflow import __version__
 from avflow.errors import AvflowError
+
+#: Extension files (paths separated by os.pathsep) that every command reading a scenario
+#: loads, before those of --extensions
+ENV_EXTENSIONS = "AVFLOW_EXTENSIONS"
 
 
 class Progress:
@@ -142,6 +147,32 @@ def _compile_note(ds) -> str:
         return ""
     seconds = float(ds["compile_time"])
     return f" (+ {seconds:.2f} s compiling)" if seconds >= 0.05 else ""
+
+
+def _load_extensions(given: list[str]) -> None:
+    """The extension files of $AVFLOW_EXTENSIONS, then those of ``--extensions``, each run
+    once (:func:`avflow.scenario.extensions.load_file`): what they register is then known to
+    the scenario, and the files travel with the members to the workers."""
+    from avflow.scenario.extensions import ExtensionFileError, load_file
+
+    listed = [(f"${ENV_EXTENSIONS}", path) for path in
+              os.environ.get(ENV_EXTENSIONS, "").split(os.pathsep) if path]
+    for origin, path in listed + [("--extensions", path) for path in given]:
+        try:
+            load_file(path)
+        except ExtensionFileError as err:
+            raise ExtensionFileError(f"{origin}: {err}") from None
+
+
+def _extension_hint(err: AvflowError) -> str:
+    """After a scenario's unknown law or source, where a law of one's own comes from (on
+    the commands that take --extensions)."""
+    import re
+
+    if re.search(r"\b(rheology|sources\.\d+)(\.law: unknown law|: no source is registered)",
+                 str(err)):
+        return " (a law or source of your own: load its file with --extensions FILE.py)"
+    return ""
 
 
 def _load_with_sets(args):
@@ -319,8 +350,14 @@ def build_parser() -> argparse.ArgumentParser:
                       help="change one scenario field by its dotted path, the value in YAML "
                       "(e.g. --set grid.dx=5 --set rheology.delta_deg=18); repeatable; data "
                       "paths still start at the scenario file's folder")
+    extensions = argparse.ArgumentParser(add_help=False)
+    extensions.add_argument("--extensions", action="append", metavar="FILE.py", default=[],
+                            help="a Python file of your own friction laws, sources or output "
+                            "maps (avflow.extend), loaded before the scenario is read, and "
+                            "by the workers that run it; repeatable; also "
+                            f"${ENV_EXTENSIONS} (paths separated by {os.pathsep!r})")
     r = sub.add_parser("run", help="run one scenario and write a CF NetCDF file",
-                       parents=[quiet, sets])
+                       parents=[quiet, sets, extensions])
     r.add_argument("scenario", help="scenario YAML file")
     r.add_argument("-o", "--output", help="output NetCDF (default: the scenario file's name "
                    "with .nc, in the current folder)")
@@ -339,7 +376,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "avflow compare sets beside the one with them)")
     r.set_defaults(func=_cmd_run)
     e = sub.add_parser("ensemble", help="run an ensemble file (here or on dask); exit 1 if "
-                                        "a member failed", parents=[quiet, sets])
+                                        "a member failed",
+                       parents=[quiet, sets, extensions])
     e.add_argument("ensemble", help="ensemble YAML file (base scenario + vary/sample)")
     e.add_argument("-o", "--output", required=True, help="output folder (resumable)")
     e.add_argument("--scheduler", help="address (tcp://host:port) or scheduler file of a "
@@ -453,10 +491,10 @@ def build_parser() -> argparse.ArgumentParser:
     cm.add_argument("run_b", help="NetCDF written by avflow run (B, e.g. with the dam)")
     cm.add_argument("-o", "--output", help="output stem (default: B_vs_A next to B)")
     cm.set_defaults(func=_cmd_compare)
-    _add_region_parser(sub, quiet)
+    _add_region_parser(sub, [quiet, extensions])
     ca = sub.add_parser("calibrate", help="calibrate parameters to an observed event "
                                           "(grid, lhs, bayes-opt, posterior); resumable",
-                        parents=[quiet])
+                        parents=[quiet, extensions])
     ca.add_argument("calibration", help="calibration YAML file (base scenario, parameter "
                                         "ranges, observations, method, budget)")
     ca.add_argument("-o", "--output", required=True, help="output folder (members/, "
@@ -469,10 +507,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _add_region_parser(sub, quiet) -> None:
+def _add_region_parser(sub, parents) -> None:
     g = sub.add_parser("region", help="run every release area of a region file, each in its "
                        "own window of the DEM, and merge them into Zarr maps; exit 1 if a "
-                       "release failed", parents=[quiet])
+                       "release failed", parents=parents)
     g.add_argument("region", help="region YAML file (DEM, release polygons, scenario block)")
     g.add_argument("-o", "--output", required=True, help="output folder (region.zarr, "
                    "releases.csv, releases/; resumable)")
@@ -746,10 +784,14 @@ def main(argv=None) -> int:
     TERMINATED.clear()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
+    reads_scenarios = hasattr(args, "extensions")
     try:
+        if reads_scenarios:
+            _load_extensions(args.extensions)  # before the scenario is read
         return args.func(args)
     except AvflowError as err:  # bad input: 2; a run that failed numerically: 1
-        print(f"avflow: error: {err}", file=sys.stderr)
+        hint = _extension_hint(err) if reads_scenarios else ""
+        print(f"avflow: error: {err}{hint}", file=sys.stderr)
         return err.exit_code
     except MemoryError:  # past the estimate (--max-memory none, or a bigger need than it)
         advice = OUT_OF_MEMORY.get(args.command, OUT_OF_MEMORY["run"])

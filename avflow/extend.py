@@ -4,7 +4,9 @@ Each is a plain Python function of scalars, registered by name before the first 
 it, in the same process. avflow compiles it into the kernels a run needs (the profile, the
 square grid, the face lists and the GPU's), once per machine: the compiled kernels are kept in
 the per-user kernel cache under a digest of the function's code, so a changed function is
-compiled afresh.
+compiled afresh. From the command line, ``--extensions FILE.py`` (or ``$AVFLOW_EXTENSIONS``)
+runs a file of such registrations before the scenario is read, and the dask workers of an
+ensemble, a region or a calibration run it before their members.
 
 A friction law::
 

@@ -240,8 +240,21 @@ def run_member(scenario_yaml: str, out_path: str, one_thread: bool = False,
 
 
 def run_batch(items: list[tuple[int, str, str]], one_thread: bool = False,
-              digest: bool | None = None) -> list[tuple[int, dict]]:
-    """Several members in one task (``(index, yaml, out_path)`` each): fewer, longer tasks."""
+              digest: bool | None = None, extensions: tuple[str, ...] = ()
+              ) -> list[tuple[int, dict]]:
+    """Several members in one task (``(index, yaml, out_path)`` each): fewer, longer tasks.
+    ``extensions``: the extension files the members' scenarios need (absolute paths, those
+    the submitting process loaded), loaded here first, once per worker process; a file that
+    cannot be loaded fails the members with its error."""
+    from avflow.scenario.extensions import ExtensionFileError, load_files
+
+    try:
+        load_files(extensions, worker=True)
+    except ExtensionFileError as err:
+        row = {name: math.nan for name in SUMMARY_FIELDS}
+        row.update(status="failed", steps=0, error=f"ExtensionFileError: {err}",
+                   reused=False, member_time=0.0)
+        return [(index, dict(row)) for index, _, _ in items]
     return [(index, run_member(text, out, one_thread, digest)) for index, text, out in items]
 
 
@@ -1152,19 +1165,23 @@ def _run_on_dask(client, todo: list[Member], outdir: Path, batch: int,
     does a bit of work meanwhile (False: nothing left to do). Every member runs its
     :func:`cluster_scenario` (one thread unless it says otherwise); ``digest``: see
     :func:`run_member` (the worker reads back what the end needs of each member file).
+    Each task carries the extension files this process loaded, for the worker to load.
     """
     from distributed import as_completed
+
+    from avflow.scenario.extensions import loaded_files
 
     timings = {} if timings is None else timings
     clock = time.perf_counter()
     by_index = {m.index: m for m in todo}
     futures = {}
+    extensions = loaded_files()  # the workers register what this process did from files
     for start in range(0, len(todo), batch):
         chunk = todo[start:start + batch]
         items = [(m.index, m.scenario.source_text, str(member_path(outdir, m))) for m in chunk]
         key = "avflow-member-" + "-".join(m.scenario_hash for m in chunk[:1]) + f"-{len(chunk)}"
-        future = client.submit(run_batch, items, True, digest, key=key, pure=False,
-                               retries=1)
+        future = client.submit(run_batch, items, True, digest, extensions, key=key,
+                                pure=False, retries=1)
         futures[future] = chunk
         check()
     pending = as_completed(list(futures), loop=client.loop, raise_errors=False)

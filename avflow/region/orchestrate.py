@@ -335,6 +335,8 @@ def _run(todo, workers, scheduler, client, merge, timings, progress) -> tuple[st
         return "here", 0
     from distributed import as_completed
 
+    from avflow.scenario.extensions import loaded_files
+
     clock = time.perf_counter()
     tiny = _tiny_scenarios(todo[0])
     with _deferred_sigint() as sigint, _client(
@@ -343,7 +345,10 @@ def _run(todo, workers, scheduler, client, merge, timings, progress) -> tuple[st
         n_workers = len(cl.client.scheduler_info(n_workers=-1)["workers"])
         timings["startup"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        futures = {cl.client.submit(run_release, {**task, "one_thread": True},
+        # the workers register what this process did from files, before the release runs
+        extensions = loaded_files()
+        futures = {cl.client.submit(run_release, {**task, "one_thread": True,
+                                                  "extensions": extensions},
                                     key=f"avflow-region-release-{task['id']}-"
                                         f"{task['scenario']}-{task['key']}",
                                     priority=len(todo) - k, pure=False, retries=1): task

@@ -126,7 +126,8 @@ def run_release(task: dict) -> dict:
     ``task``: id, wkb, thickness (m, or a :class:`~avflow.region.spec.ThicknessRule`),
     area, key, region (the :class:`Region`), dem (:class:`DemInfo`), outdir, one_thread;
     scenario (index), file_scenario (its index in file names, None without scenarios),
-    updates, return_period. Idempotent: a trusted result file is returned as it is (a task
+    updates, return_period; extensions (the extension files to load first, once per
+    process; absent: none). Idempotent: a trusted result file is returned as it is (a task
     run twice after a lost worker)."""
     started = time.perf_counter()
     rid, outdir = task["id"], Path(task["outdir"])
@@ -142,6 +143,10 @@ def run_release(task: dict) -> dict:
                return_period=task.get("return_period") or math.nan)
     maps = None
     try:
+        if task.get("extensions"):
+            from avflow.scenario.extensions import load_files
+
+            load_files(task["extensions"], worker=True)
         if isinstance(task["thickness"], (int, float)) or task["thickness"] is None:
             row["thickness"] = task["thickness"] if task["thickness"] else (
                 task["patch"].mean if task.get("patch") is not None else math.nan)

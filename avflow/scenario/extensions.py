@@ -10,15 +10,23 @@ registered map with its CF attributes.
 
 Registration must come before the first run that uses it, in the same process; a name is
 registered once (a second registration of the same name is refused, so two plug-ins cannot
-silently replace each other).
+silently replace each other). The command line registers from files (:func:`load_file`:
+``--extensions``, ``$AVFLOW_EXTENSIONS``), and the workers of an ensemble, a region or a
+calibration load the same files before their members (:func:`loaded_files` travels with
+the tasks).
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
+import sys
 import types
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
+
+from avflow.errors import AvflowError
 
 #: Codes of registered friction laws: after the built-in ones, below the flag the kernels add
 #: for parameters per cell (numerics.rheology.PER_CELL = 16)
@@ -32,6 +40,11 @@ MAX_SOURCE_PARAMETERS = 4
 
 class ExtensionError(ValueError):
     """A registration that cannot be accepted (one line: what and why)."""
+
+
+class ExtensionFileError(AvflowError):
+    """An extension file that cannot be loaded (one line: the file, its line where known,
+    and why; the command line exits with code 2)."""
 
 
 @dataclass(frozen=True)
@@ -215,6 +228,92 @@ def digest(functions) -> str:
     return h.hexdigest()[:12]
 
 
-__all__ = ["ExtensionError", "FrictionLaw", "OutputMap", "Source", "FRICTION_LAWS", "MAPS",
-           "SOURCES", "register_friction_law", "register_map", "register_source",
-           "law_by_code", "digest"]
+# --- extension files -------------------------------------------------------------------------
+
+#: The extension files loaded in this process, by absolute path (their modules)
+LOADED_FILES: dict[str, types.ModuleType] = {}
+#: Files that failed to load here, with their error: a second try would find what the file
+#: registered before it failed taken already, and say so instead of the real cause
+_FAILED: dict[str, ExtensionFileError] = {}
+
+
+def load_file(path: str | os.PathLike) -> str:
+    """Run the extension file ``path`` as a module, so that its ``@extend...`` decorators
+    register what it defines; once per process (a file loaded already is not run again).
+    Returns its absolute path. Raises :class:`ExtensionFileError`: no such file, a syntax
+    error, an exception while it runs, a registration refused (each with the file's line)."""
+    import importlib.machinery
+    import importlib.util
+
+    shown = os.fspath(path)
+    try:
+        full = Path(path).expanduser().resolve(strict=True)
+    except FileNotFoundError:
+        raise ExtensionFileError(f"{shown}: no such file") from None
+    except (OSError, RuntimeError) as err:  # a loop of links, a folder that cannot be read
+        raise ExtensionFileError(f"{shown}: {getattr(err, 'strerror', None) or err}") from None
+    key = str(full)
+    if key in LOADED_FILES:
+        return key
+    if key in _FAILED:
+        raise _FAILED[key]
+    if full.is_dir():
+        raise ExtensionFileError(f"{shown}: a folder, not a Python file")
+    # one module name per path: two files of the same name in different folders both load
+    stem = "".join(c if c.isalnum() else "_" for c in full.stem)
+    name = f"avflow_extension_{stem}_{hashlib.sha1(key.encode()).hexdigest()[:8]}"
+    loader = importlib.machinery.SourceFileLoader(name, key)  # any suffix, not only .py
+    module = importlib.util.module_from_spec(
+        importlib.util.spec_from_file_location(name, key, loader=loader))
+    sys.modules[name] = module  # as an import does: pickle and dataclasses look it up there
+    try:
+        loader.exec_module(module)
+    except (Exception, SystemExit) as err:  # noqa: BLE001 - reported in one line
+        del sys.modules[name]
+        _FAILED[key] = ExtensionFileError(_load_error(shown, key, err))
+        raise _FAILED[key] from None
+    LOADED_FILES[key] = module
+    return key
+
+
+def _load_error(shown: str, key: str, err: BaseException) -> str:
+    """One line: where ``err`` arose (the file's line: a syntax error's, else the last of
+    its lines the traceback passed) and what it says."""
+    import traceback
+
+    if isinstance(err, SyntaxError):
+        where = shown if err.filename in (None, key) else err.filename
+        where += f":{err.lineno}" if err.lineno else ""
+        where += f":{err.offset}" if err.lineno and err.offset else ""
+        return f"{where}: syntax error: {err.msg}"
+    lines = [f.lineno for f in traceback.extract_tb(err.__traceback__) if f.filename == key]
+    where = f"{shown}:{lines[-1]}" if lines and lines[-1] else shown
+    text = " ".join(str(err).split())
+    if isinstance(err, ExtensionError):  # the registry's own words say what was refused
+        return f"{where}: {text}"
+    return f"{where}: {type(err).__name__}" + (f": {text}" if text else "")
+
+
+def load_files(paths, worker: bool = False) -> tuple[str, ...]:
+    """:func:`load_file` of each of ``paths``, in order; their absolute paths. ``worker``:
+    in a worker of an ensemble, a region or a calibration (the error says so: the file is
+    to be found on that machine, at the path it had where the command ran)."""
+    try:
+        return tuple(load_file(p) for p in paths)
+    except ExtensionFileError as err:
+        if not worker:
+            raise
+        raise ExtensionFileError(f"{err} (on a dask worker, which loads the extension files "
+                                 "from the paths they had where the command ran)") from None
+
+
+def loaded_files() -> tuple[str, ...]:
+    """The absolute paths of the extension files loaded in this process, in the order they
+    were: what a worker loads before running a member of this process's ensemble."""
+    return tuple(LOADED_FILES)
+
+
+__all__ = ["ExtensionError", "ExtensionFileError", "FrictionLaw", "OutputMap", "Source",
+           "FRICTION_LAWS", "MAPS", "SOURCES", "register_friction_law", "register_map",
+           "register_source", "law_by_code", "digest", "load_file", "load_files",
+           "loaded_files"]
