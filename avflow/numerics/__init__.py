@@ -151,3 +151,14 @@ def _install_cache() -> None:
 
 
 _install_cache()
+
+
+def _collect_less_while_compiling() -> None:
+    """Python's garbage collector runs less often during compilations
+    (:mod:`avflow.numerics.compiling`)."""
+    from avflow.numerics.compiling import fewer_collections_while_compiling
+
+    fewer_collections_while_compiling()
+
+
+_collect_less_while_compiling()

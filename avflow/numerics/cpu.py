@@ -1,5 +1,9 @@
 """The pointwise physics compiled for the CPU: :mod:`avflow.numerics.kinetic` and
-:mod:`avflow.numerics.physics`, each function inlined into the traversals that call it.
+:mod:`avflow.numerics.physics`, each function compiled once on its own (and cached), and
+inlined into the traversals that call it by LLVM rather than by Numba: Numba's inlining
+copies and types a function's IR again at every call site, which made a third of a first
+run's compile time, and LLVM's gives the same loops, vectorised as before
+(docs/performance.md).
 
 The source modules stay plain Python (callable as they are, and compilable for another target
 by the same :func:`compile_pointwise`); the traversals import the compiled functions from
@@ -15,7 +19,7 @@ from numba import njit
 from avflow.numerics import kinetic, physics
 
 
-def compile_pointwise(modules, decorate, replace=None) -> dict:
+def compile_pointwise(modules, decorate, replace=None, suffix: str = "") -> dict:
     """Every public function of ``modules`` compiled by ``decorate``, in one namespace: a
     compiled function calls the compiled versions of its siblings (``trial_momentum`` the
     compiled ``normal_accel``), and the modules themselves are left as they are.
@@ -29,10 +33,10 @@ def compile_pointwise(modules, decorate, replace=None) -> dict:
         for name, fn in vars(module).items():
             if (isinstance(fn, types.FunctionType) and fn.__module__ == module.__name__
                     and not name.startswith("_")):
-                copy = types.FunctionType(fn.__code__, namespace, fn.__name__,
+                copy = types.FunctionType(fn.__code__, namespace, fn.__name__ + suffix,
                                           fn.__defaults__, fn.__closure__)
                 copy.__qualname__, copy.__module__, copy.__doc__ = (
-                    fn.__qualname__, fn.__module__, fn.__doc__)
+                    fn.__qualname__ + suffix, fn.__module__, fn.__doc__)
                 compiled[name] = decorate(copy)
     namespace.update(compiled)  # looked up when a caller is typed, so the order is free
     if replace is not None:
@@ -42,15 +46,21 @@ def compile_pointwise(modules, decorate, replace=None) -> dict:
     return compiled
 
 
-#: inlined where called (never compiled on its own unless called from Python)
 _POINTWISE = compile_pointwise(
-    (kinetic, physics), njit(error_model="numpy", cache=True, inline="always"))
+    (kinetic, physics), njit(error_model="numpy", cache=True, inline="never"))
 _POINTWISE.pop("density_factor")  # numpy on whole arrays, once per solver: not pointwise
+#: the same functions with the half fluxes' branch-free form, for the loops that vectorise
+_VECTOR = compile_pointwise(
+    (kinetic, physics), njit(error_model="numpy", cache=True, inline="never"),
+    lambda c: {"half_flux_out": c["select_flux_out"], "half_flux_in": c["select_flux_in"]},
+    suffix="_select")
 
 sound_speed = _POINTWISE["sound_speed"]
 half_fluxes = _POINTWISE["half_fluxes"]
 half_flux_out = _POINTWISE["half_flux_out"]
 half_flux_in = _POINTWISE["half_flux_in"]
+select_flux_out = _POINTWISE["select_flux_out"]
+select_flux_in = _POINTWISE["select_flux_in"]
 normal_accel = _POINTWISE["normal_accel"]
 centripetal_accel = _POINTWISE["centripetal_accel"]
 project = _POINTWISE["project"]
@@ -68,6 +78,7 @@ step_terms = _POINTWISE["step_terms"]
 open_mass = _POINTWISE["open_mass"]
 dirac_face = _POINTWISE["dirac_face"]
 face_flux = _POINTWISE["face_flux"]
+vector_face_flux = _VECTOR["face_flux"]
 emitted_state = _POINTWISE["emitted_state"]
 heun_average = _POINTWISE["heun_average"]
 side_fluxes = _POINTWISE["side_fluxes"]

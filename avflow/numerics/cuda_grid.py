@@ -197,14 +197,14 @@ def _faces(mesh, emit, xf, yf):
             kind_of(code), code, emit[E_H, a], emit[E_U1, a], emit[E_U2, a], emit[E_C, a],
             emit[E_S, a], emit[E_KH, a], emit[E_K3, a], emit[E_H, b], emit[E_U1, b], emit[E_U2, b],
             emit[E_C, b], emit[E_S, b], emit[E_KH, b], emit[E_K3, b], frame[r, 0, c],
-            frame[r, 1, c], frame[r, 2, c], frame[r, 3, c], length, False)
+            frame[r, 1, c], frame[r, 2, c], frame[r, 3, c], length)
     else:
         o = b if kind >= HIGH_WALL else a  # the face's owner
         f0, f1, f2, f3, f4 = coded_flux(
             kind_of(code), code, emit[E_H, o], emit[E_U1, o], emit[E_U2, o], emit[E_C, o],
             emit[E_S, o], emit[E_KH, o], emit[E_K3, o], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
             frame[r, 0, c], frame[r, 1, c], frame[r, 2, c], frame[r, 3, c],
-            length, False)
+            length)
     out[0, r, c] = f0
     out[1, r, c] = f1
     out[2, r, c] = f2

@@ -83,7 +83,7 @@ def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
             si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, face_frame[f, 0, 0, 0],
             face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1],
             face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1], face_frame[f, 1, 1, 0],
-            face_frame[f, 1, 1, 1], face_length[f], False)
+            face_frame[f, 1, 1, 1], face_length[f])
         flux[f, 0] = fh
         flux[f, 1] = qix
         flux[f, 2] = qiy

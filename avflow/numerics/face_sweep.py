@@ -185,11 +185,11 @@ def _face_flux(f, i, j, face_frame, face_length, e_h, e_u1, e_u2, e_c, e_s, e_kh
                          e_k3[i], e_h[j], e_u1[j], e_u2[j], e_c[j], e_s[j], e_kh[j], e_k3[j],
                          face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0],
                          face_frame[f, 0, 1, 1], face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1],
-                         face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1], face_length[f], False)
+                         face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1], face_length[f])
     return face_flux(FACE_WALL if j == WALL else FACE_OPEN, e_h[i], e_u1[i], e_u2[i], e_c[i],
                      e_s[i], e_kh[i], e_k3[i], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                      face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0],
-                     face_frame[f, 0, 1, 1], 0.0, 0.0, 0.0, 0.0, face_length[f], False)
+                     face_frame[f, 0, 1, 1], 0.0, 0.0, 0.0, 0.0, face_length[f])
 
 
 def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h_sum, x_sum,

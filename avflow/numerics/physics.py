@@ -255,7 +255,7 @@ FACE_INNER, FACE_WALL, FACE_OPEN = 0, 1, 2
 
 
 def face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, nix, niy,
-              tix, tiy, njx, njy, tjx, tjy, length, vector):
+              tix, tiy, njx, njy, tjx, tjy, length):
     """The rectangular flux through a face of ``length`` between cell i and what lies beyond
     it (``kind``): ``(L F_h, momentum to i (x, y), momentum to j (x, y))``, ``F_h`` along the
     normal out of i. Each side is given by what it emits (:func:`emitted_state`: h, u, c,
@@ -266,22 +266,22 @@ def face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k
     beyond an open side the cell's own state leaving (``max(u_n, 0)``), closed to what would
     enter (:func:`open_mass`). The j side's values are not read there (pass zeros).
 
-    Every traversal calls this one function. ``vector``: the half fluxes' branch-free form
-    (:func:`~avflow.numerics.kinetic.half_flux_out`); with it and ``kind`` constants, the
-    branch on the kind folds away and a line of faces vectorises."""
+    Every traversal calls this one function; in the loops that vectorise, its copy with the
+    branch-free half fluxes (``cpu.vector_face_flux``) with ``kind`` a constant, whose
+    branch then folds away."""
     uni = ui1 * nix + ui2 * niy
     uti = ui1 * tix + ui2 * tiy
-    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i, vector)
+    fp_h, fp_q = half_flux_out(hi, uni, ci, si, khi, k3i)
     if kind == FACE_INNER:
         unj = uj1 * njx + uj2 * njy
         utj = uj1 * tjx + uj2 * tjy
-        gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j, vector)
+        gm_h, gm_q = half_flux_in(hj, unj, cj, sj, khj, k3j)
     elif kind == FACE_WALL:  # mirror ghost (h, -u_n, u_t): no mass, twice the pressure
         gm_h = -fp_h
         gm_q = fp_q
         utj = uti
     else:  # open: transmissive for what leaves, closed to what would enter
-        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i, vector)
+        gm_h, gm_q = half_flux_in(hi, max(uni, 0.0), ci, si, khi, k3i)
         gm_h = open_mass(fp_h + gm_h) - fp_h
         utj = uti
     f_n = (fp_q + gm_q) * length  # normal momentum flux, face frame

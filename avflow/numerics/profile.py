@@ -29,7 +29,7 @@ from numba import njit
 from avflow.numerics.cpu import (DRY, carries, cell_moves, cell_update, dirac_face,
                                  dt_from_inverse, observe_cell, open_mass,
                                  step_terms, trial_momentum)
-from avflow.numerics.cpu import SQRT3, half_flux_in, half_flux_out, half_fluxes, sound_speed
+from avflow.numerics.cpu import SQRT3, half_fluxes, select_flux_in, select_flux_out, sound_speed
 from avflow.numerics.vectorize import (cell_law, friction_law, law_copies, law_kind, law_label,
                                        line_sum, noalias, specialize)
 from avflow.terrain.mesh import OUTFLOW, WALL
@@ -58,8 +58,8 @@ def _emit(n, h, hu, gamma_z, density, h_zero, g, up_h, up_q, down_h, down_q, spe
         u = hu[k] / hs if wet else 0.0
         kk = c * density[k]
         s = SQRT3 * c
-        fp_h, fp_q = half_flux_out(he, u, c, s, 0.5 * kk, kk / 3.0, True)
-        fm_h, fm_q = half_flux_in(he, u, c, s, 0.5 * kk, kk / 3.0, True)
+        fp_h, fp_q = select_flux_out(he, u, c, s, 0.5 * kk, kk / 3.0)
+        fm_h, fm_q = select_flux_in(he, u, c, s, 0.5 * kk, kk / 3.0)
         up_h[k] = fp_h
         up_q[k] = fp_q
         down_h[k] = fm_h

@@ -55,9 +55,9 @@ import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
-                                 dirac_face, dt_from_inverse, face_flux, cell_update,
+                                 cell_update, dirac_face, dt_from_inverse, face_flux,
                                  heun_average, observe_cell, speed_of, step_terms,
-                                 trial_momentum)
+                                 trial_momentum, vector_face_flux)
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_span
 from avflow.numerics.sources import SPAN, add_span  # noqa: F401 (each copy's own)
@@ -152,16 +152,21 @@ def _kind_of(code):
 
 @njit(error_model="numpy", cache=True, inline="always")
 def _coded_flux(kind, code, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j,
-                n0x, n0y, n1x, n1y, length, vector):
+                n0x, n0y, n1x, n1y, length):
     """:func:`~avflow.numerics.physics.face_flux` of a grid face: i the face's first cell
     (frame side 0), j the second (frame side 1), or, beyond a boundary face, its owner.
     Each side's frame is a rotation: the tangent ``t = s (-n_y, n_x)``, its sign s in the
-    code's bits. ``vector``: the half fluxes' branch-free form (a line of inner faces)."""
+    code's bits. (:data:`_vector_coded_flux`: its copy for a line of inner faces.)"""
     s0 = -1.0 if code & SIGN0 else 1.0
     s1 = -1.0 if code & SIGN1 else 1.0
     return face_flux(kind, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j,
-                     n0x, n0y, s0 * -n0y, s0 * n0x, n1x, n1y, s1 * -n1y, s1 * n1x, length,
-                     vector)
+                     n0x, n0y, s0 * -n0y, s0 * n0x, n1x, n1y, s1 * -n1y, s1 * n1x, length)
+
+
+#: :func:`_coded_flux` with the half fluxes' branch-free form (physics' copy
+#: ``cpu.vector_face_flux``): the loops over a line of inner faces, which vectorise
+_vector_coded_flux = specialize(_coded_flux.py_func, "_vector", inline="always",
+                                face_flux=vector_face_flux)
 
 
 @noalias
@@ -187,10 +192,10 @@ def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
     b = min(k1, nx - 1)
     for j in range(b + 1 - a):
         k = a + j  # >= 1: the west cell k - 1 >= 0, no wraparound
-        f0, f1, f2, f3, f4 = _coded_flux(
+        f0, f1, f2, f3, f4 = _vector_coded_flux(
             FACE_INNER, codes[k], w_h[k - 1], w_u1[k - 1], w_u2[k - 1], w_c[k - 1], w_s[k - 1],
             w_kh[k - 1], w_k3[k - 1], e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k],
-            e_k3[k], n0x[k], n0y[k], n1x[k], n1y[k], lengths[k], True)
+            e_k3[k], n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
         o1[k] = f1
         o2[k] = f2
@@ -204,14 +209,12 @@ def _x_faces(k0, k1, codes, frames, lengths, west, east, out):
         if kind >= HIGH_WALL:  # the owner: the east cell for HIGH_*, else the west one
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, e_h[k], e_u1[k], e_u2[k], e_c[k], e_s[k], e_kh[k], e_k3[k],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k],
-                False)
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         else:
             m = k - 1
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, w_h[m], w_u1[m], w_u2[m], w_c[m], w_s[m], w_kh[m], w_k3[m],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k],
-                False)
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[k], n0y[k], n1x[k], n1y[k], lengths[k])
         o0[k] = f0
         o1[k] = f1
         o2[k] = f2
@@ -239,10 +242,10 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
     c0 = max(c0, 0)
     for j in range(c1 + 1 - c0):
         c = c0 + j
-        f0, f1, f2, f3, f4 = _coded_flux(
+        f0, f1, f2, f3, f4 = _vector_coded_flux(
             FACE_INNER, codes[c], b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
             a_h[c], a_u1[c], a_u2[c], a_c[c], a_s[c], a_kh[c], a_k3[c],
-            n0x[c], n0y[c], n1x[c], n1y[c], lengths[c], True)
+            n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
         o0[c] = f0
         o1[c] = f1
         o2[c] = f2
@@ -256,13 +259,11 @@ def _y_faces(c0, c1, codes, frames, lengths, below, above, out):
         if kind >= HIGH_WALL:  # the north cell owns it
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, a_h[c], a_u1[c], a_u2[c], a_c[c], a_s[c], a_kh[c], a_k3[c],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c],
-                False)
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
         else:
             f0, f1, f2, f3, f4 = _coded_flux(
                 _kind_of(code), code, b_h[c], b_u1[c], b_u2[c], b_c[c], b_s[c], b_kh[c], b_k3[c],
-                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c],
-                False)
+                0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n0x[c], n0y[c], n1x[c], n1y[c], lengths[c])
         o0[c] = f0
         o1[c] = f1
         o2[c] = f2
