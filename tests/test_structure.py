@@ -191,13 +191,14 @@ def test_the_face_flux_is_written_once():
     """The flux through a face with the ghost of a wall or an open side (eq. 38, the kinetic
     half fluxes of eqs. 39-40): physics.face_flux, called by every traversal of a 2D mesh
     (the grid's rows and the GPU's through square_grid._coded_flux, the face sweep, the
-    gather form, step_faces). The half fluxes are called by it alone; their branch-free
+    gather form and step_faces through kernels.listed_flux). The half fluxes are called by it alone; their branch-free
     form (the same bits, for the loops that vectorise: ``cpu.vector_face_flux``, the face
     flux compiled with it) also by the profile's per-cell pass: on a line each cell's two
     half fluxes are computed once and summed per face, and the profile's two ends apply the
     same open rule (physics.open_mass)."""
-    assert _callers("face_flux") == ["face_gather._gather_fluxes", "face_sweep._face_flux",
-                                     "kernels._face_fluxes", "square_grid._coded_flux"]
+    assert _callers("face_flux") == ["face_sweep._face_flux", "kernels.listed_flux",
+                                     "square_grid._coded_flux"]
+    assert _callers("listed_flux") == ["face_gather._gather_fluxes", "kernels._face_fluxes"]
     for half in ("half_flux_out", "half_flux_in"):
         assert _callers(half) == ["physics.face_flux"], half
     for half in ("select_flux_out", "select_flux_in"):

@@ -36,11 +36,11 @@ import math
 
 from numba import njit, prange
 
-from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
-                                 centripetal_accel, dirac_face, dt_from_inverse, emitted_state,
-                                 face_flux, cell_update, heun_average, observe_cell,
+from avflow.numerics.cpu import (DRY, carries, cell_moves, cell_update, centripetal_accel,
+                                 dirac_face, dt_from_inverse, heun_average, observe_cell,
                                  speed_of, step_terms, trial_momentum)
-from avflow.terrain.mesh import OUTFLOW, WALL
+from avflow.numerics.kernels import listed_flux, reconstructed_sides
+from avflow.terrain.mesh import OUTFLOW
 from avflow.numerics.vectorize import cell_law, specialize
 
 #: A stage (or Heun's merge) that sweeps fewer cells than this runs serially, on step_faces
@@ -66,28 +66,14 @@ def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
         f = active_faces[a]
         i = face_cells[f, 0]
         j = face_cells[f, 1]
-        inner = j >= 0
-        k = j if inner else i  # beyond a boundary: values the flux does not read
-        hi = qi1 = qi2 = 0.0
-        if h[i] > h_zero:
-            hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
-        hi, ui1, ui2, ci, si, khi, k3i = emitted_state(hi, qi1, qi2, 0.0, g * gamma_z[i],
-                                                       density[i])
-        hj = qj1 = qj2 = 0.0
-        if inner and h[k] > h_zero:
-            hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
-        hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[k],
-                                                       density[k])
-        fh, qix, qiy, qjx, qjy = face_flux(
-            FACE_INNER if inner else (FACE_WALL if j == WALL else FACE_OPEN), hi, ui1, ui2, ci,
-            si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, face_frame[f, 0, 0, 0],
-            face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1],
-            face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1], face_frame[f, 1, 1, 0],
-            face_frame[f, 1, 1, 1], face_length[f])
+        (hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj,
+         k3j) = reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density)
+        fh, qix, qiy, qjx, qjy = listed_flux(f, i, j, face_frame, face_length, hi, ui1, ui2, ci,
+                                             si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j)
         flux[f, 0] = fh
         flux[f, 1] = qix
         flux[f, 2] = qiy
-        if inner:
+        if j >= 0:
             flux[f, 3] = qjx
             flux[f, 4] = qjy
 

@@ -238,6 +238,39 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
+def reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density):
+    """What the two sides of listed face f emit at order 2 (:func:`emitted_state` of each
+    side's reconstructed state at the face, ``face_state[f, side]``; nothing from a cell at
+    or below ``h_zero``): i's seven values, then j's (beyond a boundary, ``j < 0``: values
+    the flux does not read)."""
+    k = j if j >= 0 else i
+    hi = qi1 = qi2 = 0.0
+    if h[i] > h_zero:
+        hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
+    hi, ui1, ui2, ci, si, khi, k3i = emitted_state(hi, qi1, qi2, 0.0, g * gamma_z[i],
+                                                   density[i])
+    hj = qj1 = qj2 = 0.0
+    if j >= 0 and h[k] > h_zero:
+        hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
+    hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[k],
+                                                   density[k])
+    return hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def listed_flux(f, i, j, face_frame, face_length, hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2,
+                cj, sj, khj, k3j):
+    """:func:`~avflow.numerics.physics.face_flux` of listed face f between cells i and j (a
+    wall or an open side when ``j < 0``, :data:`~avflow.terrain.mesh.WALL` or OUTFLOW), its
+    frames from the mesh's ``face_frame``: ``(L F_h, momentum to i (x, y), to j (x, y))``."""
+    return face_flux(FACE_INNER if j >= 0 else (FACE_WALL if j == WALL else FACE_OPEN), hi,
+                     ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j,
+                     face_frame[f, 0, 0, 0], face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0],
+                     face_frame[f, 0, 1, 1], face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1],
+                     face_frame[f, 1, 1, 0], face_frame[f, 1, 1, 1], face_length[f])
+
+
+@njit(error_model="numpy", cache=True, inline="always")
 def _face_fluxes(mesh, physics, cur, nxt, flux, when, lists, order2, face_state, emit):
     """Sweeps 0 and 1a of :func:`step_faces`: what each cell emits (order 1; order 2 reads
     the reconstructed face states) and the rectangular fluxes of the active faces, each
@@ -268,37 +301,24 @@ def _face_fluxes(mesh, physics, cur, nxt, flux, when, lists, order2, face_state,
         f = active_faces[a]
         i = face_cells[f, 0]
         j = face_cells[f, 1]
-        inner = j >= 0
-        k = j if inner else i  # beyond a boundary: values the flux does not read
         if order2:  # the reconstructed states at the face
-            hi = qi1 = qi2 = 0.0
-            if h[i] > h_zero:
-                hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
-            hi, ui1, ui2, ci, si, khi, k3i = emitted_state(hi, qi1, qi2, 0.0, g * gamma_z[i],
-                                                           density[i])
-            hj = qj1 = qj2 = 0.0
-            if inner and h[k] > h_zero:
-                hj, qj1, qj2 = face_state[f, 1, 0], face_state[f, 1, 1], face_state[f, 1, 2]
-            hj, uj1, uj2, cj, sj, khj, k3j = emitted_state(hj, qj1, qj2, 0.0, g * gamma_z[k],
-                                                           density[k])
+            (hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj,
+             k3j) = reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density)
         else:
+            k = j if j >= 0 else i  # beyond a boundary: values the flux does not read
             hi, ui1, ui2, ci = emit[i, 0], emit[i, 1], emit[i, 2], emit[i, 3]
             si, khi, k3i = emit[i, 4], emit[i, 5], emit[i, 6]
             hj, uj1, uj2, cj = emit[k, 0], emit[k, 1], emit[k, 2], emit[k, 3]
             sj, khj, k3j = emit[k, 4], emit[k, 5], emit[k, 6]
-        fh, qix, qiy, qjx, qjy = face_flux(
-            FACE_INNER if inner else (FACE_WALL if j == WALL else FACE_OPEN), hi, ui1, ui2, ci,
-            si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j, face_frame[f, 0, 0, 0],
-            face_frame[f, 0, 0, 1], face_frame[f, 0, 1, 0], face_frame[f, 0, 1, 1],
-            face_frame[f, 1, 0, 0], face_frame[f, 1, 0, 1], face_frame[f, 1, 1, 0],
-            face_frame[f, 1, 1, 1], face_length[f])
+        fh, qix, qiy, qjx, qjy = listed_flux(f, i, j, face_frame, face_length, hi, ui1, ui2, ci,
+                                             si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j)
         flux[f, 0] = fh
         flux[f, 1] = qix
         flux[f, 2] = qiy
         h_new[i] -= fh
         hu_new[i] -= qix
         hv_new[i] -= qiy
-        if inner:
+        if j >= 0:
             flux[f, 3] = qjx
             flux[f, 4] = qjy
             h_new[j] += fh
