@@ -36,13 +36,18 @@ import math
 import numpy as np
 from numba import njit
 
-from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
-                                 centripetal_accel, dirac_face, dt_from_inverse, emitted_state,
-                                 emitting, face_flux, cell_update, half_fluxes, heun_average,
-                                 observe_cell, open_mass, side_fluxes, sound_speed, speed_of,
-                                 step_terms, trial_momentum)
+from avflow.numerics.cpu import DRY, FACE_INNER, FACE_OPEN, FACE_WALL, INLINED
 from avflow.numerics.vectorize import cell_law
 from avflow.terrain.mesh import OUTFLOW, WALL
+
+(carries, cell_moves, centripetal_accel, dirac_face, dt_from_inverse, emitted_state, emitting,
+ face_flux, cell_update, half_fluxes, heun_average, observe_cell, open_mass, side_fluxes,
+ sound_speed, speed_of, step_terms, trial_momentum) = (
+    INLINED[name] for name in (
+        "carries", "cell_moves", "centripetal_accel", "dirac_face", "dt_from_inverse",
+        "emitted_state", "emitting", "face_flux", "cell_update", "half_fluxes", "heun_average",
+        "observe_cell", "open_mass", "side_fluxes", "sound_speed", "speed_of", "step_terms",
+        "trial_momentum"))
 
 
 @njit(error_model="numpy", cache=True)
