@@ -16,16 +16,21 @@
 - :mod:`avflow.numerics.solver`: :class:`~avflow.numerics.solver.Solver` and its state;
 - :mod:`avflow.numerics.analytic`: exact dam-break solutions to test against.
 
-Numba's cache of compiled kernels (``cache=True``) checks only the file that defines a
-function, not the functions it inlines from other files: after a change to ``kinetic.py``
-alone, the time loops of ``kernels.py`` came back from the cache with the old half fluxes.
-So the cache goes to a folder named after a digest of every file the kernels are compiled
-from, Numba's and Python's versions and the processor (:func:`kernel_cache_dir`): a changed
-file, a new version, is a new folder, compiled afresh. The folder is per user, not per
-checkout (``$AVFLOW_CACHE_DIR``, else ``$XDG_CACHE_HOME/avflow`` or ``~/.cache/avflow``),
-and a function's files inside it are named after its place in the package, not on disk
-(:func:`_shared_locator`): every clone and virtual environment of one version shares what
-the first one compiled. ``NUMBA_CACHE_DIR``, where set, is used as Numba uses it.
+Numba's cache of compiled kernels (``cache=True``) keys a function by its own byte code and
+checks only the file that defines it, not the functions it calls from other files nor the
+globals they read: after a change to ``kinetic.py`` alone, the time loops of ``kernels.py``
+came back from the cache with the old half fluxes; a user's ``@njit`` helper reading a
+changed constant came back with the old one. So every kernel of this package, and every copy
+with a user's functions built in, is keyed by what it is compiled from
+(:func:`avflow.codekey.code_key`: its code and the code and values of everything it reads,
+through its callees), added to Numba's own key (:func:`_key_by_code`): a changed function
+anywhere below a kernel, a changed constant, is a new key, compiled afresh. The cache lies
+in one folder per user, avflow version, Numba, Python and processor
+(:func:`kernel_cache_dir`: ``$AVFLOW_CACHE_DIR``, else ``$XDG_CACHE_HOME/avflow`` or
+``~/.cache/avflow``), and a function's files inside it are named after its place in the
+package, not on disk (:func:`_shared_locator`): every clone and virtual environment of one
+version shares what the first one compiled. ``NUMBA_CACHE_DIR``, where set, is used as Numba
+uses it.
 """
 
 from __future__ import annotations
@@ -33,18 +38,6 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
-
-#: What the kernels are compiled from: these modules, and the constants Numba freezes into
-#: them from the terrain (boundary and face codes).
-_KERNEL_SOURCES = ("numerics/kinetic.py", "numerics/physics.py", "numerics/cpu.py",
-                   "numerics/stepping.py", "numerics/loop.py", "numerics/timeloop.py",
-                   "numerics/rheology.py", "numerics/kernels.py",
-                   "numerics/reconstruction.py", "numerics/square_grid.py", "numerics/vectorize.py",
-                   "numerics/profile.py", "numerics/face_sweep.py", "numerics/face_gather.py",
-                   "numerics/sources.py", "numerics/observers.py", "numerics/supply.py",
-                   "numerics/variants.py",
-                   "terrain/mesh.py", "terrain/squaregrid.py")
-
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 
@@ -63,18 +56,18 @@ def cache_root() -> Path:
 
 
 def kernel_cache_dir() -> Path:
-    """``<cache_root>/kernels-<digest>``: the digest of the kernels' sources, of Numba's and
-    Python's versions and of the processor's architecture."""
+    """``<cache_root>/kernels-<digest>``: the digest of avflow's, Numba's and Python's
+    versions and of the processor's architecture (what the kernels are compiled from is in
+    each one's key: :func:`_key_by_code`)."""
     import platform
     import sys
 
     from numba import __version__ as numba_version
 
-    digest = hashlib.sha256()
-    for name in _KERNEL_SOURCES:
-        digest.update(name.encode())
-        digest.update((_PACKAGE / name).read_bytes())
-    digest.update(f"{numba_version} {sys.version} {platform.machine()}".encode())
+    from avflow import __version__
+
+    digest = hashlib.sha256(
+        f"{__version__} {numba_version} {sys.version} {platform.machine()}".encode())
     return cache_root() / f"kernels-{digest.hexdigest()[:16]}"
 
 
@@ -118,6 +111,11 @@ def _shared_locator(folder: Path):
         def get_cache_path(self):
             return self._cache_path
 
+        def get_source_stamp(self):
+            # the key holds what the function is compiled from (_key_by_code), so the
+            # file's date and size need not match: clones and edits share one index
+            return "avflow keyed by code"
+
         @classmethod
         def from_function(cls, py_func, py_file):
             if config.CACHE_DIR:  # NUMBA_CACHE_DIR: the user's choice stands
@@ -130,6 +128,28 @@ def _shared_locator(folder: Path):
             return super().from_function(py_func, py_file)
 
     return SharedLocator
+
+
+def _key_by_code() -> None:
+    """Numba's key of a cached function (its signature, the processor, its own byte code)
+    with :func:`avflow.codekey.code_key` added for the functions cached in avflow's
+    folder (:func:`_shared_locator`): what they are compiled from, through their callees."""
+    from numba.core import caching
+
+    if getattr(caching.Cache._index_key, "avflow", False):
+        return
+    numba_key = caching.Cache._index_key
+
+    def index_key(self, sig, codegen):
+        key = numba_key(self, sig, codegen)
+        if type(self._impl.locator).__name__ != "SharedLocator":
+            return key
+        from avflow.codekey import code_key
+
+        return (*key, code_key(self._py_func))
+
+    index_key.avflow = True
+    caching.Cache._index_key = index_key
 
 
 def _install_cache() -> None:
@@ -148,6 +168,7 @@ def _install_cache() -> None:
     locators = caching.CacheImpl._locator_classes
     if folder is not None and not any(c.__name__ == "SharedLocator" for c in locators):
         locators.insert(0, _shared_locator(folder))
+        _key_by_code()
 
 
 _install_cache()

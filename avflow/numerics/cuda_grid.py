@@ -490,7 +490,7 @@ def _build(law: int = 0, sources=()):
     from avflow.numerics import variants
 
     laws, maps, entries = variants.registered(law, sources)
-    key = variants.tag_of(laws, maps, entries) if (laws or maps or entries) else ""
+    key = variants.tag_of(*laws, *maps, *entries) if (laws or maps or entries) else ""
     if key in _KERNELS:
         return _KERNELS[key]
     from numba import config, cuda, float64

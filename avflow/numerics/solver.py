@@ -490,13 +490,25 @@ class Solver:
     def _loop(self, threads: int):
         """The compiled time loop of this solver's kernel, law and threads, with what was
         registered through avflow.extend built in where the run uses it."""
+        from avflow.numerics.variants import check_registered, with_registered
+
+        check_registered(self._law_code, self.sources, self.params)  # before it compiles
         loop = self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
                                  threads > 1 and self._kernel.name != "profile")
         if self._kernel.backend != "cpu":
             return loop
-        from avflow.numerics.variants import with_registered
 
         return with_registered(loop, self._law_code, self.sources)
+
+    def suspect(self) -> str | None:
+        """After a non-finite state: the registered law or source of this run that returns a
+        non-finite value in a wide range of thicknesses and speeds, in one line; else None."""
+        from avflow.numerics import trial
+        from avflow.numerics.variants import registered
+
+        laws, _, _ = registered(self._law_code, self.sources)
+        found = trial.suspect(laws, self.sources, self.params)
+        return None if found is None else f"{found}: the state became non-finite"
 
     def describe_kernel(self) -> str:
         """What runs this solver, for the user: kernel, order, law, threads."""

@@ -5,9 +5,10 @@ A compiled time loop calls its passes, and they the pointwise physics, by global
 *variant* of a loop is a copy of it, and of every compiled function below it that reads one
 of the names being replaced (directly or through what it calls), with those names bound to
 new functions; everything that reads none of them is shared with the loop as it is.
-Each copy is named after a digest of what was put in (:func:`avflow.scenario.extensions.digest`),
-so Numba's cache keeps it beside the built-in kernels and a changed function is compiled
-afresh. Nothing is made at import: a variant is made the first time a run asks for it, and
+Each copy is named after the registrations it reads (:func:`tag_of`), so Numba's cache keeps
+it beside the built-in kernels, and a law's copies stay the same when a map is registered
+beside it; what a copy is compiled from is in its cache key (:mod:`avflow.codekey`), so a
+changed function, helper or constant is compiled afresh. Nothing is made at import: a variant is made the first time a run asks for it, and
 compiled for that run alone.
 
 Three names are replaced today, each a placeholder of the built-in kernels:
@@ -25,6 +26,7 @@ misspelt name cannot leave the built-in one in place silently.
 
 from __future__ import annotations
 
+import dis
 import hashlib
 import types
 
@@ -33,7 +35,8 @@ from numba.core.caching import NullCache
 from numba.core.registry import CPUDispatcher
 
 from avflow.numerics.vectorize import UnknownPlaceholder, noalias
-from avflow.scenario.extensions import FRICTION_LAWS, MAPS, digest
+from avflow.codekey import code_key, is_users
+from avflow.scenario.extensions import FRICTION_LAWS, MAPS
 
 #: variants made so far in this process, by (root, tag): a second run takes the same
 #: dispatchers (and their machine code), never new ones
@@ -62,10 +65,13 @@ def _copy(dispatcher, names: dict, tag: str):
     return copy
 
 
-def variant(root, tag: str, **replace):
+def variant(root, tags: dict, **replace):
     """``root`` (a compiled function) with the globals ``replace`` bound anew in every
-    function below it that reads them (see the module's docstring)."""
-    key = (id(root), tag, tuple(sorted(replace)))
+    function below it that reads them (see the module's docstring). ``tags``: for each
+    replaced name, a tag of what replaces it; a copy is named after the tags of the names
+    it reads, directly or below, and of no other: a law's sweeps keep their name (and their
+    cache) when a map is registered beside it."""
+    key = (id(root), tuple(sorted((name, tags[name]) for name in replace)))
     if key in _MADE:
         return _MADE[key][1]
     done: dict = {}
@@ -74,24 +80,28 @@ def variant(root, tag: str, **replace):
     def visit(dispatcher):
         if id(dispatcher) in done:
             return done[id(dispatcher)]
-        done[id(dispatcher)] = dispatcher  # (no cycles among kernels; guards anyway)
+        done[id(dispatcher)] = (dispatcher, frozenset())  # (no cycles; guards anyway)
         py = dispatcher.py_func
-        names = {}
+        names, below = {}, set()
         for name in py.__code__.co_names:
             if name in replace and name in py.__globals__:
                 names[name] = replace[name]
-                read.add(name)
+                below.add(name)
                 continue
             value = py.__globals__.get(name)
             if _ours(value):
-                below = visit(value)
-                if below is not value:
-                    names[name] = below
+                made, reads = visit(value)
+                if made is not value:
+                    names[name] = made
+                    below |= reads
+        read.update(below)
+        tag = "x" + hashlib.sha256(repr(sorted((n, tags[n]) for n in below)).encode()
+                                   ).hexdigest()[:12]
         made = _copy(dispatcher, names, tag) if names else dispatcher
-        done[id(dispatcher)] = made
-        return made
+        done[id(dispatcher)] = (made, frozenset(below))
+        return done[id(dispatcher)]
 
-    made = visit(root)
+    made, _ = visit(root)
     unread = sorted(set(replace) - read)
     if unread:
         raise UnknownPlaceholder(f"no function below {root.py_func.__qualname__} reads a "
@@ -102,6 +112,8 @@ def variant(root, tag: str, **replace):
 
 # --- what replaces the placeholders ----------------------------------------------------------
 
+# a registered law's negative tau or drag counts as 0 (friction never pushes: the trial
+# call refuses them at typical values, this holds everywhere); NaN stays NaN, a failure
 _LAW_SOURCE = '''
 def law_friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g):
 {branches}    return built_in(law, p0, p1, p2, p3, p4, p5, p6, p7, h, speed, normal_accel, g)
@@ -128,9 +140,10 @@ def law_friction_with(laws, built_in, decorate):
     scope = {"built_in": built_in}
     for law in laws:
         args = ", ".join(f"p{k}" for k in range(len(law.parameters)))
-        branches += (f"    if law == {law.code}:\n        return law_{law.code}("
-                     f"{args}{', ' if args else ''}h, speed, normal_accel, g)\n")
-        scope[f"law_{law.code}"] = decorate(law.function)
+        branches += (f"    if law == {law.code}:\n        tau, drag = law_{law.code}("
+                     f"{args}{', ' if args else ''}h, speed, normal_accel, g)\n"
+                     "        return (0.0 if tau < 0.0 else tau), (0.0 if drag < 0.0 else drag)\n")
+        scope[f"law_{law.code}"] = decorate(with_helpers(law.function, decorate))
     return _generated(_LAW_SOURCE.format(branches=branches), "law_friction", scope, decorate)
 
 
@@ -141,7 +154,7 @@ def more_maps_with(maps, decorate):
     scope = {}
     for k, entry in enumerate(maps):
         lines += f"    maps[{k}, i] = map_{k}(maps[{k}, i], h, hu, hv, speed, t_new)\n"
-        scope[f"map_{k}"] = decorate(entry.function)
+        scope[f"map_{k}"] = decorate(with_helpers(entry.function, decorate))
     return _generated(_MAPS_SOURCE.format(lines=lines), "more_maps", scope, decorate)
 
 
@@ -162,12 +175,47 @@ def supply_rate_with(entries, decorate):
         args = "".join(f"params[{k}, {j}], " for j in range(len(entry.parameters)))
         lines += (f"    r = source_{k}({args}h, speed, t)\n"
                   f"    rate += weights[{k}, c] * (r if r > 0.0 else 0.0)\n")
-        scope[f"source_{k}"] = decorate(entry.function)
+        scope[f"source_{k}"] = decorate(with_helpers(entry.function, decorate))
     return _generated(_SUPPLY_SOURCE.format(lines=lines), "supply_rate", scope, decorate)
 
 
 def _inline(fn):
     return njit(error_model="numpy", inline="always")(fn)
+
+
+def with_helpers(fn, decorate, _seen=None):
+    """``fn`` (a user's function) with the plain Python functions of the user's it calls
+    compiled by ``decorate`` too, recursively (an undecorated helper works as an ``@njit``
+    one does); ``fn`` itself where it calls none."""
+    seen = {} if _seen is None else _seen
+    if id(fn) in seen:
+        return seen[id(fn)]
+    seen[id(fn)] = fn
+    scope = None
+    codes = [fn.__code__]
+    while codes:
+        code = codes.pop()
+        codes.extend(c for c in code.co_consts if isinstance(c, types.CodeType))
+        for ins in dis.get_instructions(code):
+            value = fn.__globals__.get(ins.argval) if ins.opname == "LOAD_GLOBAL" else None
+            if isinstance(value, types.FunctionType) and is_users(value.__code__):
+                scope = dict(fn.__globals__) if scope is None else scope
+                scope[ins.argval] = decorate(with_helpers(value, decorate, seen))
+    if scope is None:
+        return fn
+    made = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
+    made.__qualname__, made.__module__, made.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
+    seen[id(fn)] = made
+    return made
+
+
+def compilable(fn, **options):
+    """``fn`` compiled as the kernels compile a user's function (its plain helpers too);
+    ``options``: Numba's, added."""
+    def decorate(f):
+        return njit(error_model="numpy", inline="always", **options)(f)
+
+    return decorate(with_helpers(fn, decorate))
 
 
 def registered(law: int, sources=()):
@@ -182,13 +230,46 @@ def registered(law: int, sources=()):
     return laws, tuple(MAPS.values()), tuple(s.entry for s in sources)
 
 
-def tag_of(laws, maps, sources=()) -> str:
-    """The suffix of the copies made with ``laws``, ``maps`` and ``sources``: a digest of
-    their names, codes and functions' code."""
-    entries = (*laws, *maps, *sources)
+def tag_of(*entries) -> str:
+    """A tag of registered ``entries`` (laws, maps, sources): their kinds, names, codes and
+    what their functions compile from (:func:`avflow.codekey.code_key`)."""
     names = repr([(type(e).__name__, e.name, getattr(e, "code", None)) for e in entries])
-    functions = digest([e.function for e in entries])
-    return "x" + hashlib.sha256((names + functions).encode()).hexdigest()[:12]
+    functions = code_key(*(e.function for e in entries), strict=True)
+    return hashlib.sha256((names + functions).encode()).hexdigest()[:12]
+
+
+#: what :func:`check_registered` found sound in this process
+_CHECKED: set = set()
+
+
+def check_registered(law: int, sources=(), params=()) -> None:
+    """Before anything compiles: what the run uses of the registry (:func:`registered`)
+    tried in Python and compiled alone (:mod:`avflow.numerics.trial`), and keyed
+    (a global no key can hold refused); ``params``: the law's parameters as the kernels
+    read them. One line naming the user's file on failure
+    (:class:`~avflow.scenario.extensions.ExtensionFileError`)."""
+    from avflow.codekey import UnhashableGlobal
+    from avflow.numerics import trial
+    from avflow.scenario.extensions import ExtensionFileError
+
+    laws, maps, entries = registered(law, sources)
+    if not (laws or maps or entries):
+        return
+    try:
+        key = (tag_of(*laws, *maps, *entries), np_bytes(params),
+               tuple(s.params for s in sources))
+    except UnhashableGlobal as err:
+        raise ExtensionFileError(str(err)) from None
+    if key in _CHECKED:
+        return
+    trial.check(laws, maps, sources, params)
+    _CHECKED.add(key)
+
+
+def np_bytes(values) -> bytes:
+    import numpy as np
+
+    return np.ascontiguousarray(values, dtype=float).tobytes()
 
 
 def with_registered(loop, law: int, sources=()):
@@ -200,11 +281,14 @@ def with_registered(loop, law: int, sources=()):
         return loop
     from avflow.numerics import rheology
 
-    replace = {}
+    replace, tags = {}, {}
     if laws:
         replace["law_friction"] = law_friction_with(laws, rheology.law_friction, _inline)
+        tags["law_friction"] = tag_of(*laws)
     if maps:
         replace["more_maps"] = more_maps_with(maps, _inline)
+        tags["more_maps"] = tag_of(*maps)
     if entries:
         replace["supply_rate"] = supply_rate_with(entries, _inline)
-    return variant(loop, tag_of(laws, maps, entries), **replace)
+        tags["supply_rate"] = tag_of(*entries)
+    return variant(loop, tags, **replace)

@@ -198,36 +198,6 @@ def law_by_code(code: int) -> FrictionLaw | None:
     return next((law for law in FRICTION_LAWS.values() if law.code == code), None)
 
 
-def _code_digest(digest, code: types.CodeType) -> None:
-    """What a function's compiled form depends on: its byte code, names and constants (the
-    nested functions' too), not where it was written."""
-    digest.update(code.co_code)
-    digest.update(repr(code.co_names).encode())
-    for const in code.co_consts:
-        if isinstance(const, types.CodeType):
-            _code_digest(digest, const)
-        else:
-            digest.update(repr(const).encode())
-
-
-def digest(functions) -> str:
-    """A short digest of ``functions``' code (:func:`_code_digest`) and of the globals they
-    read that are numbers: the name of a kernel compiled with them, so that a changed
-    function is compiled afresh, never taken from the cache of its old form."""
-    h = hashlib.sha256()
-    for fn in functions:
-        h.update(fn.__name__.encode())
-        _code_digest(h, fn.__code__)
-        for name in fn.__code__.co_names:
-            value = fn.__globals__.get(name)
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                h.update(f"{name}={value!r}".encode())
-            elif isinstance(value, types.FunctionType):
-                h.update(name.encode())
-                _code_digest(h, value.__code__)
-    return h.hexdigest()[:12]
-
-
 # --- extension files -------------------------------------------------------------------------
 
 #: The extension files loaded in this process, by absolute path (their modules)
@@ -315,5 +285,5 @@ def loaded_files() -> tuple[str, ...]:
 
 __all__ = ["ExtensionError", "ExtensionFileError", "FrictionLaw", "OutputMap", "Source",
            "FRICTION_LAWS", "MAPS", "SOURCES", "register_friction_law", "register_map",
-           "register_source", "law_by_code", "digest", "load_file", "load_files",
+           "register_source", "law_by_code", "load_file", "load_files",
            "loaded_files"]

@@ -513,6 +513,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
                 snaps.entrained_volume.append(solver.entrained_volume(state))
             recording += _time.perf_counter() - before
             failure = _non_finite(state, terrain)
+            if failure is not None:  # a user's law or source that returns NaN, named
+                failure = solver.suspect() or failure
             if status == "failed" and failure is None:
                 failure = (f"no time step kept h >= 0 after {MAX_RETRIES} halvings "
                            f"(time.cfl {scenario.time.cfl:g})")
