@@ -6,8 +6,9 @@ constant, a user's ``@njit`` helper, left the old machine code in the cache, ser
 As PyFR keys its cache by the rendered source of a kernel, :func:`code_key` hashes what
 Numba freezes into the machine code, walked as Numba walks it:
 
-- a function's byte code, constants, defaults, closure cells and options (a compiled
-  function's ``targetoptions`` and the no-alias flag), nested functions included;
+- a function's module name (Numba imports it to load the code back), byte code, constants,
+  defaults, closure cells and options (a compiled function's ``targetoptions`` and the
+  no-alias flag), nested functions included;
 - every global it reads (``LOAD_GLOBAL``) and every module attribute it reads through a
   global module (``np.pi``, ``physics.FLOWING``), by value: numbers, strings, tuples and
   arrays by their bytes, enum members by value;
@@ -98,6 +99,8 @@ class _Walk:
         self.active.add(id(fn))
         try:
             h = hashlib.sha256(b"function")
+            # the module Numba imports by name to load the machine code back
+            h.update(f"module {fn.__globals__.get('__name__')}".encode())
             self.code(h, fn.__code__, fn)
             self.value(h, fn.__defaults__, fn, "defaults")
             self.value(h, tuple(sorted((fn.__kwdefaults__ or {}).items())), fn, "defaults")

@@ -1,4 +1,5 @@
-"""Numba's cache of the kernels follows every file they are compiled from."""
+"""Numba's cache of the kernels: one folder per user and version, shared by every checkout
+(what each kernel is compiled from is in its key: tests/test_kernel_keys.py)."""
 
 import os
 from pathlib import Path
@@ -8,20 +9,6 @@ import pytest
 import avflow.numerics as numerics
 from avflow.numerics import (cpu, face_sweep, kernels, reconstruction, rheology, sources,
                              square_grid, timeloop)
-
-
-def test_a_change_to_any_kernel_source_is_a_new_cache_folder(monkeypatch):
-    """Numba checks only the defining file: a change to kinetic.py alone left kernels.py's
-    time loops in the cache with the old half fluxes inlined. The folder is named after all
-    of them, the terrain's frozen codes included."""
-    first = numerics.kernel_cache_dir()
-    real = Path.read_bytes
-    for changed in ("kinetic.py", "rheology.py", "squaregrid.py", "mesh.py"):
-        monkeypatch.setattr(Path, "read_bytes",
-                            lambda self, c=changed: real(self) + (b"#" if self.name == c else b""))
-        assert numerics.kernel_cache_dir() != first, changed
-    monkeypatch.setattr(Path, "read_bytes", real)
-    assert numerics.kernel_cache_dir() == first
 
 
 #: the hooks of a kernel's region in its copies of the one time loop (numerics/loop.py)

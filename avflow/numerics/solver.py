@@ -218,6 +218,9 @@ class Solver:
                              f"mesh {n}")
         self._source = no_source()[1] if self.source is None else self.source.vector()
         self.sources = tuple(self.sources)
+        from avflow.numerics.variants import check_registered
+
+        check_registered(self._law_code, self.sources, self.params)  # before any compiling
         self._supply = supply.pack(self.sources, n)
         self._grid = None
         self._released = False
