@@ -9,7 +9,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "avflow"
 #: the stages, top to bottom: a module may import its own stage and those below it
 STAGES = ["calibration", "ensemble", "output", "simulation", "numerics", "terrain", "scenario"]
-BASE = {"avflow.errors", "avflow.files", "avflow"}  # below every stage
+BASE = {"avflow.errors", "avflow.files", "avflow.codekey", "avflow"}  # below every stage
 
 
 def _modules():

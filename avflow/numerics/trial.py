@@ -11,13 +11,17 @@ for the value that made it.
 
 from __future__ import annotations
 
+import dis
 import itertools
 import math
 import re
 import traceback
+import types
 
 import numpy as np
+from numba import njit
 
+from avflow.codekey import is_users
 from avflow.scenario.extensions import ExtensionFileError
 
 G = 9.81
@@ -116,6 +120,41 @@ def _rows(law, params) -> list[tuple]:
     return [tuple(float(v) for v in row) for row in unique]
 
 
+def with_helpers(fn, decorate, _seen=None):
+    """``fn`` (a user's function) with the plain Python functions of the user's it calls
+    compiled by ``decorate`` too, recursively (an undecorated helper works as an ``@njit``
+    one does); ``fn`` itself where it calls none."""
+    seen = {} if _seen is None else _seen
+    if id(fn) in seen:
+        return seen[id(fn)]
+    seen[id(fn)] = fn
+    scope = None
+    codes = [fn.__code__]
+    while codes:
+        code = codes.pop()
+        codes.extend(c for c in code.co_consts if isinstance(c, types.CodeType))
+        for ins in dis.get_instructions(code):
+            value = fn.__globals__.get(ins.argval) if ins.opname == "LOAD_GLOBAL" else None
+            if isinstance(value, types.FunctionType) and is_users(value.__code__):
+                scope = dict(fn.__globals__) if scope is None else scope
+                scope[ins.argval] = decorate(with_helpers(value, decorate, seen))
+    if scope is None:
+        return fn
+    made = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
+    made.__qualname__, made.__module__, made.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
+    seen[id(fn)] = made
+    return made
+
+
+def compilable(fn, **options):
+    """``fn`` compiled as the kernels compile a user's function (its plain helpers too);
+    ``options``: Numba's, added."""
+    def decorate(f):
+        return njit(error_model="numpy", inline="always", **options)(f)
+
+    return decorate(with_helpers(fn, decorate))
+
+
 def check_law(law, params) -> None:
     """Try ``law`` (a registered :class:`~avflow.scenario.extensions.FrictionLaw`) with the
     run's ``params`` at the trial's thicknesses and speeds: a pair of finite numbers >= 0
@@ -182,8 +221,6 @@ def check(laws, maps, sources, law_params) -> None:
     """Every check above for what a run uses of the registry (:func:`avflow.numerics
     .variants.registered`): its law with ``law_params``, every map, its sources
     (:class:`~avflow.numerics.supply.AreaSource`, with their parameters)."""
-    from avflow.numerics.variants import compilable
-
     for law in laws:
         check_law(law, law_params)
         check_compiles(law, "friction law", len(law.parameters) + 4, compilable)

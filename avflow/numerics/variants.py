@@ -26,7 +26,6 @@ misspelt name cannot leave the built-in one in place silently.
 
 from __future__ import annotations
 
-import dis
 import hashlib
 import types
 
@@ -35,7 +34,8 @@ from numba.core.caching import NullCache
 from numba.core.registry import CPUDispatcher
 
 from avflow.numerics.vectorize import UnknownPlaceholder, noalias
-from avflow.codekey import code_key, is_users
+from avflow.codekey import code_key
+from avflow.numerics.trial import with_helpers
 from avflow.scenario.extensions import FRICTION_LAWS, MAPS
 
 #: variants made so far in this process, by (root, tag): a second run takes the same
@@ -181,41 +181,6 @@ def supply_rate_with(entries, decorate):
 
 def _inline(fn):
     return njit(error_model="numpy", inline="always")(fn)
-
-
-def with_helpers(fn, decorate, _seen=None):
-    """``fn`` (a user's function) with the plain Python functions of the user's it calls
-    compiled by ``decorate`` too, recursively (an undecorated helper works as an ``@njit``
-    one does); ``fn`` itself where it calls none."""
-    seen = {} if _seen is None else _seen
-    if id(fn) in seen:
-        return seen[id(fn)]
-    seen[id(fn)] = fn
-    scope = None
-    codes = [fn.__code__]
-    while codes:
-        code = codes.pop()
-        codes.extend(c for c in code.co_consts if isinstance(c, types.CodeType))
-        for ins in dis.get_instructions(code):
-            value = fn.__globals__.get(ins.argval) if ins.opname == "LOAD_GLOBAL" else None
-            if isinstance(value, types.FunctionType) and is_users(value.__code__):
-                scope = dict(fn.__globals__) if scope is None else scope
-                scope[ins.argval] = decorate(with_helpers(value, decorate, seen))
-    if scope is None:
-        return fn
-    made = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__, fn.__closure__)
-    made.__qualname__, made.__module__, made.__doc__ = fn.__qualname__, fn.__module__, fn.__doc__
-    seen[id(fn)] = made
-    return made
-
-
-def compilable(fn, **options):
-    """``fn`` compiled as the kernels compile a user's function (its plain helpers too);
-    ``options``: Numba's, added."""
-    def decorate(f):
-        return njit(error_model="numpy", inline="always", **options)(f)
-
-    return decorate(with_helpers(fn, decorate))
 
 
 def registered(law: int, sources=()):
