@@ -744,7 +744,21 @@ TERMINATED: list = []
 
 def _terminate(signum, frame):
     TERMINATED.append(signum)
+    _pending(Terminated)
     raise Terminated
+
+
+def _interrupt(signum, frame):
+    _pending(KeyboardInterrupt)
+    raise KeyboardInterrupt
+
+
+def _pending(interrupt) -> None:
+    """The interrupt raised again at Numba's next compiler pass, where the handler ran
+    inside LLVM and its exception was lost (numerics.compiling.PENDING)."""
+    compiling = sys.modules.get("avflow.numerics.compiling")
+    if compiling is not None:
+        compiling.PENDING[:] = [interrupt]
 
 
 def _interrupted() -> int:
@@ -784,6 +798,8 @@ def main(argv=None) -> int:
     TERMINATED.clear()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _interrupt)
     reads_scenarios = hasattr(args, "extensions")
     try:
         if reads_scenarios:
@@ -806,6 +822,7 @@ def main(argv=None) -> int:
     finally:
         if "avflow.numerics.compiling" in sys.modules:  # main() called in a longer process
             sys.modules["avflow.numerics.compiling"].stop_announcing()
+            sys.modules["avflow.numerics.compiling"].PENDING.clear()
 
 
 if __name__ == "__main__":

@@ -76,11 +76,37 @@ class _FewerCollections(event.Listener):
 
 _COLLECTIONS = _FewerCollections()
 
+#: Interrupts (exception classes) a signal handler asked for and that may not have arrived:
+#: raised at Numba's next compiler pass (:class:`_StopCompiling`)
+PENDING: list = []
+
+
+class _StopCompiling(event.Listener):
+    """A signal that arrives while LLVM runs is handled inside one of llvmlite's C callbacks,
+    where Python prints the handler's exception and goes on: SIGTERM 8 s into a first
+    compile let the run finish, 185 s later, with exit code 0. A handler that records its
+    interrupt in :data:`PENDING` is heard at the next compiler pass or lock (every few
+    hundred milliseconds, a long LLVM optimisation aside) and stops the compilation there."""
+
+    def on_start(self, event):
+        if PENDING:
+            raise PENDING.pop()()
+
+    def on_end(self, event):
+        pass
+
+
+_STOP = _StopCompiling()
+
 
 def fewer_collections_while_compiling() -> None:
-    """Install :class:`_FewerCollections` for the whole process (once)."""
+    """Install :class:`_FewerCollections` and :class:`_StopCompiling` for the whole process
+    (once)."""
     if _COLLECTIONS not in event._registered.get("numba:compile", []):
         event.register("numba:compile", _COLLECTIONS)
+    for kind in ("numba:compile", "numba:run_pass", "numba:llvm_lock"):
+        if _STOP not in event._registered.get(kind, []):
+            event.register(kind, _STOP)
 
 
 def watch(on_compile: Callable[[str], None] | None, what: Callable[[], str]) -> _Watch:
