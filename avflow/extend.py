@@ -3,8 +3,11 @@
 Each is a plain Python function of scalars, registered by name before the first run that uses
 it, in the same process. avflow compiles it into the kernels a run needs (the profile, the
 square grid, the face lists and the GPU's), once per machine: the compiled kernels are kept in
-the per-user kernel cache under a digest of the function's code, so a changed function is
-compiled afresh. From the command line, ``--extensions FILE.py`` (or ``$AVFLOW_EXTENSIONS``)
+the per-user kernel cache, keyed by what they are compiled from (the function's code, its
+helpers' and the constants they read), so a change to any of them is compiled afresh.
+Before anything compiles, each function the run uses is called once with typical numbers and
+compiled alone: a wrong shape, a negative or non-finite friction, an exception is one line
+naming the file and line. From the command line, ``--extensions FILE.py`` (or ``$AVFLOW_EXTENSIONS``)
 runs a file of such registrations before the scenario is read, and the dask workers of an
 ensemble, a region or a calibration run it before their members.
 
