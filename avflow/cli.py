@@ -122,13 +122,17 @@ def _entrained_note(ds) -> str:
     balance of a run with entrainment or registered sources (``+ supplied ...``); nothing
     for the others."""
     supplied = "supplied_volume" in ds
-    if not supplied and ("entrainment_law" not in ds.attrs or "entrained_volume" not in ds):
+    secondary = "secondary_release_volume" in ds
+    if not (supplied or secondary) and ("entrainment_law" not in ds.attrs
+                                        or "entrained_volume" not in ds):
         return ""
     units = ds["release_volume"].attrs.get("units", "m3")
     v = {name: float(ds[name]) for name in ("release_volume", "entrained_volume",
                                             "deposit_volume", "outflow_volume")}
     added = (f" + entrained {v['entrained_volume']:.4g}" if "entrainment_law" in ds.attrs
              else "") + (f" + supplied {float(ds['supplied_volume']):.4g}" if supplied else "")
+    if secondary:  # the secondary release areas the flow reached
+        added += f" + secondary {float(ds['secondary_release_volume']):.4g}"
     return (f" (released {v['release_volume']:.4g}{added}"
             f" = on the map {v['deposit_volume']:.4g} + out {v['outflow_volume']:.4g} "
             f"{units})")
@@ -211,6 +215,11 @@ def _cmd_run(args) -> int:
         check_path_outputs(out.with_name(out.stem + "_path"), inputs)
         if scenario.output.path.line:
             read_line(scenario.output.path.line)  # a bad path line: exit 2 before the run
+    if scenario.output.points is not None:  # OUT_points.csv and .png, checked likewise
+        from avflow.output.points import sidecar_paths
+
+        for side in sidecar_paths(out):
+            check_output_path(side, inputs)
     with output_lock(out):  # a second run to the same OUT says so, and leaves this one be
         remove_stale_temporaries(out)  # left by a write that was killed
         progress = Progress(quiet=args.quiet)
@@ -244,7 +253,28 @@ def _cmd_run(args) -> int:
             # file when asked for (the path analysis reads h at t = 0), the rest from memory
             ds = rest.assign({name: on_disk[name].variable for name in on_disk.data_vars
                               if name not in rest.variables})
-            return _after_run(args, scenario, out, ds, result.status, inputs)
+            code = _after_run(args, scenario, out, ds, result.status, inputs)
+        if result.points is not None:
+            _write_points(args, result, out)
+        return code
+
+
+def _write_points(args, result, out: Path) -> None:
+    """OUT_points.csv and OUT_points.png of a run with points of interest, and one line."""
+    from avflow.output.points import (plot_points, points_dataset, sidecar_paths,
+                                      write_points_csv)
+
+    ds = points_dataset(result)
+    csv_path, png_path = sidecar_paths(out)
+    write_points_csv(ds, csv_path)
+    plot_points(ds, png_path, f"{result.scenario.name}: flow at the points of interest")
+    if not args.quiet:
+        arrivals = ", ".join(
+            f"{n} {'not reached' if math.isnan(t) else f'at {t:.1f} s'} (peak {p:.3g} kPa)"
+            for n, t, p in zip(ds["station_name"].values, ds["arrival_time"].values,
+                               ds["peak_pressure"].values))
+        print(f"points: {arrivals}")
+        print(f"wrote {csv_path}, {png_path} (and the group 'points' of {out})")
 
 
 def _after_run(args, scenario, out: Path, ds, status: str, inputs=None) -> int:
