@@ -1482,6 +1482,23 @@ class Scenario(_Model):
             data.pop("structures", None)
         if not data.get("sources"):  # none (no registered source): as before the field
             data.pop("sources", None)
+        if data["output"].get("points") is None:  # none: hashes as before the field
+            data["output"].pop("points", None)
+        if data.get("secondary_release") is None:  # none: hashes as before the block
+            data.pop("secondary_release", None)
+        files = [(("output", "points"), "file")] if data["output"].get("points") else []
+        files += [(("secondary_release", "areas", k), "path") for k, a in enumerate(
+            (data.get("secondary_release") or {}).get("areas", ())) if a.get("path")]
+        for where, key in files:  # points and secondary areas count by their files' content
+            node = data
+            for part in where:
+                node = node[part]
+            if node.get(key):
+                try:
+                    node[key] = "sha256:" + _content_digest(node[key])
+                except OSError as err:
+                    raise ScenarioError.at(self, ".".join(map(str, where)) + f".{key}",
+                                           f"cannot read: {err}") from None
         for k, structure in enumerate(data.get("structures") or ()):  # lines by content
             try:
                 structure["line"] = "sha256:" + _content_digest(structure["line"])
