@@ -557,6 +557,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             failure = (f"the mass balance is {what} (released {v0:.6g}, entrained "
                        f"{result.summary['entrained_volume']:.6g}, "
                        + (f"supplied {supplied:.6g}, " if supplied is not None else "")
+                       + (f"secondary {areas.released_volume:.6g}, " if areas is not None
+                          else "")
                        + "on the map "
                        f"{result.summary['deposit_volume']:.6g}, out "
                        f"{result.summary['outflow_volume']:.6g}): not a result")
