@@ -166,3 +166,18 @@ def test_points_on_a_profile_are_refused():
     base = load_scenario(SCENARIOS / "seed_exponential_coulomb15.yaml")
     with pytest.raises(ScenarioError, match="output.points"):
         base.with_updates({"output.points": POINTS})
+
+
+def test_points_on_a_triangle_mesh_take_their_vertex():
+    base = load_scenario(SCENARIOS / "plane_cylinder_triangles.yaml")
+    cx, cy = base.release.center
+    run = simulate(base.with_updates({"time.end": 6.0, "output.points": {"at": [
+        {"name": "centre", "x": cx, "y": cy}, {"name": "below", "x": cx + 120.0, "y": cy}]}}))
+    x, y = run.terrain.cell_xy()
+    cells = run.points.cells
+    assert np.hypot(x[cells] - [cx, cx + 120.0], y[cells] - cy).max() <= 10.0
+    series = run.points.arrays()
+    for k, ts in enumerate(run.snapshots.time):
+        j = np.flatnonzero(np.abs(series["time"] - ts) <= 1e-9 * max(ts, 1.0))[0]
+        assert np.array_equal(series["thickness"][:, j], run.snapshots.h[k][cells])
+    assert series["thickness"][0, 0] == 10.0 and series["thickness"][1, 0] == 0.0
