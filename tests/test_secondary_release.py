@@ -123,3 +123,19 @@ def test_an_area_off_the_map_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "secondary_release.areas.0" in err[0]
     assert list(tmp_path.iterdir()) == [scenario]
+
+
+@pytest.mark.parametrize("areas, field, words", [
+    ([], "secondary_release.areas", "give at least one area"),
+    ([{"kind": "parabola", "center": 1.0, "half_length": 2.0, "max_thickness": 1.0}],
+     "secondary_release.areas.0", "'box', 'cylinder', 'polygon', 'raster'"),
+    ([{"kind": "box", "x": [1.0, 2.0], "thickness": 1.0}], "secondary_release.areas.0.y",
+     "required on a 2D terrain"),
+])
+def test_bad_areas_are_one_message(areas, field, words):
+    from avflow.errors import ScenarioError
+
+    with pytest.raises(ScenarioError) as caught:
+        _scenario(areas)
+    text = str(caught.value)
+    assert len(text.splitlines()) == 1 and f"{field}: " in text and words in text, text

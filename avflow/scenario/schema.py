@@ -388,16 +388,28 @@ PROFILE_RELEASES = ("parabola", "dam")
 GRID_RELEASES = ("cylinder", "polygon", "raster")
 
 
+#: The release shapes of a secondary area (2D terrains).
+SecondaryArea = Annotated[Union[BoxRelease, CylinderRelease, PolygonRelease, RasterRelease],
+                          Field(discriminator="kind")]
+
+
 class SecondaryRelease(_Model):
     """Release areas that release when the flow reaches them (AvaFrame's secondary release
     areas): each area (each polygon of a polygon file) releases its mass, at rest, the first
     time the flow stands above the dry threshold on one of its cells (2D terrains)."""
 
-    areas: Annotated[tuple[Release, ...], Field(min_length=1)]
-    """The areas, each as a release (box, cylinder, polygon or raster)."""
+    areas: tuple[SecondaryArea, ...]
+    """The areas, each as a release (box, cylinder, polygon or raster); at least one."""
     check_every: Positive | None = None
     """Time between checks whether the flow reached an area (s); null: output.every / 10,
     at most 1 s. An area releases at the first check after the flow reached it."""
+
+    @field_validator("areas")
+    @classmethod
+    def _some_area(cls, value: tuple) -> tuple:
+        if not value:  # (checked here, not by length: a bad area is then one message)
+            raise _problem("give at least one area")
+        return value
 
 #: Largest map (m along a profile, or a side of a plane's extent): 10 000 km, a quarter of
 #: the Earth's circumference, where a flat bed without the Earth's curvature means nothing.
@@ -1315,9 +1327,9 @@ class Scenario(_Model):
                            "place is in the file's fields on (time, x)", "output.points")
         for k, area in enumerate(self.secondary_release.areas
                                  if self.secondary_release is not None else ()):
-            if area.kind in PROFILE_RELEASES or (area.kind == "box" and area.y is None):
-                raise _problem("a secondary area is a box with x and y, a cylinder, a "
-                               "polygon or a raster", f"secondary_release.areas.{k}")
+            if area.kind == "box" and area.y is None:
+                raise _problem(f"required on a 2D terrain ({terrain!r})",
+                               f"secondary_release.areas.{k}.y")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
         self._maps_fit(terrain)
