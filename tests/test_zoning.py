@@ -10,6 +10,7 @@ import pytest
 from avflow.cli import main
 from avflow.output.zoning import BLUE, NONE, RED, YELLOW, ZoningRule, zone_map
 from conftest import SCENARIOS
+from test_region_scenarios import _on_dem, folder as region_folder  # noqa: F401 (a fixture)
 
 
 @pytest.mark.parametrize("years, p, want", [
@@ -107,16 +108,15 @@ def test_runs_on_different_grids_are_refused(runs, tmp_path, capsys):
     assert "not the grid of" in capsys.readouterr().err
 
 
-def test_zoning_of_a_region_with_return_periods(tmp_path_factory, capsys):
+def test_zoning_of_a_region_with_return_periods(region_folder, capsys):
     import rasterio
     import xarray as xr
 
-    from test_region_scenarios import _on_dem, folder as _folder  # noqa: F401
     from avflow.region import load_region
     from avflow.region.orchestrate import run_region
     from avflow.region.run import read_result, result_path
 
-    folder = _folder.__wrapped__(tmp_path_factory)
+    folder = region_folder
     outcome = run_region(load_region(folder / "sc.yaml"), folder / "out-sc", workers=0,
                          quiet=True)
     assert main(["zoning", str(folder / "out-sc")]) == 0
