@@ -1,5 +1,5 @@
 """avflow: debris-avalanche runs from scenario files (run, ensemble, report, export, plot, path,
-region, calibrate, compare, release-areas).
+region, calibrate, compare, release-areas, zoning).
 
 Exit codes: 0 success, 1 the run failed numerically, 2 bad input (scenario or command line).
 Errors in the input are one line naming the file and the field; no output file is left
@@ -122,13 +122,17 @@ def _entrained_note(ds) -> str:
     balance of a run with entrainment or registered sources (``+ supplied ...``); nothing
     for the others."""
     supplied = "supplied_volume" in ds
-    if not supplied and ("entrainment_law" not in ds.attrs or "entrained_volume" not in ds):
+    secondary = "secondary_release_volume" in ds
+    if not (supplied or secondary) and ("entrainment_law" not in ds.attrs
+                                        or "entrained_volume" not in ds):
         return ""
     units = ds["release_volume"].attrs.get("units", "m3")
     v = {name: float(ds[name]) for name in ("release_volume", "entrained_volume",
                                             "deposit_volume", "outflow_volume")}
     added = (f" + entrained {v['entrained_volume']:.4g}" if "entrainment_law" in ds.attrs
              else "") + (f" + supplied {float(ds['supplied_volume']):.4g}" if supplied else "")
+    if secondary:  # the secondary release areas the flow reached
+        added += f" + secondary {float(ds['secondary_release_volume']):.4g}"
     return (f" (released {v['release_volume']:.4g}{added}"
             f" = on the map {v['deposit_volume']:.4g} + out {v['outflow_volume']:.4g} "
             f"{units})")
@@ -211,6 +215,11 @@ def _cmd_run(args) -> int:
         check_path_outputs(out.with_name(out.stem + "_path"), inputs)
         if scenario.output.path.line:
             read_line(scenario.output.path.line)  # a bad path line: exit 2 before the run
+    if scenario.output.points is not None:  # OUT_points.csv and .png, checked likewise
+        from avflow.output.points import sidecar_paths
+
+        for side in sidecar_paths(out):
+            check_output_path(side, inputs)
     with output_lock(out):  # a second run to the same OUT says so, and leaves this one be
         remove_stale_temporaries(out)  # left by a write that was killed
         progress = Progress(quiet=args.quiet)
@@ -244,7 +253,28 @@ def _cmd_run(args) -> int:
             # file when asked for (the path analysis reads h at t = 0), the rest from memory
             ds = rest.assign({name: on_disk[name].variable for name in on_disk.data_vars
                               if name not in rest.variables})
-            return _after_run(args, scenario, out, ds, result.status, inputs)
+            code = _after_run(args, scenario, out, ds, result.status, inputs)
+        if result.points is not None:
+            _write_points(args, result, out)
+        return code
+
+
+def _write_points(args, result, out: Path) -> None:
+    """OUT_points.csv and OUT_points.png of a run with points of interest, and one line."""
+    from avflow.output.points import (plot_points, points_dataset, sidecar_paths,
+                                      write_points_csv)
+
+    ds = points_dataset(result)
+    csv_path, png_path = sidecar_paths(out)
+    write_points_csv(ds, csv_path)
+    plot_points(ds, png_path, f"{result.scenario.name}: flow at the points of interest")
+    if not args.quiet:
+        arrivals = ", ".join(
+            f"{n} {'not reached' if math.isnan(t) else f'at {t:.1f} s'} (peak {p:.3g} kPa)"
+            for n, t, p in zip(ds["station_name"].values, ds["arrival_time"].values,
+                               ds["peak_pressure"].values))
+        print(f"points: {arrivals}")
+        print(f"wrote {csv_path}, {png_path} (and the group 'points' of {out})")
 
 
 def _after_run(args, scenario, out: Path, ds, status: str, inputs=None) -> int:
@@ -418,6 +448,25 @@ def build_parser() -> argparse.ArgumentParser:
                                        "raster per threshold; of a region: every map, and "
                                        "every *_exceedance_probability per threshold)")
     x.set_defaults(func=_cmd_export)
+    z = sub.add_parser("zoning", help="hazard zones (red, blue, yellow) from peak pressure "
+                       "and return period: a paletted GeoTIFF and its legend (PNG)",
+                       parents=[quiet])
+    z.add_argument("sources", nargs="+", metavar="SOURCE", help="YEARS=RUN.nc (a run of that "
+                   "return period, repeatable, one grid for all; several runs of one return "
+                   "period: their largest pressure), or the output folder of an avflow "
+                   "region with scenarios.return_periods")
+    z.add_argument("-o", "--output", help="output GeoTIFF (default: zoning.tif, in a region's "
+                   "folder for a region); the legend is OUT_legend.png")
+    z.add_argument("--red-kpa", type=float, default=30.0, metavar="KPA",
+                   help="pressure from which a scenario up to --rare-years is red (default 30)")
+    z.add_argument("--yellow-kpa", type=float, default=3.0, metavar="KPA",
+                   help="pressure under which a scenario beyond --frequent-years is yellow "
+                        "(default 3)")
+    z.add_argument("--frequent-years", type=float, default=30.0, metavar="T",
+                   help="return period up to which any flow is red (default 30)")
+    z.add_argument("--rare-years", type=float, default=300.0, metavar="T",
+                   help="return period beyond which any flow is yellow (default 300)")
+    z.set_defaults(func=_cmd_zoning)
     pl = sub.add_parser("plot", help="draw a run to a PNG (peak thickness and peak-pressure "
                                      "classes over a hillshade; bed and snapshots on "
                                      "profiles; a region's merged maps, release outlines "
@@ -698,6 +747,56 @@ def _cmd_export(args) -> int:
     for path in written:
         if not args.quiet:
             print(f"wrote {path}")
+    return 0
+
+
+def _cmd_zoning(args) -> int:
+    from avflow.files import protected
+    from avflow.output.netcdf import check_output_path
+    from avflow.output.zoning import (ZONE_NAMES, ZoningError, ZoningRule, write_zoning,
+                                      zone_areas, zoning_from_runs)
+
+    rule = ZoningRule(args.red_kpa, args.yellow_kpa, args.frequent_years, args.rare_years)
+    if not (0 < rule.yellow_kpa < rule.red_kpa and 0 < rule.frequent_years < rule.rare_years):
+        raise ZoningError("--yellow-kpa must be below --red-kpa and --frequent-years below "
+                          "--rare-years, all positive")
+    pairs = [s for s in args.sources if "=" in s]
+    if pairs and len(pairs) != len(args.sources):
+        raise ZoningError("give either YEARS=RUN.nc pairs or one region folder, not both")
+    if pairs:
+        runs = {}
+        for item in pairs:
+            years, _, path = item.partition("=")
+            try:
+                t = float(years)
+            except ValueError:
+                t = math.nan
+            if not t > 0 or math.isinf(t):
+                raise ZoningError(f"{item}: the return period before '=' must be a positive "
+                                  "number of years")
+            if not Path(path).is_file():
+                raise ZoningError(f"{item}: file not found: {path}")
+            runs.setdefault(t, []).append(path)
+        out = Path(args.output or "zoning.tif")
+        check_output_path(out, protected(pairs and [p.partition("=")[2] for p in pairs]))
+        result = zoning_from_runs(runs, rule)
+        periods = sorted(runs)
+        title = "hazard zones from " + ", ".join(f"{t:g}" for t in periods) + "-year runs"
+    else:
+        from avflow.region.zoning import default_output, region_zoning
+
+        if len(args.sources) != 1:
+            raise ZoningError("give one region folder (or YEARS=RUN.nc pairs)")
+        out = Path(args.output) if args.output else default_output(args.sources[0])
+        check_output_path(out)
+        result, periods = region_zoning(args.sources[0], rule)
+        title = f"hazard zones of the region {Path(args.sources[0]).name}"
+    written = write_zoning(result, out, rule, periods, title)
+    if not args.quiet:
+        areas = zone_areas(result)
+        print("zones: " + ", ".join(f"{ZONE_NAMES[c]} {a / 1e4:.2f} ha"
+                                     for c, a in areas.items()))
+        print("wrote " + ", ".join(str(w) for w in written))
     return 0
 
 

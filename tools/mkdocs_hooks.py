@@ -21,7 +21,8 @@ from pathlib import Path
 
 #: Blocks of a scenario file, in the order of the file; each gets its own page.
 BLOCKS = ("name", "terrain", "grid", "release", "rheology", "entrainment", "forest",
-          "sources", "structures", "time", "output", "boundary", "physics", "numerics")
+          "sources", "structures", "secondary_release", "time", "output", "boundary",
+          "physics", "numerics")
 #: Top-level scalar fields documented on the "name" page.
 TOP_SCALARS = ("name", "description")
 

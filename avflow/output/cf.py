@@ -131,6 +131,8 @@ SUMMARIES = {
                                "from what the layer lost; 0 without entrainment"),
     "supplied_volume": ("m3", "volume the registered sources (avflow.extend) added over "
                               "the run, from their book per cell; runs with sources only"),
+    "secondary_release_volume": ("m3", "volume the secondary release areas released when "
+                                       "the flow reached them; runs with such areas only"),
     "outflow_volume": ("m3", "volume that left through open boundaries"),
     "film_volume": ("m3", "volume still moving at the end with h <= dry_threshold"),
     "mass_balance_error": ("1", "|V_end + V_out - V_0 - V_ent| / (V_0 + V_ent): released "
@@ -234,6 +236,8 @@ def mass_balance_text(summary: dict, units: str = "m3") -> str:
     the digits that read back the float (repr): the balance a file states."""
     supplied = (f" + supplied {summary['supplied_volume']!r}" if "supplied_volume" in summary
                 else "")
+    if "secondary_release_volume" in summary:
+        supplied += f" + secondary {summary['secondary_release_volume']!r}"
     return (f"released {summary['release_volume']!r} + entrained "
             f"{summary['entrained_volume']!r}{supplied} = on the map "
             f"{summary['deposit_volume']!r} + "

@@ -222,6 +222,11 @@ class SnapshotStream(Snapshots):
             with _NETCDF_LOCK:
                 self._nc.close()
             self._nc = self._store = self._fields = None
+            from avflow.output.points import append_group, points_dataset
+
+            points = points_dataset(result)  # the points of interest: a group of the file
+            if points is not None:
+                append_group(points, self._tmp)
             publish(self._tmp, self.path)
         except BaseException as err:
             self._fail(err)

@@ -387,6 +387,30 @@ Release = Annotated[Union[ParabolaRelease, DamRelease, BoxRelease, CylinderRelea
 PROFILE_RELEASES = ("parabola", "dam")
 GRID_RELEASES = ("cylinder", "polygon", "raster")
 
+
+#: The release shapes of a secondary area (2D terrains).
+SecondaryArea = Annotated[Union[BoxRelease, CylinderRelease, PolygonRelease, RasterRelease],
+                          Field(discriminator="kind")]
+
+
+class SecondaryRelease(_Model):
+    """Release areas that release when the flow reaches them (AvaFrame's secondary release
+    areas): each area (each polygon of a polygon file) releases its mass, at rest, the first
+    time the flow stands above the dry threshold on one of its cells (2D terrains)."""
+
+    areas: tuple[SecondaryArea, ...]
+    """The areas, each as a release (box, cylinder, polygon or raster); at least one."""
+    check_every: Positive | None = None
+    """Time between checks whether the flow reached an area (s); null: output.every / 10,
+    at most 1 s. An area releases at the first check after the flow reached it."""
+
+    @field_validator("areas")
+    @classmethod
+    def _some_area(cls, value: tuple) -> tuple:
+        if not value:  # (checked here, not by length: a bad area is then one message)
+            raise _problem("give at least one area")
+        return value
+
 #: Largest map (m along a profile, or a side of a plane's extent): 10 000 km, a quarter of
 #: the Earth's circumference, where a flat bed without the Earth's curvature means nothing.
 MAX_EXTENT = 1e7
@@ -992,6 +1016,46 @@ class PathAnalysis(_Model):
         return None if value is None else _data_file(value, info, LINE_SUFFIXES)
 
 
+class PointOfInterest(_Model):
+    """A place where the flow is recorded against time (a building, a road)."""
+
+    name: Annotated[str, StringConstraints(strict=True, strip_whitespace=True, min_length=1)]
+    x: Number
+    """m, in the terrain's coordinates."""
+    y: Number
+    """m, in the terrain's coordinates."""
+
+
+class Points(_Model):
+    """Points of interest (2D terrains): flow thickness, speed and pressure against time
+    at each, written beside the run (OUT_points.csv, OUT_points.png) and in its NetCDF
+    (group ``points``)."""
+
+    at: tuple[PointOfInterest, ...] = ()
+    """Points given by name and coordinates."""
+    file: Text | None = None
+    """A point layer (.shp with its .dbf, .gpkg, .geojson, .fgb), relative to the scenario
+    file; stored absolute. Reprojected to the DEM's CRS where both carry one."""
+    name_field: Text = "name"
+    """The attribute of the point layer that names each point (missing: point_1, ...)."""
+    every: Positive | None = None
+    """Time between samples (s); null: output.every / 10, at most 1 s."""
+
+    @field_validator("file")
+    @classmethod
+    def _existing_points(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else _data_file(value, info, POLYGON_SUFFIXES)
+
+    @model_validator(mode="after")
+    def _some_point(self) -> Points:
+        if not self.at and self.file is None:
+            raise _problem("give the points in 'at' or a point layer in 'file'")
+        names = [p.name for p in self.at]
+        if len(set(names)) != len(names):
+            raise _problem(f"the points' names must differ, got {show(names)}", "at")
+        return self
+
+
 class Output(_Model):
     """What is stored, and when the run counts as stopped."""
 
@@ -1055,6 +1119,9 @@ class Output(_Model):
         if any(b <= a for a, b in zip(value, value[1:])):
             raise _problem(f"must be strictly increasing (kPa), got {show(list(value))}")
         return value
+    points: Points | None = None
+    """Points of interest: thickness, speed and pressure against time at each (2D
+    terrains); null: none."""
 
 
 class Boundaries(_Model):
@@ -1197,6 +1264,8 @@ class Scenario(_Model):
     avflow.extend (snowfall, a feeding flow), each chosen by ``law``; empty: none."""
     structures: tuple[Structure, ...] = ()
     """Dams and walls built into the bed before the run (2D terrains)."""
+    secondary_release: SecondaryRelease | None = None
+    """Areas that release when the flow reaches them (2D terrains); null: none."""
     time: Time
     output: Output = Output()
     boundary: Boundaries = Boundaries()
@@ -1251,6 +1320,16 @@ class Scenario(_Model):
                            "output.path.line")
         if terrain == "profile" and self.structures:
             raise _problem("a structure needs a 2D terrain ('plane' or 'dem')", "structures")
+        if terrain == "profile" and self.secondary_release is not None:
+            raise _problem("needs a 2D terrain ('plane' or 'dem')", "secondary_release")
+        if terrain == "profile" and self.output.points is not None:
+            raise _problem("needs a 2D terrain ('plane' or 'dem'): on a profile every "
+                           "place is in the file's fields on (time, x)", "output.points")
+        for k, area in enumerate(self.secondary_release.areas
+                                 if self.secondary_release is not None else ()):
+            if area.kind == "box" and area.y is None:
+                raise _problem(f"required on a 2D terrain ({terrain!r})",
+                               f"secondary_release.areas.{k}.y")
         if terrain == "profile" and self.grid.mesh != "square":
             raise _problem("not allowed on a 'profile' terrain (1D)", "grid.mesh")
         self._maps_fit(terrain)
@@ -1359,6 +1438,10 @@ class Scenario(_Model):
         if self.output.path is not None:
             files.append(self.output.path.line)
         files += [s.line for s in self.structures]
+        if self.output.points is not None:
+            files.append(self.output.points.file)
+        for area in self.secondary_release.areas if self.secondary_release else ():
+            files.append(getattr(area, "path", None))
         return [f for f in files if f]
 
     @property
@@ -1411,6 +1494,23 @@ class Scenario(_Model):
             data.pop("structures", None)
         if not data.get("sources"):  # none (no registered source): as before the field
             data.pop("sources", None)
+        if data["output"].get("points") is None:  # none: hashes as before the field
+            data["output"].pop("points", None)
+        if data.get("secondary_release") is None:  # none: hashes as before the block
+            data.pop("secondary_release", None)
+        files = [(("output", "points"), "file")] if data["output"].get("points") else []
+        files += [(("secondary_release", "areas", k), "path") for k, a in enumerate(
+            (data.get("secondary_release") or {}).get("areas", ())) if a.get("path")]
+        for where, key in files:  # points and secondary areas count by their files' content
+            node = data
+            for part in where:
+                node = node[part]
+            if node.get(key):
+                try:
+                    node[key] = "sha256:" + _content_digest(node[key])
+                except OSError as err:
+                    raise ScenarioError.at(self, ".".join(map(str, where)) + f".{key}",
+                                           f"cannot read: {err}") from None
         for k, structure in enumerate(data.get("structures") or ()):  # lines by content
             try:
                 structure["line"] = "sha256:" + _content_digest(structure["line"])

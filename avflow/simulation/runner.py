@@ -248,6 +248,10 @@ class RunResult:
     summary: dict
     #: s before the time loop compiling the Numba kernels (or loading them from the cache)
     compile_time: float = 0.0
+    #: the points of interest's time series (avflow.simulation.events; None: no points)
+    points: object = None
+    #: the secondary release areas, when each released (None: none)
+    secondary: object = None
 
 
 def warm_up(solver: Solver, state: State, max_steps: int, **stop) -> float:
@@ -483,6 +487,12 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
     snaps = Snapshots() if snapshots is None else snapshots
     terrain, h0, solver, thresholds = prepare(scenario, max_memory,
                                               streamed=not snaps.in_memory)
+    from avflow.simulation.events import (advance_sampling, point_series, sample_interval,
+                                          secondary_areas)
+
+    points = point_series(scenario, terrain)  # points and areas off the map: exit 2 now
+    areas = secondary_areas(scenario, terrain, thresholds["dry"])
+    sampling = sample_interval(scenario)
     started = _time.perf_counter()
     state = solver.new_state(h0)  # Numba's first use in a process loads its registries
     first_use = _time.perf_counter() - started
@@ -492,6 +502,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             "stop_kinetic": -1.0 if by_volume else thresholds["stop_fraction"]}
     t_end, every = scenario.time.end, scenario.output.every
     snaps.record(state, 0.0, terrain)
+    if points is not None:
+        points.sample(state)
     entraining = solver.source is not None
     if entraining:
         snaps.entrained_volume.append(0.0)
@@ -506,7 +518,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
         time_to_stop = np.nan
         while True:
             target = min(k * every, t_end)
-            status = solver.advance(state, target, **stop, max_steps=scenario.time.max_steps)
+            status = advance_sampling(solver, state, target, sampling, points, areas, **stop,
+                                      max_steps=scenario.time.max_steps)
             before = _time.perf_counter()
             snaps.record(state, state.statistics.moving_volume, terrain)
             if entraining:
@@ -536,7 +549,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
     wall = _time.perf_counter() - started - recording
     solver.release_buffers()  # the kernel's work arrays, before the file is finished
     result = RunResult(scenario, terrain, solver, state, h0, snaps, status, time_to_stop,
-                       wall, thresholds, {}, compile_time)
+                       wall, thresholds, {}, compile_time, points, areas)
     if failure is None:
         result.summary = summarize(result, v0)
         error = result.summary["mass_balance_error"]
@@ -546,6 +559,8 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
             failure = (f"the mass balance is {what} (released {v0:.6g}, entrained "
                        f"{result.summary['entrained_volume']:.6g}, "
                        + (f"supplied {supplied:.6g}, " if supplied is not None else "")
+                       + (f"secondary {areas.released_volume:.6g}, " if areas is not None
+                          else "")
                        + "on the map "
                        f"{result.summary['deposit_volume']:.6g}, out "
                        f"{result.summary['outflow_volume']:.6g}): not a result")
@@ -563,6 +578,7 @@ def summarize(result: RunResult, v0: float) -> dict:
     v_src = result.solver.entrained_volume(state)
     supplying = bool(result.solver.sources)
     v_sup = result.solver.supplied_volume(state) if supplying else 0.0
+    v_sec = result.secondary.released_volume if result.secondary is not None else 0.0
     rho = result.scenario.physics.density
     truncated = runout_truncated(terrain, state.peak_h, result.thresholds["runout"],
                                  result.scenario.terrain.kind == "dem", v_out, result.h0)
@@ -590,8 +606,11 @@ def summarize(result: RunResult, v0: float) -> dict:
         else ENDED_BY.get(result.status, result.status),
         # released + entrained (read from the erodible layer) + supplied (the registered
         # sources' book per cell) = on the map + out
-        "mass_balance_error": abs(v_end + v_out - v0 - v_src - v_sup) / (v0 + v_src + v_sup),
+        # (+ released by the secondary areas that the flow reached)
+        "mass_balance_error": abs(v_end + v_out - v0 - v_src - v_sup - v_sec)
+        / (v0 + v_src + v_sup + v_sec),
         **({"supplied_volume": v_sup} if supplying else {}),
+        **({"secondary_release_volume": v_sec} if result.secondary is not None else {}),
         "runout_truncated": truncated,
         "status": result.status,
         "steps": state.steps,
