@@ -4,14 +4,15 @@ arrow, legend, CRS and the run's parameters, exported to PDF and PNG."""
 import os
 import re
 
-from qgis.core import (QgsApplication, QgsHillshadeRenderer, QgsLayoutExporter,
+from qgis.core import (QgsApplication, QgsBilinearRasterResampler, QgsContrastEnhancement,
+                       QgsSingleBandGrayRenderer, QgsLayoutExporter,
                        QgsLayoutItemLabel, QgsLayoutItemLegend, QgsLayoutItemMap,
                        QgsLayoutItemPicture, QgsLayoutItemScaleBar, QgsLayoutPoint,
                        QgsLayoutSize, QgsPrintLayout, QgsProcessingAlgorithm,
                        QgsProcessingException, QgsProcessingOutputFile,
                        QgsProcessingParameterEnum, QgsProcessingParameterFile,
                        QgsProcessingParameterFileDestination, QgsProcessingParameterNumber,
-                       QgsProcessingParameterString, QgsProject, QgsRasterLayer,
+                       QgsProcessingParameterString, QgsProject, QgsRasterLayer, QgsRectangle,
                        QgsUnitTypes, QgsVectorLayer)
 from qgis.PyQt.QtGui import QFont
 
@@ -30,13 +31,20 @@ def _scenario_lines(nc):
     except Exception:
         return [], {}
     text = meta.get("NC_GLOBAL#scenario", "")
+    blocks, key = {}, None
+    for line in text.splitlines():  # the resolved scenario, as avflow wrote it (YAML)
+        if line and not line[0].isspace() and ":" in line:
+            key, _, rest = line.partition(":")
+            blocks[key] = [rest.strip()] if rest.strip() else []
+        elif key and line.startswith("  ") and not line.startswith("   ") and ":" in line:
+            name, _, value = line.strip().partition(":")
+            value = value.strip()
+            if value and value not in ("null", "{}", "[]"):
+                blocks[key].append(f"{name} {os.path.basename(value) if name == 'path' else value}")
     picks = []
-    for key in ("rheology", "grid", "physics", "numerics", "release"):
-        match = re.search(rf"^{key}:\s*(\{{.*\}}|\S.*)$", text, re.M)
-        if match:
-            value = match.group(1)
-            value = re.sub(r"path: [^,}]*/", "path: ", value)  # the file name, not the folder
-            picks.append(f"{key}: {value}")
+    for key in ("rheology", "release", "grid", "physics", "numerics", "time"):
+        if blocks.get(key):
+            picks.append(f"{key}: " + ", ".join(blocks[key]))
     return picks, meta
 
 
@@ -103,12 +111,24 @@ class ReportFigure(QgsProcessingAlgorithm):
 
         project = QgsProject()  # a project of its own: the user's stays as it is
         shade = None
-        if bed_tif:
-            shade = QgsRasterLayer(bed_tif, "hillshade", "gdal")
-            renderer = QgsHillshadeRenderer(shade.dataProvider(), 1, 315.0, 45.0)
-            renderer.setZFactor(1.5)
-            shade.setRenderer(renderer)
-        layer = layers.styled_raster(map_tif, f"{words}" + (f" ({status})" if status else ""))
+        if bed_tif:  # GDAL's hillshade (QGIS's own GDAL), drawn grey and bilinear
+            from osgeo import gdal
+
+            shade_tif = bed_tif[:-4] + "_hillshade.tif"
+            gdal.DEMProcessing(shade_tif, bed_tif, "hillshade", azimuth=315, altitude=45,
+                               zFactor=1.0, computeEdges=True)
+            shade = QgsRasterLayer(shade_tif, "hillshade", "gdal")
+            grey = QgsSingleBandGrayRenderer(shade.dataProvider(), 1)
+            enhancement = QgsContrastEnhancement(shade.dataProvider().dataType(1))
+            enhancement.setContrastEnhancementAlgorithm(
+                QgsContrastEnhancement.StretchToMinimumMaximum)
+            enhancement.setMinimumValue(60)
+            enhancement.setMaximumValue(255)
+            grey.setContrastEnhancement(enhancement)
+            shade.setRenderer(grey)
+            shade.resampleFilter().setZoomedInResampler(QgsBilinearRasterResampler())
+            shade.resampleFilter().setZoomedOutResampler(QgsBilinearRasterResampler())
+        layer = layers.styled_raster(map_tif, words)
         if not layer.isValid():
             raise QgsProcessingException(f"{map_tif}: not a raster QGIS reads")
         release = _release_layer(meta)
@@ -129,15 +149,23 @@ class ReportFigure(QgsProcessingAlgorithm):
         themap = QgsLayoutItemMap(layout)
         themap.setLayers(shown)
         themap.setCrs(crs)
-        themap.attemptMove(QgsLayoutPoint(8, 20, mm))
-        themap.attemptResize(QgsLayoutSize(W * 0.66, H - 30, mm))
         extent = layer.extent()
         if release is not None:
             extent.combineExtentWith(release.extent())
         extent.scale(1.05)
-        themap.zoomToExtent(extent)
-        themap.setFrameEnabled(True)
         layout.addLayoutItem(themap)
+        themap.attemptMove(QgsLayoutPoint(8, 20, mm))
+        width, height = W * 0.66, H - 30
+        themap.attemptResize(QgsLayoutSize(width, height, mm))
+        # grow the extent to the item's shape: setExtent would otherwise resize the item
+        cx, cy = extent.center().x(), extent.center().y()
+        ew, eh = extent.width(), extent.height()
+        if ew / eh < width / height:
+            ew = eh * width / height
+        else:
+            eh = ew * height / width
+        themap.setExtent(QgsRectangle(cx - ew / 2, cy - eh / 2, cx + ew / 2, cy + eh / 2))
+        themap.setFrameEnabled(True)
 
         left = 8 + W * 0.66 + 6
         label = QgsLayoutItemLabel(layout)
@@ -187,6 +215,8 @@ class ReportFigure(QgsProcessingAlgorithm):
         info.attemptResize(QgsLayoutSize(W - left - 6, H * 0.45, mm))
         layout.addLayoutItem(info)
 
+        feedback.pushInfo(f"page {W:g} x {H:g} mm, map {themap.rect().width():.0f} x "
+                          f"{themap.rect().height():.0f} mm at 1:{themap.scale():.0f}")
         exporter = QgsLayoutExporter(layout)
         for target, kind in ((pdf, "pdf"), (png, "png")):
             os.makedirs(os.path.dirname(target) or ".", exist_ok=True)
@@ -196,6 +226,7 @@ class ReportFigure(QgsProcessingAlgorithm):
             else:
                 settings = QgsLayoutExporter.ImageExportSettings()
                 settings.dpi = self.parameterAsInt(parameters, "DPI", context)
+                settings.generateWorldFile = False
                 result = exporter.exportToImage(tmp, settings)
             if result != QgsLayoutExporter.Success:
                 raise QgsProcessingException(f"{target}: layout export failed ({result})")
