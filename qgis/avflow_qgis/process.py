@@ -26,10 +26,6 @@ _COUNT = re.compile(r"\]\s*(\d+)/(\d+)\s")
 _ERROR = re.compile(r"^avflow: error: ")
 
 
-class Cancelled(QgsProcessingException):
-    """The user pressed Cancel; avflow was stopped (its outputs are written atomically)."""
-
-
 def executable():
     """The avflow command: the provider's setting, else $AVFLOW_EXECUTABLE, else the PATH."""
     chosen = ""
@@ -72,7 +68,7 @@ def _progress(text, feedback):
 def run(args, feedback, cwd=None):
     """Run ``avflow ARGS``; returns its stdout lines. Progress goes to ``feedback``, every
     other line of stderr to the log; Cancel stops avflow (SIGTERM, then SIGKILL after 20 s)
-    and raises :class:`Cancelled`; a failure raises avflow's error line."""
+    and raises "Cancelled: ..."; a failure raises avflow's error line."""
     command = [executable()] + [str(a) for a in args]
     feedback.pushCommandInfo(" ".join(_quote(c) for c in command))
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -156,7 +152,8 @@ def run(args, feedback, cwd=None):
     for line in out_lines:
         feedback.pushInfo(line)
     if cancelled_at is not None:
-        raise Cancelled("Cancelled: avflow stopped, nothing half-written was left")
+        # avflow writes to temporary names and renames: a stopped run leaves nothing
+        raise QgsProcessingException("Cancelled: avflow stopped, nothing half-written was left")
     if rc != 0:
         errors = [l for l in err_lines if _ERROR.match(l)]
         message = (errors[-1] if errors else (err_lines[-1] if err_lines else

@@ -1,0 +1,254 @@
+"""The QGIS plugin (qgis/avflow_qgis) end to end in a real, headless QGIS: qgis_process runs
+its algorithms on AvaFrame's Kontertal path at 20 m, and PyQGIS (the system Python, in a
+subprocess: this venv cannot import qgis) checks the styles and Cancel. Skipped where QGIS
+is not installed (apt-get install qgis python3-qgis qgis-providers)."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+KOT = ROOT / "data" / "avaframe" / "avaKot"
+# Debian's qgis_process wrapper adds --noversioncheck, which the 3.22 executable rejects
+QGIS_PROCESS = shutil.which("qgis_process.bin") or shutil.which("qgis_process")
+SYSTEM_PYTHON = "/usr/bin/python3"
+
+
+def _pyqgis() -> bool:
+    if not os.path.exists(SYSTEM_PYTHON):
+        return False
+    return subprocess.run([SYSTEM_PYTHON, "-c", "import qgis.core"], capture_output=True,
+                          env={"PATH": "/usr/bin:/bin"}).returncode == 0
+
+
+pytestmark = pytest.mark.skipif(
+    QGIS_PROCESS is None or not _pyqgis(),
+    reason="QGIS is not installed (qgis_process and PyQGIS in /usr/bin/python3); CI installs "
+           "it with apt-get install qgis python3-qgis qgis-providers")
+
+
+@pytest.fixture(scope="module")
+def qgis_env(tmp_path_factory):
+    """A fresh QGIS profile, offscreen, with the plugin from the repository enabled, and
+    avflow of this checkout as the provider's separate process."""
+    base = tmp_path_factory.mktemp("qgis")
+    runtime = base / "xdg"
+    runtime.mkdir(mode=0o700)
+    wrapper = base / "avflow"
+    wrapper.write_text(f"#!/bin/sh\nPYTHONPATH={ROOT} exec {sys.executable} -m avflow \"$@\"\n")
+    wrapper.chmod(0o755)
+    cache = os.environ.get("AVFLOW_CACHE_DIR") or str(Path.home() / ".cache" / "avflow")
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(base / "home"), "XDG_RUNTIME_DIR": str(runtime),
+           "QT_QPA_PLATFORM": "offscreen", "QGIS_PLUGINPATH": str(ROOT / "qgis"),
+           "AVFLOW_EXECUTABLE": str(wrapper), "AVFLOW_CACHE_DIR": cache, "LANG": "C.UTF-8"}
+    (base / "home").mkdir()
+    done = subprocess.run([QGIS_PROCESS, "plugins", "enable", "avflow_qgis"], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return {"env": env, "base": base}
+
+
+def qgis_process(qgis_env, algorithm, **params):
+    args = [QGIS_PROCESS, "run", f"avflow:{algorithm}", "--json", "--"]
+    args += [f"{k}={v}" for k, v in params.items()]
+    done = subprocess.run(args, env=qgis_env["env"], capture_output=True, text=True,
+                          timeout=900)
+    try:
+        out = json.loads(done.stdout)
+    except json.JSONDecodeError:
+        out = {}
+    return done.returncode, out, done.stdout + done.stderr
+
+
+def pyqgis(qgis_env, script):
+    """Run a PyQGIS script (system Python) with the plugin importable; returns its JSON."""
+    code = textwrap.dedent("""
+        import json, sys
+        sys.path.insert(0, {plugins!r})
+        from qgis.core import QgsApplication
+        app = QgsApplication([], False)
+        app.initQgis()
+        sys.path.insert(0, "/usr/share/qgis/python/plugins")
+        from processing.core.Processing import Processing
+        Processing.initialize()
+        from avflow_qgis.provider import AvflowProvider
+        provider = AvflowProvider()
+        QgsApplication.processingRegistry().addProvider(provider)
+        result = {{}}
+    """).format(plugins=str(ROOT / "qgis")) + textwrap.dedent(script) + \
+        (
+        "\nprint('RESULT' + json.dumps(result), flush=True)\nimport os\nos._exit(0)\n")
+    done = subprocess.run([SYSTEM_PYTHON, "-c", code], env=qgis_env["env"],
+                          capture_output=True, text=True, timeout=900)
+    line = [l for l in done.stdout.splitlines() if l.startswith("RESULT")]
+    assert line, f"exit code {done.returncode}: " + done.stdout[-3000:] + done.stderr[-3000:]
+    return json.loads(line[-1][len("RESULT"):])
+
+
+@pytest.fixture(scope="module")
+def kot_run(qgis_env):
+    folder = qgis_env["base"] / "kot"
+    rc, out, log = qgis_process(qgis_env, "run_scenario", DEM=KOT / "avaKot.asc",
+                                RELEASE=KOT / "relKot.shp", THICKNESS_FIELD="thickness",
+                                CELL_SIZE=20, NAME="kot", OUTPUT_FOLDER=folder)
+    assert rc == 0, log[-3000:]
+    return out["results"]
+
+
+def test_the_provider_lists_every_algorithm(qgis_env):
+    done = subprocess.run([QGIS_PROCESS, "list"], env=qgis_env["env"], capture_output=True,
+                          text=True, timeout=300)
+    for name in ("run_scenario", "load_run", "ensemble", "path_analysis", "release_areas",
+                 "regional_map", "report_figure"):
+        assert f"avflow:{name}" in done.stdout
+
+
+def test_run_a_scenario_gives_the_maps_in_the_dem_crs(kot_run):
+    import rasterio
+
+    from avflow.output.maps import _ZONE_COLORS
+
+    assert kot_run["STATUS"].startswith("ended by rule, ") and "still moving" in kot_run["STATUS"]
+    tifs = {Path(p).stem.removeprefix("kot_"): p for p in kot_run["LAYERS"]}
+    assert {"peak_pressure_class", "peak_thickness", "peak_speed", "peak_pressure",
+            "deposit_thickness"} <= set(tifs)
+    with rasterio.open(tifs["peak_pressure_class"]) as src:
+        assert src.crs.to_epsg() == 31287  # MGI / Austria Lambert, from the release's .prj
+        assert src.res == (20.0, 20.0)
+        classes = src.read(1)
+        palette = src.colormap(1)
+    import numpy as np
+
+    assert set(np.unique(classes)) <= {0, 1, 2, 3, 255}
+    assert {1, 2, 3} <= set(np.unique(classes))  # every class reached on this path
+    for k, color in enumerate(_ZONE_COLORS, start=1):  # the QML's colours are avflow plot's
+        assert "#%02x%02x%02x" % palette[k][:3] == color
+        assert color in Path(tifs["peak_pressure_class"]).with_suffix(".qml").read_text()
+    # the scenario YAML beside the outputs repeats the run from the command line
+    scenario = Path(kot_run["SCENARIO"])
+    from avflow.scenario.schema import load_scenario
+
+    sc = load_scenario(scenario)
+    assert sc.grid.dx == 20.0 and sc.rheology.law == "samosat" and sc.physics.density == 200.0
+
+
+def test_styles_load_in_qgis(qgis_env, kot_run):
+    result = pyqgis(qgis_env, f"""
+        from avflow_qgis import layers
+        for path in {kot_run["LAYERS"]!r}:
+            layer = layers.styled_raster(path, "x")
+            r = layer.renderer()
+            entry = {{"valid": layer.isValid(), "type": r.type(), "crs": layer.crs().authid()}}
+            if r.type() == "paletted":
+                entry["classes"] = [[c.value, c.color.name()] for c in r.classes()]
+            elif r.type() == "singlebandpseudocolor":
+                entry["items"] = [[i.value, i.color.name()] for i in
+                                  r.shader().rasterShaderFunction().colorRampItemList()]
+            result[path.rsplit("/", 1)[-1]] = entry
+    """)
+    assert all(e["valid"] and e["crs"] == "EPSG:31287" for e in result.values())
+    classes = result["kot_peak_pressure_class.tif"]
+    assert classes["type"] == "paletted"
+    assert classes["classes"] == [[1, "#f2d21b"], [2, "#2b6fce"], [3, "#d7191c"]]
+    pressure = result["kot_peak_pressure.tif"]
+    assert [v for v, _ in pressure["items"]][:3] == [1.0, 3.0, 30.0]
+    assert result["kot_peak_thickness.tif"]["type"] == "singlebandpseudocolor"
+    assert result["kot_peak_speed.tif"]["type"] == "singlebandpseudocolor"
+
+
+def test_load_a_run_names_its_status(qgis_env, kot_run):
+    rc, out, log = qgis_process(qgis_env, "load_run", INPUT=kot_run["NETCDF"],
+                                OUTPUT_FOLDER=qgis_env["base"] / "loaded")
+    assert rc == 0, log[-3000:]
+    assert out["results"]["STATUS"] == kot_run["STATUS"]
+    assert len(out["results"]["LAYERS"]) >= 5
+
+
+def test_report_figure_exports_pdf_and_png(qgis_env, kot_run):
+    pdf, png = qgis_env["base"] / "fig" / "kot.pdf", qgis_env["base"] / "fig" / "kot.png"
+    rc, out, log = qgis_process(qgis_env, "report_figure", INPUT=kot_run["NETCDF"], PDF=pdf,
+                                PNG=png, DPI=60)
+    assert rc == 0, log[-3000:]
+    assert pdf.read_bytes()[:5] == b"%PDF-" and pdf.stat().st_size > 5000
+    import numpy as np
+    from PIL import Image
+
+    with Image.open(png) as im:
+        w, h = im.size  # A4 landscape at 60 dpi, give or take QGIS's rounding
+        assert abs(w - 297 / 25.4 * 60) <= 1.5 and abs(h - 210 / 25.4 * 60) <= 1.5
+        pixels = np.asarray(im.convert("RGB"), dtype=int)
+    for color in ((0xf2, 0xd2, 0x1b), (0x2b, 0x6f, 0xce), (0xd7, 0x19, 0x1c)):
+        # each class is drawn (in the map, at 90% over the hillshade, and in the legend)
+        near = np.abs(pixels - np.array(color)).max(axis=-1) <= 30
+        assert near.sum() > 50, color
+
+
+def test_ensemble_gives_probabilities_between_0_and_1(qgis_env):
+    import numpy as np
+    import rasterio
+
+    rc, out, log = qgis_process(
+        qgis_env, "ensemble", DEM=KOT / "avaKot.asc", RELEASE=KOT / "relKot.shp",
+        THICKNESS_FIELD="thickness", CELL_SIZE=20, NAME="kotens", LAW=2, PARAM_MIN=18,
+        PARAM_MAX=24, FACTOR_MIN=1, FACTOR_MAX=1, MEMBERS=3, END_TIME=200,
+        OUTPUT_FOLDER=qgis_env["base"] / "ens")
+    assert rc == 0, log[-3000:]
+    probabilities = [p for p in out["results"]["LAYERS"] if "exceedance_probability" in p]
+    assert any("peak_pressure" in p for p in probabilities)
+    for path in probabilities:
+        with rasterio.open(path) as src:
+            p = src.read(1, masked=True).compressed()
+            assert src.crs.to_epsg() == 31287
+        assert p.size and np.all((p >= 0) & (p <= 1))
+        assert Path(path).with_suffix(".qml").read_text().count("colorrampshader") == 2
+
+
+def test_an_avflow_error_fails_the_algorithm_with_its_line(qgis_env):
+    rc, out, log = qgis_process(qgis_env, "run_scenario", DEM=KOT / "avaKot.asc",
+                                RELEASE=KOT / "relKot.shp", THICKNESS_FIELD="thickness",
+                                CELL_SIZE=20, LAW=3, DELTA=30, DELTA2=20, NAME="bad",
+                                OUTPUT_FOLDER=qgis_env["base"] / "bad")
+    assert rc != 0
+    assert "avflow: error:" in log and "delta2_deg" in log
+    assert not (qgis_env["base"] / "bad" / "bad.nc").exists()
+
+
+def test_cancel_stops_avflow_and_leaves_no_output(qgis_env):
+    folder = qgis_env["base"] / "cancelled"
+    result = pyqgis(qgis_env, f"""
+        import threading, time
+        from qgis.core import QgsProcessingContext, QgsProcessingFeedback, QgsProject
+        import processing
+        feedback = QgsProcessingFeedback()
+        progress = []
+        feedback.progressChanged.connect(lambda value: progress.append(value))
+        def cancel_when_running():  # once avflow's progress bar has moved
+            while not progress:
+                time.sleep(0.05)
+            result["progress_at_cancel"] = progress[-1]
+            feedback.cancel()
+        threading.Thread(target=cancel_when_running, daemon=True).start()
+        started = time.time()
+        try:
+            processing.run("avflow:run_scenario", dict(
+                DEM={str(KOT / "avaKot.asc")!r}, RELEASE={str(KOT / "relKot.shp")!r},
+                THICKNESS_FIELD="thickness", CELL_SIZE=2.5, ORDER=1, END_TIME=400,
+                NAME="cancelled", OUTPUT_FOLDER={str(folder)!r}), feedback=feedback)
+            result["raised"] = False
+        except Exception as err:
+            result["raised"] = True
+            result["message"] = str(err)
+        result["seconds"] = time.time() - started
+    """)
+    assert result["raised"], result
+    assert "Cancelled" in result["message"]
+    assert 0 < result["progress_at_cancel"] < 100  # avflow's bar reached QGIS's, mid-run
+    left = sorted(p.name for p in folder.iterdir())
+    assert left == ["cancelled.yaml", "inputs"], left  # no NetCDF, no temporary file
+    assert sorted(p.name for p in (folder / "inputs").iterdir()) == ["cancelled_release.gpkg"]
