@@ -54,6 +54,18 @@ def qgis_env(tmp_path_factory):
     return {"env": env, "base": base}
 
 
+def read_layer(path):
+    """A vector file's fields (numpy arrays), its shapely geometries and CRS."""
+    import pyogrio
+    import shapely
+
+    meta, _, geometry, values = pyogrio.raw.read(path)
+    layer = dict(zip(meta["fields"], values))
+    layer["geometry"] = list(shapely.from_wkb(geometry))
+    layer["crs"] = meta["crs"]
+    return layer
+
+
 def qgis_process(qgis_env, algorithm, **params):
     args = [QGIS_PROCESS, "run", f"avflow:{algorithm}", "--json", "--"]
     args += [f"{k}={v}" for k, v in params.items()]
@@ -252,3 +264,67 @@ def test_cancel_stops_avflow_and_leaves_no_output(qgis_env):
     left = sorted(p.name for p in folder.iterdir())
     assert left == ["cancelled.yaml", "inputs"], left  # no NetCDF, no temporary file
     assert sorted(p.name for p in (folder / "inputs").iterdir()) == ["cancelled_release.gpkg"]
+
+
+def test_path_analysis_gives_the_runout_and_alpha_beta_points(qgis_env, kot_run):
+    rc, out, log = qgis_process(qgis_env, "path_analysis", INPUT=kot_run["NETCDF"],
+                                LINE=KOT / "pathAB.shp", OUTPUT_FOLDER=qgis_env["base"] / "path")
+    assert rc == 0, log[-3000:]
+    res = out["results"]
+    assert "runout (pressure >= 1 kPa)" in res["SUMMARY"] and "alpha-beta (norway)" in res["SUMMARY"]
+    points = read_layer(res["POINTS"])
+    assert list(points["point"]) == ["runout", "beta point", "alpha", "alpha - 1 SD",
+                                     "alpha - 2 SD"]
+    assert points["crs"] == "EPSG:31287"
+    s = points["s"]
+    assert (s[1:] > s[:-1]).all()  # beta, then alpha and its SDs farther down the path
+
+
+def test_release_areas_from_the_dem(qgis_env):
+    target = qgis_env["base"] / "pra" / "release_areas.gpkg"
+    rc, out, log = qgis_process(qgis_env, "release_areas", DEM=KOT / "avaKot.asc",
+                                OUTPUT=target)
+    assert rc == 0, log[-3000:]
+    areas = read_layer(target)
+    assert len(areas["geometry"]) > 0 and all(g.area > 0 for g in areas["geometry"])
+
+
+def test_regional_map_of_a_release_layer(qgis_env):
+    import numpy as np
+    import rasterio
+
+    rc, out, log = qgis_process(qgis_env, "regional_map", DEM=KOT / "avaKot.asc",
+                                RELEASE=KOT / "relKot.shp", THICKNESS_FIELD="thickness",
+                                CELL_SIZE=20, OUTPUT_FOLDER=qgis_env["base"] / "region")
+    assert rc == 0, log[-3000:]
+    tifs = out["results"]["LAYERS"]
+    pressure = next(p for p in tifs if p.endswith("region_peak_pressure.tif"))
+    with rasterio.open(pressure) as src:
+        assert src.res == (20.0, 20.0)
+        kpa = src.read(1, masked=True)
+    assert float(kpa.max()) > 30  # kPa, as the 1 / 3 / 30 kPa style expects
+    assert Path(pressure).with_suffix(".qml").is_file()
+    assert not Path(pressure.replace(".tif", "_release.qml")).exists()  # ids are not styled
+
+
+def test_the_plugin_zip_installs_into_a_fresh_profile(qgis_env, tmp_path):
+    import zipfile
+
+    done = subprocess.run([sys.executable, str(ROOT / "qgis" / "build_plugin.py"), "-o",
+                           str(tmp_path)], capture_output=True, text=True, check=True)
+    archive = next(tmp_path.glob("avflow_qgis-*.zip"))
+    assert str(archive) in done.stdout
+    profile = tmp_path / "home"
+    plugins = profile / ".local/share/QGIS/QGIS3/profiles/default/python/plugins"
+    with zipfile.ZipFile(archive) as zf:
+        names = zf.namelist()
+        assert "avflow_qgis/metadata.txt" in names and "avflow_qgis/styles/peak_pressure_class.qml" in names
+        assert not any("__pycache__" in n for n in names)
+        zf.extractall(plugins)  # what Install from ZIP does
+    env = dict(qgis_env["env"], HOME=str(profile))
+    env.pop("QGIS_PLUGINPATH")
+    for args in (["plugins", "enable", "avflow_qgis"], ["list"]):
+        run = subprocess.run([QGIS_PROCESS] + args, env=env, capture_output=True, text=True,
+                             timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+    assert "avflow:run_scenario" in run.stdout

@@ -541,6 +541,7 @@ class PathAnalysis(_Base):
                                                                   "Output folder"))
         self.addOutput(QgsProcessingOutputString("SUMMARY", "Runout"))
         self.addOutput(QgsProcessingOutputFile("TABLE", "Table (CSV)"))
+        self.addOutput(QgsProcessingOutputFile("POINTS", "Runout and alpha-beta points"))
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
         target = self.parameterAsFile(parameters, "INPUT", context)
@@ -570,9 +571,16 @@ class PathAnalysis(_Base):
                                       os.path.join(layers.STYLES, "path.qml"), "LINE")
         lines = process.run(args, feedback)
         out = process.written(lines)
-        table = next((p for p in out if p.endswith(".csv")), "")
+        table = next((p for p in out if p.endswith("_path.csv")), "")
+        profile = next((p for p in out if p.endswith("_profile.csv")), "")
         summary = " ".join(l for l in lines if not l.startswith("wrote "))
-        return {"SUMMARY": summary, "TABLE": table, "OUTPUT_FOLDER": folder}
+        points = ""
+        if table and profile:
+            points = path_points(table, profile, os.path.join(folder, "path_points.gpkg"),
+                                 _netcdf_crs(target), context)
+            layers.load_on_completion(context, points, "runout and alpha-beta points",
+                                      os.path.join(layers.STYLES, "path_points.qml"), "POINTS")
+        return {"SUMMARY": summary, "TABLE": table, "POINTS": points, "OUTPUT_FOLDER": folder}
 
 
 class RegionalMap(_Base):
@@ -658,6 +666,60 @@ class RegionalMap(_Base):
         process.run(["region", path, "-o", out, "--workers", workers], feedback)
         tifs = self._export_and_load(out, os.path.join(out, "maps"), context, feedback, name)
         return {"REGION": out, "SCENARIO": path, "LAYERS": tifs, "OUTPUT_FOLDER": folder}
+
+
+#: The points of avflow path's table: (column of s along the path, label).
+PATH_POINTS = (("runout_s", "runout"), ("ab_beta_s", "beta point"), ("ab_alpha_s", "alpha"),
+               ("ab_alpha_m1sd_s", "alpha - 1 SD"), ("ab_alpha_m2sd_s", "alpha - 2 SD"))
+
+
+def path_points(table, profile, target, crs, context):
+    """The runout and alpha-beta points of ``avflow path``'s table as a point GeoPackage,
+    placed along the path by its profile (s, x, y; linear between the profile's points)."""
+    import csv
+
+    from qgis.core import QgsGeometry, QgsPointXY
+
+    with open(profile, newline="", encoding="utf-8") as f:
+        rows = [(float(r["s"]), float(r["x"]), float(r["y"])) for r in csv.DictReader(f)]
+    with open(table, newline="", encoding="utf-8") as f:
+        runs = list(csv.DictReader(f))
+    fields = QgsFields()
+    for name, kind in (("run", QVariant.String), ("point", QgsField), ("s", QVariant.Double),
+                       ("angle_deg", QVariant.Double)):
+        fields.append(QgsField(name, QVariant.String if kind is QgsField else kind))
+    options = QgsVectorFileWriter.SaveVectorOptions()
+    options.driverName = "GPKG"
+    tmp = target + ".tmp.gpkg"
+    writer = QgsVectorFileWriter.create(tmp, fields, QgsWkbTypes.Point, crs,
+                                        context.transformContext(), options)
+    for run in runs:
+        for column, label in PATH_POINTS:
+            run = {k.removeprefix("path_"): v for k, v in run.items()}  # the CSV's prefix
+            try:
+                s = float(run.get(column) or "nan")
+            except ValueError:
+                continue
+            if not math.isfinite(s) or not rows or not rows[0][0] <= s <= rows[-1][0]:
+                continue
+            k = max(i for i, r in enumerate(rows) if r[0] <= s)
+            a, b = rows[k], rows[min(k + 1, len(rows) - 1)]
+            w = 0.0 if b[0] == a[0] else (s - a[0]) / (b[0] - a[0])
+            x, y = a[1] + w * (b[1] - a[1]), a[2] + w * (b[2] - a[2])
+            if column == "runout_s" and run.get("runout_x") and run.get("runout_y"):
+                x, y = float(run["runout_x"]), float(run["runout_y"])  # the cell, off the line
+            feature = QgsFeature(fields)
+            feature.setGeometry(QgsGeometry.fromPointXY(QgsPointXY(x, y)))
+            angle = run.get(column[:-2] if column != "runout_s" else "runout_angle", "")
+            try:
+                angle = float(angle)
+            except ValueError:
+                angle = None
+            feature.setAttributes([run.get("run", ""), label, s, angle])
+            writer.addFeature(feature)
+    del writer
+    os.replace(tmp, target)
+    return target
 
 
 def _netcdf_crs(path):

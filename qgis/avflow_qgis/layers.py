@@ -27,9 +27,17 @@ _STATUS = {"at_rest": "at rest", "stopped": "at rest", "not_stopped": "still mov
            "max_steps": "stopped at the step limit", "failed": "failed"}
 
 
+def _release_ids(name):
+    """A region's maps of which release set each peak, and how many reached a cell."""
+    stem = os.path.splitext(name)[0]
+    return stem.endswith("_release") or stem.endswith("release_count")
+
+
 def style_for(path):
     """The QML shipped for an avflow raster (by its file name), or None."""
     name = os.path.basename(path)
+    if _release_ids(name):
+        return None
     for key, qml, _ in _KINDS:
         if key in name:
             return os.path.join(STYLES, qml)
@@ -44,6 +52,10 @@ def describe(path):
         what = match.group(1).replace("_", " ")
         unit = {"m_s": "m/s"}.get(match.group(3), match.group(3))
         return f"P({what} > {match.group(2)} {unit})".replace(" )", ")")
+    if stem.endswith("release_count"):
+        return "number of releases reaching each cell"
+    if stem.endswith("_release"):
+        return "release that set the " + describe(stem[:-len("_release")])
     for key, _, words in _KINDS:
         if words and stem.endswith(key):
             return words
