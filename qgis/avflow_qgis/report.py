@@ -8,12 +8,13 @@ from qgis.core import (QgsApplication, QgsBilinearRasterResampler, QgsContrastEn
                        QgsSingleBandGrayRenderer, QgsLayoutExporter,
                        QgsLayoutItemLabel, QgsLayoutItemLegend, QgsLayoutItemMap,
                        QgsLayoutItemPicture, QgsLayoutItemScaleBar, QgsLayoutPoint,
-                       QgsLayoutSize, QgsPrintLayout, QgsProcessingAlgorithm,
+                       QgsLayoutSize, QgsMapLayerLegendUtils, QgsPrintLayout, QgsProcessingAlgorithm,
                        QgsProcessingException, QgsProcessingOutputFile,
                        QgsProcessingParameterEnum, QgsProcessingParameterFile,
                        QgsProcessingParameterFileDestination, QgsProcessingParameterNumber,
                        QgsProcessingParameterString, QgsProject, QgsRasterLayer, QgsRectangle,
                        QgsUnitTypes, QgsVectorLayer)
+from qgis.PyQt.QtCore import Qt
 from qgis.PyQt.QtGui import QFont
 
 from . import layers, process
@@ -38,7 +39,7 @@ def _scenario_lines(nc):
             blocks[key] = [rest.strip()] if rest.strip() else []
         elif key and line.startswith("  ") and not line.startswith("   ") and ":" in line:
             name, _, value = line.strip().partition(":")
-            value = value.strip()
+            value = value.strip().strip('"\'')
             if value and value not in ("null", "{}", "[]"):
                 blocks[key].append(f"{name} {os.path.basename(value) if name == 'path' else value}")
     picks = []
@@ -183,7 +184,13 @@ class ReportFigure(QgsProcessingAlgorithm):
         root.clear()
         for item in (layer, release):
             if item is not None:
-                root.addLayer(item)
+                node = root.addLayer(item)
+                nodes = legend.model().layerLegendNodes(node)
+                keep = [i for i, n in enumerate(nodes)  # not the band's own line
+                        if not str(n.data(Qt.DisplayRole) or "").startswith("Band ")]
+                if len(keep) < len(nodes):
+                    QgsMapLayerLegendUtils.setLegendNodeOrder(node, keep)
+                    legend.model().refreshLayerLegend(node)
         legend.attemptMove(QgsLayoutPoint(left, 20, mm))
         layout.addLayoutItem(legend)
 
@@ -210,7 +217,7 @@ class ReportFigure(QgsProcessingAlgorithm):
             f"avflow {meta.get('NC_GLOBAL#avflow_version', '')}"]
         info = QgsLayoutItemLabel(layout)
         info.setText("\n".join(t for t in text if t))
-        info.setFont(QFont("DejaVu Sans", 7))
+        info.setFont(QFont("DejaVu Sans", 8))
         info.attemptMove(QgsLayoutPoint(left, H * 0.52, mm))
         info.attemptResize(QgsLayoutSize(W - left - 6, H * 0.45, mm))
         layout.addLayoutItem(info)
