@@ -227,7 +227,7 @@ def test_an_avflow_error_fails_the_algorithm_with_its_line(qgis_env):
                                 CELL_SIZE=20, LAW=3, DELTA=30, DELTA2=20, NAME="bad",
                                 OUTPUT_FOLDER=qgis_env["base"] / "bad")
     assert rc != 0
-    assert "avflow: error:" in log and "delta2_deg" in log
+    assert "avflow: error:" in log and "rheology.delta1_deg: must be smaller than delta2_deg" in log
     assert not (qgis_env["base"] / "bad" / "bad.nc").exists()
 
 

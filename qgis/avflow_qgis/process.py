@@ -158,8 +158,7 @@ def run(args, feedback, cwd=None):
         errors = [l for l in err_lines if _ERROR.match(l)]
         message = (errors[-1] if errors else (err_lines[-1] if err_lines else
                    f"avflow {args[0]} failed (exit code {rc})"))
-        feedback.reportError(message, True)
-        raise QgsProcessingException(message)
+        raise QgsProcessingException(message)  # shown once, as the algorithm's failure
     feedback.setProgress(100)
     return out_lines
 
