@@ -126,7 +126,9 @@ def test_run_a_scenario_gives_the_maps_in_the_dem_crs(kot_run):
 
     from avflow.output.maps import _ZONE_COLORS
 
-    assert kot_run["STATUS"].startswith("ended by rule, ") and "still moving" in kot_run["STATUS"]
+    import re
+
+    assert re.fullmatch(r"at rest|ended by rule, [0-9.]+% still moving", kot_run["STATUS"])
     tifs = {Path(p).stem.removeprefix("kot_"): p for p in kot_run["LAYERS"]}
     assert {"peak_pressure_class", "peak_thickness", "peak_speed", "peak_pressure",
             "deposit_thickness"} <= set(tifs)
@@ -328,3 +330,52 @@ def test_the_plugin_zip_installs_into_a_fresh_profile(qgis_env, tmp_path):
                              timeout=300)
         assert run.returncode == 0, run.stderr[-2000:]
     assert "avflow:run_scenario" in run.stdout
+
+
+def test_run_adds_named_styled_layers_to_the_project(qgis_env):
+    """What the dialog does after a run: Processing loads the layers the algorithm queued,
+    each named with what it holds and the run's status, each styled."""
+    folder = qgis_env["base"] / "loaded_into_project"
+    result = pyqgis(qgis_env, f"""
+        from qgis.core import QgsProcessingContext, QgsProcessingFeedback, QgsProject
+        from processing.gui.Postprocessing import handleAlgorithmResults
+        alg = QgsApplication.processingRegistry().algorithmById("avflow:run_scenario").create()
+        context = QgsProcessingContext()
+        context.setProject(QgsProject.instance())
+        feedback = QgsProcessingFeedback()
+        out, ok = alg.run(dict(DEM={str(KOT / "avaKot.asc")!r},
+                               RELEASE={str(KOT / "relKot.shp")!r}, THICKNESS_FIELD="thickness",
+                               CELL_SIZE=20, NAME="kot", OUTPUT_FOLDER={str(folder)!r}),
+                          context, feedback)
+        handleAlgorithmResults(alg, context, feedback, False, out)
+        result["layers"] = {{l.name(): l.renderer().type()
+                            for l in QgsProject.instance().mapLayers().values()}}
+    """)
+    layers = result["layers"]
+    import re
+
+    classes = next(n for n in layers if n.startswith("kot: peak pressure class"))
+    status = classes[len("kot: peak pressure class (1 / 3 / 30 kPa) "):]
+    assert re.fullmatch(r"\[(at rest|ended by rule, [0-9.]+% still moving)\]", status), classes
+    assert layers[classes] == "paletted"
+    assert layers[f"kot: peak pressure (kPa) {status}"] == "singlebandpseudocolor"
+    assert layers[f"kot: peak flow thickness (m) {status}"] == "singlebandpseudocolor"
+    assert layers[f"kot: peak speed (m/s) {status}"] == "singlebandpseudocolor"
+    assert layers["kot: release"] == "singleSymbol"
+
+
+def test_forest_and_a_dam_go_into_the_scenario(qgis_env):
+    from avflow.scenario.schema import load_scenario
+
+    rc, out, log = qgis_process(qgis_env, "run_scenario", DEM=KOT / "avaKot.asc",
+                                RELEASE=KOT / "relKot.shp", THICKNESS_FIELD="thickness",
+                                CELL_SIZE=20, FOREST=KOT / "resistance.shp", FOREST_CF=0.02,
+                                STRUCTURES=KOT / "pathAB.shp", STRUCTURE_HEIGHT=3,
+                                STRUCTURE_SLOPE=35, END_TIME=60, NAME="protected",
+                                OUTPUT_FOLDER=qgis_env["base"] / "protected")
+    assert rc == 0, log[-3000:]
+    sc = load_scenario(out["results"]["SCENARIO"])
+    assert sc.forest.c_f == 0.02 and sc.forest.polygon.endswith("protected_forest.gpkg")
+    (dam,) = sc.structures
+    assert (dam.kind, dam.height, dam.side_slope_deg) == ("dam", 3.0, 35.0)
+    assert Path(out["results"]["NETCDF"]).is_file()
