@@ -46,7 +46,10 @@ def qgis_env(tmp_path_factory):
     cache = os.environ.get("AVFLOW_CACHE_DIR") or str(Path.home() / ".cache" / "avflow")
     env = {"PATH": "/usr/bin:/bin", "HOME": str(base / "home"), "XDG_RUNTIME_DIR": str(runtime),
            "QT_QPA_PLATFORM": "offscreen", "QGIS_PLUGINPATH": str(ROOT / "qgis"),
-           "AVFLOW_EXECUTABLE": str(wrapper), "AVFLOW_CACHE_DIR": cache, "LANG": "C.UTF-8"}
+           "AVFLOW_EXECUTABLE": str(wrapper), "AVFLOW_CACHE_DIR": cache, "LANG": "C.UTF-8",
+           # QGIS opening a raster writes its statistics beside it (.aux.xml): not into
+           # the repository's data
+           "GDAL_PAM_ENABLED": "NO"}
     (base / "home").mkdir()
     done = subprocess.run([QGIS_PROCESS, "plugins", "enable", "avflow_qgis"], env=env,
                           capture_output=True, text=True, timeout=300)
