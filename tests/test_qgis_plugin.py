@@ -382,3 +382,28 @@ def test_forest_and_a_dam_go_into_the_scenario(qgis_env):
     (dam,) = sc.structures
     assert (dam.kind, dam.height, dam.side_slope_deg) == ("dam", 3.0, 35.0)
     assert Path(out["results"]["NETCDF"]).is_file()
+
+
+def test_the_scenario_beside_the_outputs_repeats_the_run(kot_run, tmp_path):
+    """avflow run NAME.yaml, from a terminal, gives the plugin's run again, bit for bit."""
+    import xarray as xr
+
+    folder = Path(kot_run["SCENARIO"]).parent
+    done = subprocess.run([sys.executable, "-m", "avflow", "run", kot_run["SCENARIO"], "-o",
+                           str(tmp_path / "again.nc")], cwd=folder, capture_output=True,
+                          text=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert done.returncode == 0, done.stderr
+    with xr.open_dataset(kot_run["NETCDF"]) as a, xr.open_dataset(tmp_path / "again.nc") as b:
+        assert a.attrs["scenario_hash"] == b.attrs["scenario_hash"]
+        assert (a["peak_pressure"].fillna(-1) == b["peak_pressure"].fillna(-1)).all()
+
+
+def test_a_missing_avflow_is_one_clear_line(qgis_env):
+    env = dict(qgis_env["env"], AVFLOW_EXECUTABLE=str(qgis_env["base"] / "no-such-avflow"))
+    done = subprocess.run([QGIS_PROCESS, "run", "avflow:load_run", "--",
+                           f"INPUT={KOT / 'avaKot.asc'}",
+                           f"OUTPUT_FOLDER={qgis_env['base'] / 'nothing'}"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0
+    assert "avflow executable not found or not executable" in done.stdout + done.stderr
+    assert "Settings > Options > Processing > Providers > avflow" in done.stdout + done.stderr
