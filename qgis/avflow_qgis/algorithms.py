@@ -117,8 +117,10 @@ def dem_file(layer, folder, cell_size, feedback):
 
 
 def vector_file(layer, path, crs, context, feedback, thickness_field=None, geometry=None):
-    """The features of ``layer`` in ``crs`` as a GeoPackage avflow reads; with
-    ``thickness_field`` its values go to the ``thickness`` attribute avflow looks for."""
+    """The features of ``layer`` (a Processing feature source: safe to read off the main
+    thread) in ``crs`` as a GeoPackage avflow reads; with ``thickness_field`` its values go
+    to the ``thickness`` attribute avflow looks for."""
+    layer = _Source(layer)
     fields = QgsFields()
     if thickness_field:
         fields.append(QgsField("thickness", QVariant.Double))
@@ -166,6 +168,27 @@ def vector_file(layer, path, crs, context, feedback, thickness_field=None, geome
         raise QgsProcessingException(f"{layer.name()}: no features to use")
     os.replace(tmp, path)
     return path
+
+
+class _Source:
+    """One interface over a feature source and a vector layer (name, CRS, features)."""
+
+    def __init__(self, source):
+        self.source = source
+
+    def name(self):
+        s = self.source
+        return s.sourceName() if hasattr(s, "sourceName") else s.name()
+
+    def crs(self):
+        s = self.source
+        return s.sourceCrs() if hasattr(s, "sourceCrs") else s.crs()
+
+    def wkbType(self):  # noqa: N802
+        return self.source.wkbType()
+
+    def getFeatures(self):  # noqa: N802
+        return self.source.getFeatures()
 
 
 def _relative(path, folder):
@@ -300,7 +323,7 @@ class _ScenarioInputs(_Base):
         dx = self.parameterAsDouble(parameters, "CELL_SIZE", context)
         dem = dem_file(dem_layer, inputs, None, feedback)
         crs = dem_layer.crs()
-        release_layer = self.parameterAsVectorLayer(parameters, "RELEASE", context)
+        release_layer = self.parameterAsSource(parameters, "RELEASE", context)
         field = self.parameterAsString(parameters, "THICKNESS_FIELD", context) or None
         release = vector_file(release_layer, os.path.join(inputs, f"{stem}_release.gpkg"), crs,
                               context, feedback, thickness_field=field)
@@ -313,13 +336,13 @@ class _ScenarioInputs(_Base):
             spec["release"]["thickness"] = self.parameterAsDouble(parameters, "THICKNESS",
                                                                   context)
         spec["rheology"] = self._rheology(parameters, context)
-        forest = self.parameterAsVectorLayer(parameters, "FOREST", context)
+        forest = self.parameterAsSource(parameters, "FOREST", context)
         if forest is not None:
             path = vector_file(forest, os.path.join(inputs, f"{stem}_forest.gpkg"), crs,
                                context, feedback)
             spec["forest"] = {"polygon": _relative(path, folder),
                               "c_f": self.parameterAsDouble(parameters, "FOREST_CF", context)}
-        lines = self.parameterAsVectorLayer(parameters, "STRUCTURES", context)
+        lines = self.parameterAsSource(parameters, "STRUCTURES", context)
         if lines is not None:
             path = vector_file(lines, os.path.join(inputs, f"{stem}_structures.gpkg"), crs,
                                context, feedback)
@@ -554,7 +577,7 @@ class PathAnalysis(_Base):
         threshold = self.parameterAsDouble(parameters, "THRESHOLD", context)
         if threshold > 0:
             args += ["--threshold", threshold]
-        line = self.parameterAsVectorLayer(parameters, "LINE", context)
+        line = self.parameterAsSource(parameters, "LINE", context)
         if line is not None:
             crs = _netcdf_crs(target)
             path = vector_file(line, os.path.join(folder, "path_line.gpkg"), crs, context,
@@ -642,7 +665,7 @@ class RegionalMap(_Base):
         dem = dem_file(dem_layer, inputs, self.parameterAsDouble(parameters, "CELL_SIZE",
                                                                  context), feedback)
         field = self.parameterAsString(parameters, "THICKNESS_FIELD", context) or None
-        release = vector_file(self.parameterAsVectorLayer(parameters, "RELEASE", context),
+        release = vector_file(self.parameterAsSource(parameters, "RELEASE", context),
                               os.path.join(inputs, f"{stem}_releases.gpkg"), dem_layer.crs(),
                               context, feedback, thickness_field=field)
         releases = {"path": _relative(release, folder)}
