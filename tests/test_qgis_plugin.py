@@ -407,3 +407,26 @@ def test_a_missing_avflow_is_one_clear_line(qgis_env):
     assert done.returncode != 0
     assert "avflow executable not found or not executable" in done.stdout + done.stderr
     assert "Settings > Options > Processing > Providers > avflow" in done.stdout + done.stderr
+
+
+def test_the_provider_setting_names_avflow(qgis_env):
+    """Settings > Options > Processing > Providers > avflow: the executable set there is the
+    one run, before $AVFLOW_EXECUTABLE and the PATH."""
+    result = pyqgis(qgis_env, f"""
+        import os
+        from processing.core.ProcessingConfig import ProcessingConfig
+        from avflow_qgis import process
+        result["default"] = process.executable()
+        ProcessingConfig.setSettingValue("AVFLOW_EXECUTABLE", {str(sys.executable)!r})
+        result["set"] = process.executable()
+        ProcessingConfig.setSettingValue("AVFLOW_EXECUTABLE", "")
+        del os.environ["AVFLOW_EXECUTABLE"]
+        os.environ["PATH"] = "/nowhere"
+        try:
+            process.executable()
+        except Exception as err:
+            result["none"] = str(err)
+    """)
+    assert result["default"] == qgis_env["env"]["AVFLOW_EXECUTABLE"]
+    assert result["set"] == sys.executable
+    assert result["none"].startswith("avflow not found on the PATH")
