@@ -96,8 +96,15 @@ def summary_line(ds) -> str:
         runout = ("runout: none on the map (all the mass flowed out over its edge)"
                   if left >= 0.999 * released else
                   "runout: none (no cell above the runout threshold)")
+    stop = float(ds["time_to_stop"])
+    if math.isnan(stop):  # never at rest: say by when, not NaN
+        end = float(ds["time"][-1]) if "time" in ds.coords and ds["time"].size else math.nan
+        stop_note = (f", not at rest by {end:.4g} s"
+                     if math.isfinite(end) else ", not at rest")
+    else:
+        stop_note = f", time_to_stop {stop:.2f} s"
     return (f"{ds.attrs['scenario_name']}: {status}"
-            f", time_to_stop {f('time_to_stop', '.2f')} s"
+            f"{stop_note}"
             f", {runout}"
             f", deposit max {f('deposit_max_thickness', '.2f')} m"
             f", length {f('deposit_length', '.1f')} m"
