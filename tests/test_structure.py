@@ -131,6 +131,44 @@ def test_the_dirac_rule_is_written_once():
     assert len(callers) >= 6, callers  # profile, faces (3 forms), grid, GPU
 
 
+def test_the_take_back_is_written_once():
+    """A dry cell takes no momentum through a Dirac face (eq. 53): what the face brought to
+    its trial's sum is taken back, physics.take_back, the one place that negates what a face
+    brought under the Dirac test; every 2D traversal calls it (the grid's rows, the GPU, the
+    face sweep's two forms, step_faces, the gather form). A profile has no take-back: its
+    dry cell sums anew its two faces that are not Dirac."""
+    def rule(n):
+        return (isinstance(n, ast.IfExp) and isinstance(n.body, ast.UnaryOp)
+                and isinstance(n.body.op, ast.USub) and isinstance(n.orelse, ast.Constant)
+                and n.orelse.value == 0.0)
+
+    assert _where(rule) == ["physics.take_back"]
+    assert _callers("take_back") == [
+        "cuda_grid._final", "face_gather._gather_mass", "face_sweep._add_masses",
+        "face_sweep._cold_masses", "kernels._face_mass", "square_grid._final_cells"]
+
+
+def test_the_outflow_is_written_once():
+    """What leaves through an open side in a step, ``max(L F_h, 0) dt`` (nothing through a
+    Dirac face): physics.outflow_volume, the one place that multiplies an outward flux by the
+    step; every traversal calls it (the grid's rows, the GPU, the face sweep's three sums,
+    step_faces, the gather form, both profiles)."""
+    def rule(n):
+        if not (isinstance(n, ast.BinOp) and isinstance(n.op, ast.Mult)):
+            return False
+        sides = (n.left, n.right)
+        return (any(isinstance(s, ast.Name) and s.id == "dt" for s in sides)
+                and any((isinstance(s, ast.Call) and "max" in _names(s.func))
+                        or (isinstance(s, ast.UnaryOp) and isinstance(s.op, ast.USub))
+                        for s in sides))
+
+    assert _where(rule) == ["physics.outflow_volume"]
+    assert _callers("outflow_volume") == [
+        "cuda_grid._final", "face_gather.step_cells", "face_sweep._add_masses",
+        "face_sweep._face_fluxes", "face_sweep._open_outflow", "kernels._face_mass",
+        "kernels.step_profile", "profile._step", "square_grid._final_cells"]
+
+
 def test_the_moving_rule_is_written_once():
     """A cell moves material when u != 0 and it just set off or a face carried its mass
     above TRANSPORT_EPS h |u^n| (what the stop rules count): physics.carries and

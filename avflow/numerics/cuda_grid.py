@@ -135,7 +135,7 @@ def _retarget(fn, namespace: dict, decorate):
 # Written against the names below, which :func:`_build` binds to the device copies.
 
 emitted_state = speed_of = trial_momentum = cell_update = observe_cell = observe = None
-dirac_face = carries = cell_moves = None
+dirac_face = take_back = outflow_volume = carries = cell_moves = None
 step_terms = coded_flux = kind_of = in_face_order = cell_law = cuda = float64 = gain = None
 
 
@@ -311,11 +311,10 @@ def _final(mesh, sc, cur, nxt, obs, work, dt):
     d_n = dirac_face(sc.dirac, fi, f_n)
     acc = in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
                         0.0 if d_s else sm, 0.0 if d_n else nm)
-    if d_w or d_e or d_s or d_n:  # what those faces brought to the trial's sum, taken back
-        qx = in_face_order(qx, -wx if d_w else 0.0, -ex if d_e else 0.0,  # in face order
-                           -sx if d_s else 0.0, -nx_ if d_n else 0.0) if fi == DRY else qx
-        qy = in_face_order(qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
-                           -sy if d_s else 0.0, -ny_ if d_n else 0.0) if fi == DRY else qy
+    if (d_w or d_e or d_s or d_n) and fi == DRY:  # what those faces brought to the trial's
+        # sum, taken back in face order
+        qx = take_back(take_back(take_back(take_back(qx, wx, d_w), ex, d_e), sx, d_s), nx_, d_n)
+        qy = take_back(take_back(take_back(take_back(qy, wy, d_w), ey, d_e), sy, d_s), ny_, d_n)
     p = mesh.params
     pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(
         sc.law, p, i, p[0, 0], p[0, 1], p[0, 2], p[0, 3], p[0, 4], p[0, 5], p[0, 6], p[0, 7])
@@ -351,10 +350,10 @@ def _final(mesh, sc, cur, nxt, obs, work, dt):
     open_e = ((e_code & KIND) == LOW_OPEN) and (not d_e) and (e_m < 0.0)
     open_s = ((s_code & KIND) == HIGH_OPEN) and (not d_s) and (sm < 0.0)
     open_n = ((n_code & KIND) == LOW_OPEN) and (not d_n) and (nm < 0.0)
-    out_w = -wm * dt if open_w else 0.0
-    out_e = -e_m * dt if open_e else 0.0
-    out_s = -sm * dt if open_s else 0.0
-    out_n = -nm * dt if open_n else 0.0
+    out_w = outflow_volume(-wm, dt) if open_w else 0.0
+    out_e = outflow_volume(-e_m, dt) if open_e else 0.0
+    out_s = outflow_volume(-sm, dt) if open_s else 0.0
+    out_n = outflow_volume(-nm, dt) if open_n else 0.0
     terms = work.terms
     terms[T_INV, i] = inv_i if (good and touched) else 0.0
     terms[T_KIN, i] = kin if good else 0.0

@@ -38,7 +38,8 @@ from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, carries, cell_moves, cell_update, centripetal_accel,
                                  dirac_face, dt_from_inverse, heun_average, observe_cell,
-                                 speed_of, step_terms, trial_momentum)
+                                 outflow_volume, speed_of, step_terms, take_back,
+                                 trial_momentum)
 from avflow.numerics.kernels import listed_flux, reconstructed_sides
 from avflow.terrain.mesh import OUTFLOW
 from avflow.numerics.vectorize import cell_law, specialize
@@ -155,16 +156,15 @@ def _gather_mass(mesh, physics, cur, nxt, flux, transport, flag, lists):
                     continue
             elif not (wet or h[k] > h_zero):
                 continue
-            if dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k]):
-                # a dry side takes momentum only with mass: the Dirac face (u = 0, eq. 53)
-                # carries neither, not even the resting neighbour's pressure
+            d = dirac_face(dirac, flag[k], flag[j] if j >= 0 else flag[k])
+            if d:  # a dry side takes back what the face brought to its trial's sum
                 if dry:
                     if first:
-                        qx += flux[f, 1]
-                        qy += flux[f, 2]
+                        qx = take_back(qx, -flux[f, 1], d)
+                        qy = take_back(qy, -flux[f, 2], d)
                     else:
-                        qx -= flux[f, 3]
-                        qy -= flux[f, 4]
+                        qx = take_back(qx, flux[f, 3], d)
+                        qy = take_back(qy, flux[f, 4], d)
                 continue
             fh = flux[f, 0]
             if first:
@@ -235,7 +235,7 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
         if face_cells[f, 1] == OUTFLOW:
             i = face_cells[f, 0]
             if not dirac_face(dirac, flag[i], flag[i]):
-                outflow += max(flux[f, 0], 0.0) * dt
+                outflow += outflow_volume(flux[f, 0], dt)
     return True, outflow, lim, moving, film, clamped, kinetic
 
 

@@ -43,7 +43,8 @@ from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, FLOWING, carries,
                                  cell_moves, cell_update, dirac_face, dt_from_inverse,
-                                 face_flux, observe_cell, step_terms, trial_momentum)
+                                 face_flux, observe_cell, outflow_volume, step_terms,
+                                 take_back, trial_momentum)
 from avflow.terrain.mesh import OUTFLOW, WALL
 from avflow.numerics.square_grid import (E_C, E_H, E_K3, E_KH, E_S, E_SPEED, E_U1, E_U2,
                                          N_EMIT, emitted_cell)
@@ -229,7 +230,7 @@ def _face_fluxes(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, h
             own_i = True
             own_j = j >= 0
             if j == OUTFLOW:
-                outflow += max(fh, 0.0) * dt
+                outflow += outflow_volume(fh, dt)
             if some:
                 if f < safe_lo or f > safe_hi or near_edge[f] != 0:  # a side may be shared
                     own_i = shared[i] != mark
@@ -287,16 +288,17 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
             if some and (f < safe_lo or f > safe_hi or near_edge[f] != 0):
                 own_i = shared[i] != mark
                 own_j = own_j and shared[j] != mark
-            if dirac_face(dirac, fl_i, fl_j):
+            d = dirac_face(dirac, fl_i, fl_j)
+            if d:
                 if (fl_i == DRY and own_i) or (own_j and fl_j == DRY):
                     _, qix, qiy, qjx, qjy = _face_flux(f, i, j, face_frame, face_length, e_h,
                                                        e_u1, e_u2, e_c, e_s, e_kh, e_k3)
                     if fl_i == DRY and own_i:
-                        x_sum[i] += qix
-                        y_sum[i] += qiy
+                        x_sum[i] = take_back(x_sum[i], -qix, d)
+                        y_sum[i] = take_back(y_sum[i], -qiy, d)
                     if own_j and fl_j == DRY:
-                        x_sum[j] -= qjx
-                        y_sum[j] -= qjy
+                        x_sum[j] = take_back(x_sum[j], qjx, d)
+                        y_sum[j] = take_back(y_sum[j], qjy, d)
                 continue
             fh = mass[f]
             if fl_i != FLOWING and own_i:
@@ -305,7 +307,7 @@ def _add_masses(runs, r0, n_runs, pairs, face_frame, face_length, emit, mass, fl
                 if fl_j != FLOWING and own_j:
                     h_sum[j] += fh
             elif open_side:
-                outflow += max(fh, 0.0) * dt
+                outflow += outflow_volume(fh, dt)
     return outflow
 
 
@@ -499,16 +501,17 @@ def _cold_masses(i, face_ptr, face_idx, face_stamp, stamp, pairs, face_frame, fa
         j = pairs[f, 1]
         first = k == i
         fl_k = flag[k]
-        if dirac_face(dirac, fl_k, flag[j] if j >= 0 else fl_k):
-            if fl == DRY:  # takes back the momentum it brought to the trial
+        d = dirac_face(dirac, fl_k, flag[j] if j >= 0 else fl_k)
+        if d:
+            if fl == DRY:  # takes back the momentum the face brought to the trial
                 _, qix, qiy, qjx, qjy = _face_flux(f, k, j, face_frame, face_length, e_h,
                                                    e_u1, e_u2, e_c, e_s, e_kh, e_k3)
                 if first:
-                    mx += qix
-                    my += qiy
+                    mx = take_back(mx, -qix, d)
+                    my = take_back(my, -qiy, d)
                 else:
-                    mx -= qjx
-                    my -= qjy
+                    mx = take_back(mx, qjx, d)
+                    my = take_back(my, qjy, d)
             continue
         if first:
             mh -= mass[f]
@@ -528,7 +531,7 @@ def _open_outflow(open_faces, face_stamp, stamp, pairs, mass, flag, dirac, dt):
         f = open_faces[o]
         i = pairs[f, 0]
         if face_stamp[f] == stamp and not dirac_face(dirac, flag[i], flag[i]):
-            outflow += max(mass[f], 0.0) * dt
+            outflow += outflow_volume(mass[f], dt)
     return outflow
 
 

@@ -41,13 +41,13 @@ from avflow.numerics.vectorize import cell_law
 from avflow.terrain.mesh import OUTFLOW, WALL
 
 (carries, cell_moves, centripetal_accel, dirac_face, dt_from_inverse, emitted_state, emitting,
- face_flux, cell_update, half_fluxes, heun_average, observe_cell, open_mass, side_fluxes,
- sound_speed, speed_of, step_terms, trial_momentum) = (
+ face_flux, cell_update, half_fluxes, heun_average, observe_cell, open_mass, outflow_volume,
+ side_fluxes, sound_speed, speed_of, step_terms, take_back, trial_momentum) = (
     INLINED[name] for name in (
         "carries", "cell_moves", "centripetal_accel", "dirac_face", "dt_from_inverse",
         "emitted_state", "emitting", "face_flux", "cell_update", "half_fluxes", "heun_average",
-        "observe_cell", "open_mass", "side_fluxes", "sound_speed", "speed_of", "step_terms",
-        "trial_momentum"))
+        "observe_cell", "open_mass", "outflow_volume", "side_fluxes", "sound_speed",
+        "speed_of", "step_terms", "take_back", "trial_momentum"))
 
 
 @njit(error_model="numpy", cache=True)
@@ -225,9 +225,9 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
         if hn < 0.0:
             return False, 0.0, 0.0, 0.0, 0.0, 0, 0.0
         if k == 0 and left == OUTFLOW:
-            outflow += max(-fl, 0.0) * dt
+            outflow += outflow_volume(-fl, dt)
         if k == n - 1 and right == OUTFLOW:
-            outflow += max(fr, 0.0) * dt
+            outflow += outflow_volume(fr, dt)
         h_new[k] = hn
         hu_new[k] = qx
         hv_new[k] = 0.0
@@ -383,15 +383,14 @@ def _face_mass(mesh, physics, nxt, flux, transport, flag, when, lists):
         f = active_faces[a]
         i = face_cells[f, 0]
         j = face_cells[f, 1]
-        if dirac_face(dirac, flag[i], flag[j] if j >= 0 else flag[i]):
-            # A dry side takes momentum only with mass: the Dirac face (u = 0, eq. 53)
-            # carries neither, not even the resting neighbour's pressure.
+        d = dirac_face(dirac, flag[i], flag[j] if j >= 0 else flag[i])
+        if d:  # a dry side takes back what the face brought to its trial's sum
             if flag[i] == DRY:
-                hu_new[i] += flux[f, 1]
-                hv_new[i] += flux[f, 2]
+                hu_new[i] = take_back(hu_new[i], -flux[f, 1], d)
+                hv_new[i] = take_back(hv_new[i], -flux[f, 2], d)
             if j >= 0 and flag[j] == DRY:
-                hu_new[j] -= flux[f, 3]
-                hv_new[j] -= flux[f, 4]
+                hu_new[j] = take_back(hu_new[j], flux[f, 3], d)
+                hv_new[j] = take_back(hv_new[j], flux[f, 4], d)
             continue
         fh = flux[f, 0]
         h_new[i] -= fh
@@ -401,7 +400,7 @@ def _face_mass(mesh, physics, nxt, flux, transport, flag, when, lists):
             h_new[j] += fh
             transport[j] = max(transport[j], unit)
         elif j == OUTFLOW:
-            outflow += max(fh, 0.0) * dt
+            outflow += outflow_volume(fh, dt)
     return outflow
 
 

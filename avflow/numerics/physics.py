@@ -7,7 +7,9 @@ target compiles the same functions the same way.
 - the projection of eq. 50 with the law's drag (:func:`project`, :func:`final_momentum`),
   in a cell's update (:func:`cell_update`);
 - the flux through a face, with the ghost of a wall or an open side (:func:`face_flux`);
-- the Dirac face of eqs. 51-53 (:func:`dirac_face`), the open side (:func:`open_mass`);
+- the Dirac face of eqs. 51-53 (:func:`dirac_face`), what a dry side takes back through one
+  (:func:`take_back`), the open side (:func:`open_mass`) and what leaves through it
+  (:func:`outflow_volume`);
 - the curvature term of eqs. 61-62 (:func:`centripetal_accel`, :func:`normal_accel`);
 - what a cell emits and how fast it moves (:func:`emitted_state`, :func:`observe_cell`,
   :func:`cell_moves` with :func:`carries`: the moving rule);
@@ -296,6 +298,27 @@ def dirac_face(dirac, flag_i, flag_j):
     Eqs. 51-53 and section 3.3 (Figs. 4-5); a boundary ghost shares the flag of its cell.
     """
     return dirac & (flag_i != FLOWING) & (flag_j != FLOWING)
+
+
+def take_back(q, brought, dirac):
+    """A dry cell's momentum sum ``q`` (one component) after one of its faces: what that face
+    brought to the trial's sum (``brought``, inward positive) taken back where it is a Dirac
+    face. A dry side takes momentum only with mass, and a Dirac face (u = 0, eq. 53) carries
+    neither, not even the resting neighbour's pressure.
+
+    ``q + (-brought)``, or ``q + 0.0`` on the other faces: a traversal that sums a cell's four
+    faces in face order without a jump (the grid's rows) calls it on each, one that meets
+    only the Dirac faces calls it there (``q - brought``, the same bits). Not the same bits as
+    leaving q alone where q is -0.0: the caller decides which faces it passes."""
+    return q + (-brought if dirac else 0.0)
+
+
+def outflow_volume(f_out, dt):
+    """The volume (m^3, or m^2 per metre of a profile) that leaves through an open side in a
+    step ``dt``, from its outward mass flux ``f_out`` (``L F_h``, :func:`open_mass`): only
+    what leaves, and nothing through a Dirac face (the caller passes those over). Summed,
+    face after face, into the run's outflow: what the mass balance counts as gone."""
+    return max(f_out, 0.0) * dt
 
 
 def emitted_state(h, q1, q2, h_zero, g_normal, dens):

@@ -28,7 +28,7 @@ from numba import njit
 
 from avflow.numerics.cpu import (DRY, carries, cell_moves, cell_update, dirac_face,
                                  dt_from_inverse, observe_cell, open_mass,
-                                 step_terms, trial_momentum)
+                                 outflow_volume, step_terms, trial_momentum)
 from avflow.numerics.cpu import SQRT3, half_fluxes, select_flux_in, select_flux_out, sound_speed
 from avflow.numerics.vectorize import (cell_law, friction_law, law_copies, law_kind, law_label,
                                        line_sum, noalias, specialize)
@@ -232,11 +232,11 @@ def _step(line, physics, cur, nxt, flag, when):
     if left == OUTFLOW:
         fk = pflag[1]
         if not dirac_face(dirac, fk, fk):
-            outflow += max(-flux_h[0], 0.0) * dt
+            outflow += outflow_volume(-flux_h[0], dt)
     if right == OUTFLOW:
         fk = pflag[n]
         if not dirac_face(dirac, fk, fk):
-            outflow += max(flux_h[n], 0.0) * dt
+            outflow += outflow_volume(flux_h[n], dt)
     inv_lim = 0.0
     for k in range(n):
         inv_lim = max(inv_lim, t_inv[k])

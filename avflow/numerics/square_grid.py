@@ -56,8 +56,8 @@ from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
                                  cell_update, dirac_face, dt_from_inverse, face_flux,
-                                 heun_average, observe_cell, speed_of, step_terms,
-                                 trial_momentum, vector_face_flux)
+                                 heun_average, observe_cell, outflow_volume, speed_of,
+                                 step_terms, take_back, trial_momentum, vector_face_flux)
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_span
 from avflow.numerics.sources import SPAN, add_span  # noqa: F401 (each copy's own)
@@ -648,13 +648,11 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         d_n = dirac_face(dirac, fi, f_n if n_in else fi)
         acc = _in_face_order(0.0, 0.0 if d_w else wm, 0.0 if d_e else e_m,
                              0.0 if d_s else sm, 0.0 if d_n else nm)
-        # a dry side takes no momentum through a Dirac face: the face kernel takes back, in
-        # face order, what those faces brought to the sum of the trial
+        # a dry side takes no momentum through a Dirac face: what those faces brought to the
+        # sum of the trial, taken back in face order (W, E, S, N), kept where one is Dirac
         any_dirac = d_w | d_e | d_s | d_n
-        bx = _in_face_order(qx, -wx if d_w else 0.0, -ex if d_e else 0.0,
-                            -sx if d_s else 0.0, -nx_ if d_n else 0.0)
-        by = _in_face_order(qy, -wy if d_w else 0.0, -ey if d_e else 0.0,
-                            -sy if d_s else 0.0, -ny_ if d_n else 0.0)
+        bx = take_back(take_back(take_back(take_back(qx, wx, d_w), ex, d_e), sx, d_s), nx_, d_n)
+        by = take_back(take_back(take_back(take_back(qy, wy, d_w), ey, d_e), sy, d_s), ny_, d_n)
         dry = fi == DRY
         centripetal = kappa11 * u1 * u1 + 2.0 * kappa12 * u1 * u2 + kappa22 * u2 * u2
         pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
@@ -714,10 +712,10 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         open_e = ((e_code & KIND) == LOW_OPEN) & (not d_e) & (e_m < 0.0)
         open_s = ((s_code & KIND) == HIGH_OPEN) & (not d_s) & (sm < 0.0)
         open_n = ((n_code & KIND) == LOW_OPEN) & (not d_n) & (nm < 0.0)
-        out_w = -wm * dt if open_w else 0.0
-        out_e = -e_m * dt if open_e else 0.0
-        out_s = -sm * dt if open_s else 0.0
-        out_n = -nm * dt if open_n else 0.0
+        out_w = outflow_volume(-wm, dt) if open_w else 0.0
+        out_e = outflow_volume(-e_m, dt) if open_e else 0.0
+        out_s = outflow_volume(-sm, dt) if open_s else 0.0
+        out_n = outflow_volume(-nm, dt) if open_n else 0.0
         t_out[c] = ((out_w + out_e) + out_s) + out_n if good else 0.0
         if ORDER2:  # step_faces' transport: only faces that are not Dirac (eq. 53)
             unit = max(max(max(0.0 if d_w else abs(wm) / len_w, 0.0 if d_e else abs(e_m) / len_e),
