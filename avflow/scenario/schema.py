@@ -1176,6 +1176,16 @@ class Numerics(_Model):
     agree with the CPU's to round-off (docs/guide/gpu.md)."""
 
 
+#: What ``physics.material`` sets where not given: the bulk density (kg/m^3: AvaFrame's
+#: snow; debris flows 1800-2300; rock avalanches about 2500) and the stop rule (snow runs
+#: leave thin layers creeping on steep slopes long after the runout is reached: docs' run end)
+MATERIALS = {"snow": {"density": 200.0, "stop_rule": "kinetic_energy"},
+             "debris": {"density": 2000.0, "stop_rule": "moving_volume"},
+             "rock": {"density": 2500.0, "stop_rule": "moving_volume"}}
+#: The laws of snow avalanches: without a material or density, snow's density
+SNOW_LAWS = ("samosat", "voellmy")
+
+
 class Physics(_Model):
     """Physical constants."""
 
@@ -1184,9 +1194,15 @@ class Physics(_Model):
     """m/s^2."""
     dirac: Flag = True
     """The seed's zero-temperature (Dirac) flux; false only for studies."""
+    material: Literal["snow", "debris", "rock"] | None = None
+    """What flows, for its defaults (:data:`MATERIALS`): snow (density 200 kg/m^3, the
+    kinetic-energy stop rule, as AvaFrame), debris (2000, the moving-volume rule) or rock
+    (2500, the moving-volume rule). null: debris, except with the snow laws samosat and
+    voellmy, which take snow's density (said on stderr). ``density`` and
+    ``output.stop_rule``, where given, win."""
     density: _interval(0.0, 1e5, lo_open=True, unit=" kg/m^3",
                        why=" (4x the densest element)") = 2000.0
-    """Bulk density of the flowing material (kg/m^3)."""
+    """Bulk density of the flowing material (kg/m^3); default: the material's."""
     min_flow_thickness: NonNegative | None = None
     """Material thinner than this (m) does not flow: it keeps its mass where it lies (in the
     deposit), sends and takes no momentum and plays no part in the time step. null: 1 mm
@@ -1277,6 +1293,48 @@ class Scenario(_Model):
     _positions: dict[tuple, tuple[int, int]] = PrivateAttr(default_factory=dict)
     _written: dict[str, Any] | None = PrivateAttr(None)  # the mapping as written, for updates
     _base_dir: str | None = PrivateAttr(None)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _material_defaults(cls, data: Any) -> Any:
+        """physics.density and output.stop_rule from physics.material where they are not
+        given; without a material, the snow laws (samosat, voellmy) take snow's density, and
+        one line on stderr says so: debris density would make their pressures ten times too
+        high. Filled in before validation (the model stays frozen)."""
+        if not isinstance(data, dict):
+            return data
+        physics, output = data.get("physics", {}), data.get("output", {})
+        if isinstance(physics, BaseModel):
+            physics = physics.model_dump(exclude_unset=True)
+        if isinstance(output, BaseModel):
+            output = output.model_dump(exclude_unset=True)
+        if not isinstance(physics, dict) or not isinstance(output, dict):
+            return data  # their own errors are reported
+        material = physics.get("material")
+        rheology = data.get("rheology")
+        law = getattr(rheology, "law", None) if isinstance(rheology, BaseModel) else (
+            rheology.get("law") if isinstance(rheology, dict) else None)
+        preset = MATERIALS.get(material) if isinstance(material, str) else None
+        if physics.get("density") is None:
+            if preset is not None:
+                physics = {**physics, "density": preset["density"]}
+            elif material is None and law in SNOW_LAWS:
+                physics = {**physics, "density": MATERIALS["snow"]["density"]}
+                import warnings
+
+                from avflow.errors import AvflowWarning
+
+                warnings.warn(AvflowWarning(
+                    f"physics.density not given: {MATERIALS['snow']['density']:g} kg/m^3, "
+                    f"snow's, for the snow law {law} (set physics.material or "
+                    "physics.density for another material)"), stacklevel=2)
+        if preset is not None and output.get("stop_rule") is None:
+            output = {**output, "stop_rule": preset["stop_rule"]}
+        if physics or "physics" in data:
+            data = {**data, "physics": physics}
+        if output or "output" in data:
+            data = {**data, "output": output}
+        return data
 
     @model_validator(mode="before")
     @classmethod
@@ -1498,6 +1556,8 @@ class Scenario(_Model):
             data["output"].pop("points", None)
         if data.get("secondary_release") is None:  # none: hashes as before the block
             data.pop("secondary_release", None)
+        # the material counts by what it sets (density, stop rule), resolved above
+        data["physics"].pop("material", None)
         files = [(("output", "points"), "file")] if data["output"].get("points") else []
         files += [(("secondary_release", "areas", k), "path") for k, a in enumerate(
             (data.get("secondary_release") or {}).get("areas", ())) if a.get("path")]
