@@ -550,6 +550,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_region_parser(sub, [quiet, extensions])
     ca = sub.add_parser("calibrate", help="calibrate parameters to an observed event "
                                           "(grid, lhs, bayes-opt, posterior); resumable",
+                        description="Calibrate friction parameters to an observed event "
+                        "(runout, impact area, deposit, values at points). The file's method "
+                        "says how: grid (a regular grid of the ranges), lhs (a Latin "
+                        "hypercube), bayes-opt (Bayesian optimisation with a Gaussian-process "
+                        "surrogate, the default) or posterior (an emulator's posterior sampled "
+                        "by MCMC, with Sobol indices). Resumable: run it again on the same "
+                        "output folder to go on.",
                         parents=[quiet, extensions])
     ca.add_argument("calibration", help="calibration YAML file (base scenario, parameter "
                                         "ranges, observations, method, budget)")

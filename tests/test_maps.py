@@ -296,6 +296,9 @@ def test_ensemble_probability_maps_exported_to_geotiff(dem_ensemble, tmp_path, c
         assert _same_crs(src.crs)
         assert src.transform.almost_equals(_expected_transform())
         assert src.descriptions[0] == "P(peak pressure > 3 kPa)"
+        # a probability's pixels have no unit of pressure: the threshold's is a tag
+        assert src.units[0] == "1" and src.tags(1)["threshold_units"] == "kPa"
+        assert "units" not in src.tags(1)
         values = src.read(1, masked=True).filled(np.nan)[::-1]
     stored = ds["peak_pressure_exceedance_probability"].sel(pressure_threshold=3.0).values
     np.testing.assert_array_equal(values, stored)

@@ -1,4 +1,4 @@
-"""avflow beside AvaFrame com1DFA on AvaFrame's own paths (issue 9 item 6).
+"""avflow beside AvaFrame com1DFA on AvaFrame's own paths.
 
     python workflows/compare_avaframe.py --avaframe-python /work/avaframe_venv/bin/python
     python workflows/compare_avaframe.py --avaframe-results /work/avaframe_ref   # stored runs

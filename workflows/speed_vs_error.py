@@ -1,4 +1,4 @@
-"""Speed against error: what an answer costs at the accuracy it needs (issue 10, item 3).
+"""Speed against error: what an answer costs at the accuracy it needs.
 
     python workflows/speed_vs_error.py                     # everything, order 1 and 2
     python workflows/speed_vs_error.py --quick             # 2-3 sizes per problem (smoke test)

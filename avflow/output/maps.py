@@ -305,6 +305,7 @@ def _run_rasters(ds, path: Path, variables):
             "colormap": {0: (255, 255, 255, 255),  # a TIFF palette has no alpha
                          **{k + 1: _rgba(c) for k, c in enumerate(colors)}},
             "description": "peak pressure class",
+            "units": "class",  # an index into the tags below, not a pressure
             "tags": {"pressure_classes_kPa": ", ".join(f"{v:g}" for v in classes),
                      "class_0": f"< {classes[0]:g} kPa, or the peak thickness stayed "
                                 f"under the runout threshold",
@@ -351,7 +352,9 @@ def _ensemble_rasters(ds, path: Path, variables):
             rasters.append((f"{name}_{label}", np.asarray(var.sel({coord.name: t}).values,
                                                           dtype=float), {
                 "description": f"P({what} > {float(t):g} {units})",
-                "tags": {"variable": name, "threshold": f"{float(t):g}", "units": units,
+                "units": "1",  # a probability: the threshold's units are a tag of their own
+                "tags": {"variable": name, "threshold": f"{float(t):g}",
+                         "threshold_units": units,
                          "members": str(members),
                          "comment": var.attrs.get("comment", "")}}))
     return rasters
