@@ -124,7 +124,7 @@ def test_export_round_trip(grid_run, tmp_path, fmt, capsys):
             expected = expected / 1000.0
         if fmt == "tif":  # each band names its units and what it holds
             with rasterio.open(tmp_path / f"run_{name}.{fmt}") as src:
-                units = ("kPa" if name == "peak_pressure" else None
+                units = ("kPa" if name == "peak_pressure" else "class"
                          if name == "peak_pressure_class" else ds[name].attrs.get("units"))
                 assert (src.units[0] or None) == units, name
                 assert src.descriptions[0], name
