@@ -483,6 +483,13 @@ def build_parser() -> argparse.ArgumentParser:
                                      "(or OUTDIR/region.zarr)")
     pl.add_argument("-o", "--output", help="PNG file (default: RUN_FILE with .png; "
                                            "OUTDIR/region.png for a region)")
+    pl.add_argument("--map", default="both", choices=("both", "thickness", "pressure", "speed"),
+                    help="on a map: both panels (peak thickness and peak-pressure classes, "
+                         "the default), or one of them, or the peak speed")
+    pl.add_argument("--extent", nargs=4, type=float, metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
+                    help="on a map: the part to draw, in the map's coordinates (m)")
+    pl.add_argument("--dpi", type=int, default=120,
+                    help="the image's resolution in dots per inch (default 120; 300 for print)")
     pl.set_defaults(func=_cmd_plot)
     pa = sub.add_parser("path", help="runout along the avalanche path (AvaFrame's AIMEC): "
                                      "table and PNG of a run file or an ensemble folder",
@@ -818,11 +825,17 @@ def _cmd_plot(args) -> int:
     from avflow.region.export import find_store
 
     if find_store(args.run_file) is not None:  # a region's folder or its region.zarr
-        from avflow.region.plot import plot_region as plot_run
+        from avflow.region.plot import plot_region
+
+        if args.map != "both" or args.extent is not None or args.dpi != 120:
+            raise AvflowError(f"{args.run_file}: a region's figure takes no --map, --extent "
+                              "or --dpi; avflow export gives its maps to a GIS")
+        written = plot_region(args.run_file, args.output)
     else:
         from avflow.output.maps import plot_run
 
-    written = plot_run(args.run_file, args.output)
+        written = plot_run(args.run_file, args.output, map=args.map, extent=args.extent,
+                           dpi=args.dpi)
     if not args.quiet:
         print(f"wrote {written}")
     return 0

@@ -337,3 +337,43 @@ def test_the_plot_outlines_where_an_entrainment_runs_layer_lay():
                      "bed_change": (("y", "x"), change)})
     np.testing.assert_array_equal(_erodible_at_start(ds), [[False, True], [True, True]])
     assert _erodible_at_start(xr.Dataset()) is None
+
+
+def test_plot_options_for_a_report(grid_run, tmp_path, capsys):
+    """--map, --extent and --dpi: one panel of the peak speed, a part of the map, at half
+    the resolution (half the pixels each way); a scale bar and a north arrow on each map."""
+    import matplotlib.image as mpimg
+
+    full, part = tmp_path / "full.png", tmp_path / "part.png"
+    assert main(["plot", str(grid_run), "-o", str(full)]) == 0
+    ds = xr.open_dataset(grid_run)
+    x0, x1 = float(ds.x.min()), float(ds.x.max())
+    y0, y1 = float(ds.y.min()), float(ds.y.max())
+    mid = (x0 + x1) / 2
+    assert main(["plot", str(grid_run), "--map", "speed", "--extent", str(x0), str(mid),
+                 str(y0), str(y1), "--dpi", "60", "-o", str(part)]) == 0
+    half = tmp_path / "half.png"
+    assert main(["plot", str(grid_run), "--dpi", "60", "-o", str(half)]) == 0
+    assert abs(mpimg.imread(half).shape[0] / mpimg.imread(full).shape[0] - 0.5) < 0.01
+    assert part.stat().st_size > 10_000
+    capsys.readouterr()
+    assert main(["plot", str(grid_run), "--extent", "1", "0", "0", "1",
+                 "-o", str(tmp_path / "bad.png")]) == 2
+    assert "--extent: XMIN XMAX YMIN YMAX" in capsys.readouterr().err
+    assert not (tmp_path / "bad.png").exists()
+
+
+def test_every_map_has_a_scale_bar_and_a_north_arrow(grid_run):
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    from avflow.output.maps import _plot_grid, _plt
+
+    plt = _plt()
+    with xr.open_dataset(grid_run) as ds:
+        fig = _plot_grid(ds, plt)
+    for ax in fig.axes:
+        if ax.get_label() == "<colorbar>":
+            continue
+        assert any(isinstance(a, AnchoredSizeBar) for a in ax.artists), ax
+        assert any(t.get_text() == "N" for t in ax.texts), ax
+    plt.close(fig)

@@ -492,14 +492,32 @@ def _thickness_style(peak: np.ndarray, ds):
     return levels, cmap, mcolors.BoundaryNorm(levels, cmap.N)
 
 
-def _save(fig, target: Path) -> Path:
+def _save(fig, target: Path, dpi: int = 120) -> Path:
     from avflow.files import atomic_write
 
-    return atomic_write(target, lambda tmp: fig.savefig(tmp, dpi=120, format="png"))
+    return atomic_write(target, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"))
 
 
-def plot_run(path, output=None) -> Path:
-    """Draw the run file ``path`` to a PNG (default: next to it, same stem); returns its path."""
+#: What ``avflow plot --map`` draws on a map: both panels, or one of them
+PLOT_MAPS = ("both", "thickness", "pressure", "speed")
+
+
+def plot_run(path, output=None, *, map: str = "both", extent=None, dpi: int = 120) -> Path:
+    """Draw the run file ``path`` to a PNG (default: next to it, same stem); returns its path.
+
+    On a map (grid or triangles): ``map`` one of :data:`PLOT_MAPS`; ``extent`` ``(xmin,
+    xmax, ymin, ymax)`` in the map's coordinates (default: the whole map); ``dpi`` of the
+    image. Maps carry a scale bar and a north arrow."""
+    if map not in PLOT_MAPS:
+        raise MapsError(f"--map: one of {', '.join(PLOT_MAPS)}, got {map!r}")
+    if not (isinstance(dpi, int) and 20 <= dpi <= 1200):
+        raise MapsError(f"--dpi: a whole number from 20 to 1200, got {dpi!r}")
+    if extent is not None:
+        extent = tuple(float(v) for v in extent)
+        if (len(extent) != 4 or not all(math.isfinite(v) for v in extent)
+                or not (extent[0] < extent[1] and extent[2] < extent[3])):
+            raise MapsError("--extent: XMIN XMAX YMIN YMAX, finite, with XMIN < XMAX and "
+                            f"YMIN < YMAX, got {' '.join(f'{v:g}' for v in extent)}")
     from avflow.files import check_target, inputs_of
 
     path = Path(path)
@@ -524,11 +542,38 @@ def plot_run(path, output=None) -> Path:
         if draw is None:
             raise MapsError(f"{path}: unknown scene layout (peak_thickness on "
                             f"{ds['peak_thickness'].dims})")
-        fig = draw(ds, plt)
+        if kind == "profile" and (map != "both" or extent is not None):
+            raise MapsError(f"{path}: a 1D profile; --map and --extent are for maps")
+        if kind == "grid" and map == "pressure" and "peak_pressure" not in ds.variables:
+            raise MapsError(f"{path}: the file has no peak_pressure to draw")
+        fig = draw(ds, plt) if kind == "profile" else draw(ds, plt, map=map, extent=extent)
     try:
-        return _save(fig, target)
+        return _save(fig, target, dpi)
     finally:
         plt.close(fig)
+
+
+def _scale_and_north(ax) -> None:
+    """A scale bar (a round length near a fifth of the width shown) at the lower left and a
+    north arrow at the upper right: the maps are drawn in their CRS, y to the north."""
+    from matplotlib.offsetbox import AnchoredText  # noqa: F401 - (matplotlib is loaded)
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    x0, x1 = ax.get_xlim()
+    width = abs(x1 - x0)
+    if not width > 0:
+        return
+    target = width / 5.0
+    step = 10.0 ** math.floor(math.log10(target))
+    length = max((m * step for m in (1, 2, 5) if m * step <= target), default=step)
+    label = f"{length / 1000:g} km" if length >= 1000 else f"{length:g} m"
+    ax.add_artist(AnchoredSizeBar(ax.transData, length, label, "lower left", pad=0.4,
+                                  borderpad=0.6, sep=3, frameon=True, size_vertical=0,
+                                  fontproperties={"size": 8}))
+    ax.annotate("N", xy=(0.95, 0.95), xytext=(0.95, 0.83), xycoords="axes fraction",
+                ha="center", va="center", fontsize=9, fontweight="bold",
+                arrowprops=dict(arrowstyle="-|>", color="black", lw=1.5),
+                bbox=dict(boxstyle="circle,pad=0.15", fc="white", ec="none", alpha=0.7))
 
 
 def crs_name(ds) -> str | None:
@@ -572,48 +617,75 @@ def _map_axes(plt, extent, panels: int):
     return fig, list(axes.ravel()), where
 
 
-def _plot_grid(ds, plt):
+def _plot_grid(ds, plt, map: str = "both", extent=None):
     x = np.asarray(ds["x"].values, dtype=float)
     y = np.asarray(ds["y"].values, dtype=float)
     dx = float(x[1] - x[0]) if x.size > 1 else 1.0
     dy = float(y[1] - y[0]) if y.size > 1 else dx
-    extent = (x[0] - dx / 2, x[-1] + dx / 2, y[0] - dy / 2, y[-1] + dy / 2)
+    grid_extent = (x[0] - dx / 2, x[-1] + dx / 2, y[0] - dy / 2, y[-1] + dy / 2)
+    shown_extent = grid_extent if extent is None else extent
     bed = np.asarray(ds["bed_elevation"].values, dtype=float)
     peak = np.asarray(ds["peak_thickness"].values, dtype=float)
     deposit = np.asarray(ds["deposit_thickness"].values, dtype=float)
     release = np.asarray(ds["h"].isel(time=0).values, dtype=float)
     threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
     pressure = "peak_pressure" in ds.variables
+    panels = (["thickness", "pressure"] if map == "both" and pressure else
+              ["thickness"] if map == "both" else [map])
 
-    fig, axes, where = _map_axes(plt, extent, 2 if pressure else 1)
+    fig, axes, where = _map_axes(plt, shown_extent, len(panels))
     for ax in axes:
         draw_terrain(ax, x, y, bed)
 
     def raster(ax, values, **kw):
-        return ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="lower",
+        return ax.imshow(np.ma.masked_invalid(values), extent=grid_extent, origin="lower",
                          interpolation="nearest", **kw)
 
-    levels, cmap, norm = _thickness_style(peak, ds)
-    shown = np.where(np.isfinite(peak) & (peak >= levels[0]), peak, np.nan)
-    im = raster(axes[0], shown, cmap=cmap, norm=norm, alpha=0.85)
     outlines = (np.nan_to_num(release) > 0, np.nan_to_num(deposit) > threshold, threshold)
     for ax in axes:
-        ax.set_xlim(extent[0], extent[1])
-        ax.set_ylim(extent[2], extent[3])
+        ax.set_xlim(shown_extent[0], shown_extent[1])
+        ax.set_ylim(shown_extent[2], shown_extent[3])
         _finish_map(ds, fig, ax, lambda v, ax=ax, **kw: ax.contour(x, y, v, **kw),
                     *outlines, where)
-    _thickness_colorbar(fig, axes[0], im, levels, where,
-                        "peak flow thickness (m, normal to the bed)")
-    if pressure:
-        classes = pressure_classes(ds)
-        k = run_pressure_classes(ds)
-        cmap, norm = _class_style(len(classes))
-        raster(axes[1], np.where(k > 0, k, np.nan), cmap=cmap, norm=norm, alpha=0.9)
-        _class_legend(fig, classes, where, axes[1])
-    _titles(fig, axes, ds)
+    for ax, panel in zip(axes, panels):
+        if panel == "thickness":
+            levels, cmap, norm = _thickness_style(peak, ds)
+            shown = np.where(np.isfinite(peak) & (peak >= levels[0]), peak, np.nan)
+            im = raster(ax, shown, cmap=cmap, norm=norm, alpha=0.85)
+            _thickness_colorbar(fig, ax, im, levels, where,
+                                "peak flow thickness (m, normal to the bed)")
+        elif panel == "pressure":
+            classes = pressure_classes(ds)
+            k = run_pressure_classes(ds)
+            cmap, norm = _class_style(len(classes))
+            raster(ax, np.where(k > 0, k, np.nan), cmap=cmap, norm=norm, alpha=0.9)
+            _class_legend(fig, classes, where, ax)
+        else:  # speed, coloured where the flow went
+            speed = np.asarray(ds["peak_speed"].values, dtype=float)
+            speed = np.where(np.isfinite(peak) & (peak >= threshold) & (speed > 0), speed,
+                             np.nan)
+            levels, cmap, norm = _speed_style(speed)
+            im = raster(ax, speed, cmap=cmap, norm=norm, alpha=0.85)
+            _thickness_colorbar(fig, ax, im, levels, where, "peak speed (m/s)")
+        _scale_and_north(ax)
+    _titles(fig, axes, ds, panels)
     for ax in axes:
         plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
     return fig
+
+
+def _speed_style(speed: np.ndarray):
+    """Colormap and BoundaryNorm of stepped speed levels (m/s)."""
+    import matplotlib.colors as mcolors
+    from matplotlib import colormaps
+
+    finite = speed[np.isfinite(speed)]
+    hi = float(finite.max()) if finite.size else 1.0
+    levels = _nice_levels(max(0.05 * hi, 0.1), max(hi, 0.2))
+    colors = colormaps["viridis"](np.linspace(0.0, 1.0, len(levels) - 1))
+    cmap = mcolors.ListedColormap(colors).with_extremes(under=colors[0], bad=(0, 0, 0, 0),
+                                                        over=colors[-1])
+    return levels, cmap, mcolors.BoundaryNorm(levels, cmap.N)
 
 
 def draw_terrain(ax, x, y, bed) -> None:
@@ -674,14 +746,21 @@ def _thickness_colorbar(fig, ax, im, levels, where, label) -> None:
     cb.set_ticklabels([f"{v:g}" for v in levels])
 
 
-def _titles(fig, axes, ds) -> None:
+_PANEL_TITLES = {"thickness": "peak flow thickness", "pressure": "peak pressure classes",
+                 "speed": "peak speed"}
+
+
+def _titles(fig, axes, ds, panels=("thickness", "pressure")) -> None:
     """The run's title over the figure; each map named when there are two."""
-    if len(axes) == 1:
-        axes[0].set_title(_title(ds), fontsize=10)
+    if len(axes) == 1:  # one map's width: the lines wrapped, not cut at the figure's edge
+        import textwrap
+
+        lines = [textwrap.fill(line, 95) for line in _title(ds).split("\n")]
+        axes[0].set_title("\n".join(lines), fontsize=9)
         return
     fig.suptitle(_title(ds), fontsize=10)
-    axes[0].set_title("peak flow thickness", fontsize=9)
-    axes[1].set_title("peak pressure classes", fontsize=9)
+    for ax, panel in zip(axes, panels):
+        ax.set_title(_PANEL_TITLES[panel], fontsize=9)
 
 
 def _erodible_at_start(ds):
@@ -780,8 +859,12 @@ def _plot_profile(ds, plt):
     return fig
 
 
-def _plot_triangles(ds, plt):
+def _plot_triangles(ds, plt, map: str = "both", extent=None):
     import matplotlib.tri as mtri
+
+    if map != "both":
+        raise MapsError("--map: a run on triangles draws both maps (its thickness and "
+                        "pressure classes); --map thickness, pressure or speed is for grids")
 
     nx = np.asarray(ds["mesh_node_x"].values, dtype=float)
     ny = np.asarray(ds["mesh_node_y"].values, dtype=float)
@@ -797,8 +880,8 @@ def _plot_triangles(ds, plt):
     threshold = float(ds.attrs.get("runout_threshold_m", 0.0) or 0.0)
     pressure = "peak_pressure" in ds.variables
 
-    fig, axes, where = _map_axes(plt, (nx.min(), nx.max(), ny.min(), ny.max()),
-                                 2 if pressure else 1)
+    shown_extent = (nx.min(), nx.max(), ny.min(), ny.max()) if extent is None else extent
+    fig, axes, where = _map_axes(plt, shown_extent, 2 if pressure else 1)
     for ax in axes:
         if np.ptp(bed) > 0:
             cs = ax.tricontour(tri, bed, levels=12, colors="0.45", linewidths=0.4,
@@ -827,5 +910,9 @@ def _plot_triangles(ds, plt):
         axes[1].tripcolor(tri_p, facecolors=np.maximum(k, 1), cmap=cmap, norm=norm,
                           alpha=0.9, edgecolors="face", linewidth=0.2)
         _class_legend(fig, classes, where, axes[1])
+    for ax in axes:
+        ax.set_xlim(shown_extent[0], shown_extent[1])
+        ax.set_ylim(shown_extent[2], shown_extent[3])
+        _scale_and_north(ax)
     _titles(fig, axes, ds)
     return fig
