@@ -153,15 +153,43 @@ def _load_extensions(given: list[str]) -> None:
     """The extension files of $AVFLOW_EXTENSIONS, then those of ``--extensions``, each run
     once (:func:`avflow.scenario.extensions.load_file`): what they register is then known to
     the scenario, and the files travel with the members to the workers."""
+    from avflow.files import read_input
     from avflow.scenario.extensions import ExtensionFileError, load_file
 
     listed = [(f"${ENV_EXTENSIONS}", path) for path in
               os.environ.get(ENV_EXTENSIONS, "").split(os.pathsep) if path]
     for origin, path in listed + [("--extensions", path) for path in given]:
+        read_input(path)  # an input of the command: no output may replace it
         try:
+            _check_extension_file(path)
             load_file(path)
         except ExtensionFileError as err:
             raise ExtensionFileError(f"{origin}: {err}") from None
+
+
+#: An extension file is Python source of a few laws: larger is no extension file.
+MAX_EXTENSION_BYTES = 16 << 20
+
+
+def _check_extension_file(path) -> None:
+    """Refuse, before Python reads it, an extension file that is a device or a pipe
+    (``/dev/zero`` would be read without end, a FIFO waits for a writer) or too large."""
+    import stat
+
+    from avflow.scenario.extensions import ExtensionFileError
+
+    try:
+        st = os.stat(path)
+    except OSError:
+        return  # missing, a loop of links: said by load_file
+    if stat.S_ISDIR(st.st_mode):
+        return
+    if not stat.S_ISREG(st.st_mode):
+        raise ExtensionFileError(f"{path}: not a regular file (a device, a pipe or a "
+                                 "socket); give a Python file")
+    if st.st_size > MAX_EXTENSION_BYTES:
+        raise ExtensionFileError(f"{path}: over {MAX_EXTENSION_BYTES >> 20} MiB: not an "
+                                 "extension file")
 
 
 def _extension_hint(err: AvflowError) -> str:
@@ -782,6 +810,9 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     _one_line_warnings()
     TERMINATED.clear()
+    from avflow.files import forget_inputs
+
+    forget_inputs()  # main() called again in one process: the last command's inputs
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
     reads_scenarios = hasattr(args, "extensions")

@@ -405,7 +405,7 @@ def write_release_areas(result: PRAResult, target, index_raster=None) -> list[Pa
 
     import pyogrio.raw
 
-    from avflow.files import atomic_write
+    from avflow.files import OutputWriteError, atomic_write, fsync, write_error
 
     target = Path(target)
     if not result.areas:
@@ -427,27 +427,53 @@ def write_release_areas(result: PRAResult, target, index_raster=None) -> list[Pa
             pyogrio.raw.write(str(tmp), wkb, columns, names, layer="release_areas",
                               driver=driver, crs=result.crs_wkt, geometry_type="Unknown")
 
+    def verify(tmp: Path) -> None:
+        """Read back: GDAL reports some failed writes (a full disk) as log messages only,
+        leaving an empty or cut layer."""
+        try:
+            count = pyogrio.read_info(str(tmp))["features"]
+        except Exception:  # noqa: BLE001 - any reader's error: the file is not readable
+            count = -1
+        if count != len(result.areas):
+            raise OutputWriteError(f"cannot write {target}: the layer reads back "
+                                   f"{'unreadable' if count < 0 else f'with {count} of {len(result.areas)} areas'}"
+                                   " (is the disk full?)")
+
     written = []
     if driver == "ESRI Shapefile":  # several files: written in a folder beside, then moved
         import os
         import shutil
         import tempfile
 
-        target.parent.mkdir(parents=True, exist_ok=True)
-        folder = Path(tempfile.mkdtemp(prefix=f".{target.stem}-", dir=target.parent))
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            folder = Path(tempfile.mkdtemp(prefix=f".{target.stem}-", dir=target.parent))
+        except OSError as err:
+            raise write_error(target, err) from None
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 warnings.simplefilter("ignore", UserWarning)
                 pyogrio.raw.write(str(folder / target.name), wkb, columns, names,
                                   driver=driver, crs=result.crs_wkt, geometry_type="Polygon")
-            for part in sorted(folder.iterdir()):
-                os.replace(part, target.with_suffix(part.suffix))
+            parts = sorted(folder.iterdir())
+            for part in parts:
+                fsync(part)
+            verify(folder / target.name)
+            for part in parts:  # the .shp last: a reader sees the new layer whole, or none
+                if part.suffix.lower() != ".shp":
+                    os.replace(part, target.with_suffix(part.suffix))
+            os.replace(folder / target.name, target)
+        except BaseException as err:
+            error = write_error(target, err)
+            if error is not None:
+                raise error from None
+            raise
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         written.append(target)
     else:
-        written.append(atomic_write(target, write))
+        written.append(atomic_write(target, write, verify))
     if index_raster is not None:
         from avflow.terrain.raster import write_tif
 
