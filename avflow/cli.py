@@ -322,7 +322,7 @@ def _cmd_release_areas(args) -> int:
     from avflow.terrain.release_areas import (PRASettings, potential_release_areas,
                                               write_release_areas)
 
-    settings = PRASettings(
+    settings = _option_named(PRASettings,
         slope_min=args.slope_min, slope_max=args.slope_max, snow_depth=args.snow_depth,
         roughness=not args.no_roughness, wind_direction=args.wind_direction,
         wind_tolerance=args.wind_tolerance, threshold=args.threshold,
@@ -351,6 +351,28 @@ def _cmd_release_areas(args) -> int:
         print(line)
         print("wrote " + ", ".join(str(w) for w in written))
     return 0
+
+
+#: The option of ``avflow release-areas`` that sets each field of its settings.
+_RELEASE_OPTIONS = {"split_aspect_deg": "--split-aspect", "roughness": "--no-roughness",
+                    "slope_correction": "--no-slope-correction"}
+
+
+def _option_named(settings, **values):
+    """``settings(**values)``; its error names the command-line option, not the field."""
+    from avflow.terrain.release_areas import PRAError
+
+    import re
+
+    try:
+        return settings(**values)
+    except PRAError as err:
+        def option(match):
+            name = match.group(0)
+            return _RELEASE_OPTIONS.get(name, "--" + name.replace("_", "-"))
+
+        words = "|".join(sorted(map(re.escape, values), key=len, reverse=True))
+        raise PRAError(re.sub(rf"\b({words})\b", option, str(err))) from None
 
 
 def _cmd_path(args) -> int:

@@ -142,3 +142,116 @@ def test_an_extension_file_that_is_no_file_is_refused_at_once(tmp_path, kind):
     done = child("run", "--extensions", path, "nothere.yaml", timeout=60)
     assert done.returncode == 2
     assert str(path) in one_line(done.stderr)
+
+
+# --- 2. every number a command takes is checked -----------------------------------------------
+
+
+@pytest.mark.parametrize("option, value", [
+    ("--gradient", "nan"), ("--gradient", "1e308"), ("--reference-elevation", "inf"),
+    ("--wind-direction", "nan"), ("--wind-direction", "inf"), ("--wind-direction", "1e308"),
+    ("--wind-direction", "360"), ("--snow-depth", "1e6"), ("--snow-depth", "inf"),
+    ("--d0", "1e308"), ("--d0", "nan"), ("--split-aspect", "nan")])
+def test_release_areas_refuses_numbers_no_snow_cover_has(tmp_path, capsys, option, value):
+    dem = steps_dem(tmp_path)
+    code, out, err = cli(["release-areas", dem, "-o", tmp_path / "r.gpkg", option, value],
+                         capsys)
+    assert code == 2 and "wrote" not in out
+    assert one_line(err).startswith(f"avflow: error: {option} must be")
+    assert not (tmp_path / "r.gpkg").exists()
+
+
+def test_a_slope_band_below_the_thickness_rules_reach_is_refused_with_d0(tmp_path, capsys):
+    """0.291 / (sin psi - 0.202 cos psi) is negative below 11.42 degrees: -0.33 m before."""
+    dem = steps_dem(tmp_path)
+    code, _, err = cli(["release-areas", dem, "-o", tmp_path / "r.gpkg", "--d0", "1",
+                        "--slope-min", "5"], capsys)
+    assert code == 2 and "--slope-min must be above 11.42 degrees" in one_line(err)
+    code, out, _ = cli(["release-areas", dem, "-o", tmp_path / "r.gpkg", "--d0", "1"], capsys)
+    assert code == 0
+    import pyogrio.raw
+
+    meta, *_, fields = pyogrio.raw.read(tmp_path / "r.gpkg")
+    thickness = fields[list(meta["fields"]).index("thickness")]
+    assert (thickness > 0).all() and np.isfinite(thickness).all()
+
+
+def test_a_dem_smaller_than_the_roughness_window_says_so(tmp_path, capsys):
+    from avflow.terrain.raster import write_tif
+
+    x = y = np.arange(2.5, 25.0, 5.0)
+    write_tif(tmp_path / "small.tif", np.add.outer(y, x) * 0.8, x, y, None)
+    code, _, err = cli(["release-areas", tmp_path / "small.tif", "-o", tmp_path / "r.gpkg"],
+                       capsys)
+    assert code == 2
+    line = one_line(err)
+    assert "smaller than the slope and roughness window (7 x 7 cells" in line
+    assert "no cell meets" not in line
+
+
+@pytest.mark.parametrize("options, field", [
+    ({"wind_direction": float("nan")}, "wind_direction"),
+    ({"snow_depth": float("inf")}, "snow_depth"),
+    ({"min_area": "big"}, "min_area"),
+    ({"roughness": "yes"}, "roughness")])
+def test_from_dem_options_are_typed_and_named(options, field):
+    from avflow.terrain.release_areas import PRAError, PRASettings
+
+    with pytest.raises(PRAError) as err:
+        PRASettings(**options)
+    assert str(err.value).startswith(f"{field} must be")
+
+
+PLANE = """
+name: dam-{tag}
+terrain:
+  kind: plane
+  slope_deg: 25.0
+  azimuth_deg: 180.0
+  extent: {{x: [0.0, 200.0], y: [0.0, 400.0]}}
+grid: {{dx: 10.0}}
+release: {{kind: cylinder, center: [100.0, 310.0], radius: 30.0, thickness: 3.0}}
+rheology: {{law: coulomb, delta_deg: 20.0}}
+structures: [{structure}]
+time: {{end: 40.0, cfl: 0.5}}
+output: {{every: 5.0}}
+"""
+
+
+def _line(folder, xy):
+    import json
+
+    path = folder / "line.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+        "type": "Feature", "properties": {},
+        "geometry": {"type": "LineString", "coordinates": [list(p) for p in xy]}}]}))
+    return path
+
+
+@pytest.mark.parametrize("xy, structure, field, words", [
+    ([(0, 250), (200, 250)], "height: 1.0e300, side_slope_deg: 40", "structures[0].height",
+     "higher than the map's relief"),
+    ([(0, 250), (200, 250)], "height: 1.0e15, side_slope_deg: 40", "structures[0].height",
+     "higher than the map's relief"),
+    ([(0, 250), (200, 250)], "height: 5, side_slope_deg: 0", "structures[0].side_slope_deg",
+     "must slope"),
+    ([(100, 250), (100, 250)], "height: 5, side_slope_deg: 40", "structures[0].line",
+     "zero length"),
+    ([(100, 250), (100, 250)], "kind: wall, height: 5", "structures[0].line", "zero length"),
+    ([(0, 250), (200, 250), (150, 200), (150, 300)], "height: 5, side_slope_deg: 40",
+     "structures[0].line", "crosses itself"),
+    ([(100, 10), (100, 390)], "height: 5, side_slope_deg: 40", "structures[0].line",
+     "runs through the release"),
+    ([(0, 310), (200, 310)], "kind: wall, height: 5", "structures", "a wall covers"),
+])
+def test_structures_the_flow_cannot_give_volumes_for_are_refused(tmp_path, capsys, xy,
+                                                                  structure, field, words):
+    _line(tmp_path, xy)
+    scene = tmp_path / "s.yaml"
+    scene.write_text(PLANE.format(tag="x", structure="{line: line.geojson, "
+                                  + structure + "}"))
+    code, out, err = cli(["run", scene, "-o", tmp_path / "s.nc"], capsys)
+    line = one_line(err)
+    assert code == 2, line
+    assert field in line and words in line
+    assert not (tmp_path / "s.nc").exists()

@@ -83,18 +83,53 @@ class PRASettings:
     slope_correction: bool = True
 
     def __post_init__(self):
-        checks = [("slope_min", 0.0 <= self.slope_min < self.slope_max <= 90.0,
-                   "0 <= slope_min < slope_max <= 90"),
-                  ("snow_depth", self.snow_depth > 0, "> 0"),
-                  ("wind_tolerance", 0 < self.wind_tolerance <= 180, "in (0, 180]"),
-                  ("threshold", 0.0 <= self.threshold < 1.0, "in [0, 1)")]
-        for name, ok, rule in checks:
-            if not ok:
-                raise PRAError(f"{name} must be {rule}")
-        for name in ("min_area", "d0", "max_curvature", "split_aspect_deg"):
+        """Every number typed, finite and in its physical range, naming the option: a NaN
+        or 1e308 would otherwise reach the layer as a thickness, an unbounded snow depth
+        would make the roughness windows without end."""
+        for name in ("roughness", "slope_correction"):
+            if not isinstance(getattr(self, name), bool):
+                raise PRAError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        for name, (low, high, rule) in NUMBER_RANGES.items():
             v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and v > 0):
-                raise PRAError(f"{name} must be a number > 0, got {v!r}")
+            if v is None and name in OPTIONAL:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise PRAError(f"{name} must be a number, got {v!r}")
+            if not (math.isfinite(v) and low(v) and high(v)):
+                raise PRAError(f"{name} must be {rule}, got {v!r}")
+        if not self.slope_min < self.slope_max:
+            raise PRAError(f"slope_min must be below slope_max, got {self.slope_min!r} and "
+                           f"{self.slope_max!r}")
+        if self.d0 is not None and self.slope_correction and self.slope_min <= SLOPE_FACTOR_MIN:
+            raise PRAError(f"slope_min must be above {SLOPE_FACTOR_MIN:.2f} degrees with d0: "
+                           "the slope factor 0.291 / (sin psi - 0.202 cos psi) of the "
+                           "thickness rule is negative below (or leave out the slope "
+                           "correction)")
+
+
+#: Below this slope (degrees, atan 0.202) the Swiss slope factor's denominator is <= 0.
+SLOPE_FACTOR_MIN = math.degrees(math.atan(0.202))
+
+#: The options that may be left out (None).
+OPTIONAL = ("wind_direction", "max_curvature", "min_area", "split_aspect_deg", "d0")
+
+#: Each number's range: a test of its low end, one of its high end, the rule in words. The
+#: high ends are physical: a snow depth over 20 m or a d0* over 10 m is a typo (the Swiss
+#: guideline's d0* is 0.5 to 3 m), an elevation outside -500..9000 m is no mountain's.
+NUMBER_RANGES = {
+    "slope_min": (lambda v: v >= 0, lambda v: v <= 90, "in [0, 90] degrees"),
+    "slope_max": (lambda v: v > 0, lambda v: v <= 90, "in (0, 90] degrees"),
+    "snow_depth": (lambda v: v > 0, lambda v: v <= 20, "in (0, 20] m"),
+    "wind_direction": (lambda v: v >= 0, lambda v: v < 360, "in [0, 360) degrees"),
+    "wind_tolerance": (lambda v: v > 0, lambda v: v <= 180, "in (0, 180] degrees"),
+    "threshold": (lambda v: v >= 0, lambda v: v < 1, "in [0, 1)"),
+    "max_curvature": (lambda v: v > 0, lambda v: True, "a number > 0 (1/m)"),
+    "min_area": (lambda v: v > 0, lambda v: True, "a number > 0 (m2)"),
+    "split_aspect_deg": (lambda v: v > 0, lambda v: v <= 180, "in (0, 180] degrees"),
+    "d0": (lambda v: v > 0, lambda v: v <= 10, "in (0, 10] m"),
+    "reference_elevation": (lambda v: v >= -500, lambda v: v <= 9000, "in [-500, 9000] m"),
+    "gradient": (lambda v: v >= -1, lambda v: v <= 1, "in [-1, 1] m per 100 m"),
+}
 
 
 @dataclass
@@ -295,6 +330,12 @@ def potential_release_areas(dem_path, settings: PRASettings | None = None, fores
     north_up = y[1] > y[0]
     # gradients in map axes: rows run along y, whatever their order
     sign_y = 1.0 if north_up else -1.0
+    i_max = max(1, math.ceil(3.0 * settings.snow_depth * 0.35 - 0.1))
+    if min(z.shape) < 2 * i_max + 1:  # the planes of the slope and roughness need the window
+        raise PRAError(f"{dem_path}: the DEM ({z.shape[1]} x {z.shape[0]} cells) is smaller "
+                       f"than the slope and roughness window ({2 * i_max + 1} x "
+                       f"{2 * i_max + 1} cells for a snow depth of {settings.snow_depth:g} m); "
+                       "use a larger DEM or a smaller --snow-depth")
     rugg, slope, i_max = roughness_and_slope(zf, dx, dy, settings.snow_depth)
     gx1, gy1 = _plane_gradient(zf, dx, dy, i_max)
     memberships = [np.where((slope >= settings.slope_min) & (slope <= settings.slope_max),
@@ -393,6 +434,11 @@ def _polygons(result: PRAResult, z, slope, settings: PRASettings) -> list:
             row["thickness"] = float(swiss_thickness(
                 settings.d0, psi, elevation, settings.reference_elevation, settings.gradient,
                 settings.slope_correction))
+            if not (math.isfinite(row["thickness"]) and row["thickness"] > 0):
+                raise PRAError(f"d0: the thickness rule gives {row['thickness']:.3g} m for the "
+                               f"area at {elevation:.0f} m, {psi:.1f} degrees (d0 "
+                               f"{settings.d0:g} m, gradient {settings.gradient:g} m per 100 m "
+                               f"from {settings.reference_elevation:g} m): not a thickness")
         areas.append(row)
     return areas
 
@@ -431,7 +477,9 @@ def write_release_areas(result: PRAResult, target, index_raster=None) -> list[Pa
         """Read back: GDAL reports some failed writes (a full disk) as log messages only,
         leaving an empty or cut layer."""
         try:
-            count = pyogrio.read_info(str(tmp))["features"]
+            with warnings.catch_warnings():  # the temporary's name is no GeoPackage's
+                warnings.simplefilter("ignore", RuntimeWarning)
+                count = pyogrio.read_info(str(tmp))["features"]
         except Exception:  # noqa: BLE001 - any reader's error: the file is not readable
             count = -1
         if count != len(result.areas):
