@@ -255,3 +255,39 @@ def test_structures_the_flow_cannot_give_volumes_for_are_refused(tmp_path, capsy
     assert code == 2, line
     assert field in line and words in line
     assert not (tmp_path / "s.nc").exists()
+
+
+# --- alpha-beta: coefficients read as written, angles of a path that descends --------------
+
+
+@pytest.mark.parametrize("spec", ["1_0,0,0,-3,1", "1e308,0,0,0,1", "1,0,0,-1e308,1",
+                                  "0,0,0,-5,1", "2,0,0,0,1", "1,0,0,0,1e300",
+                                  "infinity,0,0,0,1", "0x1,0,0,0,1"])
+def test_alpha_beta_coefficients_must_give_an_angle(spec):
+    from avflow.output.alphabeta import AlphaBetaError, regression
+
+    with pytest.raises(AlphaBetaError):
+        regression(spec)
+
+
+def test_alpha_beta_refuses_curvature_terms_that_leave_the_angles():
+    from avflow.output.alphabeta import AlphaBetaError, alpha_beta, regression
+
+    s = np.arange(0.0, 3000.0, 10.0)
+    z = 1000.0 * np.exp(-s / 600.0)  # concave: z'' > 0
+    with pytest.raises(AlphaBetaError, match="not an angle"):
+        alpha_beta(s, z, regression("1,1e300,0,0,1"))
+    assert 0 < alpha_beta(s, z, regression("austria")).alphas[0] < 90
+
+
+@pytest.mark.parametrize("case", ["uphill", "flat"])
+def test_path_angles_need_a_path_that_descends_from_the_release(case):
+    from avflow.output.alphabeta import AlphaBetaError, alpha_beta
+
+    s = np.arange(0.0, 1500.0, 10.0)
+    t30, t5 = math.tan(math.radians(30)), math.tan(math.radians(5))
+    down = np.where(s <= 600, 1000.0 - t30 * s, 1000.0 - t30 * 600 - t5 * (s - 600))
+    z = down[::-1].copy() if case == "uphill" else 100.0 + 0.01 * np.sin(s / 50.0)
+    with pytest.raises(AlphaBetaError, match="does not descend from the release"):
+        alpha_beta(s, z)
+    assert 20 < alpha_beta(s, down).beta < 30  # the same path drawn down the fall line
