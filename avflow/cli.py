@@ -154,7 +154,7 @@ def _load_extensions(given: list[str]) -> None:
     once (:func:`avflow.scenario.extensions.load_file`): what they register is then known to
     the scenario, and the files travel with the members to the workers."""
     from avflow.files import read_input
-    from avflow.scenario.extensions import ExtensionFileError, load_file
+    from avflow.scenario.extensions import MAPS, ExtensionFileError, load_file
 
     listed = [(f"${ENV_EXTENSIONS}", path) for path in
               os.environ.get(ENV_EXTENSIONS, "").split(os.pathsep) if path]
@@ -162,7 +162,9 @@ def _load_extensions(given: list[str]) -> None:
         read_input(path)  # an input of the command: no output may replace it
         try:
             _check_extension_file(path)
+            before = set(MAPS)
             load_file(path)
+            _check_map_names(path, [name for name in MAPS if name not in before])
         except ExtensionFileError as err:
             raise ExtensionFileError(f"{origin}: {err}") from None
 
@@ -190,6 +192,20 @@ def _check_extension_file(path) -> None:
     if st.st_size > MAX_EXTENSION_BYTES:
         raise ExtensionFileError(f"{path}: over {MAX_EXTENSION_BYTES >> 20} MiB: not an "
                                  "extension file")
+
+
+def _check_map_names(path, names) -> None:
+    """A registered map may not take the name of a variable every run file has (it would
+    silently replace ``peak_thickness``...)."""
+    if not names:
+        return
+    from avflow.output.cf import FIELDS, SUMMARIES
+    from avflow.scenario.extensions import ExtensionFileError
+
+    for name in names:
+        if name in FIELDS or name in SUMMARIES:
+            raise ExtensionFileError(f"{path}: a map named {name!r} would replace the run "
+                                     "file's own variable of that name; give it another name")
 
 
 def _extension_hint(err: AvflowError) -> str:

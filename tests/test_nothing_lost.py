@@ -291,3 +291,40 @@ def test_path_angles_need_a_path_that_descends_from_the_release(case):
     with pytest.raises(AlphaBetaError, match="does not descend from the release"):
         alpha_beta(s, z)
     assert 20 < alpha_beta(s, down).beta < 30  # the same path drawn down the fall line
+
+
+# --- every layer in the DEM's CRS -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["polygons", "raster"])
+def test_a_forest_layer_in_another_crs_is_refused(tmp_path, capsys, kind):
+    import json
+
+    dem = steps_dem(tmp_path, "dem.tif")  # CH1903+ / LV95
+    if kind == "polygons":
+        forest = tmp_path / "forest.geojson"  # WGS 84 degrees: would match nothing
+        forest.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+            "type": "Feature", "properties": {}, "geometry": {"type": "Polygon",
+            "coordinates": [[[7.0, 46.0], [7.1, 46.0], [7.1, 46.1], [7.0, 46.0]]]}}]}))
+    else:
+        forest = steps_dem(tmp_path, "forest.tif", crs="EPSG:32632")  # > 0 everywhere
+    code, out, err = cli(["release-areas", dem, "--forest", forest, "-o",
+                          tmp_path / "r.gpkg"], capsys)
+    assert code == 2 and "wrote" not in out
+    line = one_line(err)
+    assert str(forest) in line and "reproject it to the DEM's CRS" in line
+    assert not (tmp_path / "r.gpkg").exists()
+
+
+def test_an_extension_map_may_not_take_a_built_in_maps_name(tmp_path):
+    (tmp_path / "maps.py").write_text('''from avflow import extend
+
+
+@extend.output_map("peak_thickness", units="m", long_name="not the built-in one")
+def peak_thickness(old, h, hu, hv, speed, t):
+    return 0.0
+''')
+    done = child("run", "--extensions", "maps.py", "nothere.yaml", cwd=tmp_path, timeout=120)
+    assert done.returncode == 2
+    line = one_line(done.stderr)
+    assert "maps.py" in line and "'peak_thickness'" in line and "another name" in line

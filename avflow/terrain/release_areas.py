@@ -386,13 +386,16 @@ def potential_release_areas(dem_path, settings: PRASettings | None = None, fores
 
 def _forest_mask(forest, x, y, dem_wkt):
     path = Path(forest)
-    from avflow.terrain.polygons import VECTOR_SUFFIXES, PolygonError, rasterize, read_polygons
+    from avflow.terrain.polygons import (VECTOR_SUFFIXES, PolygonError, rasterize,
+                                         read_polygons, warn_no_crs)
 
     if path.suffix.lower() in VECTOR_SUFFIXES:
         try:
-            areas, _ = read_polygons(path, attribute=False)
+            areas, wkt = read_polygons(path, attribute=False)
         except PolygonError as err:
             raise PRAError(str(err)) from None
+        _same_crs(path, wkt, dem_wkt)
+        warn_no_crs(path, wkt, dem_wkt)
         X, Y = np.meshgrid(x, y)
         return rasterize(areas, X, Y, thickness=1.0) > 0
     from avflow.terrain.raster import RasterError, read_raster
@@ -401,9 +404,27 @@ def _forest_mask(forest, x, y, dem_wkt):
         f = read_raster(path)
     except RasterError as err:
         raise PRAError(str(err)) from None
+    _same_crs(path, f.crs_wkt, dem_wkt)
     X, Y = np.meshgrid(x, y)
     values = f.sample(X.ravel(), Y.ravel()).reshape(X.shape)
     return np.nan_to_num(values) > 0
+
+
+def _same_crs(path, wkt, dem_wkt) -> None:
+    """A forest layer in another CRS than the DEM's would be read as the DEM's coordinates
+    (matching nowhere, or removing everything): refused, naming both."""
+    from avflow.terrain.raster import same_crs
+
+    if wkt and dem_wkt and not same_crs(wkt, dem_wkt):
+        from pyproj import CRS
+
+        def name(w):
+            try:
+                return CRS.from_user_input(w).name
+            except Exception:  # noqa: BLE001 - any unreadable WKT
+                return "another CRS"
+        raise PRAError(f"--forest {path}: the layer is in {name(wkt)}, the DEM in "
+                       f"{name(dem_wkt)}; reproject it to the DEM's CRS")
 
 
 def _polygons(result: PRAResult, z, slope, settings: PRASettings) -> list:
