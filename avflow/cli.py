@@ -809,8 +809,19 @@ TERMINATED: list = []
 
 
 def _terminate(signum, frame):
+    from avflow.errors import INTERRUPTS
+
     TERMINATED.append(signum)
+    INTERRUPTS.append(signum)
     raise Terminated
+
+
+def _interrupt(signum, frame):
+    """Ctrl-C: noted, then raised as Python does (a swallowed one is raised again)."""
+    from avflow.errors import INTERRUPTS
+
+    INTERRUPTS.append(signum)
+    raise KeyboardInterrupt
 
 
 def _interrupted() -> int:
@@ -851,13 +862,21 @@ def main(argv=None) -> int:
     from avflow.files import forget_inputs
 
     forget_inputs()  # main() called again in one process: the last command's inputs
+    from avflow.errors import INTERRUPTS
+
+    INTERRUPTS.clear()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _interrupt)
     reads_scenarios = hasattr(args, "extensions")
     try:
         if reads_scenarios:
             _load_extensions(args.extensions)  # before the scenario is read
-        return args.func(args)
+        code = args.func(args)
+        if INTERRUPTS and code in (0, 1):  # an interrupt swallowed on the way: never lost
+            raise KeyboardInterrupt
+        return code
     except AvflowError as err:  # bad input: 2; a run that failed numerically: 1
         hint = _extension_hint(err) if reads_scenarios else ""
         print(f"avflow: error: {err}{hint}", file=sys.stderr)
@@ -875,6 +894,9 @@ def main(argv=None) -> int:
     finally:
         if "avflow.numerics.compiling" in sys.modules:  # main() called in a longer process
             sys.modules["avflow.numerics.compiling"].stop_announcing()
+        if threading.current_thread() is threading.main_thread() \
+                and signal.getsignal(signal.SIGINT) is _interrupt:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 if __name__ == "__main__":

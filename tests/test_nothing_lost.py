@@ -280,17 +280,18 @@ def test_alpha_beta_refuses_curvature_terms_that_leave_the_angles():
     assert 0 < alpha_beta(s, z, regression("austria")).alphas[0] < 90
 
 
-@pytest.mark.parametrize("case", ["uphill", "flat"])
-def test_path_angles_need_a_path_that_descends_from_the_release(case):
+def test_path_angles_need_a_path_that_descends_from_the_release():
     from avflow.output.alphabeta import AlphaBetaError, alpha_beta
 
     s = np.arange(0.0, 1500.0, 10.0)
     t30, t5 = math.tan(math.radians(30)), math.tan(math.radians(5))
     down = np.where(s <= 600, 1000.0 - t30 * s, 1000.0 - t30 * 600 - t5 * (s - 600))
-    z = down[::-1].copy() if case == "uphill" else 100.0 + 0.01 * np.sin(s / 50.0)
     with pytest.raises(AlphaBetaError, match="does not descend from the release"):
-        alpha_beta(s, z)
+        alpha_beta(s, down[::-1].copy())  # drawn uphill: beta was negative
     assert 20 < alpha_beta(s, down).beta < 30  # the same path drawn down the fall line
+    # across the runout zone (nothing steeper than 10 degrees): no angles, not negative ones
+    across = alpha_beta(s, 100.0 + 0.01 * np.sin(s / 50.0))
+    assert math.isnan(across.beta) and all(math.isnan(a) for a in across.alphas)
 
 
 # --- every layer in the DEM's CRS -----------------------------------------------------------
@@ -328,3 +329,60 @@ def peak_thickness(old, h, hu, hv, speed, t):
     assert done.returncode == 2
     line = one_line(done.stderr)
     assert "maps.py" in line and "'peak_thickness'" in line and "another name" in line
+
+
+# --- signals: a Ctrl-C is never lost ---------------------------------------------------------
+
+
+def _swallowed_ctrl_c():
+    """A Ctrl-C that code between the signal and the command eats (a finalizer, a library's
+    bare except), as happened inside a release run here."""
+    import signal
+
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000):  # the handler runs at the next bytecode boundary
+            pass
+    except KeyboardInterrupt:
+        pass
+
+
+def test_a_swallowed_ctrl_c_still_ends_the_command_as_interrupted(monkeypatch, capsys):
+    import avflow.cli as cli_module
+
+    def region(args):
+        _swallowed_ctrl_c()
+        return 0  # ran to the end as if nothing happened
+
+    monkeypatch.setattr(cli_module, "_cmd_region", region)
+    code, _, err = cli(["region", "any.yaml", "-o", "out"], capsys)
+    assert code == 130 and one_line(err) == "avflow: interrupted"
+    import signal
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+
+
+def test_a_region_run_here_stops_before_the_next_release_after_a_ctrl_c(monkeypatch):
+    import signal
+
+    import avflow.cli as cli_module
+    import avflow.region.orchestrate as orchestrate
+    from avflow.errors import INTERRUPTS
+
+    ran, merged = [], []
+
+    def run_release(task):
+        ran.append(task)
+        _swallowed_ctrl_c()
+        return {"task": task}
+
+    monkeypatch.setattr(orchestrate, "run_release", run_release)
+    INTERRUPTS.clear()
+    old = signal.signal(signal.SIGINT, cli_module._interrupt)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            orchestrate._run([1, 2, 3], 0, None, None, merged.append, {}, None)
+    finally:
+        signal.signal(signal.SIGINT, old)
+        INTERRUPTS.clear()
+    assert ran == [1] and merged == [{"task": 1}]

@@ -33,6 +33,8 @@ __all__ = ["ABResult", "AlphaBetaError", "REGRESSIONS", "Regression", "alpha_bet
 
 #: The slope (degrees) that marks the beta point.
 BETA_SLOPE_DEG = 10.0
+#: A path whose beta point lies this many degrees above its start is drawn uphill.
+UPHILL_DEG = 1.0
 #: AvaFrame com2AB's dsMin: the slope must stay at or under 10 degrees this far (m).
 DS_MIN = 30.0
 
@@ -184,12 +186,13 @@ def alpha_beta(s, z, reg: str | Regression | None = None, ds_min: float = DS_MIN
     if k is None:
         return _nan_result(reg)
     beta = math.degrees(math.atan2(z[0] - z[k], s[k] - s[0]))
-    if z[0] < np.max(z) - 1e-9 * max(1.0, abs(z[0])) or not beta > BETA_SLOPE_DEG:
-        # drawn uphill, or across the runout zone: the model's angles are not defined
-        raise AlphaBetaError(f"the path does not descend from the release (it starts at "
-                             f"{z[0]:.1f} m, rises to {np.max(z):.1f} m, beta "
-                             f"{beta:.1f} deg); draw it from the top of the release down "
-                             "the fall line")
+    if beta <= -UPHILL_DEG:  # drawn uphill: beta and alpha would be negative
+        raise AlphaBetaError(f"the path does not descend from the release: it starts at "
+                             f"{z[0]:.1f} m and rises to {z[k]:.1f} m at {s[k] - s[0]:.0f} m "
+                             f"(beta {beta:.1f} deg); draw it from the top of the release "
+                             "down the fall line")
+    if not beta > BETA_SLOPE_DEG:  # no slope steeper than 10 degrees: no beta point
+        return _nan_result(reg)
     curvature = height = 0.0
     if reg.k2 != 0.0 or reg.k3 != 0.0:
         poly = np.poly1d(np.polyfit(s - s[0], z, 2))
