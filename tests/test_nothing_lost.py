@@ -386,3 +386,42 @@ def test_a_region_run_here_stops_before_the_next_release_after_a_ctrl_c(monkeypa
         signal.signal(signal.SIGINT, old)
         INTERRUPTS.clear()
     assert ran == [1] and merged == [{"task": 1}]
+
+
+# --- misleading messages ----------------------------------------------------------------------
+
+
+def _region_store(folder: Path) -> Path:
+    import zarr
+    from pyproj import CRS as ProjCRS
+
+    from avflow.region.merge import RegionStore
+    from avflow.region.windows import DemInfo
+
+    dem = DemInfo("none.tif", 300, 200, 2_600_000.0, 1_200_000.0, 10.0, 10.0,
+                  ProjCRS.from_user_input("EPSG:2056").to_wkt(), "float32")
+    path = folder / "region.zarr"
+    s = RegionStore(path, dem, ("pressure", "thickness", "speed"), 256,
+                    {"title": "t", "source": "avflow region"})
+    h = np.random.default_rng(1).random((100, 100)).astype(np.float32) * 3
+    s.add(1, [((10, 110, 20, 120), {"peak_thickness": h, "peak_speed": 5 * h,
+                                   "peak_pressure": (h * 20000).astype(np.float32)}, 0.5)])
+    zarr.consolidate_metadata(str(path))
+    return path
+
+
+def test_a_failed_region_export_blames_the_output_not_the_store(tmp_path, capsys,
+                                                                 monkeypatch):
+    import rasterio.shutil
+
+    store = _region_store(tmp_path)
+
+    def full(*args, **kwargs):  # GDAL's COG driver on a full disk, as a foreign error
+        raise RuntimeError("TIFFAppendToStrip: Write error at scanline 0")
+
+    monkeypatch.setattr(rasterio.shutil, "copy", full)
+    code, out, err = cli(["export", store, "-o", tmp_path / "gis"], capsys)
+    line = one_line(err)
+    assert code == 1, line
+    assert f"cannot write {tmp_path / 'gis'}" in line and "damaged" not in line
+    assert not (tmp_path / "gis").exists() or not any((tmp_path / "gis").iterdir())
