@@ -425,3 +425,25 @@ def test_a_failed_region_export_blames_the_output_not_the_store(tmp_path, capsys
     assert code == 1, line
     assert f"cannot write {tmp_path / 'gis'}" in line and "damaged" not in line
     assert not (tmp_path / "gis").exists() or not any((tmp_path / "gis").iterdir())
+
+
+def test_a_signal_noted_while_the_cluster_closes_is_not_lost():
+    """Signals are only noted while dask runs (raised at safe points); one that came after
+    the last safe point, while the cluster closed, is raised when the block ends."""
+    import logging
+    import signal
+
+    from avflow.ensemble.orchestrate import _deferred_sigint
+
+    level = logging.getLogger("distributed").level
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _deferred_sigint():
+                os.kill(os.getpid(), signal.SIGINT)
+                for _ in range(1000):
+                    pass  # no check(): as in the cluster's closing
+        # the cluster's own tracebacks of connections closed on purpose are not printed
+        assert logging.getLogger("distributed").level > logging.CRITICAL
+    finally:
+        logging.getLogger("distributed").setLevel(level)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
