@@ -137,15 +137,6 @@ def check_target(path, inputs: dict | Iterable = (), what: str = "output") -> Pa
     inputs = dict(inputs) if isinstance(inputs, dict) else protected(inputs)
     for key, value in protected(_READ).items():  # extension files, and their sidecars
         inputs.setdefault(key, value)
-    for beside in created_with(path):  # a shapefile's .prj must not replace the DEM's
-        try:
-            found = _stat(beside)
-        except OSError:
-            continue
-        same = found is not None and inputs.get((found.st_dev, found.st_ino))
-        if same:
-            raise OutputError(f"{what} {path}: would replace {beside}, which belongs to "
-                              f"an input of this command ({same}); choose another name")
     try:
         real = _stat(path)  # and lexically: a/missing/../b is b once a/missing is made
         lexical = _stat(Path(os.path.abspath(path)))
@@ -158,6 +149,15 @@ def check_target(path, inputs: dict | Iterable = (), what: str = "output") -> Pa
         if same:
             raise OutputError(f"{what} {path}: is an input of this command ({same}); "
                               "choose another name")
+    for beside in created_with(path):  # a shapefile's .prj must not replace the DEM's
+        try:
+            found = _stat(beside)
+        except OSError:
+            continue
+        same = found is not None and inputs.get((found.st_dev, found.st_ino))
+        if same:
+            raise OutputError(f"{what} {path}: would replace {beside}, which belongs to "
+                              f"an input of this command ({same}); choose another name")
     st = real or lexical
     if st is not None:
         if stat.S_ISDIR(st.st_mode):
