@@ -788,6 +788,9 @@ def _one_line_warnings() -> None:
     from avflow.errors import AvflowWarning
 
     shown = warnings.showwarning
+    # main() called again in one process wraps the original once, not its own wrapper:
+    # thousands of commands stacked thousands of wrappers (a RecursionError at a warning)
+    shown = getattr(shown, "avflow_wrapped", shown)
 
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, AvflowWarning):
@@ -795,6 +798,7 @@ def _one_line_warnings() -> None:
         else:
             shown(message, category, filename, lineno, file, line)
 
+    show.avflow_wrapped = shown
     warnings.showwarning = show
     warnings.simplefilter("default", AvflowWarning)
 

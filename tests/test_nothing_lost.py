@@ -447,3 +447,17 @@ def test_a_signal_noted_while_the_cluster_closes_is_not_lost():
     finally:
         logging.getLogger("distributed").setLevel(level)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_many_commands_in_one_process_do_not_stack_warning_handlers(capsys):
+    """main() wrapped warnings.showwarning on every call: after a few thousand commands in
+    one process (the fuzzer's), any warning hit Python's recursion limit."""
+    import warnings
+
+    for _ in range(3000):
+        main(["release-areas", "nothere.tif", "-o", "x.gpkg", "--split-aspect", "nan"])
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.warn("a foreign warning", RuntimeWarning)  # RecursionError before
+    assert "a foreign warning" in capsys.readouterr().err

@@ -125,7 +125,7 @@ NUMBER_RANGES = {
     "threshold": (lambda v: v >= 0, lambda v: v < 1, "in [0, 1)"),
     "max_curvature": (lambda v: v > 0, lambda v: True, "a number > 0 (1/m)"),
     "min_area": (lambda v: v > 0, lambda v: True, "a number > 0 (m2)"),
-    "split_aspect_deg": (lambda v: v > 0, lambda v: v <= 180, "in (0, 180] degrees"),
+    "split_aspect_deg": (lambda v: v >= 1, lambda v: v <= 180, "in [1, 180] degrees"),
     "d0": (lambda v: v > 0, lambda v: v <= 10, "in (0, 10] m"),
     "reference_elevation": (lambda v: v >= -500, lambda v: v <= 9000, "in [-500, 9000] m"),
     "gradient": (lambda v: v >= -1, lambda v: v <= 1, "in [-1, 1] m per 100 m"),
