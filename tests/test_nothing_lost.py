@@ -235,6 +235,8 @@ def _line(folder, xy):
      "higher than the map's relief"),
     ([(0, 250), (200, 250)], "height: 5, side_slope_deg: 0", "structures[0].side_slope_deg",
      "must slope"),
+    ([(0, 250), (200, 250)], "height: 5, side_slope_deg: 5.0e-324",
+     "structures[0].side_slope_deg", "must slope"),
     ([(100, 250), (100, 250)], "height: 5, side_slope_deg: 40", "structures[0].line",
      "zero length"),
     ([(100, 250), (100, 250)], "kind: wall, height: 5", "structures[0].line", "zero length"),

@@ -128,6 +128,8 @@ def _inside(line, x, y, path, where: str) -> None:
 
 #: The highest crest allowed on a map of smaller relief (m).
 MIN_HEIGHT_LIMIT = 100.0
+#: The gentlest side slope of a dam (degrees): its sides reach height / tan(slope) away.
+MIN_SIDE_SLOPE_DEG = 1.0
 
 
 def _check_shape(line, path, where: str) -> None:
@@ -285,9 +287,11 @@ def apply_structures(z, x, y, dem_wkt, structures) -> tuple[np.ndarray, BuiltStr
             raise StructureError(f"{s.height:g} m is higher than the map's relief "
                                  f"({relief:.4g} m; at most {highest:.4g} m)",
                                  f"structures[{k}].height")
-        if s.kind == "dam" and not s.side_slope_deg > 0:  # tan 0: sides that never end
-            raise StructureError("a dam's sides must slope: give an angle > 0 degrees",
-                                 f"structures[{k}].side_slope_deg")
+        if s.kind == "dam" and not s.side_slope_deg >= MIN_SIDE_SLOPE_DEG:
+            # tan 0 (or 5e-324, whose tangent underflows): sides that never meet the ground
+            raise StructureError(f"a dam's sides must slope: give an angle of "
+                                 f"{MIN_SIDE_SLOPE_DEG:g} degree or more, got "
+                                 f"{s.side_slope_deg:g}", f"structures[{k}].side_slope_deg")
         line, wkt = read_line_file(s.line, where)
         _check_crs(s.line, wkt, dem_wkt, where)
         _inside(line, x, y, s.line, where)
