@@ -164,15 +164,59 @@ def _load_extensions(given: list[str]) -> None:
     """The extension files of $AVFLOW_EXTENSIONS, then those of ``--extensions``, each run
     once (:func:`avflow.scenario.extensions.load_file`): what they register is then known to
     the scenario, and the files travel with the members to the workers."""
-    from avflow.scenario.extensions import ExtensionFileError, load_file
+    from avflow.files import read_input
+    from avflow.scenario.extensions import MAPS, ExtensionFileError, load_file
 
     listed = [(f"${ENV_EXTENSIONS}", path) for path in
               os.environ.get(ENV_EXTENSIONS, "").split(os.pathsep) if path]
     for origin, path in listed + [("--extensions", path) for path in given]:
+        read_input(path)  # an input of the command: no output may replace it
         try:
+            _check_extension_file(path)
+            before = set(MAPS)
             load_file(path)
+            _check_map_names(path, [name for name in MAPS if name not in before])
         except ExtensionFileError as err:
             raise ExtensionFileError(f"{origin}: {err}") from None
+
+
+#: An extension file is Python source of a few laws: larger is no extension file.
+MAX_EXTENSION_BYTES = 16 << 20
+
+
+def _check_extension_file(path) -> None:
+    """Refuse, before Python reads it, an extension file that is a device or a pipe
+    (``/dev/zero`` would be read without end, a FIFO waits for a writer) or too large."""
+    import stat
+
+    from avflow.scenario.extensions import ExtensionFileError
+
+    try:
+        st = os.stat(path)
+    except OSError:
+        return  # missing, a loop of links: said by load_file
+    if stat.S_ISDIR(st.st_mode):
+        return
+    if not stat.S_ISREG(st.st_mode):
+        raise ExtensionFileError(f"{path}: not a regular file (a device, a pipe or a "
+                                 "socket); give a Python file")
+    if st.st_size > MAX_EXTENSION_BYTES:
+        raise ExtensionFileError(f"{path}: over {MAX_EXTENSION_BYTES >> 20} MiB: not an "
+                                 "extension file")
+
+
+def _check_map_names(path, names) -> None:
+    """A registered map may not take the name of a variable every run file has (it would
+    silently replace ``peak_thickness``...)."""
+    if not names:
+        return
+    from avflow.output.cf import FIELDS, SUMMARIES
+    from avflow.scenario.extensions import ExtensionFileError
+
+    for name in names:
+        if name in FIELDS or name in SUMMARIES:
+            raise ExtensionFileError(f"{path}: a map named {name!r} would replace the run "
+                                     "file's own variable of that name; give it another name")
 
 
 def _extension_hint(err: AvflowError) -> str:
@@ -331,7 +375,7 @@ def _cmd_release_areas(args) -> int:
     from avflow.terrain.release_areas import (PRASettings, potential_release_areas,
                                               write_release_areas)
 
-    settings = PRASettings(
+    settings = _option_named(PRASettings,
         slope_min=args.slope_min, slope_max=args.slope_max, snow_depth=args.snow_depth,
         roughness=not args.no_roughness, wind_direction=args.wind_direction,
         wind_tolerance=args.wind_tolerance, threshold=args.threshold,
@@ -360,6 +404,28 @@ def _cmd_release_areas(args) -> int:
         print(line)
         print("wrote " + ", ".join(str(w) for w in written))
     return 0
+
+
+#: The option of ``avflow release-areas`` that sets each field of its settings.
+_RELEASE_OPTIONS = {"split_aspect_deg": "--split-aspect", "roughness": "--no-roughness",
+                    "slope_correction": "--no-slope-correction"}
+
+
+def _option_named(settings, **values):
+    """``settings(**values)``; its error names the command-line option, not the field."""
+    from avflow.terrain.release_areas import PRAError
+
+    import re
+
+    try:
+        return settings(**values)
+    except PRAError as err:
+        def option(match):
+            name = match.group(0)
+            return _RELEASE_OPTIONS.get(name, "--" + name.replace("_", "-"))
+
+        words = "|".join(sorted(map(re.escape, values), key=len, reverse=True))
+        raise PRAError(re.sub(rf"\b({words})\b", option, str(err))) from None
 
 
 def _cmd_path(args) -> int:
@@ -848,6 +914,9 @@ def _one_line_warnings() -> None:
     from avflow.errors import AvflowWarning
 
     shown = warnings.showwarning
+    # main() called again in one process wraps the original once, not its own wrapper:
+    # thousands of commands stacked thousands of wrappers (a RecursionError at a warning)
+    shown = getattr(shown, "avflow_wrapped", shown)
 
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, AvflowWarning):
@@ -855,6 +924,7 @@ def _one_line_warnings() -> None:
         else:
             shown(message, category, filename, lineno, file, line)
 
+    show.avflow_wrapped = shown
     warnings.showwarning = show
     warnings.simplefilter("default", AvflowWarning)
 
@@ -869,12 +939,19 @@ TERMINATED: list = []
 
 
 def _terminate(signum, frame):
+    from avflow.errors import INTERRUPTS
+
     TERMINATED.append(signum)
+    INTERRUPTS.append(signum)
     _pending(Terminated)
     raise Terminated
 
 
 def _interrupt(signum, frame):
+    """Ctrl-C: noted, then raised as Python does (a swallowed one is raised again)."""
+    from avflow.errors import INTERRUPTS
+
+    INTERRUPTS.append(signum)
     _pending(KeyboardInterrupt)
     raise KeyboardInterrupt
 
@@ -922,6 +999,12 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     _one_line_warnings()
     TERMINATED.clear()
+    from avflow.files import forget_inputs
+
+    forget_inputs()  # main() called again in one process: the last command's inputs
+    from avflow.errors import INTERRUPTS
+
+    INTERRUPTS.clear()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
@@ -930,7 +1013,10 @@ def main(argv=None) -> int:
     try:
         if reads_scenarios:
             _load_extensions(args.extensions)  # before the scenario is read
-        return args.func(args)
+        code = args.func(args)
+        if INTERRUPTS and code in (0, 1):  # an interrupt swallowed on the way: never lost
+            raise KeyboardInterrupt
+        return code
     except AvflowError as err:  # bad input: 2; a run that failed numerically: 1
         hint = _extension_hint(err) if reads_scenarios else ""
         print(f"avflow: error: {err}{hint}", file=sys.stderr)
@@ -949,6 +1035,9 @@ def main(argv=None) -> int:
         if "avflow.numerics.compiling" in sys.modules:  # main() called in a longer process
             sys.modules["avflow.numerics.compiling"].stop_announcing()
             sys.modules["avflow.numerics.compiling"].PENDING.clear()
+        if threading.current_thread() is threading.main_thread() \
+                and signal.getsignal(signal.SIGINT) is _interrupt:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,19 @@ class AvflowError(Exception):
     exit_code = 2  #: of the command line: 2 bad input
 
 
+#: The signals (SIGINT, SIGTERM) the command was sent, noted by its handler before it raises
+#: KeyboardInterrupt: an interrupt that code in between swallowed (a finalizer, a library's
+#: ``except``) is not lost: :func:`check_interrupted` raises it again where work is handed
+#: out, and the command ends as interrupted.
+INTERRUPTS: list = []
+
+
+def check_interrupted() -> None:
+    """Raise KeyboardInterrupt if the command was interrupted (see :data:`INTERRUPTS`)."""
+    if INTERRUPTS:
+        raise KeyboardInterrupt
+
+
 class AvflowWarning(UserWarning):
     """Something a user should know that does not stop the command (the command line prints
     it as one ``avflow: warning:`` line)."""

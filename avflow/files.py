@@ -54,6 +54,36 @@ SIDECARS_OF_STEM = (".shp", ".shx", ".dbf", ".prj", ".cpg", ".qix", ".sbn", ".sb
 SIDECARS_OF_NAME = (".aux.xml", ".ovr", ".msk", ".xml", ".aux", ".rrd")
 
 
+#: Files a writer creates beside its target ``NAME.EXT``, by ``EXT``: ``NAME`` + one of these
+#: (a shapefile's index, attributes, projection and code page; an ASCII grid's projection),
+#: replaced along with the target, so checked with it.
+CREATED_BESIDE = {".shp": (".shx", ".dbf", ".prj", ".cpg"), ".asc": (".prj",)}
+#: ... and ``NAME.EXT`` + one of these (GDAL's statistics beside a raster).
+CREATED_AFTER_NAME = {".tif": (".aux.xml",), ".tiff": (".aux.xml",), ".asc": (".aux.xml",)}
+
+#: Files this command reads besides those its checks are given (extension files): no
+#: output may replace them or their sidecars. :func:`read_input` adds one; :func:`forget_inputs`
+#: starts afresh (a new command in the same process).
+_READ: list[Path] = []
+
+
+def read_input(path) -> None:
+    """Count ``path`` among the inputs of the command that runs (an extension file)."""
+    _READ.append(Path(path))
+
+
+def forget_inputs() -> None:
+    _READ.clear()
+
+
+def created_with(path) -> list[Path]:
+    """The files a writer of ``path`` creates or replaces beside it (:data:`CREATED_BESIDE`)."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    return ([path.with_suffix(s) for s in CREATED_BESIDE.get(ext, ())]
+            + [path.with_name(path.name + s) for s in CREATED_AFTER_NAME.get(ext, ())])
+
+
 def _why(err: OSError) -> str:
     if err.errno == errno.ENAMETOOLONG:
         return "the name is too long for the file system"
@@ -104,8 +134,9 @@ def check_target(path, inputs: dict | Iterable = (), what: str = "output") -> Pa
     test the folder is removed at once).
     """
     path = Path(path)
-    if not isinstance(inputs, dict):
-        inputs = protected(inputs)
+    inputs = dict(inputs) if isinstance(inputs, dict) else protected(inputs)
+    for key, value in protected(_READ).items():  # extension files, and their sidecars
+        inputs.setdefault(key, value)
     try:
         real = _stat(path)  # and lexically: a/missing/../b is b once a/missing is made
         lexical = _stat(Path(os.path.abspath(path)))
@@ -118,6 +149,15 @@ def check_target(path, inputs: dict | Iterable = (), what: str = "output") -> Pa
         if same:
             raise OutputError(f"{what} {path}: is an input of this command ({same}); "
                               "choose another name")
+    for beside in created_with(path):  # a shapefile's .prj must not replace the DEM's
+        try:
+            found = _stat(beside)
+        except OSError:
+            continue
+        same = found is not None and inputs.get((found.st_dev, found.st_ino))
+        if same:
+            raise OutputError(f"{what} {path}: would replace {beside}, which belongs to "
+                              f"an input of this command ({same}); choose another name")
     st = real or lexical
     if st is not None:
         if stat.S_ISDIR(st.st_mode):
@@ -242,8 +282,11 @@ def write_error(path, err: BaseException) -> OutputWriteError | None:
         # netCDF-C reports a full disk during an HDF5 write as "NetCDF: HDF error"
         return OutputWriteError(f"cannot write {path}: {err} (is the disk full?)")
     name = type(err).__module__ or ""
-    if name.startswith("rasterio"):  # RasterioIOError, CPLE_*: GDAL could not write
-        return OutputWriteError(f"cannot write {path}: {' '.join(str(err).split())}")
+    if name.startswith(("rasterio", "pyogrio")):  # GDAL could not write (CPLE_*, DataSourceError)
+        text = " ".join(str(err).split())
+        if len(text) > 200:  # SQLite quotes its whole statement: the cause is at the end
+            text = text.rsplit(") failed: ", 1)[-1][-200:]
+        return OutputWriteError(f"cannot write {path}: {text}")
     return None
 
 

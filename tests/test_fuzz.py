@@ -31,7 +31,7 @@ import numpy as np
 import pytest
 import xarray as xr
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given, seed, settings
 from hypothesis import strategies as st
 
 from avflow.cli import main
@@ -43,9 +43,10 @@ settings.register_profile("ci", max_examples=80, deadline=None, derandomize=True
 #: The newer commands run members (calibrate, region): fewer examples in CI.
 settings.register_profile("ci-slow", max_examples=25, deadline=None, derandomize=True,
                           suppress_health_check=list(HealthCheck))
-settings.register_profile("long-slow", max_examples=400, deadline=None,
+settings.register_profile("long-slow", max_examples=400, deadline=None, print_blob=True,
                           suppress_health_check=list(HealthCheck))
-settings.register_profile("long", max_examples=1500, deadline=None,
+# print_blob: a failing example's reproduction line is printed, so it is never lost
+settings.register_profile("long", max_examples=1500, deadline=None, print_blob=True,
                           suppress_health_check=list(HealthCheck))
 PROFILE = os.environ.get("AVFLOW_FUZZ", "ci")
 FUZZ = settings.get_profile(PROFILE)
@@ -329,6 +330,7 @@ def test_hostile_output_paths(tmp_path_factory, work, capsys, command, pick):
 
 
 @FUZZ
+@seed(20261205)  # the same examples in every profile: one that failed once fails again
 @given(source=st.sampled_from(["run.nc", "grid.nc"]), cut=st.floats(0.0, 1.0),
        flips=st.lists(st.integers(0, 10**6), max_size=4),
        command=st.sampled_from(["export", "plot", "path", "report", "tif"]))
@@ -566,4 +568,164 @@ def test_damaged_calibration_file_in_a_forecast(tmp_path_factory, calibration_wo
     _check(["ensemble", case / "e.yaml", "-o", case / "ens", "--workers", "0", "-q",
             "--max-members", "3", "--set", "time.max_steps=400"], case,
            list((case / "ens").glob("*.nc")), own=case / "ens")
+    capsys.readouterr()
+
+
+# --- release areas, alpha-beta coefficients, structures, extension files ---------------------
+
+#: The numbers of ``avflow release-areas`` (each alone may be hostile; the rest default).
+RELEASE_OPTIONS = ["--slope-min", "--slope-max", "--snow-depth", "--wind-direction",
+                   "--wind-tolerance", "--threshold", "--max-curvature", "--min-area",
+                   "--split-aspect", "--d0", "--reference-elevation", "--gradient"]
+#: As typed on a command line: numbers in Python's and other spellings, and words.
+TYPED_NUMBERS = st.one_of(HOSTILE_NUMBERS.map(repr), st.sampled_from(
+    ["1_0", "0x10", "1e999", "-0", "nan", "inf", "-inf", "Infinity", "", " ", "1,5", "30",
+     "45", "359.9999", "360", "11.4", "11.5", "0.5", "2.3", "20.0001"]))
+
+
+@pytest.fixture(scope="module")
+def release_work(tmp_path_factory):
+    """A DEM (a 25-to-45-degree slope, 60 x 40 cells of 5 m) with its .prj."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    folder = tmp_path_factory.mktemp("fuzz-pra")
+    x = np.arange(2.5, 300.0, 5.0)
+    drop = np.where(x < 150, np.tan(np.radians(25)) * x,
+                    np.tan(np.radians(25)) * 150 + np.tan(np.radians(45)) * (x - 150))
+    z = 2500.0 - np.tile(drop, (40, 1))
+    with rasterio.open(folder / "dem.asc", "w", driver="AAIGrid", width=60, height=40,
+                       count=1, dtype="float64", crs="EPSG:2056",
+                       transform=from_origin(0, 200, 5, 5)) as ds:
+        ds.write(z, 1)
+    return folder
+
+
+@FUZZ
+@given(options=st.lists(st.tuples(st.sampled_from(RELEASE_OPTIONS), TYPED_NUMBERS),
+                        min_size=1, max_size=3),
+       target=st.sampled_from(["r.gpkg", "r.shp", "dem.shp", "dem.prj", "r.geojson"]))
+def test_release_areas_options(tmp_path_factory, release_work, capsys, options, target):
+    import pyogrio.raw
+
+    case = tmp_path_factory.mktemp("pra")
+    for name in ("dem.asc", "dem.prj"):
+        shutil.copy(release_work / name, case / name)
+    argv = ["release-areas", case / "dem.asc", "-o", case / target]
+    for option, value in options:
+        argv.append(f"{option}={value}")  # "=": a value starting with "-" stays a value
+    try:
+        code = _check(argv, case)
+    except SystemExit as err:  # argparse: a value that is no number at all
+        assert err.code == 2
+        capsys.readouterr()
+        return
+    if target.startswith("dem."):
+        assert code == 2  # the DEM's own .prj, or its sidecar: never replaced
+    if code == 0:
+        meta, *_, fields = pyogrio.raw.read(case / target)
+        for name, values in zip(meta["fields"], fields):
+            if values.dtype.kind == "f":
+                assert np.isfinite(values).all(), name
+            if name == "thickness":
+                assert (values > 0).all() and (values <= 10 * 1.6).all()
+    capsys.readouterr()
+
+
+@FUZZ
+@given(coefficients=st.lists(TYPED_NUMBERS, min_size=4, max_size=6))
+def test_alpha_beta_coefficients(coefficients):
+    from avflow.output.alphabeta import AlphaBetaError, alpha_beta, regression
+
+    spec = ",".join(coefficients)
+    try:
+        reg = regression(spec)
+    except AlphaBetaError:
+        return
+    assert "_" not in spec and "x" not in spec.lower()
+    s = np.arange(0.0, 2000.0, 10.0)
+    z = 1000.0 * np.exp(-s / 500.0)
+    try:
+        ab = alpha_beta(s, z, reg)
+    except AlphaBetaError:
+        return
+    for angle in ab.alphas:
+        assert 0.0 < angle < 90.0
+
+
+STRUCTURE_PLANE = """
+name: fuzz-structure
+terrain: {kind: plane, slope_deg: 25.0, azimuth_deg: 180.0,
+          extent: {x: [0.0, 200.0], y: [0.0, 400.0]}}
+grid: {dx: 10.0}
+release: {kind: cylinder, center: [100.0, 310.0], radius: 30.0, thickness: 3.0}
+rheology: {law: coulomb, delta_deg: 20.0}
+time: {end: 0.5, cfl: 0.5}
+output: {every: 0.5}
+"""
+COORDS = st.one_of(st.floats(-50.0, 450.0), HOSTILE_NUMBERS)
+
+
+@SLOW
+@given(points=st.lists(st.tuples(COORDS, COORDS), min_size=1, max_size=5),
+       kind=st.sampled_from(["dam", "wall"]),
+       height=st.one_of(st.floats(0.1, 30.0), HOSTILE_NUMBERS),
+       slope=st.one_of(st.floats(0.0, 89.0), HOSTILE_NUMBERS))
+def test_structures(tmp_path_factory, capsys, points, kind, height, slope):
+    import json
+
+    case = tmp_path_factory.mktemp("structure")
+    line = {"type": "FeatureCollection", "features": [{
+        "type": "Feature", "properties": {},
+        "geometry": {"type": "LineString", "coordinates": [list(p) for p in points]}}]}
+    try:
+        (case / "line.geojson").write_text(json.dumps(line, allow_nan=True))
+    except ValueError:  # 10**400 in a line: JSON cannot say it
+        return
+    scene = yaml.safe_load(STRUCTURE_PLANE)
+    structure = {"line": "line.geojson", "kind": kind, "height": height}
+    if kind == "dam":
+        structure["side_slope_deg"] = slope
+    scene["structures"] = [structure]
+    (case / "s.yaml").write_text(_dump(scene))
+    code = _check(["run", case / "s.yaml", "-o", case / "s.nc", "-q", "--set",
+                   "time.max_steps=100"], case, [case / "s.nc"])
+    if code == 0:
+        with xr.open_dataset(case / "s.nc") as ds:
+            retained = ds["structure_retained_volume"].values
+            beyond = ds["structure_overtopped_volume"].values
+            released = float(ds["release_volume"])
+            assert np.isfinite(retained).all() and np.isfinite(beyond).all()
+            assert (retained + beyond <= released * (1 + 1e-9)).all()
+            assert np.isfinite(ds["bed_elevation"].values[~np.isnan(
+                ds["bed_elevation"].values)]).all()
+    capsys.readouterr()
+
+
+@FUZZ
+@given(kind=st.sampled_from(["fifo", "device", "folder", "empty", "text", "binary",
+                             "syntax", "raises", "exits", "peak_thickness", "self"]))
+def test_extension_files(tmp_path_factory, work, capsys, kind):
+    case = _fresh(tmp_path_factory, work)
+    path = case / "ext.py"
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "device":
+        path = Path("/dev/zero")
+    elif kind == "folder":
+        path.mkdir()
+    else:
+        path.write_bytes({
+            "empty": b"", "text": b"hello there\n", "binary": bytes(range(256)),
+            "syntax": b"def f(:\n", "raises": b"1 / 0\n", "exits": b"raise SystemExit(0)\n",
+            "peak_thickness": b"from avflow import extend\n\n\n"
+                              b"@extend.output_map('peak_thickness', units='m')\n"
+                              b"def f(old, h, hu, hv, speed, t):\n    return old\n",
+            "self": b"from avflow import extend\n"}[kind])
+    target = path if kind == "self" else case / "old.nc"
+    code = _check(["run", "--extensions", path, work / "base.yaml", "-o", target, *BOUNDS],
+                  case)
+    if kind in ("fifo", "device", "peak_thickness", "self", "syntax", "raises", "exits",
+                "binary", "folder"):
+        assert code == 2
     capsys.readouterr()

@@ -129,7 +129,7 @@ def test_cli_writes_polygons_with_thickness_and_refuses_bad_input(tmp_path, caps
     assert main(["release-areas", str(dem), "-o", str(tmp_path / "x.gpkg"),
                  "--slope-min", "70"]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "slope_min" in err
+    assert len(err.splitlines()) == 1 and "--slope-min" in err  # the option, as typed
     assert not (tmp_path / "x.gpkg").exists()
     assert main(["release-areas", str(dem), "-o", str(dem)]) == 2  # never over the DEM
     assert dem.stat().st_size > 0

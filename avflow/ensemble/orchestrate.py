@@ -1116,6 +1116,10 @@ class _deferred_sigint:
         if self.hit:
             self._raise(frame)
         self.hit, self.signum = True, signum
+        # the cluster is now closed on purpose: its broken connections (CommClosedError)
+        # are no news, and their tracebacks are not printed
+        for name in ("distributed", "tornado", "asyncio"):
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
     def _raise(self, frame=None):
         old = self.old_term if self.signum == signal.SIGTERM else None
@@ -1133,6 +1137,8 @@ class _deferred_sigint:
                           else self.old)
             signal.signal(signal.SIGTERM, signal.SIG_DFL if self.old_term is None
                           else self.old_term)
+            if self.hit and exc[0] is None:  # noted while the cluster closed: not lost
+                self._raise()
 
 
 class _sigint_ignored:

@@ -21,6 +21,7 @@ user's own is ``k1,k2,k3,k4,sd``.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,8 @@ __all__ = ["ABResult", "AlphaBetaError", "REGRESSIONS", "Regression", "alpha_bet
 
 #: The slope (degrees) that marks the beta point.
 BETA_SLOPE_DEG = 10.0
+#: A path whose beta point lies this many degrees above its start is drawn uphill.
+UPHILL_DEG = 1.0
 #: AvaFrame com2AB's dsMin: the slope must stay at or under 10 degrees this far (m).
 DS_MIN = 30.0
 
@@ -77,6 +80,9 @@ REGRESSIONS = {
 DEFAULT = "norway"
 
 
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+
+
 def regression(spec: str | Regression | None) -> Regression:
     """A regression by name (:data:`REGRESSIONS`) or as ``k1,k2,k3,k4,sd``."""
     if spec is None:
@@ -86,16 +92,23 @@ def regression(spec: str | Regression | None) -> Regression:
     text = str(spec).strip()
     if text in REGRESSIONS:
         return REGRESSIONS[text]
-    parts = text.split(",")
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        values = []
-    if len(values) != 5 or not all(math.isfinite(v) for v in values) or values[4] < 0:
+    parts = [p.strip() for p in text.split(",")]
+    # plain decimals only: Python's float() reads "1_0" as 10 and "infinity" as inf
+    values = [float(p) for p in parts if _NUMBER.fullmatch(p)]
+    if len(parts) != 5 or len(values) != 5 or not all(math.isfinite(v) for v in values) \
+            or values[4] < 0:
         raise AlphaBetaError(f"alpha-beta regression {text!r}: give one of "
                              f"{', '.join(REGRESSIONS)} or k1,k2,k3,k4,sd (five numbers, "
                              "sd >= 0)")
     k1, k2, k3, k4, sd = values
+    # alpha is an angle of a path: for a plain slope (z'' = 0, H0 = 0) with beta anywhere
+    # from 10 to 60 degrees, and its SD, it must lie in (0, 90) degrees
+    for beta in (BETA_SLOPE_DEG, 60.0):
+        alpha = k1 * beta + k4
+        if not (0.0 < alpha - 2.0 * sd and alpha < 90.0):
+            raise AlphaBetaError(f"alpha-beta regression {text!r}: gives alpha = {alpha:.4g} "
+                                 f"deg (minus 2 SD: {alpha - 2 * sd:.4g}) for beta = "
+                                 f"{beta:g} deg; alpha must lie in (0, 90) degrees")
     return Regression("custom", k1, k2, k3, k4, sd,
                       f"user's coefficients: alpha = {k1:g} beta + {k2:g} z'' + {k3:g} H0 "
                       f"+ {k4:g} deg, SD {sd:g} deg")
@@ -173,6 +186,13 @@ def alpha_beta(s, z, reg: str | Regression | None = None, ds_min: float = DS_MIN
     if k is None:
         return _nan_result(reg)
     beta = math.degrees(math.atan2(z[0] - z[k], s[k] - s[0]))
+    if beta <= -UPHILL_DEG:  # drawn uphill: beta and alpha would be negative
+        raise AlphaBetaError(f"the path does not descend from the release: it starts at "
+                             f"{z[0]:.1f} m and rises to {z[k]:.1f} m at {s[k] - s[0]:.0f} m "
+                             f"(beta {beta:.1f} deg); draw it from the top of the release "
+                             "down the fall line")
+    if not beta > BETA_SLOPE_DEG:  # no slope steeper than 10 degrees: no beta point
+        return _nan_result(reg)
     curvature = height = 0.0
     if reg.k2 != 0.0 or reg.k3 != 0.0:
         poly = np.poly1d(np.polyfit(s - s[0], z, 2))
@@ -180,6 +200,11 @@ def alpha_beta(s, z, reg: str | Regression | None = None, ds_min: float = DS_MIN
         fit = poly(s - s[0])
         height = float(fit.max() - fit.min())
     alpha = reg.alpha(beta, curvature, height)
+    if not (math.isfinite(alpha) and 0.0 < alpha - 2.0 * reg.sd and alpha < 90.0):
+        raise AlphaBetaError(f"the {reg.name} regression gives alpha = {alpha:.4g} deg on "
+                             f"this path (beta {beta:.1f} deg, z'' {curvature:.3g} 1/m, H0 "
+                             f"{height:.4g} m; minus 2 SD: {alpha - 2 * reg.sd:.4g}): not an "
+                             "angle in (0, 90) degrees; check its coefficients")
     alphas = (alpha, alpha - reg.sd, alpha - 2.0 * reg.sd)
     # an angle under beta meets the bed beyond the beta point (AvaFrame's com2AB looks
     # beyond its split point): a gentle stretch near the top is not a runout

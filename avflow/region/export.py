@@ -180,11 +180,16 @@ def export_region(path, outdir=None, variables=None) -> list[Path]:
                 write_cog(target, var, x, y, wkt, chunk, **options)
             except AvflowError:
                 raise
-            except Exception as err:  # noqa: BLE001 - a chunk that cannot be decoded
+            except Unreadable as err:  # a chunk of the store that cannot be decoded
+                raise damaged(store, f"{var.name} cannot be read: {err}") from None
+            except Exception as err:  # noqa: BLE001 - the output's write: never the store's
+                from avflow.files import OutputWriteError, write_error
+
                 if isinstance(err, OSError):
                     raise
-                raise damaged(store, f"{var.name} cannot be read: {type(err).__name__}: "
-                                     f"{' '.join(str(err).split())[:80]}") from None
+                raise (write_error(target, err) or OutputWriteError(
+                    f"cannot write {target}: {type(err).__name__}: "
+                    f"{' '.join(str(err).split())[:120]}")) from None
             written.append(target)
     return written
 
@@ -194,6 +199,18 @@ def _crs_wkt(ds) -> str | None:
         attrs = ds["crs"].attrs
         return attrs.get("crs_wkt") or attrs.get("spatial_ref") or None
     return None
+
+
+class Unreadable(Exception):
+    """A block of the store that cannot be read (raised while writing a COG: the store's
+    fault, not the output's)."""
+
+
+def _read_block(var, r0: int, r1: int) -> np.ndarray:
+    try:
+        return np.asarray(var[r0:r1].values)
+    except Exception as err:  # noqa: BLE001 - a codec's or zarr's error, any type
+        raise Unreadable(f"{type(err).__name__}: {' '.join(str(err).split())[:80]}") from None
 
 
 def write_cog(path, var, x, y, wkt, strip: int, *, dtype, nodata, resampling, scale=None,
@@ -224,7 +241,7 @@ def write_cog(path, var, x, y, wkt, strip: int, *, dtype, nodata, resampling, sc
                                BIGTIFF="IF_SAFER") as dst:
                 for r0 in range(0, height, strip):
                     r1 = min(r0 + strip, height)
-                    block = np.asarray(var[r0:r1].values)
+                    block = _read_block(var, r0, r1)
                     if scale is not None:
                         block = block * np.float32(scale)
                     if nodata is not None and np.dtype(dtype).kind != "f":

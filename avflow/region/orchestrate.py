@@ -329,7 +329,10 @@ def _run(todo, workers, scheduler, client, merge, timings, progress) -> tuple[st
         workers = 0
     if workers == 0 and scheduler is None and client is None:
         clock = time.perf_counter()
+        from avflow.errors import check_interrupted
+
         for task in todo:
+            check_interrupted()  # a Ctrl-C a library swallowed during the last release
             merge(run_release(task))
         timings["runs"] = time.perf_counter() - clock
         return "here", 0

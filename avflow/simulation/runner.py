@@ -299,6 +299,7 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
     except ReleaseError as err:
         raise ScenarioError.at(scenario, "release", str(err)) from None
     _check_release_size(scenario, terrain, h0)
+    _check_release_and_structures(scenario, terrain, h0)
     try:  # maps, layer and forest sampled at the cell centres, each checked
         maps = friction_maps(scenario.rheology, terrain)
         source = mass_source(scenario, terrain)
@@ -402,6 +403,39 @@ def _warn_empty(scenario, source, forest) -> None:
 #: Bed area over map area of a release past which a warning says so: 2 is a mean slope of
 #: 60 degrees, where a thickness normal to the bed makes twice the volume of one vertical.
 RELEASE_AREA_RATIO = 2.0
+
+
+def _check_release_and_structures(scenario, terrain, h0) -> None:
+    """A release under a wall (its cells leave the mesh: the release would shrink unsaid) or
+    across a structure's line (no upstream side): refused before the run."""
+    built = getattr(terrain, "extras", {}).get("structures")
+    if built is None:
+        return
+    import types
+
+    from avflow.terrain.release import ReleaseError, initial_thickness
+    from avflow.terrain.structures import release_across
+
+    volume0 = h0 * terrain.mesh.cell_area
+    total = float(volume0.sum())
+    if built.walls.any():
+        X, Y = np.meshgrid(built.x, built.y)
+        under_walls = types.SimpleNamespace(  # the walls' cells, as a terrain of their own
+            kind="grid", crs_wkt=terrain.crs_wkt,
+            cell_xy=lambda: (X[built.walls], Y[built.walls]))
+        try:
+            covered = initial_thickness(scenario.release, under_walls)
+        except ReleaseError:  # none of the release under the walls
+            covered = np.zeros(1)
+        cell = abs(built.x[1] - built.x[0]) * abs(built.y[1] - built.y[0])
+        under = float(np.sum(covered)) * cell
+        if under > 1e-3 * (total + under):
+            raise ScenarioError.at(scenario, "structures", f"a wall covers "
+                                   f"{100 * under / (total + under):.0f}% of the release "
+                                   "(its cells leave the mesh); move the wall or the release")
+    problem = release_across(built, *terrain.cell_xy(), volume0)
+    if problem is not None:
+        raise ScenarioError.at(scenario, *problem)
 
 
 def _check_release_size(scenario, terrain: Terrain, h0: np.ndarray) -> None:

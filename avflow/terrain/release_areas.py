@@ -83,18 +83,53 @@ class PRASettings:
     slope_correction: bool = True
 
     def __post_init__(self):
-        checks = [("slope_min", 0.0 <= self.slope_min < self.slope_max <= 90.0,
-                   "0 <= slope_min < slope_max <= 90"),
-                  ("snow_depth", self.snow_depth > 0, "> 0"),
-                  ("wind_tolerance", 0 < self.wind_tolerance <= 180, "in (0, 180]"),
-                  ("threshold", 0.0 <= self.threshold < 1.0, "in [0, 1)")]
-        for name, ok, rule in checks:
-            if not ok:
-                raise PRAError(f"{name} must be {rule}")
-        for name in ("min_area", "d0", "max_curvature", "split_aspect_deg"):
+        """Every number typed, finite and in its physical range, naming the option: a NaN
+        or 1e308 would otherwise reach the layer as a thickness, an unbounded snow depth
+        would make the roughness windows without end."""
+        for name in ("roughness", "slope_correction"):
+            if not isinstance(getattr(self, name), bool):
+                raise PRAError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        for name, (low, high, rule) in NUMBER_RANGES.items():
             v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and v > 0):
-                raise PRAError(f"{name} must be a number > 0, got {v!r}")
+            if v is None and name in OPTIONAL:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise PRAError(f"{name} must be a number, got {v!r}")
+            if not (math.isfinite(v) and low(v) and high(v)):
+                raise PRAError(f"{name} must be {rule}, got {v!r}")
+        if not self.slope_min < self.slope_max:
+            raise PRAError(f"slope_min must be below slope_max, got {self.slope_min!r} and "
+                           f"{self.slope_max!r}")
+        if self.d0 is not None and self.slope_correction and self.slope_min <= SLOPE_FACTOR_MIN:
+            raise PRAError(f"slope_min must be above {SLOPE_FACTOR_MIN:.2f} degrees with d0: "
+                           "the slope factor 0.291 / (sin psi - 0.202 cos psi) of the "
+                           "thickness rule is negative below (or leave out the slope "
+                           "correction)")
+
+
+#: Below this slope (degrees, atan 0.202) the Swiss slope factor's denominator is <= 0.
+SLOPE_FACTOR_MIN = math.degrees(math.atan(0.202))
+
+#: The options that may be left out (None).
+OPTIONAL = ("wind_direction", "max_curvature", "min_area", "split_aspect_deg", "d0")
+
+#: Each number's range: a test of its low end, one of its high end, the rule in words. The
+#: high ends are physical: a snow depth over 20 m or a d0* over 10 m is a typo (the Swiss
+#: guideline's d0* is 0.5 to 3 m), an elevation outside -500..9000 m is no mountain's.
+NUMBER_RANGES = {
+    "slope_min": (lambda v: v >= 0, lambda v: v <= 90, "in [0, 90] degrees"),
+    "slope_max": (lambda v: v > 0, lambda v: v <= 90, "in (0, 90] degrees"),
+    "snow_depth": (lambda v: v > 0, lambda v: v <= 20, "in (0, 20] m"),
+    "wind_direction": (lambda v: v >= 0, lambda v: v < 360, "in [0, 360) degrees"),
+    "wind_tolerance": (lambda v: v > 0, lambda v: v <= 180, "in (0, 180] degrees"),
+    "threshold": (lambda v: v >= 0, lambda v: v < 1, "in [0, 1)"),
+    "max_curvature": (lambda v: v > 0, lambda v: True, "a number > 0 (1/m)"),
+    "min_area": (lambda v: v > 0, lambda v: True, "a number > 0 (m2)"),
+    "split_aspect_deg": (lambda v: v >= 1, lambda v: v <= 180, "in [1, 180] degrees"),
+    "d0": (lambda v: v > 0, lambda v: v <= 10, "in (0, 10] m"),
+    "reference_elevation": (lambda v: v >= -500, lambda v: v <= 9000, "in [-500, 9000] m"),
+    "gradient": (lambda v: v >= -1, lambda v: v <= 1, "in [-1, 1] m per 100 m"),
+}
 
 
 @dataclass
@@ -295,6 +330,12 @@ def potential_release_areas(dem_path, settings: PRASettings | None = None, fores
     north_up = y[1] > y[0]
     # gradients in map axes: rows run along y, whatever their order
     sign_y = 1.0 if north_up else -1.0
+    i_max = max(1, math.ceil(3.0 * settings.snow_depth * 0.35 - 0.1))
+    if min(z.shape) < 2 * i_max + 1:  # the planes of the slope and roughness need the window
+        raise PRAError(f"{dem_path}: the DEM ({z.shape[1]} x {z.shape[0]} cells) is smaller "
+                       f"than the slope and roughness window ({2 * i_max + 1} x "
+                       f"{2 * i_max + 1} cells for a snow depth of {settings.snow_depth:g} m); "
+                       "use a larger DEM or a smaller --snow-depth")
     rugg, slope, i_max = roughness_and_slope(zf, dx, dy, settings.snow_depth)
     gx1, gy1 = _plane_gradient(zf, dx, dy, i_max)
     memberships = [np.where((slope >= settings.slope_min) & (slope <= settings.slope_max),
@@ -345,13 +386,16 @@ def potential_release_areas(dem_path, settings: PRASettings | None = None, fores
 
 def _forest_mask(forest, x, y, dem_wkt):
     path = Path(forest)
-    from avflow.terrain.polygons import VECTOR_SUFFIXES, PolygonError, rasterize, read_polygons
+    from avflow.terrain.polygons import (VECTOR_SUFFIXES, PolygonError, rasterize,
+                                         read_polygons, warn_no_crs)
 
     if path.suffix.lower() in VECTOR_SUFFIXES:
         try:
-            areas, _ = read_polygons(path, attribute=False)
+            areas, wkt = read_polygons(path, attribute=False)
         except PolygonError as err:
             raise PRAError(str(err)) from None
+        _same_crs(path, wkt, dem_wkt)
+        warn_no_crs(path, wkt, dem_wkt)
         X, Y = np.meshgrid(x, y)
         return rasterize(areas, X, Y, thickness=1.0) > 0
     from avflow.terrain.raster import RasterError, read_raster
@@ -360,9 +404,27 @@ def _forest_mask(forest, x, y, dem_wkt):
         f = read_raster(path)
     except RasterError as err:
         raise PRAError(str(err)) from None
+    _same_crs(path, f.crs_wkt, dem_wkt)
     X, Y = np.meshgrid(x, y)
     values = f.sample(X.ravel(), Y.ravel()).reshape(X.shape)
     return np.nan_to_num(values) > 0
+
+
+def _same_crs(path, wkt, dem_wkt) -> None:
+    """A forest layer in another CRS than the DEM's would be read as the DEM's coordinates
+    (matching nowhere, or removing everything): refused, naming both."""
+    from avflow.terrain.raster import same_crs
+
+    if wkt and dem_wkt and not same_crs(wkt, dem_wkt):
+        from pyproj import CRS
+
+        def name(w):
+            try:
+                return CRS.from_user_input(w).name
+            except Exception:  # noqa: BLE001 - any unreadable WKT
+                return "another CRS"
+        raise PRAError(f"--forest {path}: the layer is in {name(wkt)}, the DEM in "
+                       f"{name(dem_wkt)}; reproject it to the DEM's CRS")
 
 
 def _polygons(result: PRAResult, z, slope, settings: PRASettings) -> list:
@@ -393,6 +455,11 @@ def _polygons(result: PRAResult, z, slope, settings: PRASettings) -> list:
             row["thickness"] = float(swiss_thickness(
                 settings.d0, psi, elevation, settings.reference_elevation, settings.gradient,
                 settings.slope_correction))
+            if not (math.isfinite(row["thickness"]) and row["thickness"] > 0):
+                raise PRAError(f"d0: the thickness rule gives {row['thickness']:.3g} m for the "
+                               f"area at {elevation:.0f} m, {psi:.1f} degrees (d0 "
+                               f"{settings.d0:g} m, gradient {settings.gradient:g} m per 100 m "
+                               f"from {settings.reference_elevation:g} m): not a thickness")
         areas.append(row)
     return areas
 
@@ -405,7 +472,7 @@ def write_release_areas(result: PRAResult, target, index_raster=None) -> list[Pa
 
     import pyogrio.raw
 
-    from avflow.files import atomic_write
+    from avflow.files import OutputWriteError, atomic_write, fsync, write_error
 
     target = Path(target)
     if not result.areas:
@@ -427,27 +494,55 @@ def write_release_areas(result: PRAResult, target, index_raster=None) -> list[Pa
             pyogrio.raw.write(str(tmp), wkb, columns, names, layer="release_areas",
                               driver=driver, crs=result.crs_wkt, geometry_type="Unknown")
 
+    def verify(tmp: Path) -> None:
+        """Read back: GDAL reports some failed writes (a full disk) as log messages only,
+        leaving an empty or cut layer."""
+        try:
+            with warnings.catch_warnings():  # the temporary's name is no GeoPackage's
+                warnings.simplefilter("ignore", RuntimeWarning)
+                count = pyogrio.read_info(str(tmp))["features"]
+        except Exception:  # noqa: BLE001 - any reader's error: the file is not readable
+            count = -1
+        if count != len(result.areas):
+            raise OutputWriteError(f"cannot write {target}: the layer reads back "
+                                   f"{'unreadable' if count < 0 else f'with {count} of {len(result.areas)} areas'}"
+                                   " (is the disk full?)")
+
     written = []
     if driver == "ESRI Shapefile":  # several files: written in a folder beside, then moved
         import os
         import shutil
         import tempfile
 
-        target.parent.mkdir(parents=True, exist_ok=True)
-        folder = Path(tempfile.mkdtemp(prefix=f".{target.stem}-", dir=target.parent))
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            folder = Path(tempfile.mkdtemp(prefix=f".{target.stem}-", dir=target.parent))
+        except OSError as err:
+            raise write_error(target, err) from None
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 warnings.simplefilter("ignore", UserWarning)
                 pyogrio.raw.write(str(folder / target.name), wkb, columns, names,
                                   driver=driver, crs=result.crs_wkt, geometry_type="Polygon")
-            for part in sorted(folder.iterdir()):
-                os.replace(part, target.with_suffix(part.suffix))
+            parts = sorted(folder.iterdir())
+            for part in parts:
+                fsync(part)
+            verify(folder / target.name)
+            for part in parts:  # the .shp last: a reader sees the new layer whole, or none
+                if part.suffix.lower() != ".shp":
+                    os.replace(part, target.with_suffix(part.suffix))
+            os.replace(folder / target.name, target)
+        except BaseException as err:
+            error = write_error(target, err)
+            if error is not None:
+                raise error from None
+            raise
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         written.append(target)
     else:
-        written.append(atomic_write(target, write))
+        written.append(atomic_write(target, write, verify))
     if index_raster is not None:
         from avflow.terrain.raster import write_tif
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["BuiltStructures", "StructureError", "apply_structures", "read_line_file",
-           "structure_volumes"]
+           "release_across", "structure_volumes"]
 
 
 class StructureError(ValueError):
@@ -124,6 +124,49 @@ def _inside(line, x, y, path, where: str) -> None:
         raise StructureError(f"{path}: the line (x {lx0:.6g} to {lx1:.6g}, y {ly0:.6g} to "
                              f"{ly1:.6g}) reaches outside the DEM (x {x0:.6g} to {x1:.6g}, "
                              f"y {y0:.6g} to {y1:.6g}); is it in the DEM's CRS?", where)
+
+
+#: The highest crest allowed on a map of smaller relief (m).
+MIN_HEIGHT_LIMIT = 100.0
+#: The gentlest side slope of a dam (degrees): its sides reach height / tan(slope) away.
+MIN_SIDE_SLOPE_DEG = 1.0
+
+
+def _check_shape(line, path, where: str) -> None:
+    """A line of zero length has no sides, one that crosses itself no single upstream side:
+    the retained and beyond volumes would be invented."""
+    if not line.length > 0:
+        raise StructureError(f"{path}: the line has zero length (all its points coincide)",
+                             where)
+    if not line.is_simple:
+        raise StructureError(f"{path}: the line crosses itself; the sides of the structure "
+                             "(retained, beyond) are then not defined: draw it without "
+                             "loops", where)
+
+
+#: The share of the release allowed on the far side of a line (round-off of cells the line
+#: grazes).
+ACROSS_SHARE = 0.01
+
+
+def release_across(built: BuiltStructures, cell_x, cell_y, volume0) -> tuple | None:
+    """``(field, message)`` for the first structure whose line runs through the release
+    (more than :data:`ACROSS_SHARE` of its volume on either side: which side is upstream is
+    then not defined), else None."""
+    volume0 = np.asarray(volume0, float)
+    wet = volume0 > 0
+    total = volume0.sum()
+    if not total > 0:
+        return None
+    for k, (name, line) in enumerate(zip(built.names, built.lines)):
+        side = _side(line, np.asarray(cell_x)[wet], np.asarray(cell_y)[wet])
+        left = float(volume0[wet][side > 0].sum()) / total
+        if min(left, 1.0 - left) > ACROSS_SHARE:
+            return (f"structures[{k}].line",
+                    f"{name}: the line runs through the release ({100 * left:.0f}% of its "
+                    f"volume on one side, {100 * (1 - left):.0f}% on the other); which side "
+                    "is upstream is not defined: move the line out of the release")
+    return None
 
 
 def _nearest_on(line, px, py):
@@ -234,11 +277,25 @@ def apply_structures(z, x, y, dem_wkt, structures) -> tuple[np.ndarray, BuiltStr
     new = z.copy()
     walls = np.zeros(z.shape, bool)
     names, kinds, lines = [], [], []
+    # a crest higher than the map's relief (or 100 m on flatter maps) is a typo: 1e15 m
+    # rounds the float32 bed to one value, 1e300 makes it infinite
+    relief = float(np.nanmax(z) - np.nanmin(z)) if valid.any() else 0.0
+    highest = max(relief, MIN_HEIGHT_LIMIT)
     for k, s in enumerate(structures):
         where = f"structures[{k}].line"
+        if not (math.isfinite(s.height) and s.height <= highest):
+            raise StructureError(f"{s.height:g} m is higher than the map's relief "
+                                 f"({relief:.4g} m; at most {highest:.4g} m)",
+                                 f"structures[{k}].height")
+        if s.kind == "dam" and not s.side_slope_deg >= MIN_SIDE_SLOPE_DEG:
+            # tan 0 (or 5e-324, whose tangent underflows): sides that never meet the ground
+            raise StructureError(f"a dam's sides must slope: give an angle of "
+                                 f"{MIN_SIDE_SLOPE_DEG:g} degree or more, got "
+                                 f"{s.side_slope_deg:g}", f"structures[{k}].side_slope_deg")
         line, wkt = read_line_file(s.line, where)
         _check_crs(s.line, wkt, dem_wkt, where)
         _inside(line, x, y, s.line, where)
+        _check_shape(line, s.line, where)
         if dem_wkt and not wkt:
             from avflow.terrain.polygons import warn_no_crs
 
