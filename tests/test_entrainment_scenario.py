@@ -97,7 +97,7 @@ def test_each_law_reaches_the_solver_in_its_units(tmp_path):
         ({"law": "erosion_energy", "e_b": 2500.0}, SOURCE_EROSION_ENERGY, (2500.0,)),
         # k in m/(s kPa) -> m/(s Pa); tau_c RAMMS's 1 kPa; the flow's density for tau_b
         ({"law": "shear_threshold", "k": 0.025}, SOURCE_SHEAR_THRESHOLD,
-         (0.025 / 1000.0, 1000.0, 2000.0)),
+         (0.025 / 1000.0, 1000.0, 200.0)),  # Voellmy without a density: snow's
     ]
     for block, kind, params in cases:
         source, _, _ = layer_of(path, entrainment={**block, "layer": {"depth": 0.5}})
@@ -121,7 +121,8 @@ def written(tmp_path_factory):
     path = plane(folder, "{law: voellmy, mu: 0.25, xi: 1000}",
                  "entrainment: {law: erosion_energy, density: 1000, "
                  "layer: {depth: 0.5, x: [120, 250]}}\n"
-                 "forest: {x: [250, 280], c_f: 0.05}\nboundary: {x_max: outflow}\n",
+                 "forest: {x: [250, 280], c_f: 0.05}\nboundary: {x_max: outflow}\n"
+                 "physics: {material: debris}\n",  # a flow of 2000 (Voellmy's own: snow)
                  slope=30.0, extent="{x: [0, 300], y: [0, 100]}",
                  release="{kind: box, x: [20, 80], y: [30, 70], thickness: 3.0}", end=24.0)
     out = folder / "run.nc"

@@ -46,12 +46,31 @@ def test_what_is_given_wins_over_the_material():
 
 
 @pytest.mark.parametrize("law", ["voellmy", "samosat"])
-def test_a_snow_law_without_density_takes_snows_and_says_so(law):
+def test_a_snow_law_without_density_takes_snows_and_says_so_when_it_runs(law):
     rheology = VOELLMY if law == "voellmy" else "{law: samosat, mu: 0.155}"
     s, said = _scenario(rheology)
     assert s.physics.density == 200.0
-    assert len(said) == 1 and said[0].startswith("physics.density not given: 200 kg/m^3")
-    assert law in said[0]
+    assert said == []  # reading says nothing: a bad file gets its one error line alone
+    note = s.density_note()
+    assert note.startswith("physics.density not given: 200 kg/m^3") and law in note
+    given, _ = _scenario(rheology, "physics: {density: 250.0}")
+    assert given.density_note() is None and given.physics.density == 250.0
+    snow, _ = _scenario(rheology, "physics: {material: snow}")
+    assert snow.density_note() is None
+
+
+def test_the_command_line_says_the_density_once(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "s.yaml").write_text(BASE.replace("RHEOLOGY", VOELLMY).replace("EXTRA", ""))
+    done = subprocess.run([sys.executable, "-m", "avflow", "run", "s.yaml", "-o", "s.nc"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = [x for x in done.stderr.splitlines() if "physics.density" in x]
+    assert lines == ["avflow: warning: physics.density not given: 200 kg/m^3, snow's, for "
+                     "the snow law voellmy (set physics.material or physics.density for "
+                     "another material)"]
 
 
 def test_debris_laws_keep_debris_density_without_a_word():

@@ -357,11 +357,16 @@ def test_a_swallowed_ctrl_c_still_ends_the_command_as_interrupted(monkeypatch, c
         return 0  # ran to the end as if nothing happened
 
     monkeypatch.setattr(cli_module, "_cmd_region", region)
-    code, _, err = cli(["region", "any.yaml", "-o", "out"], capsys)
-    assert code == 130 and one_line(err) == "avflow: interrupted"
     import signal
 
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+    # Python's own handler, as a command starts (a test runner's worker may have its own)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        code, _, err = cli(["region", "any.yaml", "-o", "out"], capsys)
+        assert code == 130 and one_line(err) == "avflow: interrupted"
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def test_a_region_run_here_stops_before_the_next_release_after_a_ctrl_c(monkeypatch):
@@ -438,6 +443,7 @@ def test_a_signal_noted_while_the_cluster_closes_is_not_lost():
     from avflow.ensemble.orchestrate import _deferred_sigint
 
     level = logging.getLogger("distributed").level
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a command starts
     try:
         with pytest.raises(KeyboardInterrupt):
             with _deferred_sigint():
@@ -446,9 +452,10 @@ def test_a_signal_noted_while_the_cluster_closes_is_not_lost():
                     pass  # no check(): as in the cluster's closing
         # the cluster's own tracebacks of connections closed on purpose are not printed
         assert logging.getLogger("distributed").level > logging.CRITICAL
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         logging.getLogger("distributed").setLevel(level)
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        signal.signal(signal.SIGINT, old)
 
 
 def test_many_commands_in_one_process_do_not_stack_warning_handlers(capsys):

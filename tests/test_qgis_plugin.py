@@ -368,12 +368,23 @@ def test_run_adds_named_styled_layers_to_the_project(qgis_env):
 
 
 def test_forest_and_a_dam_go_into_the_scenario(qgis_env):
+    import json
+
     from avflow.scenario.schema import load_scenario
 
+    # a dam across the path below the release (the path line itself runs through the
+    # release, which avflow refuses: which side is upstream is not defined)
+    dam_line = qgis_env["base"] / "dam_across.geojson"
+    dam_line.write_text(json.dumps({
+        "type": "FeatureCollection",
+        "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::31287"}},
+        "features": [{"type": "Feature", "properties": {}, "geometry": {
+            "type": "LineString", "coordinates": [[177700.0, 377300.0],
+                                                  [178100.0, 377300.0]]}}]}))
     rc, out, log = qgis_process(qgis_env, "run_scenario", DEM=KOT / "avaKot.asc",
                                 RELEASE=KOT / "relKot.shp", THICKNESS_FIELD="thickness",
                                 CELL_SIZE=20, FOREST=KOT / "resistance.shp", FOREST_CF=0.02,
-                                STRUCTURES=KOT / "pathAB.shp", STRUCTURE_HEIGHT=3,
+                                STRUCTURES=dam_line, STRUCTURE_HEIGHT=3,
                                 STRUCTURE_SLOPE=35, END_TIME=60, NAME="protected",
                                 OUTPUT_FOLDER=qgis_env["base"] / "protected")
     assert rc == 0, log[-3000:]

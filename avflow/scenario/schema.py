@@ -1299,8 +1299,9 @@ class Scenario(_Model):
     def _material_defaults(cls, data: Any) -> Any:
         """physics.density and output.stop_rule from physics.material where they are not
         given; without a material, the snow laws (samosat, voellmy) take snow's density, and
-        one line on stderr says so: debris density would make their pressures ten times too
-        high. Filled in before validation (the model stays frozen)."""
+        one line on stderr says so when it runs (:meth:`density_note`): debris density would
+        make their pressures ten times too high. Filled in before validation (the model stays
+        frozen)."""
         if not isinstance(data, dict):
             return data
         physics, output = data.get("physics", {}), data.get("output", {})
@@ -1318,16 +1319,8 @@ class Scenario(_Model):
         if physics.get("density") is None:
             if preset is not None:
                 physics = {**physics, "density": preset["density"]}
-            elif material is None and law in SNOW_LAWS:
+            elif material is None and law in SNOW_LAWS:  # said when it runs: density_note
                 physics = {**physics, "density": MATERIALS["snow"]["density"]}
-                import warnings
-
-                from avflow.errors import AvflowWarning
-
-                warnings.warn(AvflowWarning(
-                    f"physics.density not given: {MATERIALS['snow']['density']:g} kg/m^3, "
-                    f"snow's, for the snow law {law} (set physics.material or "
-                    "physics.density for another material)"), stacklevel=2)
         if preset is not None and output.get("stop_rule") is None:
             output = {**output, "stop_rule": preset["stop_rule"]}
         if physics or "physics" in data:
@@ -1597,6 +1590,18 @@ class Scenario(_Model):
                               default_flow_style=None, width=100)
 
     # --- variations -------------------------------------------------------------------------
+
+    def density_note(self) -> str | None:
+        """The line a run says where a snow law took snow's density because the scenario
+        gives neither ``physics.density`` nor ``physics.material``; else None."""
+        written = self._written if isinstance(self._written, dict) else {}
+        physics = written.get("physics") if isinstance(written.get("physics"), dict) else {}
+        if (self.rheology.law not in SNOW_LAWS or physics.get("density") is not None
+                or physics.get("material") is not None):
+            return None
+        return (f"physics.density not given: {self.physics.density:g} kg/m^3, snow's, for "
+                f"the snow law {self.rheology.law} (set physics.material or physics.density "
+                "for another material)")
 
     def with_updates(self, updates: Mapping[str, Any]) -> Scenario:
         """A new scenario: this one as written, with dotted-path updates, validated again.
