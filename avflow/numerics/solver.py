@@ -494,9 +494,8 @@ class Solver:
     def _loop(self, threads: int):
         """The compiled time loop of this solver's kernel, law and threads, with what was
         registered through avflow.extend built in where the run uses it."""
-        from avflow.numerics.variants import check_registered, with_registered
+        from avflow.numerics.variants import with_registered
 
-        check_registered(self._law_code, self.sources, self.params)  # before it compiles
         loop = self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
                                  threads > 1 and self._kernel.name != "profile")
         if self._kernel.backend != "cpu":

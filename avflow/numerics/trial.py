@@ -159,10 +159,10 @@ def check_law(law, params) -> None:
     """Try ``law`` (a registered :class:`~avflow.scenario.extensions.FrictionLaw`) with the
     run's ``params`` at the trial's thicknesses and speeds: a pair of finite numbers >= 0
     (friction never pushes), or one line naming the user's file."""
+    where = _where(law.function)
     for row in _rows(law, params):
         for h, speed in itertools.product(THICKNESSES, SPEEDS):
             values, said = _law_values(law, row, h, speed, NORMAL)
-            where = _where(law.function)
             if values is None:
                 raise ExtensionFileError(f"{where}: the friction law {law.name!r} {said}")
             for what, v in zip(("tau", "drag"), values):

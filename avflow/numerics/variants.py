@@ -8,8 +8,8 @@ new functions; everything that reads none of them is shared with the loop as it 
 Each copy is named after the registrations it reads (:func:`tag_of`), so Numba's cache keeps
 it beside the built-in kernels, and a law's copies stay the same when a map is registered
 beside it; what a copy is compiled from is in its cache key (:mod:`avflow.codekey`), so a
-changed function, helper or constant is compiled afresh. Nothing is made at import: a variant is made the first time a run asks for it, and
-compiled for that run alone.
+changed function, helper or constant is compiled afresh. Nothing is made at import: a variant
+is made the first time a run asks for it, and compiled for that run alone.
 
 Three names are replaced today, each a placeholder of the built-in kernels:
 
@@ -213,6 +213,8 @@ def check_registered(law: int, sources=(), params=()) -> None:
     (a global no key can hold refused); ``params``: the law's parameters as the kernels
     read them. One line naming the user's file on failure
     (:class:`~avflow.scenario.extensions.ExtensionFileError`)."""
+    import numpy as np
+
     from avflow.codekey import UnhashableGlobal
     from avflow.numerics import trial
     from avflow.scenario.extensions import ExtensionFileError
@@ -220,21 +222,16 @@ def check_registered(law: int, sources=(), params=()) -> None:
     laws, maps, entries = registered(law, sources)
     if not (laws or maps or entries):
         return
-    try:
-        key = (tag_of(*laws, *maps, *entries), np_bytes(params),
-               tuple(s.params for s in sources))
+    try:  # (the parameters by a digest: a friction map holds a row per cell)
+        given = np.ascontiguousarray(params, dtype=float)
+        key = (tag_of(*laws, *maps, *entries), given.shape,
+               hashlib.sha256(given.tobytes()).hexdigest(), tuple(s.params for s in sources))
     except UnhashableGlobal as err:
         raise ExtensionFileError(str(err)) from None
     if key in _CHECKED:
         return
     trial.check(laws, maps, sources, params)
     _CHECKED.add(key)
-
-
-def np_bytes(values) -> bytes:
-    import numpy as np
-
-    return np.ascontiguousarray(values, dtype=float).tobytes()
 
 
 def with_registered(loop, law: int, sources=()):

@@ -521,7 +521,7 @@ def simulate(scenario, progress: Callable[[float, float], None] | None = None, *
     snaps = Snapshots() if snapshots is None else snapshots
     terrain, h0, solver, thresholds = prepare(scenario, max_memory,
                                               streamed=not snaps.in_memory)
-    note = scenario.density_note() if hasattr(scenario, "density_note") else None
+    note = scenario.density_note()
     if note:  # valid input only: a bad file gets its one error line, nothing else
         warnings.warn(note, AvflowWarning, stacklevel=2)
     from avflow.simulation.events import (advance_sampling, point_series, sample_interval,
