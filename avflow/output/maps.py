@@ -556,7 +556,6 @@ def plot_run(path, output=None, *, map: str = "both", extent=None, dpi: int = 12
 def _scale_and_north(ax) -> None:
     """A scale bar (a round length near a fifth of the width shown) at the lower left and a
     north arrow at the upper right: the maps are drawn in their CRS, y to the north."""
-    from matplotlib.offsetbox import AnchoredText  # noqa: F401 - (matplotlib is loaded)
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
     x0, x1 = ax.get_xlim()
