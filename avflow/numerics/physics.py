@@ -37,6 +37,12 @@ DRY = 2  #: dry at time n: zero temperature as well, momentum from the projectio
 TRANSPORT_EPS = 1e-9
 
 
+#: ``explicit`` of :func:`trial_momentum` and :func:`final_momentum` for MUSCL-Hancock's
+#: single stage: gravity and friction take the thickness at the step's midpoint (False: the
+#: seed's h^{n+1}; True: a Runge-Kutta stage's own h^n)
+MIDPOINT = 2
+
+
 def normal_accel(g_normal, centripetal):
     """Bed-normal acceleration ``g cos(theta) + u.K.u`` (eqs. 61-62: ``u^2 / R`` on a profile),
     clamped at 0 where a convex bed would lift the material off (counted: returns 1)."""
@@ -83,8 +89,10 @@ def trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate_
 
     Gravity acts on ``h*``, the thickness after the fluxes (eq. 47), or with ``explicit``
     (a Runge-Kutta stage of order 2) on the stage's own ``h`` when it is wet: Heun's average
-    of two stages is second order only when each stage is an explicit Euler step. (A cell
-    dry at the stage's start keeps ``h*``, as friction does: a front is first order.)
+    of two stages is second order only when each stage is an explicit Euler step; with
+    ``explicit == MIDPOINT`` (MUSCL-Hancock's single stage) on the thickness half way
+    through the step, which keeps the source second order in time. (A cell dry at the
+    stage's start keeps ``h*``, as friction does: a front is first order.)
 
     ``rate_*``: the flux divergences (mass m/s, momentum m^2/s^2). The trial discharge q~
     (returned for the projection) uses the step ``dt``; the threshold is tested with
@@ -92,7 +100,10 @@ def trial_momentum(h_old, h_zero, speed_n, hu_old, hv_old, rate_h, rate_x, rate_
     and a deposit at rest stays at rest when a step is shortened to land on an output time.
     Returns ``(q~x, q~y, flag)``.
     """
-    h_star = h_old if explicit and h_old > h_zero else h_old + dt * rate_h
+    if explicit == MIDPOINT:
+        h_star = h_old + 0.5 * dt * rate_h if h_old > h_zero else h_old + dt * rate_h
+    else:
+        h_star = h_old if explicit and h_old > h_zero else h_old + dt * rate_h
     qx = hu_old + dt * (rate_x + g * h_star * gx)
     qy = hv_old + dt * (rate_y + g * h_star * gy)
     if h_old <= h_zero:
@@ -126,7 +137,10 @@ def final_momentum(flag, speed_n, h_new, h_zero, qx, qy, dt, gz, centripetal, la
     if flag == UNDER_THRESHOLD or h_new <= h_zero:
         return 0.0, 0.0, 0
     accel, clamped = normal_accel(g * gz, centripetal)
-    h_fric = h_old if explicit and h_old > h_zero else h_new
+    if explicit == MIDPOINT:
+        h_fric = 0.5 * (h_old + h_new) if h_old > h_zero else h_new
+    else:
+        h_fric = h_old if explicit and h_old > h_zero else h_new
     tau, drag = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h_fric, speed_n, accel, g)
     qx, qy = project(qx, qy, tau, drag, dt)
     return qx, qy, clamped
@@ -152,6 +166,25 @@ def cell_update(form_dry, flag, h_old, mass, qx, qy, area, dt, gx, gy, gz, centr
     qx, qy, clamped = final_momentum(flag, speed_n, hn, h_zero, qx, qy, dt, gz, centripetal,
                                      law, p0, p1, p2, p3, p4, p5, p6, p7, g, h_old, explicit)
     return hn, qx, qy, clamped
+
+
+def half_step(h, u1, u2, hx, hy, u1x, u1y, u2x, u2y, k, gx, gy, gz, centripetal, law, p0, p1,
+              p2, p3, p4, p5, p6, p7, g):
+    """MUSCL-Hancock's predictor: a wet cell's state ``(h, u1, u2)`` after ``k`` (half the
+    step) of the depth-averaged equations in their primitive form, with the cell's limited
+    slopes (``hx`` = dh/dx in its basis, ...): transport and the hydrostatic pressure
+    gradient of eqs. 14-15, gravity along the bed, then friction as the seed's projection
+    (eq. 50) over ``k``, so it never reverses the velocity. Its sides evaluated at this state
+    make one flux sweep second order in time. Returns ``(h, u1, u2)``."""
+    g_normal = g * gz
+    ph = h - k * (u1 * hx + u2 * hy + h * (u1x + u2y))
+    v1 = u1 - k * (u1 * u1x + u2 * u1y + g_normal * hx - g * gx)
+    v2 = u2 - k * (u1 * u2x + u2 * u2y + g_normal * hy - g * gy)
+    accel, _ = normal_accel(g_normal, centripetal)
+    tau, drag = friction(law, p0, p1, p2, p3, p4, p5, p6, p7, h, math.sqrt(u1 * u1 + u2 * u2),
+                         accel, g)
+    v1, v2 = project(v1, v2, tau / h, drag, k)
+    return ph, v1, v2
 
 
 def heun_average(h0, hu0, hv0, h2, hu2, hv2, flag1, h_zero):

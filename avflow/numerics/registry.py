@@ -21,6 +21,10 @@ class KernelUnavailable(ValueError):
     """No registered kernel runs this combination (one line, naming what is available)."""
 
 
+class SchemeUnavailable(KernelUnavailable):
+    """The kernel does not run order 2 with the time scheme asked for."""
+
+
 @dataclass(frozen=True)
 class Kernel:
     """One traversal on one backend."""
@@ -35,6 +39,9 @@ class Kernel:
     loop: Callable[..., object]
     #: None when this machine can run it, else what it lacks (a phrase: a package, a GPU)
     unavailable: Callable[[], str | None] = lambda: None
+    #: the time schemes of its order 2, its default first: "hancock" (MUSCL-Hancock, one
+    #: flux sweep of predicted sides) or "heun" (Heun's two stages and their mean)
+    schemes: tuple[str, ...] = ("heun",)
 
     def label(self) -> str:
         orders = " and ".join(str(o) for o in self.orders)
@@ -55,16 +62,16 @@ def _faces_refuses(terrain, order):
     return None
 
 
-def _face_loop(structured, order, law, parallel):
+def _face_loop(structured, order, law, parallel, scheme="heun"):
     from avflow.numerics.timeloop import time_loop
 
     return time_loop(structured, order, law, parallel)
 
 
-def _grid_loop(structured, order, law, parallel):
+def _grid_loop(structured, order, law, parallel, scheme="hancock"):
     from avflow.numerics.square_grid import grid_loop
 
-    return grid_loop(law, parallel, order)
+    return grid_loop(law, parallel, order, scheme)
 
 
 def _cuda_unavailable():
@@ -73,7 +80,7 @@ def _cuda_unavailable():
     return unavailable()
 
 
-def _cuda_grid_loop(structured, order, law, parallel):
+def _cuda_grid_loop(structured, order, law, parallel, scheme="heun"):
     from avflow.numerics.cuda_grid import loop
 
     return loop(structured, order, law, parallel)
@@ -83,7 +90,7 @@ KERNELS: dict[tuple[str, str], Kernel] = {
     ("profile", "cpu"): Kernel("profile", "cpu", (1, 2), "a profile's cells in line order",
                                _profile_refuses, _face_loop),
     ("grid", "cpu"): Kernel("grid", "cpu", (1, 2), "square grids (planes, DEMs) by rows, on threads",
-                            _grid_refuses, _grid_loop),
+                            _grid_refuses, _grid_loop, schemes=("hancock", "heun")),
     ("faces", "cpu"): Kernel("faces", "cpu", (1, 2), "any mesh by face lists, on threads",
                              _faces_refuses, _face_loop),
     # numerics.cuda_grid: the square-grid kernel's step at order 1

@@ -179,6 +179,11 @@ class Solver:
     #: stages (:mod:`avflow.numerics.reconstruction`)
     order: int = 1
     limiter: str = "minmod"
+    #: order 2's time scheme: "hancock" (MUSCL-Hancock: one flux sweep of the sides
+    #: predicted half a step on, physics.half_step; the square-grid kernel), "heun" (Heun's
+    #: two stages and their mean; every kernel), "auto": the kernel's first
+    #: (registry.Kernel.schemes)
+    time_scheme: str = "auto"
     #: CPU threads of the square-grid kernel and of the face kernel (None: every core, where
     #: timed probes show them faster than one thread, else one: ThreadChoice); the answer
     #: does not depend on it. 1 runs the serial passes, outside
@@ -231,6 +236,7 @@ class Solver:
         self._cfl_factor = m.cell_perimeter / (2.0 * m.cell_area)
         self._density = density_factor(self.gravity * self.terrain.gamma_z)
         self._kernel = registry.select(self.terrain, self.order, self.kernel, self.backend)
+        self._scheme = self._time_scheme()
         self._cuda = None  # the cuda backend's grid on the device, made at the first call
         if self._kernel.name == "grid":
             layout = square_grid(self.terrain)
@@ -246,6 +252,7 @@ class Solver:
                     "the square-grid kernel does not run this grid (its faces are not "
                     f"axis-aligned rows); available: {registry.available(self.backend)}")
             self._kernel = registry.KERNELS["faces", self.backend]
+            self._scheme = self._time_scheme()
         # Work buffers, allocated once per solver and reused by every step.
         self._h_work = np.zeros(n)
         self._hu_work = np.zeros(n)
@@ -497,11 +504,27 @@ class Solver:
         from avflow.numerics.variants import with_registered
 
         loop = self._kernel.loop(self.terrain.mesh.structured_1d, self.order, self._law_code,
-                                 threads > 1 and self._kernel.name != "profile")
+                                 threads > 1 and self._kernel.name != "profile",
+                                 self._scheme)
         if self._kernel.backend != "cpu":
             return loop
 
         return with_registered(loop, self._law_code, self.sources)
+
+    def _time_scheme(self) -> str:
+        """Order 2's time scheme on this solver's kernel: ``time_scheme``, or the kernel's
+        default; one the kernel does not run is refused."""
+        schemes = self._kernel.schemes
+        if self.time_scheme == "auto":
+            return schemes[0]
+        if self.time_scheme not in ("hancock", "heun"):
+            raise ValueError(f"time_scheme must be auto, hancock or heun, got "
+                             f"{self.time_scheme!r}")
+        if self.order == 2 and self.time_scheme not in schemes:
+            raise registry.SchemeUnavailable(
+                f"the {self._kernel.name} kernel runs order 2 with {' or '.join(schemes)} "
+                f"only, not {self.time_scheme}")
+        return self.time_scheme
 
     def suspect(self) -> str | None:
         """After a non-finite state: the registered law or source of this run that returns a
@@ -523,7 +546,9 @@ class Solver:
         if self._kernel.backend == "cuda":
             return (f"the {self._kernel.name} kernel at order {self.order} with {law} "
                     "friction on the GPU")
-        return (f"the {self._kernel.name} kernel at order {self.order} with {law} friction"
+        order = f"order {self.order}" + (
+            " (MUSCL-Hancock)" if self.order == 2 and self._scheme == "hancock" else "")
+        return (f"the {self._kernel.name} kernel at {order} with {law} friction"
                 + (f" on {threads} threads" if threads > 1 else ""))
 
     def new_state(self, h0: np.ndarray) -> State:

@@ -56,13 +56,14 @@ from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
                                  cell_update, dirac_face, dt_from_inverse, face_flux,
-                                 heun_average, observe_cell, outflow_volume, speed_of,
+                                 half_step, heun_average, observe_cell, outflow_volume, speed_of,
                                  step_terms, take_back, trial_momentum, vector_face_flux)
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_span
 from avflow.numerics.sources import SPAN, add_span  # noqa: F401 (each copy's own)
 from avflow.numerics.stepping import ST_SOURCE, Conserved, record_end
 from avflow.numerics.cpu import SQRT3
+from avflow.numerics.physics import MIDPOINT
 from avflow.numerics.rheology import COULOMB, VOELLMY
 from avflow.numerics.vectorize import (ANY_LAW, by_law, cell_law, friction_law, law_kind,
                                        law_label, line_max, line_sum, noalias, shared_names,
@@ -85,6 +86,14 @@ N_ROW = 8
 #: :func:`_block_for`): gravity and friction explicit in the stage (physics.trial_momentum),
 #: each cell's transport kept for Heun's merge
 ORDER2 = False
+#: Whether a copy of the sweep feeds its faces each cell's reconstructed sides (order 2:
+#: each of Heun's stages, or the single stage of MUSCL-Hancock), and whether those sides
+#: are of the state half a step on (MUSCL-Hancock's predictor, physics.half_step)
+SIDES = False
+PREDICT = False
+#: When in the step gravity and friction take the thickness (physics.trial_momentum's
+#: ``explicit``): False at order 1, True in Heun's stages, MIDPOINT in MUSCL-Hancock's
+TIMING = False
 
 
 #: Per-cell values of an emitted row (:func:`_emit_row`)
@@ -356,7 +365,7 @@ def _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front, g_nor
 @njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
 def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame, ys_frame,
                  yn_frame, x_len, ys_len, yn_len, x_off, ys_off, yn_off, cell_area, density,
-                 gamma_z, h, hu, hv, h_zero, g,
+                 gamma_z, h, hu, hv, h_zero, g, dt_half, gamma_x, gamma_y, law, params,
                  w_h, w_u1, w_u2, w_c, w_s, w_kh, w_k3, e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3,
                  s_h, s_u1, s_u2, s_c, s_s, s_kh, s_k3, n_h, n_u1, n_u2, n_c, n_s, n_kh, n_k3):
     """:func:`_recon_row`'s loop over the cells ``c0..c1`` of a row (``base``: its first
@@ -369,6 +378,9 @@ def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame
     xo0, xo1, xo2, xo3 = x_off[0], x_off[1], x_off[2], x_off[3]
     so0, so1, so2, so3 = ys_off[0], ys_off[1], ys_off[2], ys_off[3]
     no0, no1 = yn_off[0], yn_off[1]
+    lw = friction_law(law)  # a constant in the copies of by_law
+    p0, p1, p2, p3 = params[0, 0], params[0, 1], params[0, 2], params[0, 3]
+    p4, p5, p6, p7 = params[0, 4], params[0, 5], params[0, 6], params[0, 7]
     last = max(h.size - 1, 0)
     c0 = max(c0, 0)
     i0 = max(base + c0, 0)
@@ -446,6 +458,14 @@ def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame
         a2 = _bj_select(a2, g4 * rnx + g5 * rny, uc2, lo2, hi2, False)
         gn = g * gamma_z[i]
         dens = density[i]
+        if PREDICT:  # single-stage order 2: the sides of the state half a step on
+            pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(lw, params, i, p0, p1, p2, p3,
+                                                              p4, p5, p6, p7)
+            ph, pu1, pu2 = half_step(hs, uc1, uc2, a0 * g0, a0 * g1, a1 * g2, a1 * g3,
+                                     a2 * g4, a2 * g5, 0.0 if front else dt_half,
+                                     gamma_x[i], gamma_y[i], gamma_z[i], 0.0, lw, pc0, pc1,
+                                     pc2, pc3, pc4, pc5, pc6, pc7, g)
+            hc, uc1, uc2 = ph, pu1, pu2
         # each side, zero where the cell is dry (it emits nothing)
         v0, v1, v2, v3, v4, v5, v6 = _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5,
                                            rwx, rwy, front, gn, dens)
@@ -472,7 +492,7 @@ def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame
 @njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see _block_for
 def _recon_row(r, c0, c1, nx, ny, x_code, ys_code, yn_code, x_frame, ys_frame, yn_frame,
                x_len, ys_len, yn_len, x_off, ys_off, yn_off, cell_area, density, gamma_z, h,
-               hu, hv, h_zero, g, out):
+               hu, hv, h_zero, g, dt_half, gamma_x, gamma_y, law, params, out):
     """Order 2: what each cell ``c0..c1`` of row r emits through each of its sides
     (``out[SIDE_*, E_*, c]``) from its limited linear reconstruction: Green-Gauss gradients
     of h and of the velocity in the cell's basis over its faces W, E, S, N (their order of
@@ -486,7 +506,8 @@ def _recon_row(r, c0, c1, nx, ny, x_code, ys_code, yn_code, x_frame, ys_frame, y
     w, e, s, n = out[SIDE_W], out[SIDE_E], out[SIDE_S], out[SIDE_N]
     _recon_cells(r * nx, max(r - 1, 0) * nx, min(r + 1, ny - 1) * nx, c0, c1, x_code, ys_code,
                  yn_code, x_frame, ys_frame, yn_frame, x_len, ys_len, yn_len, x_off, ys_off,
-                 yn_off, cell_area, density, gamma_z, h, hu, hv, h_zero, g,
+                 yn_off, cell_area, density, gamma_z, h, hu, hv, h_zero, g, dt_half, gamma_x,
+                 gamma_y, law, params,
                  w[E_H], w[E_U1], w[E_U2], w[E_C], w[E_S], w[E_KH], w[E_K3],
                  e[E_H], e[E_U1], e[E_U2], e[E_C], e[E_S], e[E_KH], e[E_K3],
                  s[E_H], s[E_U1], s[E_U2], s[E_C], s[E_S], s[E_KH], s[E_K3],
@@ -559,7 +580,7 @@ def _trial_cells(base, c0, c1, valid, x_code, y_south, y_north, xf, ys, yn, em,
                                      mh * ia, mx * ia, my * ia, dt,
                                      dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal, lw, pc0, pc1, pc2, pc3,
-                                     pc4, pc5, pc6, pc7, g, ORDER2)
+                                     pc4, pc5, pc6, pc7, g, TIMING)
         dry = h[i] <= h_zero  # no trial: the momentum sum itself
         qx_out[c] = mx if dry else qx
         qy_out[c] = my if dry else qy
@@ -660,7 +681,7 @@ def _final_cells(r, base, c0, c1, valid, x_code, y_south, y_north, x_len, ys_len
         hn, qx, qy, cl = cell_update(dry, fi, h_old, acc, bx if dry & any_dirac else qx,
                                      by if dry & any_dirac else qy, area, dt, gx, gy, gz,
                                      centripetal, speed_n, lw, pc0, pc1, pc2, pc3, pc4, pc5,
-                                     pc6, pc7, g, h_zero, ORDER2, False)
+                                     pc6, pc7, g, h_zero, TIMING, False)
         good = inside & (hn >= 0.0)
         n_bad += 1 if inside & (hn < 0.0) else 0
         # writes: the new value where the cell is updated, else what is there
@@ -788,26 +809,27 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
             n1 = max(max(p1_, s1), q1) + 1
             _emit_row((k - 1) * nx, max(n0, 0), min(n1, nx - 1), h, hu, hv, gamma_z,
                       density, h_zero, g, emit[(k - 1) % ring])
-            if ORDER2:
+            if SIDES:
                 _recon_row(k - 1, max(n0, 0), min(n1, nx - 1), nx, ny, x_code[k - 1],
                            y_code[k - 1], y_code[k], x_frame[k - 1], y_frame[k - 1],
                            y_frame[k], x_length[k - 1], y_length[k - 1], y_length[k],
                            x_off[k - 1], y_off[k - 1], y_off[k], cell_area, density, gamma_z,
-                           h, hu, hv, h_zero, g, recon[(k - 1) % ring])
+                           h, hu, hv, h_zero, g, 0.5 * dt, gamma_x, gamma_y, law, params,
+                           recon[(k - 1) % ring])
         if 0 <= k < ny:
             n_0, n_1 = _span(k + 1, r0, r1, lo, hi, nx)
             e0 = min(min(p0_, s0), n_0) - 1
             e1 = max(max(p1_, s1), n_1) + 1
             _emit_row(k * nx, max(e0, 0), min(e1, nx - 1), h, hu, hv, gamma_z, density,
                       h_zero, g, emit[k % ring])
-            if ORDER2:
+            if SIDES:
                 _recon_row(k, max(e0, 0), min(e1, nx - 1), nx, ny, x_code[k], y_code[k],
                            y_code[k + 1], x_frame[k], y_frame[k], y_frame[k + 1],
                            x_length[k], y_length[k], y_length[k + 1], x_off[k], y_off[k],
                            y_off[k + 1], cell_area, density, gamma_z, h, hu, hv, h_zero, g,
-                           recon[k % ring])
+                           0.5 * dt, gamma_x, gamma_y, law, params, recon[k % ring])
             if s0 <= s1 and k <= b + 1:
-                if ORDER2:  # a face: the west cell's east side, the east cell's west side
+                if SIDES:  # a face: the west cell's east side, the east cell's west side
                     _x_faces(s0, s1 + 1, x_code[k], x_frame[k], x_length[k],
                              recon[k % ring][SIDE_E], recon[k % ring][SIDE_W], xf[k % ring])
                 else:
@@ -817,7 +839,7 @@ def _sweep_block(a, b, nx, ny, valid, x_code, x_frame, x_length, y_code, y_frame
             c0 = min(s0, p0_)
             c1 = max(s1, p1_)
             if c0 <= c1:
-                if ORDER2:  # the lower row's north sides, the upper row's south sides
+                if SIDES:  # the lower row's north sides, the upper row's south sides
                     _y_faces(c0, c1, y_code[k], y_frame[k], y_length[k],
                              recon[(k - 1) % ring][SIDE_N], recon[k % ring][SIDE_S],
                              yf[k % ring])
@@ -897,7 +919,7 @@ def _rings(n, nx, order2):
                  np.zeros((n, RING, 4, N_EMIT, nx if order2 else 0)))
 
 
-def _block_for(law, label, order2=False):
+def _block_for(law, label, order2=False, hancock=False):
     """:func:`_sweep_block` for one law (None: read at run time), calling that law's copies
     of the cell loops, for a step of order 1 or a stage of order 2 (``order2``); the block
     and the row passes it calls are compiled without reference counting
@@ -905,14 +927,23 @@ def _block_for(law, label, order2=False):
     buffers come from :func:`_rings`."""
     if order2:
         label += "_order2"
-    return by_law(_sweep_block, law, label, nrt=False, ORDER2=order2,
-                  _trial_cells=by_law(_trial_cells, law, label, nrt=False, ORDER2=order2),
-                  _final_cells=by_law(_final_cells, law, label, nrt=False, ORDER2=order2))
+    names = {}
+    timing = MIDPOINT if hancock else order2
+    if hancock:  # one stage, its sides predicted: each law its copy of the reconstruction
+        label += "_hancock"
+        cells = by_law(_recon_cells.py_func, law, label, nrt=False, PREDICT=True)
+        names["_recon_row"] = by_law(_recon_row.py_func, law, label, nrt=False,
+                                     _recon_cells=cells)
+    return by_law(_sweep_block, law, label, nrt=False, SIDES=order2 or hancock, **names,
+                  _trial_cells=by_law(_trial_cells, law, label, nrt=False, TIMING=timing),
+                  _final_cells=by_law(_final_cells, law, label, nrt=False, ORDER2=order2,
+                                      TIMING=timing))
 
 
 #: :func:`_sweep_block` per (law kind, order 2)
-_BLOCKS = {(kind, order2): _block_for(None if kind == ANY_LAW else kind, law_label(kind), order2)
-           for kind in (COULOMB, VOELLMY, ANY_LAW) for order2 in (False, True)}
+_BLOCKS = {(kind, scheme): _block_for(None if kind == ANY_LAW else kind, law_label(kind),
+                                      scheme == "heun", scheme == "hancock")
+           for kind in (COULOMB, VOELLMY, ANY_LAW) for scheme in ("order1", "heun", "hancock")}
 
 
 #: The rows a step sweeps: ``r0..r1``, each row's columns ``lo..hi``, the rows' sums
@@ -1129,12 +1160,13 @@ def _first_slot():
 thread_slot = _first_slot
 
 
-def _sweep_for(kind: int, parallel: bool, order2: bool):
-    """:func:`_sweep` for one law kind and order, compiled serial or parallel (``prange``
+def _sweep_for(kind: int, parallel: bool, scheme: str):
+    """:func:`_sweep` for one law kind and scheme, compiled serial or parallel (``prange``
     runs serially without Numba's ``parallel``), each under its own name."""
     return specialize(_sweep, f"_{law_label(kind)}_{'parallel' if parallel else 'serial'}"
-                      + ("_order2" if order2 else ""),
-                      parallel=parallel, sweep_block=_BLOCKS[kind, order2],
+                      + ("" if scheme == "order1" else "_order2")
+                      + ("_hancock" if scheme == "hancock" else ""),
+                      parallel=parallel, sweep_block=_BLOCKS[kind, scheme],
                       thread_slot=numba.get_thread_id if parallel else _first_slot)
 
 
@@ -1144,16 +1176,19 @@ def _loops() -> dict:
     law's cell loops alone, and the order-1 copies never the order-2 passes."""
     loops = {}
     for kind in (COULOMB, VOELLMY, ANY_LAW):
-        for order2 in (False, True):
-            serial = _sweep_for(kind, False, order2)
+        for scheme in ("order1", "heun", "hancock"):
+            order2 = scheme != "order1"
+            serial = _sweep_for(kind, False, scheme)
             for parallel in (False, True):
                 suffix = (f"_grid_{law_label(kind)}_{'parallel' if parallel else 'serial'}"
-                          + ("_order2" if order2 else ""))
+                          + ("_order2" if order2 else "")
+                          + ("_hancock" if scheme == "hancock" else ""))
                 stage = specialize(_stage, suffix, PARALLEL=parallel, sweep_serial=serial,
-                                   sweep_parallel=(_sweep_for(kind, True, order2) if parallel
+                                   sweep_parallel=(_sweep_for(kind, True, scheme) if parallel
                                                    else serial))
-                heun = (specialize(_order2_step, suffix, _stage=stage) if order2 else None)
-                names = dict(ORDER2=order2, _stage=stage, order2_step=heun,
+                heun = (specialize(_order2_step, suffix, _stage=stage) if scheme == "heun"
+                        else None)
+                names = dict(ORDER2=scheme == "heun", _stage=stage, order2_step=heun,
                              add_span=SPAN[kind])
                 # inlined into the loop (compiled once there), but for the step: inlined,
                 # order 2 ran 8% slower (measured, docs/performance.md)
@@ -1165,17 +1200,17 @@ def _loops() -> dict:
                                                       inline="never" if hook == "step"
                                                       else "always")
                          for hook, fn in fns.items()}
-                loops[kind, parallel, order2] = specialize(advance, suffix, **hooks)
+                loops[kind, parallel, scheme] = specialize(advance, suffix, **hooks)
     return loops
 
 
-def grid_loop(law: int, parallel: bool, order: int = 1):
+def grid_loop(law: int, parallel: bool, order: int = 1, scheme: str = "hancock"):
     """The time loop (:func:`_advance_grid`: its arguments, its status codes) for one
     friction law and order, with the parallel sweep (``threads`` > 1) or without: each copy
     compiles only its law's cell loops, and the serial one never the parallel sweep
     (compiling every law's, serial and parallel, made the first run slow:
     docs/performance.md)."""
-    return _LOOPS[law_kind(law), bool(parallel), order == 2]
+    return _LOOPS[law_kind(law), bool(parallel), "order1" if order == 1 else scheme]
 
 
 #: Cells a vector iteration of the row passes takes (8 doubles, AVX-512), and the shortest

@@ -24,6 +24,7 @@ from avflow.numerics.physics import (SOURCE_EROSION_ENERGY, SOURCE_EXPONENTIAL,
 from avflow.numerics import compiling
 from avflow.numerics.rheology import friction_parameters
 from avflow.numerics.solver import Solver, State
+from avflow.numerics.registry import SchemeUnavailable
 from avflow.numerics.sources import MassSource
 from avflow.numerics.stepping import MAX_RETRIES
 from avflow.simulation.resources import check_resources, release_freed_memory
@@ -328,7 +329,9 @@ def prepare(scenario, max_memory=None, *, streamed: bool = False):
         solver = _solver(scenario, terrain, law, params, thresholds, h_max, source, forest,
                          sources)
     except ValueError as err:  # numerics.kernel: grid where it does not apply; the backend's
-        field = "numerics.backend" if scenario.numerics.backend != "cpu" else "numerics.kernel"
+        field = ("numerics.time_scheme" if isinstance(err, SchemeUnavailable)
+                 else "numerics.backend" if scenario.numerics.backend != "cpu"
+                 else "numerics.kernel")
         raise ScenarioError.at(scenario, field, str(err)) from None
     return terrain, h0, solver, thresholds
 
@@ -338,6 +341,7 @@ def _solver(scenario, terrain, law, params, thresholds, h_max, source=None,
     return Solver(terrain, law, params, gravity=scenario.physics.gravity,
                     cfl=scenario.time.cfl, dirac=scenario.physics.dirac,
                     order=scenario.numerics.order, limiter=scenario.numerics.limiter,
+                    time_scheme=scenario.numerics.time_scheme,
                     threads=scenario.numerics.threads, kernel=scenario.numerics.kernel,
                     backend=scenario.numerics.backend,
                     h_dry=thresholds["dry"],
