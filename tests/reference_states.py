@@ -51,9 +51,13 @@ def cases():
         for kind in ("grid", "triangles"):  # (order 2 on a grid: recorded on the face kernel)
             out.append((f"{kind}-threads-coulomb-o{order}", kind, kind, "coulomb", order,
                         "faces" if order == 2 else "auto", 2))
-    # order 2 on the square-grid kernel, 1 and 2 threads
+    # order 2 on the square-grid kernel, 1 and 2 threads: Heun's stages (the face kernel's
+    # bits), and MUSCL-Hancock (its default; "hancock" in the name), recorded 2026-12-05
     out.append(("grid-coulomb-o2", "grid", "grid", "coulomb", 2, "grid", 1))
     out.append(("grid-kernel-threads-coulomb-o2", "grid", "grid", "coulomb", 2, "grid", 2))
+    for law in PARAMS:
+        out.append((f"grid-hancock-{law}-o2", "grid", "grid", law, 2, "grid", 1))
+    out.append(("grid-kernel-threads-hancock-o2", "grid", "grid", "coulomb", 2, "grid", 2))
     return out
 
 
@@ -89,7 +93,8 @@ def run(case):
     ter = _terrain(kind, mesh)
     law_name, params = PARAMS[law]
     solver = Solver(ter, Law[law_name], np.array(params), order=order, kernel=kernel,
-                    threads=threads, h_dry=1e-3, h_zero=1e-9)
+                    threads=threads, h_dry=1e-3, h_zero=1e-9,
+                    time_scheme="hancock" if "hancock" in name else "heun")
     if threads > 1:  # every step on threads, however few its cells (the thresholds' point)
         if solver.kernel_used == "grid":
             solver._parallel_from = (0, 2)
