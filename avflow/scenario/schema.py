@@ -1153,8 +1153,10 @@ class Numerics(_Model):
 
     order: Literal[1, 2] = 1
     """1: the seed's scheme (its figures are reproduced with it); 2: limited linear
-    reconstruction of thickness and velocity at the faces and Heun's two-stage
-    Runge-Kutta, each stage keeping the threshold, Dirac faces and projection (README)."""
+    reconstruction of thickness and velocity at the faces, in time MUSCL-Hancock or Heun's
+    Runge-Kutta (``time_scheme``), keeping the threshold, Dirac faces and projection.
+    Default: 2 on square grids (planes and DEMs) with the CPU kernels, 1 elsewhere
+    (profiles, triangles, the GPU)."""
     limiter: Literal["minmod", "mc"] = "minmod"
     time_scheme: Literal["auto", "hancock", "heun"] = "auto"
     """Order 2's time stepping. hancock: MUSCL-Hancock, the faces' sides predicted half a
@@ -1335,6 +1337,34 @@ class Scenario(_Model):
         if output or "output" in data:
             data = {**data, "output": output}
         return data
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_order(cls, data: Any) -> Any:
+        """numerics.order where not given: 2 on square grids (planes and DEMs, the CPU
+        kernels), where MUSCL-Hancock costs about two order-1 steps and is far closer to
+        analytic 2D solutions and to the grid's turned copy (docs/validation.md); 1 on
+        profiles (the seed's scheme, which its figures are reproduced with), on triangles
+        and on the GPU. Filled in before validation (the model stays frozen)."""
+        if not isinstance(data, dict):
+            return data
+        numerics = data.get("numerics", {})
+        if isinstance(numerics, BaseModel):
+            numerics = numerics.model_dump(exclude_unset=True)
+        if not isinstance(numerics, dict) or numerics.get("order") is not None:
+            return data
+
+        def field(block, key, default=None):
+            value = data.get(block)
+            if isinstance(value, BaseModel):
+                return getattr(value, key, default)
+            return value.get(key, default) if isinstance(value, dict) else default
+
+        square = (field("terrain", "kind") in ("plane", "dem")
+                  and field("grid", "mesh", "square") == "square"
+                  and numerics.get("kernel", "auto") != "faces"
+                  and numerics.get("backend", "cpu") == "cpu")
+        return {**data, "numerics": {**numerics, "order": 2 if square else 1}}
 
     @model_validator(mode="before")
     @classmethod
