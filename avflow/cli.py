@@ -111,7 +111,7 @@ def summary_line(ds) -> str:
             f", mass error {f('mass_balance_error', '.1e')}"
             + _entrained_note(ds)
             + _structure_note(ds)
-            + f", {ds.attrs['steps']} steps in {f('wall_time', '.2f')} s"
+            + f", {ds.attrs['steps']} steps{_order_note(ds)} in {f('wall_time', '.2f')} s"
             + _compile_note(ds))
 
 
@@ -149,6 +149,13 @@ def _structure_note(ds) -> str:
     from avflow.output.structures import structure_note
 
     return structure_note(ds) if "structure_retained_volume" in ds else ""
+
+
+def _order_note(ds) -> str:
+    """`` at order 2``: the scheme's order (the default differs by terrain: 2 on square
+    grids, 1 on profiles and triangles)."""
+    order = ds.attrs.get("numerics_order")
+    return "" if order is None else f" at order {int(order)}"
 
 
 def _compile_note(ds) -> str:

@@ -127,7 +127,7 @@ def test_wall_time_leaves_out_the_first_compile(tmp_path):
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     line = done.stdout.splitlines()[0]
-    loop, compiling = re.search(r"steps in ([0-9.]+) s \(\+ ([0-9.]+) s compiling\)",
+    loop, compiling = re.search(r"steps at order [12] in ([0-9.]+) s \(\+ ([0-9.]+) s compiling\)",
                                 line).groups()
     ds = avflow.open_run(tmp_path / "p.nc")
     assert float(ds["compile_time"]) > 1.0  # compiled, not loaded from a cache
@@ -136,7 +136,7 @@ def test_wall_time_leaves_out_the_first_compile(tmp_path):
                                  f"{float(ds['compile_time']):.2f}")
     # said while it happened: what, once per machine and version, where, how long
     said = [l for l in done.stderr.splitlines() if l.startswith("avflow: compil")]
-    assert said[0].startswith("avflow: compiling the grid kernel at order 1 with Coulomb "
+    assert said[0].startswith("avflow: compiling the grid kernel at order 2 (MUSCL-Hancock) with Coulomb "
                               "friction (once per machine and avflow version; kept in "
                               f"{tmp_path / 'kernel-cache'}) ..."), done.stderr
     assert re.fullmatch(r"avflow: compiled in \d+ s", said[1]) and len(said) == 2, said
@@ -242,14 +242,16 @@ def test_line_plots_over_two_parameters_are_labelled():
 
 def test_the_2d_demo_ensemble_shows_a_real_spread(tmp_path):
     """scenarios/ensembles/plane_box_2d_ensemble.yaml: every member stops in the open, at a
-    runout of its own (all 9 hit the wall at 850.3 m before)."""
+    runout of its own (all 9 hit the wall at 850.3 m before), but for the cell size: at
+    order 2 two members (22 degrees with half the volume, 24 with all of it) stop in the same
+    farthest cell, 405.3 m out."""
     ens = load_ensemble(SCENARIOS / "ensembles" / "plane_box_2d_ensemble.yaml")
     outcome = run_ensemble(ens, tmp_path / "out", workers=0,
                            progress=ProgressLine(len(ens.members), quiet=True))
     table = outcome.table
     assert set(table["status"]) == {"at_rest"} and (table["runout_truncated"] == 0).all()
     runout = table["runout"].to_numpy()
-    assert len(np.unique(np.round(runout))) == 9
+    assert len(np.unique(np.round(runout))) >= 8
     assert runout.max() > 2.5 * runout.min()
     with xr.open_dataset(tmp_path / "out" / "ensemble.nc", decode_times=False) as ds:
         x_max = float(ds["x"].max())

@@ -88,7 +88,8 @@ def _run(text: str, kernel: str, law: str, k: float = 0.0, backend: str = "cpu")
     from avflow.scenario.schema import parse_scenario
     from avflow.simulation.runner import simulate
 
-    numerics = f"numerics: {{kernel: {kernel}, backend: {backend}, threads: 1}}\n"
+    # order 1: the GPU's (order 2 is the CPU's default on grids)
+    numerics = f"numerics: {{kernel: {kernel}, backend: {backend}, threads: 1, order: 1}}\n"
     return simulate(parse_scenario(text + _rheology(law, k) + numerics))
 
 

@@ -25,14 +25,15 @@ def test_every_cached_kernel_uses_the_versioned_folder_and_nothing_else_does():
     if os.environ.get("NUMBA_CACHE_DIR"):
         pytest.skip("NUMBA_CACHE_DIR is set: the kernels use the user's folder")
     folder = numerics.kernel_cache_dir()
-    loops = [square_grid.grid_loop(law, parallel, order) for law in (rheology.COULOMB, -1)
-             for parallel in (False, True) for order in (1, 2)]
+    loops = [square_grid.grid_loop(law, parallel, order, scheme)
+             for law in (rheology.COULOMB, -1) for parallel in (False, True)
+             for order, scheme in ((1, "hancock"), (2, "heun"), (2, "hancock"))]
     hooks = [_hook(loop, name) for loop in (*loops, *timeloop.ADVANCE.values())
              for name in HOOKS]
     stages = [_hook(loop, "step").py_func.__globals__["_stage"] for loop in loops]
     sweeps = [stage.py_func.__globals__[name] for stage in stages
               for name in ("sweep_serial", "sweep_parallel")]
-    heuns = [_hook(loop, "step").py_func.__globals__["order2_step"] for loop in loops[1::2]]
+    heuns = [_hook(loop, "step").py_func.__globals__["order2_step"] for loop in loops[1::3]]
     for dispatcher in (*timeloop.ADVANCE.values(), *hooks, *face_sweep.STEP.values(),
                        *face_sweep.STEP_THREADS.values(), *face_sweep.STEP_PIECES_SERIAL.values(),
                        kernels.step_faces,

@@ -392,6 +392,12 @@ class Solver:
         """``"grid"`` or ``"faces"``: the kernel this solver runs."""
         return "grid" if self._grid is not None or self._released else "faces"
 
+    @property
+    def time_scheme_used(self) -> str:
+        """Order 2's time scheme this solver runs (``"hancock"`` or ``"heun"``), ``"none"``
+        at order 1."""
+        return self._scheme if self.order == 2 else "none"
+
     def release_buffers(self) -> None:
         """Free the square-grid kernel's layout and work arrays (a 1 m DEM: about 1.3 GiB)
         once a run is over, before its file is finished; the next :meth:`advance` builds

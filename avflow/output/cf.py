@@ -305,7 +305,9 @@ def _attributes(result, references: str) -> dict:
         "halved_steps": s["halved_steps"],
         "numerics_order": sc.numerics.order,
         "limiter": sc.numerics.limiter,
-        "time_scheme": sc.numerics.time_scheme,
+        "time_scheme": (result.solver.time_scheme_used
+                        if getattr(result, "solver", None) is not None
+                        else sc.numerics.time_scheme),
         "order2_fallbacks": s["order2_fallbacks"],
         "comment": ("h is measured normal to the bed; on profiles x is the distance along the "
                     "bed and volumes are per metre of width"),

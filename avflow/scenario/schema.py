@@ -1569,6 +1569,8 @@ class Scenario(_Model):
             data["numerics"].pop("kernel")
         if data["numerics"].get("backend") == "cpu":  # hashes as before the field
             data["numerics"].pop("backend")
+        if data["numerics"].get("time_scheme") == "auto":  # hashes as before the field
+            data["numerics"].pop("time_scheme")
         for block in ("terrain", "release"):
             if "path" in data[block]:
                 try:
