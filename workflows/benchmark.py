@@ -154,7 +154,8 @@ def case(name, threads):
         if "forest" in name:
             forest = np.full(ter.n_cells, 0.01)
         solver = Solver(ter, Law.COULOMB, params, kernel=kernel, order=order,
-                        threads=threads, source=source, forest=forest)
+                        threads=threads, source=source, forest=forest,
+                        time_scheme="heun" if "heun" in name else "auto")
         if "cylinder" in name:
             return (*_rate(solver, cyl, 0.5, 10.0), solver.kernel_used, solver.threads_used())
         t_end = 1.5 if n == 1000 else 3.0
@@ -189,6 +190,7 @@ CASES = [
     ("grid 400x400, face kernel", "grid-faces", 1, "faces-grid"),
     ("grid 400x400, order 2, square-grid kernel", "grid-order2", 1, None),
     ("grid 400x400, order 2, square-grid kernel, 2 threads", "grid-order2", 2, None),
+    ("grid 400x400, order 2 (Heun), square-grid kernel", "grid-order2-heun", 1, None),
     ("grid 400x400, order 2, face kernel", "grid-faces-order2", 1, None),
     ("grid 400x400, order 2, face kernel, 2 threads", "grid-faces-order2", 2, None),
     ("grid 400x400, cylinder only (map cells/s)", "grid-cylinder", 1, None),
