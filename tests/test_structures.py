@@ -135,6 +135,7 @@ def test_a_low_dam_is_overtopped_and_the_volume_beyond_it_reported(tmp_path, cap
     assert table.loc[1, "structure_overtopped_volume"] == pytest.approx(beyond)
     assert (tmp_path / "cmp.png").stat().st_size > 0
     assert bare_front < 250.0  # without the dam the flow passed the line as well
+    _compare_figure_is_a_map_figure(tmp_path / "none.nc", out)
     # a file that is not a run: one line, exit 2, nothing written
     capsys.readouterr()
     assert main(["compare", str(out), str(tmp_path / "low.yaml"), "-o",
@@ -142,6 +143,38 @@ def test_a_low_dam_is_overtopped_and_the_volume_beyond_it_reported(tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "low.yaml" in err
     assert not (tmp_path / "bad.csv").exists()
+
+
+def _compare_figure_is_a_map_figure(run_a, run_b):
+    """The comparison's maps as `avflow plot` draws a run: axes labelled in metres with
+    plain numbers (no offset), the release and B's dam outlined, a scale bar and a north
+    arrow on each map, the pressure classes named."""
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    from avflow.output.structures import compare_figure
+
+    with xr.open_dataset(run_a) as a, xr.open_dataset(run_b) as b:
+        pa = np.nan_to_num(a["peak_pressure"].values) * 1e-3
+        pb = np.nan_to_num(b["peak_pressure"].values) * 1e-3
+        fig = compare_figure(a, b, pa, pb, "none.nc", "low.nc")
+    try:
+        fig.canvas.draw()
+        maps = [ax for ax in fig.axes if ax.get_xlabel()]
+        assert len(maps) == 3
+        for ax in maps:
+            assert ax.get_xlabel().startswith("x (m)") and ax.get_ylabel() == "y (m)"
+            assert ax.xaxis.get_major_formatter().get_offset() == ""
+            assert ax.yaxis.get_major_formatter().get_offset() == ""
+            assert any(isinstance(c, AnchoredSizeBar) for c in ax.get_children())
+            assert any(t.get_text() == "N" for t in ax.texts)  # the north arrow
+        labels = [t.get_text() for ax in maps if ax.get_legend() for t in
+                  ax.get_legend().get_texts()]
+        assert "release" in labels and "structure (> 0.5 m)" in labels
+        named = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+        assert any("kPa" in t for t in named)
+    finally:
+        plt.close(fig)
 
 
 def test_an_oblique_wall_turns_the_flow_towards_its_lower_end(tmp_path):

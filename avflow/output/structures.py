@@ -187,14 +187,26 @@ def _ascending(ds, values):
 
 
 def _plot(a, b, pa, pb, target: Path, name_a: str, name_b: str) -> Path:
-    """Peak pressure of A and of B in the runs' pressure classes, and B - A, in the style of
-    ``avflow plot``: hillshade and contours, axes in the CRS, the release and the structures
-    outlined, scale bar and north arrow."""
+    from avflow.output.maps import _plt, _save
+
+    plt = _plt()
+    fig = compare_figure(a, b, pa, pb, name_a, name_b)
+    try:
+        return _save(fig, target, dpi=100)
+    finally:
+        plt.close(fig)
+
+
+def compare_figure(a, b, pa, pb, name_a: str, name_b: str):
+    """The figure of ``avflow compare``: peak pressure (kPa: ``pa``, ``pb``) of A and of B in
+    the runs' pressure classes, and B - A, in the style of ``avflow plot``: hillshade and
+    contours, axes in the CRS, the release and the structures outlined, scale bar and north
+    arrow."""
     from matplotlib.colors import TwoSlopeNorm
     from matplotlib.lines import Line2D
 
     from avflow.output.maps import (
-        _class_legend, _class_style, _plain_ticks, _plt, _save, _scale_and_north,
+        _class_legend, _class_style, _plain_ticks, _plt, _scale_and_north,
         crs_name, draw_terrain, pressure_classes, run_pressure_classes)
 
     plt = _plt()
@@ -271,7 +283,4 @@ def _plot(a, b, pa, pb, target: Path, name_a: str, name_b: str) -> Path:
                        framealpha=0.8)
     _class_legend(fig, classes, "bottom", None)
     fig.suptitle(f"B ({name_b}) against A ({name_a})", fontsize=10)
-    try:
-        return _save(fig, target, dpi=100)
-    finally:
-        plt.close(fig)
+    return fig
