@@ -101,6 +101,32 @@ def test_a_dam_taller_than_the_flow_holds_every_cubic_metre_upstream(tmp_path):
     assert str(ds["structure_name"].values[0]) == "dam"
 
 
+@pytest.mark.parametrize("y_line, warned", [(262.0, True), (200.0, False)])
+def test_a_dam_whose_body_lies_under_the_release_is_said_once(tmp_path, capsys, y_line,
+                                                                warned):
+    """The line clear of the release (y 280 to 340), the body 10 + 20 / tan 30 = 44.6 m
+    either side of it: from y = 262 it reaches the release's lower cells, from y = 200 it
+    does not. One warning line naming the dam and the share of the release on it."""
+    _line(tmp_path, "dam", [(0, y_line), (200, y_line)])
+    (tmp_path / "s.yaml").write_text(PLANE.format(
+        tag="under", width=200.0, structures="structures: [{name: upper dam, line: "
+        "dam.geojson, height: 20.0, crest_width: 20.0, side_slope_deg: 30.0}]"))
+    assert main(["run", str(tmp_path / "s.yaml"), "-o", str(tmp_path / "s.nc")]) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "dam's body" in line]
+    if not warned:
+        assert said == []
+        return
+    assert len(said) == 1, said
+    assert "structures: upper dam: the dam's body lies under" in said[0]
+    share = float(said[0].split("lies under ")[1].split("%")[0])
+    with xr.open_dataset(tmp_path / "s.nc") as ds:
+        # the volume of a cell: its thickness times its bed area, dx dy / cos(slope)
+        v0 = ds["h"].isel(time=0).values / np.cos(np.radians(ds["slope_angle"].values))
+        on = (v0 > 0) & (ds["structure_height"].values > 0)
+        expected = 100 * float(v0[on].sum()) / float(v0.sum())
+    assert 0.0 < share == pytest.approx(expected, abs=0.06)
+
+
 def test_a_low_dam_is_overtopped_and_the_volume_beyond_it_reported(tmp_path, capsys):
     _line(tmp_path, "dam", [(0, 250), (200, 250)])
     (tmp_path / "low.yaml").write_text(PLANE.format(
