@@ -7,7 +7,9 @@
 - a doctest-style runner executes every ``bash`` and ``python`` block of the getting-started
   page, of every tutorial and of the regional-maps guide, in order, in an empty folder that sees the repository's
   ``scenarios/``, ``data/`` and ``workflows/``. A block with a ``title="NAME"`` is written to that file
-  first (a scenario, a line). A block whose first line is
+  first (a scenario, a line). Each ``python`` block runs in a namespace of its own, as a
+  reader who copies that block alone would run it (its imports and names its own; only the
+  files of the blocks before it shared). A block whose first line is
   ``# not run by the docs test: REASON`` is skipped, visibly, on the page itself.
 """
 
@@ -126,7 +128,6 @@ def test_tutorial_code_blocks_run(page, tmp_path, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     env = dict(os.environ, MPLBACKEND="Agg",
                PATH=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
-    namespace: dict = {"__name__": "__docs__"}
     ran = 0
     for lang, title, code, line in _blocks(page):
         where = f"{page.relative_to(ROOT)}:{line}"
@@ -143,6 +144,7 @@ def test_tutorial_code_blocks_run(page, tmp_path, monkeypatch):
                                          f"{done.stdout}\n{done.stderr}"
             ran += 1
         elif lang == "python":
+            namespace: dict = {"__name__": "__docs__"}  # a block copied alone must run
             try:
                 with warnings.catch_warnings():  # a snippet that warns of a change is stale
                     warnings.simplefilter("error", FutureWarning)

@@ -362,7 +362,7 @@ vary:
 """ + extra))
 
 
-def test_grid_ensemble_maps_and_exceedance(tmp_path):
+def test_grid_ensemble_maps_and_exceedance(tmp_path, monkeypatch):
     ens = grid_ensemble(tmp_path, "thresholds: [0.5, 2.0]")
     out = tmp_path / "out"
     outcome = run_ensemble(ens, out, workers=0)
@@ -384,8 +384,35 @@ def test_grid_ensemble_maps_and_exceedance(tmp_path):
             np.testing.assert_array_equal(member["peak_thickness"].values, peak[i])
     shutil.copy(out / "ensemble.nc", tmp_path / "grid_ensemble.nc")
     assert compliance_errors(tmp_path / "grid_ensemble.nc") == []
+    import avflow.ensemble.report as report
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    drawn = {}
+    saved = report._savefig
+
+    def keep(fig, target):  # the figure as `avflow report` draws it, before it is closed
+        fig.canvas.draw()
+        drawn[target.name] = [(ax.get_legend() and [t.get_text() for t in
+                                                    ax.get_legend().get_texts()],
+                               any(isinstance(c, AnchoredSizeBar) for c in ax.get_children()),
+                               [t.get_text() for t in ax.texts])
+                              for ax in fig.axes if ax.get_xlabel().startswith("x (m)")]
+        saved(fig, target)
+
+    monkeypatch.setattr(report, "_savefig", keep)
     text = write_report(out).read_text()
     assert "report/exceedance.png" in text and (out / "report" / "exceedance.png").is_file()
+    maps = drawn["exceedance.png"]
+    assert len(maps) == 2  # one per threshold, each with a scale bar and a north arrow
+    assert all(bar and "N" in texts for _, bar, texts in maps)
+    assert "release" in maps[0][0]
+    # the outline is where any member released: the release volume is varied here
+    union = np.zeros((ny, nx), bool)
+    for m in ens.members:
+        with xr.open_dataset(out / "members" / f"{m.scenario_hash}.nc") as member:
+            union |= member["h"].isel(time=0).values > 0
+    ok = np.ones(ds.sizes["realization"], bool)
+    np.testing.assert_array_equal(report._released(ds, out, ok), union)
 
 
 def test_members_on_a_cluster_run_on_one_thread_and_equal_a_run_here(tmp_path):

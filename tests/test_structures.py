@@ -104,6 +104,32 @@ def test_a_dam_taller_than_the_flow_holds_every_cubic_metre_upstream(tmp_path):
     assert str(ds["structure_name"].values[0]) == "dam"
 
 
+@pytest.mark.parametrize("y_line, warned", [(262.0, True), (200.0, False)])
+def test_a_dam_whose_body_lies_under_the_release_is_said_once(tmp_path, capsys, y_line,
+                                                                warned):
+    """The line clear of the release (y 280 to 340), the body 10 + 20 / tan 30 = 44.6 m
+    either side of it: from y = 262 it reaches the release's lower cells, from y = 200 it
+    does not. One warning line naming the dam and the share of the release on it."""
+    _line(tmp_path, "dam", [(0, y_line), (200, y_line)])
+    (tmp_path / "s.yaml").write_text(PLANE.format(
+        tag="under", width=200.0, structures="structures: [{name: upper dam, line: "
+        "dam.geojson, height: 20.0, crest_width: 20.0, side_slope_deg: 30.0}]"))
+    assert main(["run", str(tmp_path / "s.yaml"), "-o", str(tmp_path / "s.nc")]) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "dam's body" in line]
+    if not warned:
+        assert said == []
+        return
+    assert len(said) == 1, said
+    assert "structures: upper dam: the dam's body lies under" in said[0]
+    share = float(said[0].split("lies under ")[1].split("%")[0])
+    with xr.open_dataset(tmp_path / "s.nc") as ds:
+        # the volume of a cell: its thickness times its bed area, dx dy / cos(slope)
+        v0 = ds["h"].isel(time=0).values / np.cos(np.radians(ds["slope_angle"].values))
+        on = (v0 > 0) & (ds["structure_height"].values > 0)
+        expected = 100 * float(v0[on].sum()) / float(v0.sum())
+    assert 0.0 < share == pytest.approx(expected, abs=0.06)
+
+
 def test_a_low_dam_is_overtopped_and_the_volume_beyond_it_reported(tmp_path, capsys):
     _line(tmp_path, "dam", [(0, 250), (200, 250)])
     (tmp_path / "low.yaml").write_text(PLANE.format(
@@ -138,6 +164,7 @@ def test_a_low_dam_is_overtopped_and_the_volume_beyond_it_reported(tmp_path, cap
     assert table.loc[1, "structure_overtopped_volume"] == pytest.approx(beyond)
     assert (tmp_path / "cmp.png").stat().st_size > 0
     assert bare_front < 250.0  # without the dam the flow passed the line as well
+    _compare_figure_is_a_map_figure(tmp_path / "none.nc", out)
     # a file that is not a run: one line, exit 2, nothing written
     capsys.readouterr()
     assert main(["compare", str(out), str(tmp_path / "low.yaml"), "-o",
@@ -145,6 +172,38 @@ def test_a_low_dam_is_overtopped_and_the_volume_beyond_it_reported(tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "low.yaml" in err
     assert not (tmp_path / "bad.csv").exists()
+
+
+def _compare_figure_is_a_map_figure(run_a, run_b):
+    """The comparison's maps as `avflow plot` draws a run: axes labelled in metres with
+    plain numbers (no offset), the release and B's dam outlined, a scale bar and a north
+    arrow on each map, the pressure classes named."""
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    from avflow.output.structures import compare_figure
+
+    with xr.open_dataset(run_a) as a, xr.open_dataset(run_b) as b:
+        pa = np.nan_to_num(a["peak_pressure"].values) * 1e-3
+        pb = np.nan_to_num(b["peak_pressure"].values) * 1e-3
+        fig = compare_figure(a, b, pa, pb, "none.nc", "low.nc")
+    try:
+        fig.canvas.draw()
+        maps = [ax for ax in fig.axes if ax.get_xlabel()]
+        assert len(maps) == 3
+        for ax in maps:
+            assert ax.get_xlabel().startswith("x (m)") and ax.get_ylabel() == "y (m)"
+            assert ax.xaxis.get_major_formatter().get_offset() == ""
+            assert ax.yaxis.get_major_formatter().get_offset() == ""
+            assert any(isinstance(c, AnchoredSizeBar) for c in ax.get_children())
+            assert any(t.get_text() == "N" for t in ax.texts)  # the north arrow
+        labels = [t.get_text() for ax in maps if ax.get_legend() for t in
+                  ax.get_legend().get_texts()]
+        assert "release" in labels and "structure (> 0.5 m)" in labels
+        named = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+        assert any("kPa" in t for t in named)
+    finally:
+        plt.close(fig)
 
 
 def test_an_oblique_wall_turns_the_flow_towards_its_lower_end(tmp_path):

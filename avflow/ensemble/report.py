@@ -8,7 +8,8 @@ deposit profiles when the members do not share a grid). Writes ``OUTDIR/report.m
 - runout and time to stop per law;
 - profile scenes: the deposit profiles of all members overlaid;
 - grid scenes: the exceedance-probability maps of peak thickness, speed and pressure at
-  every threshold, over the hillshade of the bed with the CRS (as ``avflow plot``);
+  every threshold, over the hillshade of the bed with the CRS, the release outlined (read
+  from the member files), a scale bar and a north arrow (as ``avflow plot``);
 - a table of the failed members with their errors.
 """
 
@@ -206,7 +207,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
         plt.close(fig)
         figures.append(("Deposit profiles, all members overlaid", "deposit_profiles.png"))
     else:
-        figures += _exceedance_figures(ds, figdir, plt)
+        figures += _exceedance_figures(ds, figdir, plt, outdir)
 
     for title, fname in figures:
         md += [f"## {title}", "", f"![{title}](report/{fname})", ""]
@@ -298,10 +299,37 @@ def probability_style(n: int):
     return cmap, norm, levels
 
 
-def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
+def _released(ds, outdir: Path, ok) -> np.ndarray | None:
+    """Where the members released (y, x), from their run files' first snapshot: the first
+    successful member's when no release field is varied, else every successful member's
+    (their union). None where no member file is readable on the ensemble's grid."""
+    import xarray as xr
+
+    hashes = ds["scenario_hash"].values.astype(str)[ok]
+    if "release" not in str(ds.attrs.get("varied", "")):
+        hashes = hashes[:1]
+    xs, ys = ds["x"].values, ds["y"].values
+    union = None
+    for h in hashes:
+        try:
+            with xr.open_dataset(outdir / "members" / f"{h}.nc", decode_times=False) as run:
+                if run["x"].size != xs.size or run["y"].size != ys.size or not (
+                        np.allclose(run["x"].values, xs) and np.allclose(run["y"].values, ys)):
+                    continue
+                h0 = np.nan_to_num(np.asarray(run["h"].isel(time=0).values, dtype=float)) > 0
+        except Exception:  # noqa: BLE001 - a member file gone or foreign: no outline from it
+            continue
+        union = h0 if union is None else union | h0
+    return union if union is not None and union.any() else None
+
+
+def _exceedance_figures(ds, figdir: Path, plt, outdir: Path) -> list[tuple[str, str]]:
     """One figure per peak map: its probability at each threshold over the hillshade of the
-    bed, axes in the CRS (as `avflow plot`); P = 0 is left transparent."""
-    from avflow.output.maps import crs_name, draw_terrain
+    bed, axes in the CRS, the release outlined, a scale bar and a north arrow (as `avflow
+    plot`); P = 0 is left transparent."""
+    from matplotlib.lines import Line2D
+
+    from avflow.output.maps import _scale_and_north, crs_name, draw_terrain
 
     figures = []
     xs, ys = ds["x"].values, ds["y"].values
@@ -309,6 +337,7 @@ def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
     crs = crs_name(ds)
     n_ok = max(int(np.isin(ds["status"].values.astype(str), OK_STATUSES).sum()), 1)
     cmap, norm, levels = probability_style(n_ok)
+    released = _released(ds, outdir, np.isin(ds["status"].values.astype(str), OK_STATUSES))
     for name, fname, title, label in _EXCEEDANCE:
         var = f"{name}_exceedance_probability"
         if var not in ds:
@@ -339,6 +368,14 @@ def _exceedance_figures(ds, figdir: Path, plt) -> list[tuple[str, str]]:
             ax.set_title(f"P({label.format(float(t))})", fontsize=10)
             ax.set_xlabel("x (m)" + (f"\n{crs}" if crs else ""), fontsize=8)
             ax.set_ylabel("y (m)", fontsize=8)
+            if released is not None:
+                ax.contour(xs, ys, released.astype(float), levels=[0.5], colors="tab:blue",
+                           linewidths=1.6, linestyles="--", zorder=5)
+            _scale_and_north(ax)
+        if released is not None:
+            axes[0].legend(handles=[Line2D([], [], color="tab:blue", ls="--", lw=1.6,
+                                           label="release")], loc="lower right", fontsize=7,
+                           framealpha=0.8)
         bar = fig.colorbar(im, ax=list(axes), shrink=0.9, ticks=levels,
                            label=f"probability over {n_ok} members (blank: 0)")
         bar.ax.set_yticklabels([f"{k}/{n_ok}" for k in range(1, n_ok + 1)] if n_ok <= 12

@@ -10,7 +10,9 @@ A run with ``structures`` carries, beside the edited ``bed_elevation``:
 ``avflow compare RUN_A RUN_B`` sets two runs of the same map side by side (a scenario with
 and without its structures): runout, travel angle, volumes, the peak-pressure maxima and the
 areas above 1, 10 and 100 kPa, and the cells reached by one and not the other; a table (CSV,
-Markdown) and a PNG of the peak-pressure difference.
+Markdown) and a PNG: the peak pressure of both runs in their pressure classes and their
+difference, over the hillshade with the release and the structures outlined, as ``avflow
+plot`` draws a run.
 """
 
 from __future__ import annotations
@@ -178,43 +180,107 @@ def compare_runs(run_a, run_b, output=None) -> tuple[str, list[Path]]:
     return text, written
 
 
+def _ascending(ds, values):
+    """``values`` on (y, x) with y ascending, as the map helpers of ``avflow plot`` take."""
+    values = np.asarray(values, dtype=float)
+    return values[::-1] if ds["y"].values[0] > ds["y"].values[-1] else values
+
+
 def _plot(a, b, pa, pb, target: Path, name_a: str, name_b: str) -> Path:
-    import matplotlib
+    from avflow.output.maps import _plt, _save
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import TwoSlopeNorm
-
-    from avflow.output.maps import hillshade
-
-    x, y = a["x"].values, a["y"].values
-    dx, dy = abs(x[1] - x[0]), abs(y[1] - y[0])
-    extent = (x.min() - dx / 2, x.max() + dx / 2, y.min() - dy / 2, y.max() + dy / 2)
-    origin = "lower" if y[0] < y[-1] else "upper"
-    fig, axes = plt.subplots(1, 3, figsize=(15, 5), layout="constrained")
-    for ax, ds, p, title in ((axes[0], a, pa, f"A: {name_a}"), (axes[1], b, pb, f"B: {name_b}")):
-        bed = ds["bed_elevation"].values.astype(float)
-        # hillshade takes rows south to north: light from the north-west either way
-        shade = (hillshade(bed, dx, dy) if origin == "lower"
-                 else hillshade(bed[::-1], dx, dy)[::-1])
-        ax.imshow(shade, cmap="gray", extent=extent, origin=origin, vmin=0, vmax=1)
-        im = ax.imshow(np.where(p >= 1.0, p, np.nan), cmap="viridis", extent=extent,
-                       origin=origin, alpha=0.85)
-        if "structure_height" in ds:
-            added = ds["structure_height"].values
-            ax.contour(x, y, np.nan_to_num(added), levels=[0.5], colors="red", linewidths=1)
-        ax.set_title(title)
-        ax.set_aspect("equal")
-        fig.colorbar(im, ax=ax, shrink=0.8, label="peak pressure >= 1 kPa")
-    d = pb - pa
-    lim = max(float(np.abs(d).max()), 1e-9)
-    im = axes[2].imshow(np.where((pa >= 1.0) | (pb >= 1.0), d, np.nan), cmap="RdBu_r",
-                        norm=TwoSlopeNorm(0.0, -lim, lim), extent=extent, origin=origin)
-    axes[2].set_title("peak pressure B - A (kPa)")
-    axes[2].set_aspect("equal")
-    fig.colorbar(im, ax=axes[2], shrink=0.8, label="kPa")
+    plt = _plt()
+    fig = compare_figure(a, b, pa, pb, name_a, name_b)
     try:
-        atomic_write(target, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
+        return _save(fig, target, dpi=100)
     finally:
         plt.close(fig)
-    return target
+
+
+def compare_figure(a, b, pa, pb, name_a: str, name_b: str):
+    """The figure of ``avflow compare``: peak pressure (kPa: ``pa``, ``pb``) of A and of B in
+    the runs' pressure classes, and B - A, in the style of ``avflow plot``: hillshade and
+    contours, axes in the CRS, the release and the structures outlined, scale bar and north
+    arrow."""
+    from matplotlib.colors import TwoSlopeNorm
+    from matplotlib.lines import Line2D
+
+    from avflow.output.maps import (
+        _class_legend, _class_style, _plain_ticks, _plt, _scale_and_north,
+        crs_name, draw_terrain, pressure_classes, run_pressure_classes)
+
+    plt = _plt()
+    x = np.asarray(a["x"].values, dtype=float)
+    y = np.sort(np.asarray(a["y"].values, dtype=float))
+    dx, dy = abs(x[1] - x[0]), abs(y[1] - y[0])
+    extent = (x[0] - dx / 2, x[-1] + dx / 2, y[0] - dy / 2, y[-1] + dy / 2)
+    aspect = (extent[3] - extent[2]) / (extent[1] - extent[0])
+    if aspect < 1.0:  # wider than tall: one map under the other, colourbars underneath
+        aspect, where = max(aspect, 0.12), "bottom"
+        fig, axes = plt.subplots(3, 1, figsize=(8.0, 3 * 7.2 * aspect + 3.2),
+                                 layout="constrained", sharex=True, sharey=True)
+    else:
+        aspect, where = min(aspect, 2.0), "right"
+        fig, axes = plt.subplots(1, 3, figsize=(15.0, 4.2 * aspect + 1.8),
+                                 layout="constrained", sharex=True, sharey=True)
+    axes = list(axes)
+    classes = pressure_classes(b)
+    cmap, norm = _class_style(len(classes))
+    crs = crs_name(b)
+
+    def raster(ax, values, **kw):
+        return ax.imshow(np.ma.masked_invalid(values), extent=extent, origin="lower",
+                         interpolation="nearest", **kw)
+
+    def outlines(ax, ds):
+        handles = []
+        release = _ascending(ds, ds["h"].isel(time=0).values) if "h" in ds else None
+        if release is not None and (np.nan_to_num(release) > 0).any():
+            ax.contour(x, y, (np.nan_to_num(release) > 0).astype(float), levels=[0.5],
+                       colors="tab:blue", linewidths=1.4, linestyles="--")
+            handles.append(Line2D([], [], color="tab:blue", ls="--", lw=1.4, label="release"))
+        if "structure_height" in ds:
+            added = np.nan_to_num(_ascending(ds, ds["structure_height"].values))
+            if (added > 0.5).any():
+                ax.contour(x, y, (added > 0.5).astype(float), levels=[0.5], colors="black",
+                           linewidths=1.2)
+                handles.append(Line2D([], [], color="black", lw=1.2,
+                                      label="structure (> 0.5 m)"))
+        return handles
+
+    handles = {}
+    for ax, ds, title in ((axes[0], a, f"A: {name_a}"), (axes[1], b, f"B: {name_b}")):
+        draw_terrain(ax, x, y, _ascending(ds, ds["bed_elevation"].values))
+        k = _ascending(ds, run_pressure_classes(ds))
+        raster(ax, np.where(k > 0, k, np.nan), cmap=cmap, norm=norm, alpha=0.9)
+        for h in outlines(ax, ds):
+            handles[h.get_label()] = h
+        ax.set_title(f"{title}: peak pressure", fontsize=9)
+    draw_terrain(axes[2], x, y, _ascending(b, b["bed_elevation"].values))
+    d = _ascending(a, pb - pa)
+    lim = max(float(np.abs(d).max()), 1e-9)
+    reached = _ascending(a, (pa >= 1.0) | (pb >= 1.0))
+    im = raster(axes[2], np.where(reached, d, np.nan), cmap="RdBu_r",
+                norm=TwoSlopeNorm(0.0, -lim, lim), alpha=0.9)
+    for h in outlines(axes[2], b):
+        handles[h.get_label()] = h
+    axes[2].set_title("peak pressure B \u2212 A (red: higher in B)", fontsize=9)
+    bar = fig.colorbar(im, ax=axes[2], shrink=0.8, location=where,
+                       aspect=20 if where == "right" else 40)
+    bar.set_label("peak pressure B \u2212 A (kPa), where either is \u2265 1 kPa")
+    for ax in axes:
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        ax.set_aspect("equal")
+        _plain_ticks(ax)
+        ax.set_xlabel("x (m)" + (f", {crs}" if crs else ""), fontsize=8)
+        ax.set_ylabel("y (m)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        plt.setp(ax.get_xticklabels(), rotation=20, ha="right")
+        _scale_and_north(ax)
+    if handles:  # on B's map: A, without its structures, would name one it lacks
+        axes[1].legend(handles=list(handles.values()), loc="lower right", fontsize=7,
+                       framealpha=0.8)
+    _class_legend(fig, classes, "bottom", None)
+    fig.suptitle(f"B ({name_b}) against A ({name_a})", fontsize=10)
+    return fig

@@ -411,14 +411,15 @@ RELEASE_AREA_RATIO = 2.0
 
 def _check_release_and_structures(scenario, terrain, h0) -> None:
     """A release under a wall (its cells leave the mesh: the release would shrink unsaid) or
-    across a structure's line (no upstream side): refused before the run."""
+    across a structure's line (no upstream side): refused before the run. A dam's body under
+    part of the release, its line clear of it: one warning line per dam."""
     built = getattr(terrain, "extras", {}).get("structures")
     if built is None:
         return
     import types
 
     from avflow.terrain.release import ReleaseError, initial_thickness
-    from avflow.terrain.structures import release_across
+    from avflow.terrain.structures import release_across, release_under_dams
 
     volume0 = h0 * terrain.mesh.cell_area
     total = float(volume0.sum())
@@ -440,6 +441,9 @@ def _check_release_and_structures(scenario, terrain, h0) -> None:
     problem = release_across(built, *terrain.cell_xy(), volume0)
     if problem is not None:
         raise ScenarioError.at(scenario, *problem)
+    for line in release_under_dams(built, *terrain.cell_xy(), volume0):
+        warnings.warn(f"{scenario.source_path or scenario.name}: structures: {line}",
+                      AvflowWarning, stacklevel=3)
 
 
 def _check_release_size(scenario, terrain: Terrain, h0: np.ndarray) -> None:
