@@ -186,19 +186,31 @@ def test_cli_refuses_a_profile_on_cuda_with_exit_2(tmp_path):
 
 
 def test_missing_numba_cuda_or_gpu_is_one_line(tmp_path):
-    """Without numba-cuda, and (on this machine) without a GPU: one line each, no traceback."""
+    """Without numba-cuda (Numba's built-in numba.cuda present or not), with Numba's
+    built-in target in its place, and (on this machine) without a GPU: one line each, no
+    traceback."""
     code = textwrap.dedent("""\
-        import sys
+        import sys, types
         if sys.argv[1] == "missing":
             sys.modules["numba.cuda"] = None
             sys.modules["numba_cuda"] = None
+        if sys.argv[1] == "builtin_only":  # Numba's own numba.cuda, no numba-cuda
+            sys.modules["numba_cuda"] = None
+        if sys.argv[1] == "builtin":  # numba.cuda not redirected to numba-cuda
+            import numba
+            fake = types.ModuleType("numba.cuda")
+            fake.implementation, fake.__file__ = "Built-in", "numba/cuda/__init__.py"
+            sys.modules["numba.cuda"] = numba.cuda = fake
         from avflow.numerics.cuda_grid import unavailable
         print(unavailable())
         """)
-    missing = subprocess.run([sys.executable, "-c", code, "missing"], capture_output=True,
-                             text=True, env=_child_env(False), timeout=120)
-    assert missing.returncode == 0, missing.stderr
-    assert "numba-cuda is not installed" in missing.stdout
+    for case, words in (("missing", "numba-cuda is not installed"),
+                        ("builtin_only", "numba-cuda is not installed"),
+                        ("builtin", "Numba's built-in CUDA target, not numba-cuda's")):
+        done = subprocess.run([sys.executable, "-c", code, case], capture_output=True,
+                              text=True, env=_child_env(False), timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert words in done.stdout and len(done.stdout.strip().splitlines()) == 1, case
     real = subprocess.run([sys.executable, "-c", code, "real"], capture_output=True,
                           text=True, env=_child_env(False), timeout=120)
     assert real.returncode == 0, real.stderr

@@ -94,12 +94,23 @@ Scalars = namedtuple("Scalars", "law g dirac h_dry h_zero")
 
 
 def unavailable() -> str | None:
-    """Why the cuda backend cannot run here (a phrase), or None: numba-cuda missing, or no
-    GPU (the simulator, ``NUMBA_ENABLE_CUDASIM=1``, counts as one)."""
+    """Why the cuda backend cannot run here (a phrase), or None: numba-cuda missing (Numba's
+    built-in ``numba.cuda``, deprecated since Numba 0.61, is not used: with numba-cuda
+    installed, ``numba.cuda`` is numba-cuda's), or no GPU (the simulator,
+    ``NUMBA_ENABLE_CUDASIM=1``, counts as one)."""
+    import importlib.util
+
+    missing = "numba-cuda is not installed (pip install 'avflow[cuda]')"
     try:
+        if importlib.util.find_spec("numba_cuda") is None:
+            return missing
         from numba import cuda
     except ImportError:
-        return "numba-cuda is not installed (pip install 'avflow[cuda]')"
+        return missing
+    if getattr(cuda, "implementation", None) != "NVIDIA":  # Numba's own, deprecated target:
+        # numba-cuda's redirection of numba.cuda did not take (another Numba found first)
+        return ("numba.cuda is Numba's built-in CUDA target, not numba-cuda's "
+                f"({cuda.__file__}): reinstall numba-cuda beside this Numba")
     try:
         if not cuda.is_available():
             return "no CUDA GPU or driver found (numba.cuda.is_available() is False)"
