@@ -1,12 +1,16 @@
-"""The square-grid kernel on a CUDA GPU (issue 32): the CPU square-grid kernel's step,
-one GPU thread per cell or face, with the whole state resident on the device for the run.
+"""The square-grid kernel on a CUDA GPU: the CPU square-grid kernel's step at order 1 or 2,
+one GPU thread per cell or face, with the whole state resident on the device for the run,
+through numba-cuda (NVIDIA's CUDA target for Numba, which ``numba.cuda`` is once it is
+installed; Numba's built-in target, deprecated since Numba 0.61, is refused:
+:func:`unavailable`).
 
 The physics is not written again here. The pointwise functions of
 :mod:`avflow.numerics.kinetic`, :mod:`avflow.numerics.physics` and the friction laws of
 :mod:`avflow.numerics.rheology` are compiled with ``numba.cuda.jit(device=True)`` by the
 same :func:`avflow.numerics.cpu.compile_pointwise` that compiles them for the CPU; the
 square-grid kernel's own per-face and per-cell helpers (its face flux, its order of a
-cell's four faces, the per-cell friction parameters) are the same Python functions,
+cell's four faces, the per-cell friction parameters, order 2's reconstruction of a row,
+``_recon_row``, and the pointwise pieces it is made of) are the same Python functions,
 retargeted the same way (:func:`_retarget`). What is written here is only the traversal:
 which thread computes which cell or face, and the sums over the grid.
 
@@ -16,11 +20,12 @@ first version): what each cell emits (:func:`_emit`), the flux of every face
 final update with Dirac faces, projection and film rule (:func:`_final`), the grid's sums
 in one or two passes of a block reduction (:func:`_reduce`), and once the step is accepted
 (and its sources added) the running maps of each cell (:func:`_observe`, the CPU kernels'
-observer pass). These launches are the hooks of a region (:class:`CudaGrid`'s ``_start`` ..
+observer pass); order 2 adds a launch per stage and one for the merge (below). These
+launches are the hooks of a region (:class:`CudaGrid`'s ``_start`` ..
 ``_end``) run by the CPU kernels' own time loop, :func:`avflow.numerics.loop.advance`,
 executed as Python on the host: step size, retry by halving, the sources, the stop rules
-and the statistics are one piece of code for every backend. The host reads seven numbers a
-step (the sums); it sees the state only when a call ends (an output time), and the state
+and the statistics are one piece of code for every backend. The host reads eight numbers a
+step (the sums; three times at order 2); it sees the state only when a call ends (an output time), and the state
 stays on the device for the next call.
 
 Compared with the CPU square-grid kernel: thickness, discharge, flags and observers are
@@ -33,11 +38,19 @@ the multiply-adds are not fused (:func:`_no_fused_multiply_add`), so the same sh
 there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws may differ
 in the last bit); no GPU has run it yet.
 
+Order 2 is the CPU kernel's order-2 step (square_grid's ``_order2_step``): two stages, each
+the launches of an order-1 step with one more, the reconstructed sides of every cell
+(:func:`_recon`, the CPU kernel's ``_recon_row`` on the cell's span of its row), which the
+faces read instead of the cells' emitted values; stage 1 keeps its flags and each cell's
+transport, stage 2 runs from its result; then Heun's merge (:func:`_heun`,
+physics.heun_average) of the step's start and stage 2, and its sums. A stage that leaves a
+cell below 0 fails the attempt (the loop halves the step), as on the CPU.
+
 Entrainment is the CPU kernels' own source hook (:func:`_source`: numerics.sources' gain
 per cell, after each accepted step, before the maps are observed), the registered sources
 their pass (:func:`_supply`: numerics.supply's supply_at per cell), and a registered law
 or map is built into the device copies as into the CPU kernels (:func:`_build`). Not served (refused
-at load time, one line): order 2, meshes other than square grids. Cells with no wet cell
+at load time, one line): meshes other than square grids. Cells with no wet cell
 around them are computed too (all cells traversal): their update changes nothing, and they
 are left out of the CFL limit, as the CPU kernel does by not sweeping them.
 """
