@@ -58,6 +58,7 @@ are left out of the CFL limit, as the CPU kernel does by not sweeping them.
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 import types
 from collections import namedtuple
@@ -255,7 +256,7 @@ def _faces(mesh, xa, xb, ya, yb, xf, yf):
     out[4, r, c] = f4
 
 
-def _recon(mesh, cur, sides, g, h_zero):
+def _recon(mesh, sc, cur, sides):
     """Order 2, per cell: what it emits through each of its sides from its limited linear
     reconstruction (``sides[SIDE_*, E_*, i]``), by the CPU kernel's own row pass
     (square_grid's _recon_row, on the one cell's span of its row: the same Green-Gauss
@@ -264,17 +265,31 @@ def _recon(mesh, cur, sides, g, h_zero):
     if i >= cur.h.size:
         return
     nx = mesh.x_code.shape[1] - 1
-    ny = mesh.x_code.shape[0]
     r = i // nx
-    c = i - r * nx
-    recon_row(r, c, c, nx, ny, mesh.x_code[r], mesh.y_code[r], mesh.y_code[r + 1],
-              mesh.x_frame[r], mesh.y_frame[r], mesh.y_frame[r + 1], mesh.x_length[r],
-              mesh.y_length[r], mesh.y_length[r + 1], mesh.x_off[r], mesh.y_off[r],
-              mesh.y_off[r + 1], mesh.cell_area, mesh.density, mesh.gamma_z, cur.h, cur.hu,
-              cur.hv, h_zero, g, sides[:, :, r * nx:(r + 1) * nx])
+    recon_at(r, i - r * nx, nx, mesh, sc, cur, sides[:, :, r * nx:(r + 1) * nx])
 
 
-recon_row = heun_average = None
+def _recon_at(r, c, nx, mesh, sc, cur, out):
+    """Cell c of row r through the row pass (its arguments as it takes them)."""
+    recon_row(r, c, c, nx, mesh.x_code.shape[0], mesh.x_code[r], mesh.y_code[r],
+              mesh.y_code[r + 1], mesh.x_frame[r], mesh.y_frame[r], mesh.y_frame[r + 1],
+              mesh.x_length[r], mesh.y_length[r], mesh.y_length[r + 1], mesh.x_off[r],
+              mesh.y_off[r], mesh.y_off[r + 1], mesh.cell_area, mesh.density, mesh.gamma_z,
+              cur.h, cur.hu, cur.hv, sc.h_zero, sc.g, out)
+
+
+def _recon_at_predicting(r, c, nx, mesh, sc, cur, out):
+    """:func:`_recon_at` for a row pass that can also predict the sides half a step on (the
+    CPU kernel's MUSCL-Hancock): Heun's stages predict nothing (a half step of 0)."""
+    recon_row(r, c, c, nx, mesh.x_code.shape[0], mesh.x_code[r], mesh.y_code[r],
+              mesh.y_code[r + 1], mesh.x_frame[r], mesh.y_frame[r], mesh.y_frame[r + 1],
+              mesh.x_length[r], mesh.y_length[r], mesh.y_length[r + 1], mesh.x_off[r],
+              mesh.y_off[r], mesh.y_off[r + 1], mesh.cell_area, mesh.density, mesh.gamma_z,
+              cur.h, cur.hu, cur.hv, sc.h_zero, sc.g, 0.0, mesh.gamma_x, mesh.gamma_y, sc.law,
+              mesh.params, out)
+
+
+recon_row = recon_at = heun_average = None
 
 
 def _side_terms(mesh, xf, yf, r, c):
@@ -636,10 +651,15 @@ def _build(law: int = 0, sources=()):
     names["supply_at"] = _retarget(supply.supply_at, names, device)
     # order 2's reconstruction: the CPU kernel's row pass and the cell loop it calls, with
     # the pointwise pieces that loop is made of
-    for name in ("_gg_face", "_range", "_bj_select", "emitted_cell", "_side",
+    names["friction_law"] = _retarget(vectorize.friction_law, names, device)
+    for name in ("_gg_face", "_range", "_bj_select", "emitted_cell", "_side", "_side_direct",
                  "_in_face_order", "_recon_cells"):
-        names[name] = _retarget(getattr(square_grid, name), names, device)
+        if hasattr(square_grid, name):  # (_side_direct: the row pass's MUSCL-Hancock form)
+            names[name] = _retarget(getattr(square_grid, name), names, device)
     names["recon_row"] = _retarget(square_grid._recon_row, names, device)
+    predicting = "dt_half" in inspect.signature(square_grid._recon_row.py_func).parameters
+    names["recon_at"] = _retarget(_recon_at_predicting if predicting else _recon_at, names,
+                                  device)
     _KERNELS[key] = {name: _retarget(fn, names, cuda.jit)
                      for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
                                       ("final", _final), ("reduce", _reduce),
@@ -822,7 +842,7 @@ class CudaGrid:
         k, m, work = self.k, self.mesh, self.work
         k["emit"][_blocks(self.n), THREADS](m, state, work.emit, sc.g, sc.h_zero)
         if stage:
-            k["recon"][_blocks(self.n), THREADS](m, state, self.o2.sides, sc.g, sc.h_zero)
+            k["recon"][_blocks(self.n), THREADS](m, sc, state, self.o2.sides)
             xa, xb, ya, yb = self.face_sides
         else:
             xa = xb = ya = yb = work.emit
