@@ -219,6 +219,28 @@ def test_missing_numba_cuda_or_gpu_is_one_line(tmp_path):
     assert len(real.stdout.strip().splitlines()) == 1 and "GPU" in real.stdout
 
 
+def test_no_deprecation_warning_from_numbas_cuda_target():
+    """The backend imports numba-cuda's numba.cuda, not Numba's deprecated built-in target:
+    importing it and building its kernels (under the simulator, as on a machine without a
+    GPU) warns of nothing about CUDA."""
+    code = textwrap.dedent("""\
+        import warnings
+        warnings.simplefilter("always")
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            from avflow.numerics import cuda_grid
+            cuda_grid._build()
+            from numba import cuda
+        print(cuda.implementation)
+        print([f"{w.category.__name__}: {w.message}" for w in seen
+               if "cuda" in str(w.message).lower() or "Deprecat" in w.category.__name__])
+        """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=_child_env(True), timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["NVIDIA", "[]"], done.stdout
+
+
 PTX_CHECK = """\
 import sys
 from types import SimpleNamespace
