@@ -479,7 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "timed steps show them faster than one thread, else one); the answer does "
                    "not depend on it")
     r.add_argument("--backend", choices=("cpu", "cuda"), help="where the time loop runs "
-                   "(numerics.backend; cuda: a GPU, square grids at order 1, "
+                   "(numerics.backend; cuda: a GPU, square grids at orders 1 and 2, "
                    "docs/guide/gpu.md)")
     r.add_argument("--without-structures", action="store_true",
                    help="run the scenario with its structures left out (the twin run that "

@@ -4,7 +4,8 @@ numba-cuda's simulator: no GPU needed.
 The simulator is switched on by ``NUMBA_ENABLE_CUDASIM=1``, read when Numba is first
 imported: the cases run in a child process (this file run as a script), so the rest of the
 suite keeps its Numba as it is. Each case runs the same solver on ``backend="cpu"`` and
-``"cuda"`` on about 12 x 10 cells for a few steps. The simulator runs the kernels' Python
+``"cuda"`` on about 12 x 10 cells for a few steps, at order 1 and at order 2 (Heun's two
+stages on the reconstructed sides). The simulator runs the kernels' Python
 with Python floats, so the fields agree bit for bit (on a GPU, to round-off: NVVM fuses
 multiply-adds); the grid-wide sums are added in another order (round-off).
 """
@@ -108,8 +109,51 @@ def test_entrainment_gives_the_cpu_answer(cases):
     assert report["entrained_cuda"] == pytest.approx(report["entrained_cpu"], rel=1e-12)
 
 
+def _assert_order2(report):
+    """Order 2: the CPU kernel's fields bit for bit, its steps, retries and fallbacks to
+    q = 0 (eq. 56) the same; mass to round-off, h >= 0."""
+    _assert_same(report)
+    assert report["fallbacks_cpu"] == report["fallbacks_cuda"]
+    assert report["h_min"] >= 0.0
+    assert report["mass_cuda"] == pytest.approx(report["mass_start"], rel=1e-12)
+
+
+def test_order2_plane_gives_the_cpu_answer(cases):
+    """Heun's two stages on the reconstructed sides, an open side, Coulomb friction; some
+    cells fall back to q = 0 at the merge."""
+    report = cases["plane2"]
+    _assert_order2(report)
+    assert report["moved"] and report["fallbacks_cpu"] > 0
+
+
+def test_order2_bumpy_dem_with_a_hole_gives_the_cpu_answer(cases):
+    """Order 2 with bed-linked frames (the reconstruction turns velocities across faces),
+    curvature, a NODATA hole, an open lower side, Voellmy friction."""
+    report = cases["dem2"]
+    _assert_order2(report)
+    assert report["moved"]
+
+
+def test_order2_step_redone_gives_the_cpu_answer(cases):
+    """Order 2 with first attempts that empty a cell (a stage fails): the same retries, the
+    same fields."""
+    report = cases["retry2"]
+    _assert_order2(report)
+    assert report["retries_cpu"] == report["retries_cuda"] > 0
+
+
+def test_order2_pile_at_rest_stays_at_rest_bit_for_bit(cases):
+    report = cases["rest2"]
+    assert report["at_rest"] and report["steps_cuda"] > 0
+
+
+def test_order2_entrainment_gives_the_cpu_answer(cases):
+    report = cases["entrainment2"]
+    _assert_same(report)
+    assert report["equal_erodible"] and report["entrained_cpu"] > 0.0
+
+
 @pytest.mark.parametrize("case,words", [
-    ("order2", "it runs order 1 only, not order 2"),
     ("profile", "the mesh is not a square grid"),
 ])
 def test_what_it_does_not_serve_is_refused_in_one_line(cases, case, words):
@@ -142,25 +186,59 @@ def test_cli_refuses_a_profile_on_cuda_with_exit_2(tmp_path):
 
 
 def test_missing_numba_cuda_or_gpu_is_one_line(tmp_path):
-    """Without numba-cuda, and (on this machine) without a GPU: one line each, no traceback."""
+    """Without numba-cuda (Numba's built-in numba.cuda present or not), with Numba's
+    built-in target in its place, and (on this machine) without a GPU: one line each, no
+    traceback."""
     code = textwrap.dedent("""\
-        import sys
+        import sys, types
         if sys.argv[1] == "missing":
             sys.modules["numba.cuda"] = None
             sys.modules["numba_cuda"] = None
+        if sys.argv[1] == "builtin_only":  # Numba's own numba.cuda, no numba-cuda
+            sys.modules["numba_cuda"] = None
+        if sys.argv[1] == "builtin":  # numba.cuda not redirected to numba-cuda
+            import numba
+            fake = types.ModuleType("numba.cuda")
+            fake.implementation, fake.__file__ = "Built-in", "numba/cuda/__init__.py"
+            sys.modules["numba.cuda"] = numba.cuda = fake
         from avflow.numerics.cuda_grid import unavailable
         print(unavailable())
         """)
-    missing = subprocess.run([sys.executable, "-c", code, "missing"], capture_output=True,
-                             text=True, env=_child_env(False), timeout=120)
-    assert missing.returncode == 0, missing.stderr
-    assert "numba-cuda is not installed" in missing.stdout
+    for case, words in (("missing", "numba-cuda is not installed"),
+                        ("builtin_only", "numba-cuda is not installed"),
+                        ("builtin", "Numba's built-in CUDA target, not numba-cuda's")):
+        done = subprocess.run([sys.executable, "-c", code, case], capture_output=True,
+                              text=True, env=_child_env(False), timeout=120)
+        assert done.returncode == 0, done.stderr
+        assert words in done.stdout and len(done.stdout.strip().splitlines()) == 1, case
     real = subprocess.run([sys.executable, "-c", code, "real"], capture_output=True,
                           text=True, env=_child_env(False), timeout=120)
     assert real.returncode == 0, real.stderr
     if real.stdout.strip() == "None":
         pytest.skip("this machine has a GPU")
     assert len(real.stdout.strip().splitlines()) == 1 and "GPU" in real.stdout
+
+
+def test_no_deprecation_warning_from_numbas_cuda_target():
+    """The backend imports numba-cuda's numba.cuda, not Numba's deprecated built-in target:
+    importing it and building its kernels (under the simulator, as on a machine without a
+    GPU) warns of nothing about CUDA."""
+    code = textwrap.dedent("""\
+        import warnings
+        warnings.simplefilter("always")
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            from avflow.numerics import cuda_grid
+            cuda_grid._build()
+            from numba import cuda
+        print(cuda.implementation)
+        print([f"{w.category.__name__}: {w.message}" for w in seen
+               if "cuda" in str(w.message).lower() or "Deprecat" in w.category.__name__])
+        """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=_child_env(True), timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["NVIDIA", "[]"], done.stdout
 
 
 PTX_CHECK = """\
@@ -181,17 +259,20 @@ try:
     u8, i8 = (lambda *shape: np.zeros(shape, np.uint8)), (lambda *shape: np.zeros(shape, np.int8))
     mesh = cg.DeviceMesh(u8(n), i8(ny, nx + 1), f(ny, 4, nx + 1), f(ny, nx + 1), i8(ny + 1, nx),
                          f(ny + 1, 4, nx), f(ny + 1, nx), f(n), f(n), f(n), f(n), f(n), f(n),
-                         f(n), f(3, n), f(1, 8))
+                         f(n), f(3, n), f(1, 8), f(ny, 4, nx + 1), f(ny + 1, 4, nx))
     st = cg.DeviceState(f(n), f(n), f(n))
     obs = cg.DeviceObservers(u8(n), f(n), f(n), f(n), f(n))
     t = cg.N_TERMS
     work = cg.DeviceWork(f(8, n), f(5, ny, nx + 1), f(5, ny + 1, nx), u8(n), f(n), f(n),
                          f(t, n), f(t, 1), f(t, 1))
     sc = cg.Scalars(1, 9.81, True, 1e-3, 1e-3)
+    sides = f(4, 8, n)
     launches = {"emit": (mesh, st, work.emit, 9.81, 1e-3),
-                "faces": (mesh, work.emit, work.xf, work.yf),
-                "trial": (mesh, sc, st, work, 0.1, 0.1),
-                "final": (mesh, sc, st, st, obs, work, 0.1),
+                "faces": (mesh, sides[1], sides[0], sides[3], sides[2], work.xf, work.yf),
+                "recon": (mesh, sc, st, sides),
+                "trial": (mesh, sc, st, work, 0.1, 0.1, True),
+                "final": (mesh, sc, st, st, obs.flag, work, 0.1, 1, f(n), u8(n)),
+                "heun": (mesh, sc, st, st, st, u8(n), f(n), u8(n), work.terms),
                 "reduce": (work.terms, work.partials, n),
                 "source": (mesh, sc, st, f(n), work.terms, (0.0,) * 8,
                            (3, 0.5, 0.0, 5000.0, 0.0, 0.0, 0.0, 1e-3, 9.81), 0.1),
@@ -214,9 +295,9 @@ print("OK", fused)
 def test_kernels_compile_for_a_gpu():
     """Every kernel typed and compiled to PTX for sm_90 by the real CUDA target (no GPU
     needed, but NVVM and NVRTC: the CUDA toolkit's wheels, ``avflow[cuda]``). Emit, faces,
-    the sums and the running maps fuse no multiply-add (the CPU's bits); trial and final
-    only inside libdevice's exp and log (trial, final and the source read the friction
-    laws)."""
+    order 2's reconstruction and merge, the sums and the running maps fuse no multiply-add
+    (the CPU's bits); trial and final only inside libdevice's exp and log (trial, final and
+    the source read the friction laws)."""
     done = subprocess.run([sys.executable, "-c", PTX_CHECK], capture_output=True, text=True,
                           env=_child_env(False), timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -225,6 +306,7 @@ def test_kernels_compile_for_a_gpu():
                     "'avflow[cuda]'")
     fused = eval(done.stdout.split("OK", 1)[1])
     assert fused["emit"] == fused["faces"] == fused["reduce"] == fused["observe"] == 0
+    assert fused["recon"] == fused["heun"] == 0
 
 
 # --- the child process ----------------------------------------------------------------------
@@ -236,10 +318,12 @@ def _compare(terrain, h0, law, params, targets, max_steps, limit_times=None, **k
     import numpy as np
 
     from avflow.numerics.solver import Solver
-    from avflow.numerics.stepping import ST_DT_LIMIT, ST_RETRIES
+    from avflow.numerics.stepping import ST_DT_LIMIT, ST_FALLBACK, ST_OUTFLOW, ST_RETRIES
 
     states, statuses = [], []
     uploads = []
+    if kw.get("order") == 2 and "time_scheme" in Solver.__dataclass_fields__:
+        kw["time_scheme"] = "heun"  # the GPU's order 2: the CPU kernel's Heun stages
     for backend in ("cpu", "cuda"):
         solver = Solver(terrain, law, np.asarray(params, dtype=float), kernel="grid",
                         threads=1, backend=backend, **kw)
@@ -274,6 +358,12 @@ def _compare(terrain, h0, law, params, targets, max_steps, limit_times=None, **k
         "equal_erodible": bool(np.array_equal(a.erodible, b.erodible)),
         "entrained_cpu": float(a.stats[13]), "entrained_cuda": float(b.stats[13]),
         "retries_cpu": float(a.stats[ST_RETRIES]), "retries_cuda": float(b.stats[ST_RETRIES]),
+        "fallbacks_cpu": float(a.stats[ST_FALLBACK]),
+        "fallbacks_cuda": float(b.stats[ST_FALLBACK]),
+        "mass_start": float(np.sum(h0 * terrain.mesh.cell_area)),
+        "mass_cuda": float(np.sum(b.h * terrain.mesh.cell_area) + b.stats[ST_OUTFLOW]
+                           - b.stats[13]),
+        "h_min": float(b.h.min()),
     }
 
 
@@ -314,12 +404,18 @@ def _cases() -> dict:
                             h_dry=1e-3)
     out["retry"] = _compare(ter, h0, Law.COULOMB, (tan20,), (2.0, 6.0), 4, limit_times=64.0,
                             h_zero=1e-3, h_dry=1e-3)
+    out["plane2"] = _compare(ter, h0, Law.COULOMB, (tan20,), (2.0, 6.0), 8, h_zero=1e-3,
+                             h_dry=1e-3, order=2)
+    out["retry2"] = _compare(ter, h0, Law.COULOMB, (tan20,), (2.0, 6.0), 4, limit_times=64.0,
+                             h_zero=1e-3, h_dry=1e-3, order=2)
     z, x, y = _bumpy()
     dem = surface_terrain(z, x, y, walls(x_max="outflow"), nodata="outflow")
     xx, yy = dem.cell_xy()
     h0 = np.where((xx - 15.0) ** 2 + (yy - 25.0) ** 2 < 12.0**2, 3.0, 0.0)
     out["dem"] = _compare(dem, h0, Law.VOELLMY, (0.15, 500.0), (1.0, 4.0), 8, h_zero=1e-3,
                           h_dry=1e-3)
+    out["dem2"] = _compare(dem, h0, Law.VOELLMY, (0.15, 500.0), (1.0, 4.0), 8, h_zero=1e-3,
+                           h_dry=1e-3, order=2)
     rows = np.tile([tan20, 0.0], (dem.n_cells, 1))
     rows[: dem.n_cells // 2, 0] = math.tan(math.radians(15.0))
     out["per_cell"] = _compare(dem, h0, Law.COULOMB, rows, (3.0,), 5, h_zero=1e-3)
@@ -327,6 +423,8 @@ def _cases() -> dict:
                        density_ratio=0.5)
     out["entrainment"] = _compare(dem, h0, Law.COULOMB, (tan20,), (1.0, 3.0), 6, h_zero=1e-3,
                                   h_dry=1e-3, source=layer)
+    out["entrainment2"] = _compare(dem, h0, Law.COULOMB, (tan20,), (1.0, 3.0), 4,
+                                   h_zero=1e-3, h_dry=1e-3, source=layer, order=2)
     bowl_x = np.arange(12) * 5.0 + 2.5
     bowl_y = np.arange(10) * 5.0 + 2.5
     bx, by = np.meshgrid(bowl_x, bowl_y)
@@ -336,10 +434,10 @@ def _cases() -> dict:
     pile = np.where((cx - 30.0) ** 2 + (cy - 25.0) ** 2 < 15.0**2, 1.0, 0.0)
     out["rest"] = _compare(bowl, pile, Law.COULOMB, (math.tan(math.radians(35.0)),),
                            (30.0,), 4, h_zero=1e-3)
+    out["rest2"] = _compare(bowl, pile, Law.COULOMB, (math.tan(math.radians(35.0)),),
+                            (30.0,), 4, h_zero=1e-3, order=2)
     refused = {}
     attempts = {
-        "order2": lambda: Solver(ter, Law.COULOMB, np.array([tan20]), order=2,
-                                 backend="cuda"),
         "profile": lambda: Solver(slope_profile(200.0, 10.0, 30.0), Law.COULOMB,
                                   np.array([tan20]), backend="cuda"),
     }

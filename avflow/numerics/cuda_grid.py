@@ -1,12 +1,16 @@
-"""The square-grid kernel on a CUDA GPU (issue 32): the CPU square-grid kernel's step,
-one GPU thread per cell or face, with the whole state resident on the device for the run.
+"""The square-grid kernel on a CUDA GPU: the CPU square-grid kernel's step at order 1 or 2,
+one GPU thread per cell or face, with the whole state resident on the device for the run,
+through numba-cuda (NVIDIA's CUDA target for Numba, which ``numba.cuda`` is once it is
+installed; Numba's built-in target, deprecated since Numba 0.61, is refused:
+:func:`unavailable`).
 
 The physics is not written again here. The pointwise functions of
 :mod:`avflow.numerics.kinetic`, :mod:`avflow.numerics.physics` and the friction laws of
 :mod:`avflow.numerics.rheology` are compiled with ``numba.cuda.jit(device=True)`` by the
 same :func:`avflow.numerics.cpu.compile_pointwise` that compiles them for the CPU; the
 square-grid kernel's own per-face and per-cell helpers (its face flux, its order of a
-cell's four faces, the per-cell friction parameters) are the same Python functions,
+cell's four faces, the per-cell friction parameters, order 2's reconstruction of a row,
+``_recon_row``, and the pointwise pieces it is made of) are the same Python functions,
 retargeted the same way (:func:`_retarget`). What is written here is only the traversal:
 which thread computes which cell or face, and the sums over the grid.
 
@@ -16,11 +20,12 @@ first version): what each cell emits (:func:`_emit`), the flux of every face
 final update with Dirac faces, projection and film rule (:func:`_final`), the grid's sums
 in one or two passes of a block reduction (:func:`_reduce`), and once the step is accepted
 (and its sources added) the running maps of each cell (:func:`_observe`, the CPU kernels'
-observer pass). These launches are the hooks of a region (:class:`CudaGrid`'s ``_start`` ..
+observer pass); order 2 adds a launch per stage and one for the merge (below). These
+launches are the hooks of a region (:class:`CudaGrid`'s ``_start`` ..
 ``_end``) run by the CPU kernels' own time loop, :func:`avflow.numerics.loop.advance`,
 executed as Python on the host: step size, retry by halving, the sources, the stop rules
-and the statistics are one piece of code for every backend. The host reads seven numbers a
-step (the sums); it sees the state only when a call ends (an output time), and the state
+and the statistics are one piece of code for every backend. The host reads eight numbers a
+step (the sums; three times at order 2); it sees the state only when a call ends (an output time), and the state
 stays on the device for the next call.
 
 Compared with the CPU square-grid kernel: thickness, discharge, flags and observers are
@@ -33,17 +38,27 @@ the multiply-adds are not fused (:func:`_no_fused_multiply_add`), so the same sh
 there for Coulomb and Voellmy (libdevice's ``exp`` and ``log`` of the other laws may differ
 in the last bit); no GPU has run it yet.
 
+Order 2 is the CPU kernel's order-2 step (square_grid's ``_order2_step``): two stages, each
+the launches of an order-1 step with one more, the reconstructed sides of every cell
+(:func:`_recon`, the CPU kernel's ``_recon_row`` on the cell's span of its row), which the
+faces read instead of the cells' emitted values; stage 1 keeps its flags and each cell's
+transport, stage 2 runs from its result; then Heun's merge (:func:`_heun`,
+physics.heun_average) of the step's start and stage 2, and its sums. A stage that leaves a
+cell below 0 fails the attempt (the loop halves the step), as on the CPU.
+
 Entrainment is the CPU kernels' own source hook (:func:`_source`: numerics.sources' gain
 per cell, after each accepted step, before the maps are observed), the registered sources
 their pass (:func:`_supply`: numerics.supply's supply_at per cell), and a registered law
 or map is built into the device copies as into the CPU kernels (:func:`_build`). Not served (refused
-at load time, one line): order 2, meshes other than square grids. Cells with no wet cell
+at load time, one line): meshes other than square grids. Cells with no wet cell
 around them are computed too (all cells traversal): their update changes nothing, and they
 are left out of the CFL limit, as the CPU kernel does by not sweeping them.
 """
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 import types
 from collections import namedtuple
@@ -73,27 +88,43 @@ RED_THREADS = 256
 MAX_PARTIALS = 1024
 
 #: What the kernels read of the grid (device arrays; those of
-#: :data:`~avflow.numerics.stepping.GridMesh`, curvature ``(3, places)``)
+#: :data:`~avflow.numerics.stepping.GridMesh`, curvature ``(3, places)``; the faces'
+#: offsets ``x_off``, ``y_off`` empty at order 1)
 DeviceMesh = namedtuple("DeviceMesh", "valid x_code x_frame x_length y_code y_frame y_length "
                         "cell_area inv_area cfl_factor density gamma_x gamma_y gamma_z "
-                        "curvature params")
+                        "curvature params x_off y_off")
 #: One buffer of the conserved variables on the device
 DeviceState = namedtuple("DeviceState", "h hu hv")
 #: The running observers and the flags, on the device
 DeviceObservers = namedtuple("DeviceObservers", "flag peak_h peak_speed arrival last_moved")
 #: The work arrays of a step: emitted values, face fluxes, trial flags and momenta, terms
 DeviceWork = namedtuple("DeviceWork", "emit xf yf trial_flag qx qy terms partials totals")
+#: Order 2's arrays on the device: what each cell emits through each side ``(4, N_EMIT,
+#: places)`` (SIDE_W, SIDE_E, SIDE_S, SIDE_N), the first stage's flags, the cells either
+#: stage touched, each cell's transport for Heun's merge, the second stage's state
+DeviceOrder2 = namedtuple("DeviceOrder2", "sides flag1 touched transport stage2")
 #: The scalars of the physics a step reads
 Scalars = namedtuple("Scalars", "law g dirac h_dry h_zero")
 
 
 def unavailable() -> str | None:
-    """Why the cuda backend cannot run here (a phrase), or None: numba-cuda missing, or no
-    GPU (the simulator, ``NUMBA_ENABLE_CUDASIM=1``, counts as one)."""
+    """Why the cuda backend cannot run here (a phrase), or None: numba-cuda missing (Numba's
+    built-in ``numba.cuda``, deprecated since Numba 0.61, is not used: with numba-cuda
+    installed, ``numba.cuda`` is numba-cuda's), or no GPU (the simulator,
+    ``NUMBA_ENABLE_CUDASIM=1``, counts as one)."""
+    import importlib.util
+
+    missing = "numba-cuda is not installed (pip install 'avflow[cuda]')"
     try:
+        if importlib.util.find_spec("numba_cuda") is None:
+            return missing
         from numba import cuda
     except ImportError:
-        return "numba-cuda is not installed (pip install 'avflow[cuda]')"
+        return missing
+    if getattr(cuda, "implementation", None) != "NVIDIA":  # Numba's own, deprecated target:
+        # numba-cuda's redirection of numba.cuda did not take (another Numba found first)
+        return ("numba.cuda is Numba's built-in CUDA target, not numba-cuda's "
+                f"({cuda.__file__}): reinstall numba-cuda beside this Numba")
     try:
         if not cuda.is_available():
             return "no CUDA GPU or driver found (numba.cuda.is_available() is False)"
@@ -159,9 +190,15 @@ def _emit(mesh, cur, emit, g, h_zero):
     emit[E_SPEED, i] = speed_of(h, q1, q2)
 
 
-def _faces(mesh, emit, xf, yf):
+def _faces(mesh, xa, xb, ya, yb, xf, yf):
     """Per face, its flux ``(fh, qix, qiy, qjx, qjy)``: the CPU kernel's face flux, the owner
-    beyond a boundary face (HIGH_*: the east or north cell), zero on a NO_FACE."""
+    beyond a boundary face (HIGH_*: the east or north cell), zero on a NO_FACE. What the
+    face's first cell emits through it is read in ``xa`` (x faces: the west cell) or ``ya``
+    (y faces: the south cell), its second cell's in ``xb`` or ``yb`` (rows ``E_*`` of every
+    cell): the emitted values of the cells at order 1 (all four the same array), the
+    reconstructed sides at order 2 (the west cell's east side, the east cell's west side;
+    the south cell's north side, the north cell's south side), as the CPU kernel feeds its
+    face rows."""
     k = cuda.grid(1)
     ny, nx1 = mesh.x_code.shape
     nx = nx1 - 1
@@ -173,6 +210,8 @@ def _faces(mesh, emit, xf, yf):
         frame = mesh.x_frame
         length = mesh.x_length[r, c]
         out = xf
+        first = xa
+        second = xb
         a = r * nx + c - 1  # the first (west) cell, the second (east) one
         b = r * nx + c
     else:
@@ -185,6 +224,8 @@ def _faces(mesh, emit, xf, yf):
         frame = mesh.y_frame
         length = mesh.y_length[r, c]
         out = yf
+        first = ya
+        second = yb
         a = (r - 1) * nx + c  # the south cell, the north one
         b = r * nx + c
     kind = code & KIND
@@ -194,15 +235,18 @@ def _faces(mesh, emit, xf, yf):
         return
     if kind == INNER:
         f0, f1, f2, f3, f4 = coded_flux(
-            kind_of(code), code, emit[E_H, a], emit[E_U1, a], emit[E_U2, a], emit[E_C, a],
-            emit[E_S, a], emit[E_KH, a], emit[E_K3, a], emit[E_H, b], emit[E_U1, b], emit[E_U2, b],
-            emit[E_C, b], emit[E_S, b], emit[E_KH, b], emit[E_K3, b], frame[r, 0, c],
-            frame[r, 1, c], frame[r, 2, c], frame[r, 3, c], length)
+            kind_of(code), code, first[E_H, a], first[E_U1, a], first[E_U2, a],
+            first[E_C, a], first[E_S, a], first[E_KH, a], first[E_K3, a], second[E_H, b],
+            second[E_U1, b], second[E_U2, b], second[E_C, b], second[E_S, b],
+            second[E_KH, b], second[E_K3, b], frame[r, 0, c], frame[r, 1, c], frame[r, 2, c],
+            frame[r, 3, c], length)
     else:
-        o = b if kind >= HIGH_WALL else a  # the face's owner
+        high = kind >= HIGH_WALL
+        o = b if high else a  # the face's owner, and what it emits through the face
+        own = second if high else first
         f0, f1, f2, f3, f4 = coded_flux(
-            kind_of(code), code, emit[E_H, o], emit[E_U1, o], emit[E_U2, o], emit[E_C, o],
-            emit[E_S, o], emit[E_KH, o], emit[E_K3, o], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+            kind_of(code), code, own[E_H, o], own[E_U1, o], own[E_U2, o], own[E_C, o],
+            own[E_S, o], own[E_KH, o], own[E_K3, o], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
             frame[r, 0, c], frame[r, 1, c], frame[r, 2, c], frame[r, 3, c],
             length)
     out[0, r, c] = f0
@@ -210,6 +254,42 @@ def _faces(mesh, emit, xf, yf):
     out[2, r, c] = f2
     out[3, r, c] = f3
     out[4, r, c] = f4
+
+
+def _recon(mesh, sc, cur, sides):
+    """Order 2, per cell: what it emits through each of its sides from its limited linear
+    reconstruction (``sides[SIDE_*, E_*, i]``), by the CPU kernel's own row pass
+    (square_grid's _recon_row, on the one cell's span of its row: the same Green-Gauss
+    gradients, Barth-Jespersen limiter and emitted states, so the same bits)."""
+    i = cuda.grid(1)
+    if i >= cur.h.size:
+        return
+    nx = mesh.x_code.shape[1] - 1
+    r = i // nx
+    recon_at(r, i - r * nx, nx, mesh, sc, cur, sides[:, :, r * nx:(r + 1) * nx])
+
+
+def _recon_at(r, c, nx, mesh, sc, cur, out):
+    """Cell c of row r through the row pass (its arguments as it takes them)."""
+    recon_row(r, c, c, nx, mesh.x_code.shape[0], mesh.x_code[r], mesh.y_code[r],
+              mesh.y_code[r + 1], mesh.x_frame[r], mesh.y_frame[r], mesh.y_frame[r + 1],
+              mesh.x_length[r], mesh.y_length[r], mesh.y_length[r + 1], mesh.x_off[r],
+              mesh.y_off[r], mesh.y_off[r + 1], mesh.cell_area, mesh.density, mesh.gamma_z,
+              cur.h, cur.hu, cur.hv, sc.h_zero, sc.g, out)
+
+
+def _recon_at_predicting(r, c, nx, mesh, sc, cur, out):
+    """:func:`_recon_at` for a row pass that can also predict the sides half a step on (the
+    CPU kernel's MUSCL-Hancock): Heun's stages predict nothing (a half step of 0)."""
+    recon_row(r, c, c, nx, mesh.x_code.shape[0], mesh.x_code[r], mesh.y_code[r],
+              mesh.y_code[r + 1], mesh.x_frame[r], mesh.y_frame[r], mesh.y_frame[r + 1],
+              mesh.x_length[r], mesh.y_length[r], mesh.y_length[r + 1], mesh.x_off[r],
+              mesh.y_off[r], mesh.y_off[r + 1], mesh.cell_area, mesh.density, mesh.gamma_z,
+              cur.h, cur.hu, cur.hv, sc.h_zero, sc.g, 0.0, mesh.gamma_x, mesh.gamma_y, sc.law,
+              mesh.params, out)
+
+
+recon_row = recon_at = heun_average = None
 
 
 def _side_terms(mesh, xf, yf, r, c):
@@ -237,9 +317,11 @@ def _centripetal(mesh, i, u1, u2):
 centripetal = None
 
 
-def _trial(mesh, sc, cur, work, dt, dt_decide):
+def _trial(mesh, sc, cur, work, dt, dt_decide, explicit):
     """Per cell, the flux divergence, the trial momentum of eq. 47 and the flag of eq. 49
-    (physics.trial_momentum); a dry cell keeps its momentum sum for the final update."""
+    (physics.trial_momentum); a dry cell keeps its momentum sum for the final update.
+    ``explicit``: a stage of order 2 (gravity and friction explicit, as the CPU kernel's
+    stages)."""
     i = cuda.grid(1)
     n = cur.h.size
     if i >= n:
@@ -262,17 +344,22 @@ def _trial(mesh, sc, cur, work, dt, dt_decide):
     qx, qy, fi = trial_momentum(h, sc.h_zero, emit[E_SPEED, i], cur.hu[i], cur.hv[i],
                                 mh * ia, mx * ia, my * ia, dt, dt_decide, mesh.gamma_x[i],
                                 mesh.gamma_y[i], mesh.gamma_z[i], centripetal(mesh, i, u1, u2),
-                                sc.law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, sc.g, False)
+                                sc.law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, sc.g, explicit)
     dry = h <= sc.h_zero
     work.qx[i] = mx if dry else qx
     work.qy[i] = my if dry else qy
     work.trial_flag[i] = DRY if (mesh.valid[i] == 0 or dry) else fi
 
 
-def _final(mesh, sc, cur, nxt, obs, work, dt):
+def _final(mesh, sc, cur, nxt, flag, work, dt, stage, transport, touched_by):
     """Per cell, the final update (the CPU kernel's _final_cells, its two loops one after
-    the other): mass through the faces that are not Dirac, the projection, the flags, and
-    the cell's terms of the step's sums (``work.terms``)."""
+    the other): mass through the faces that are not Dirac, the projection, the flags (into
+    ``flag``: the run's, or order 2's first stage's), and the cell's terms of the step's sums
+    (``work.terms``). ``stage``: 0 at order 1, else order 2's stage 1 or 2 (friction with
+    the stage's own thickness, physics.final_momentum's ``explicit``), which also writes
+    the cell's ``transport`` (the largest mass flux per metre through its faces that are not
+    Dirac, where the stage touches it, as the CPU kernel's stages) and whether the stage
+    touched it into ``touched_by`` (stage 1: set, stage 2: added), for Heun's merge."""
     i = cuda.grid(1)
     n = cur.h.size
     if i >= n:
@@ -321,11 +408,11 @@ def _final(mesh, sc, cur, nxt, obs, work, dt):
     hn, qx, qy, cl = cell_update(fi == DRY, fi, h_old, acc, qx, qy, area, dt, mesh.gamma_x[i],
                                  mesh.gamma_y[i], gz, centripetal(mesh, i, u1, u2), speed_n,
                                  sc.law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, h_zero,
-                                 False, False)
+                                 stage > 0, False)
     good = inside and (hn >= 0.0)
     bad = inside and (hn < 0.0)
     if inside:
-        obs.flag[i] = fi
+        flag[i] = fi
     h_w = hn if good else h_old
     qx = qx if good else 0.0
     qy = qy if good else 0.0
@@ -362,6 +449,44 @@ def _final(mesh, sc, cur, nxt, obs, work, dt):
     terms[T_OUT, i] = ((out_w + out_e) + out_s) + out_n if good else 0.0
     terms[T_CLAMPED, i] = cl if good else 0
     terms[T_BAD, i] = 1.0 if bad else 0.0
+    terms[T_SOURCE, i] = 0.0
+    if stage > 0:  # the CPU kernel's stage: its transport, through faces that are not Dirac
+        if touched:
+            unit = max(max(max(0.0 if d_w else abs(wm) / len_w, 0.0 if d_e else abs(e_m) / len_e),
+                           0.0 if d_s else abs(sm) / len_s), 0.0 if d_n else abs(nm) / len_n)
+            transport[i] = unit
+        touched_by[i] = 1 if (touched or (stage == 2 and touched_by[i] != 0)) else 0
+
+
+def _heun(mesh, sc, start, stage2, new, flag1, transport, touched_by, terms):
+    """Order 2, per cell: Heun's merge of the step's start and the second stage
+    (physics.heun_average, as the CPU kernel's _heun_cells: the same bits) into ``new``,
+    and the cell's terms of the step's sums: its inverse CFL limit where a stage touched it
+    (the cells the CPU kernel merges), kinetic energy, moving and film volumes, and in the
+    ``T_CLAMPED`` slot whether the merge fell back to q = 0 (eq. 56)."""
+    i = cuda.grid(1)
+    if i >= new.h.size:
+        return
+    a = start.h[i]
+    qa = start.hu[i]
+    qb = start.hv[i]
+    hn, qx, qy, fell_back = heun_average(a, qa, qb, stage2.h[i], stage2.hu[i], stage2.hv[i],
+                                         flag1[i], sc.h_zero)
+    new.h[i] = hn
+    new.hu[i] = qx
+    new.hv[i] = qy
+    speed, inv_i = observe_cell(hn, math.sqrt(qx * qx + qy * qy), mesh.cfl_factor[i],
+                                mesh.gamma_z[i], sc.g)
+    speed_n = speed_of(a, qa, qb)
+    moves = cell_moves(speed, speed_n, carries(transport[i], hn, speed_n, 1.0))
+    kin, mov, film = step_terms(hn, mesh.cell_area[i], speed, moves, sc.h_dry)
+    terms[T_INV, i] = inv_i if touched_by[i] != 0 else 0.0
+    terms[T_KIN, i] = kin
+    terms[T_MOV, i] = mov
+    terms[T_FILM, i] = film
+    terms[T_OUT, i] = 0.0
+    terms[T_CLAMPED, i] = fell_back
+    terms[T_BAD, i] = 0.0
     terms[T_SOURCE, i] = 0.0
 
 
@@ -524,11 +649,23 @@ def _build(law: int = 0, sources=()):
     names["supply_rate"] = (variants.supply_rate_with(entries, device) if entries
                             else _retarget(supply.supply_rate, names, device))
     names["supply_at"] = _retarget(supply.supply_at, names, device)
+    # order 2's reconstruction: the CPU kernel's row pass and the cell loop it calls, with
+    # the pointwise pieces that loop is made of
+    names["friction_law"] = _retarget(vectorize.friction_law, names, device)
+    for name in ("_gg_face", "_range", "_bj_select", "emitted_cell", "_side", "_side_direct",
+                 "_in_face_order", "_recon_cells"):
+        if hasattr(square_grid, name):  # (_side_direct: the row pass's MUSCL-Hancock form)
+            names[name] = _retarget(getattr(square_grid, name), names, device)
+    names["recon_row"] = _retarget(square_grid._recon_row, names, device)
+    predicting = "dt_half" in inspect.signature(square_grid._recon_row.py_func).parameters
+    names["recon_at"] = _retarget(_recon_at_predicting if predicting else _recon_at, names,
+                                  device)
     _KERNELS[key] = {name: _retarget(fn, names, cuda.jit)
                      for name, fn in (("emit", _emit), ("faces", _faces), ("trial", _trial),
                                       ("final", _final), ("reduce", _reduce),
                                       ("source", _source), ("observe", _observe),
-                                      ("supply", _supply))}
+                                      ("supply", _supply), ("recon", _recon),
+                                      ("heun", _heun))}
     return _KERNELS[key]
 
 
@@ -557,13 +694,15 @@ class CudaGrid:
     and the statistics are the same code on every backend."""
 
     def __init__(self, mesh: stepping.GridMesh, params: np.ndarray, law: int = 0,
-                 sources=()):
+                 sources=(), order: int = 1):
         from numba import cuda
 
+        from avflow.numerics import square_grid
         from avflow.numerics.loop import advance
 
         self.k = _build(law, sources)
         self.cuda = cuda
+        self.order = int(order)
         self.nx, self.ny = int(mesh.nx), int(mesh.ny)
         n = self.nx * self.ny
         self.n = n
@@ -575,13 +714,22 @@ class CudaGrid:
             to(np.ascontiguousarray(mesh.y_length)), to(mesh.cell_area), to(mesh.inv_area),
             to(mesh.cfl_factor), to(mesh.density), to(mesh.gamma_x), to(mesh.gamma_y),
             to(mesh.gamma_z), to(np.ascontiguousarray(mesh.curvature)),
-            to(np.ascontiguousarray(params, dtype=np.float64).reshape(-1, params.shape[-1])))
+            to(np.ascontiguousarray(params, dtype=np.float64).reshape(-1, params.shape[-1])),
+            to(np.ascontiguousarray(mesh.x_offset)), to(np.ascontiguousarray(mesh.y_offset)))
         z = cuda.device_array
         self.work = DeviceWork(z((N_EMIT, n)), z((5, self.ny, self.nx + 1)),
                                z((5, self.ny + 1, self.nx)), z(n, dtype=np.uint8), z(n), z(n),
                                z((N_TERMS, n)), z((N_TERMS, _partials(n))), z((N_TERMS, 1)))
         self.buffers = [DeviceState(z(n), z(n), z(n)), DeviceState(z(n), z(n), z(n))]
         self.obs = DeviceObservers(z(n, dtype=np.uint8), z(n), z(n), z(n), z(n))
+        m2 = n if self.order == 2 else 0  # order 2's arrays (empty at order 1)
+        sides = z((4, N_EMIT, m2))
+        self.o2 = DeviceOrder2(sides, to(np.full(m2, DRY, dtype=np.uint8)),
+                               to(np.zeros(m2, dtype=np.uint8)), to(np.zeros(m2)),
+                               DeviceState(z(m2), z(m2), z(m2)))
+        #: what the faces read of each side of a face at order 2 (:func:`_faces`)
+        self.face_sides = (sides[square_grid.SIDE_E], sides[square_grid.SIDE_W],
+                           sides[square_grid.SIDE_N], sides[square_grid.SIDE_S])
         self.erodible = z(n)  # the erodible layer (read and written where there is a source)
         self.maps = z((0, n))  # the registered maps, and the registered sources' book,
         self.supplied = z(n)  # sized at the first upload
@@ -682,21 +830,61 @@ class CudaGrid:
         return None, DeviceCall(sc, entrainment)
 
     def _before(self, region, ctx, loop, cur, nxt, steps):
-        """What cells emit and the face fluxes depend on the state alone: once a step."""
-        k, m, work = self.k, self.mesh, self.work
-        k["emit"][_blocks(self.n), THREADS](m, cur, work.emit, ctx.sc.g, ctx.sc.h_zero)
-        k["faces"][_blocks(self._n_faces()), THREADS](m, work.emit, work.xf, work.yf)
+        """What cells emit and the face fluxes depend on the state alone: once a step (order
+        1; order 2's stages are launched by :meth:`_step`)."""
+        if self.order == 1:
+            self._fluxes(ctx.sc, cur, 0)
         return region
+
+    def _fluxes(self, sc, state, stage):
+        """What the cells of ``state`` emit, and every face's flux: fed the cells' emitted
+        values (``stage`` 0, order 1) or their reconstructed sides (order 2's stages)."""
+        k, m, work = self.k, self.mesh, self.work
+        k["emit"][_blocks(self.n), THREADS](m, state, work.emit, sc.g, sc.h_zero)
+        if stage:
+            k["recon"][_blocks(self.n), THREADS](m, sc, state, self.o2.sides)
+            xa, xb, ya, yb = self.face_sides
+        else:
+            xa = xb = ya = yb = work.emit
+        k["faces"][_blocks(self._n_faces()), THREADS](m, xa, xb, ya, yb, work.xf, work.yf)
+
+    def _update(self, sc, cur, nxt, flag, when, stage):
+        """Trial momentum and final update from ``cur`` into ``nxt`` (flags into ``flag``),
+        and the grid's sums of the cells' terms."""
+        k, m, work, bc, o2 = self.k, self.mesh, self.work, _blocks(self.n), self.o2
+        k["trial"][bc, THREADS](m, sc, cur, work, when.dt, when.dt_decide, stage > 0)
+        k["final"][bc, THREADS](m, sc, cur, nxt, flag, work, when.dt, stage, o2.transport,
+                                o2.touched)
+        return self._sums(work.terms, work.partials, self.n)
 
     def _step(self, region, ctx, loop, cur, nxt, when, steps, attempt):
         """One attempt: trial momentum, final update, the grid's sums (the few numbers the
-        host sees)."""
-        k, m, work, bc = self.k, self.mesh, self.work, _blocks(self.n)
-        k["trial"][bc, THREADS](m, ctx.sc, cur, work, when.dt, when.dt_decide)
-        k["final"][bc, THREADS](m, ctx.sc, cur, nxt, self.obs, work, when.dt)
-        sums = self._sums(work.terms, work.partials, self.n)
-        return (sums[T_BAD] == 0.0, sums[T_OUT], physics_dt(sums[T_INV]), sums[T_MOV],
-                sums[T_FILM], int(sums[T_CLAMPED]), sums[T_KIN], 0, region)
+        host sees); order 2: Heun's two stages and merge, as the CPU kernel's order-2 step
+        (square_grid's _order2_step): stage 1 from ``cur`` into ``nxt`` (its flags kept for
+        the merge), stage 2 from ``nxt`` into the stage buffers (the run's flags), the merge
+        of ``cur`` and stage 2 into ``nxt``; the outflow is the stages' mean, the clamped
+        cells both stages', the other sums the merge's."""
+        sc = ctx.sc
+        if self.order == 1:
+            sums = self._update(sc, cur, nxt, self.obs.flag, when, 0)
+            return (sums[T_BAD] == 0.0, sums[T_OUT], physics_dt(sums[T_INV]), sums[T_MOV],
+                    sums[T_FILM], int(sums[T_CLAMPED]), sums[T_KIN], 0, region)
+        o2 = self.o2
+        fail = (False, 0.0, physics_dt(0.0), 0.0, 0.0, 0, 0.0, 0, region)
+        self._fluxes(sc, cur, 1)
+        one = self._update(sc, cur, nxt, o2.flag1, when, 1)
+        if one[T_BAD] != 0.0:  # (the CPU kernel runs no second stage either)
+            return fail
+        self._fluxes(sc, nxt, 2)
+        two = self._update(sc, nxt, o2.stage2, self.obs.flag, when, 2)
+        if two[T_BAD] != 0.0:
+            return fail
+        self.k["heun"][_blocks(self.n), THREADS](self.mesh, sc, cur, o2.stage2, nxt, o2.flag1,
+                                                 o2.transport, o2.touched, self.work.terms)
+        merged = self._sums(self.work.terms, self.work.partials, self.n)
+        return (True, 0.5 * (one[T_OUT] + two[T_OUT]), physics_dt(merged[T_INV]),
+                merged[T_MOV], merged[T_FILM], int(one[T_CLAMPED]) + int(two[T_CLAMPED]),
+                merged[T_KIN], int(merged[T_CLAMPED]), region)
 
     def _source(self, region, ctx, loop, nxt, when):
         """The entrainment after the accepted step, on its new state."""
@@ -738,16 +926,21 @@ class CudaGrid:
         """Every kernel launched once on the state, into scratch observers and the spare
         buffer, so that the first call of a run times no compilation (numba.cuda compiles a
         kernel at its first launch); the state and its observers are left as they are."""
-        k, m, work = self.k, self.mesh, self.work
+        k, m, work, o2 = self.k, self.mesh, self.work, self.o2
         cur = self.buffers[self.current]
         nxt = self.buffers[1 - self.current]
         like = self.cuda.device_array_like
         scratch = DeviceObservers(*(like(a) for a in self.obs))
         bc = _blocks(self.n)
-        k["emit"][bc, THREADS](m, cur, work.emit, sc.g, sc.h_zero)
-        k["faces"][_blocks(self._n_faces()), THREADS](m, work.emit, work.xf, work.yf)
-        k["trial"][bc, THREADS](m, sc, cur, work, 0.0, 0.0)
-        k["final"][bc, THREADS](m, sc, cur, nxt, scratch, work, 0.0)
+        stage = 0 if self.order == 1 else 1  # (the transport and merge's flags: scratch)
+        transport, touched = like(o2.transport), like(o2.touched)
+        self._fluxes(sc, cur, stage)
+        k["trial"][bc, THREADS](m, sc, cur, work, 0.0, 0.0, stage > 0)
+        k["final"][bc, THREADS](m, sc, cur, nxt, scratch.flag, work, 0.0, stage, transport,
+                                touched)
+        if stage:  # Heun's merge, into the spare buffer
+            k["heun"][bc, THREADS](m, sc, cur, nxt, nxt, like(o2.flag1), transport, touched,
+                                   work.terms)
         if source is not None:  # ``(law_row, src)``: on the spare buffer, a scratch layer
             k["source"][bc, THREADS](m, sc, nxt, like(self.erodible), work.terms, source[0],
                                      source[1], 0.0)
@@ -778,6 +971,6 @@ def physics_dt(inv_lim: float) -> float:
 
 
 def loop(structured, order, law, parallel):
-    """The registry's ``loop`` of the cuda kernel: the class that runs it (there is no one
-    compiled loop to hand out: the kernels compile at the first launch)."""
-    return CudaGrid
+    """The registry's ``loop`` of the cuda kernel: the class that runs it, at ``order``
+    (there is no one compiled loop to hand out: the kernels compile at the first launch)."""
+    return functools.partial(CudaGrid, order=order)

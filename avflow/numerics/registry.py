@@ -93,8 +93,8 @@ KERNELS: dict[tuple[str, str], Kernel] = {
                             _grid_refuses, _grid_loop, schemes=("hancock", "heun")),
     ("faces", "cpu"): Kernel("faces", "cpu", (1, 2), "any mesh by face lists, on threads",
                              _faces_refuses, _face_loop),
-    # numerics.cuda_grid: the square-grid kernel's step at order 1
-    ("grid", "cuda"): Kernel("grid", "cuda", (1,), "square grids (planes, DEMs), a GPU "
+    # numerics.cuda_grid: the square-grid kernel's step at orders 1 and 2
+    ("grid", "cuda"): Kernel("grid", "cuda", (1, 2), "square grids (planes, DEMs), a GPU "
                              "thread per cell", _grid_refuses, _cuda_grid_loop,
                              _cuda_unavailable),
 }

@@ -1180,7 +1180,7 @@ class Numerics(_Model):
     against); grid: the square-grid kernel, an error where it does not apply."""
     backend: Literal["cpu", "cuda"] = "cpu"
     """cpu: the kernels above, on this machine's cores; cuda: the square-grid kernel on a
-    CUDA GPU (``pip install 'avflow[cuda]'``; square grids at order 1;
+    CUDA GPU (``pip install 'avflow[cuda]'``; square grids at orders 1 and 2;
     anything else is refused at load time, as is a machine without a GPU). Its fields
     agree with the CPU's to round-off (docs/guide/gpu.md)."""
 
