@@ -356,3 +356,23 @@ if __name__ == "__main__":
     else:
         report = case_cuda()
     print(json.dumps(report))
+
+
+def test_no_map_takes_a_name_the_run_file_uses():
+    """The names a registered map may not take cover every variable the run file writes
+    (the fields, the summaries, the geometry); a name that slipped through is still refused
+    when the file is made, never written over."""
+    import numpy as np
+
+    from avflow.output import cf
+    from avflow.scenario.extensions import BUILT_IN_FIELDS, ExtensionError, register_map
+
+    missing = (set(cf.FIELDS) | set(cf.SUMMARIES) | {"cell_area", "crs", "duration_bounds",
+                                                      "structure_height"}) - set(BUILT_IN_FIELDS)
+    assert not missing, missing
+    with pytest.raises(ExtensionError, match="exists already"):
+        register_map("peak_thickness", lambda old, h, hu, hv, speed, t: h, "m", "x")
+    data = {"bed_elevation": (("y", "x"), np.zeros((2, 2)), {})}
+    with pytest.raises(ValueError, match="bed_elevation"):
+        cf.add_registered(data, {}, "bed_elevation", (("y", "x"), np.ones((2, 2)), {}))
+    assert not data["bed_elevation"][1].any()

@@ -101,6 +101,16 @@ FIELDS = {
                 "(bed_elevation is the initial bed); entrainment runs only"),
 }
 
+def add_registered(data: dict, coords: dict, name: str, variable) -> None:
+    """A registered map into a run file's variables, refused where the file uses the name
+    already (avflow.extend refuses the built-in names when a map is registered; this keeps
+    a name the list missed from writing over a variable)."""
+    if name in data or name in coords:
+        raise ValueError(f"the registered map {name!r} has the name of a variable of the run "
+                         "file: register it under another name")
+    data[name] = variable
+
+
 def registered_maps(state) -> dict:
     """The maps registered through :mod:`avflow.extend` that ``state`` kept, by name:
     ``(values per cell, CF attributes)``."""

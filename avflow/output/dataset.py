@@ -12,6 +12,7 @@ import xarray as xr
 
 from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, grid_mapping,
                               link_coordinates, per_width, registered_maps, run_bounds,
+                              add_registered,
                               time_coords)
 from avflow.output.fields import (cell_values, entrainment_variables, horizontal_basis,
                                   snapshot_fields)
@@ -199,8 +200,6 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
         at_rest = (state.h > 0.0) & (state.hu == 0.0) & (state.hv == 0.0)
         data["rest_time"] = (space, grid(np.where(at_rest, state.last_moved, np.nan)),
                              attrs("rest_time"))
-        for name, (values, attributes) in registered_maps(state).items():
-            data[name] = (space, grid(values), attributes)
         com = np.asarray(snaps.center_of_mass, dtype=float)
         for k, axis in enumerate("xyz"):
             data[f"center_of_mass_{axis}"] = ("time", com[:, k],
@@ -235,6 +234,9 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
             data[name] = ((), float(s[name]), {"long_name": name.replace("_", " "),
                                                 "units": per_width(units, profile),
                                                 "comment": description})
+    if part != "fields":  # last: a name the file uses already is refused, never written over
+        for name, (values, attributes) in registered_maps(result.state).items():
+            add_registered(data, coords, name, (space, grid(values), attributes))
     ds = xr.Dataset(data, coords=coords)
     link_coordinates(ds)
     if part != "fields":

@@ -17,7 +17,8 @@ import numpy as np
 import xarray as xr
 
 from avflow.output.cf import (FIELDS, SUMMARIES, global_attributes, grid_mapping,
-                              link_coordinates, registered_maps, run_bounds, time_coords)
+                              link_coordinates, registered_maps, run_bounds, time_coords,
+                              add_registered)
 
 MESH = "mesh"
 NODE, FACE = "node", "face"
@@ -86,6 +87,8 @@ def to_ugrid_dataset(result, part: str = "all") -> xr.Dataset:
                                           **crs_attrs})
     if part != "fields":
         data.update(run_bounds(np.asarray(snaps.time, dtype=float)))
+        for name, (values, attributes) in registered_maps(result.state).items():
+            add_registered(data, coords, name, (space, values, attributes))
     ds = xr.Dataset(data, coords=coords)
     link_coordinates(ds)
     if part != "fields":
@@ -108,8 +111,6 @@ def _add_rest(data, result, space, attrs, on_node, named_crs) -> None:
     data["arrival_time"] = (space, state.arrival, attrs("arrival_time"))
     at_rest = (state.h > 0.0) & (state.hu == 0.0) & (state.hv == 0.0)
     data["rest_time"] = (space, np.where(at_rest, state.last_moved, np.nan), attrs("rest_time"))
-    for name, (values, attributes) in registered_maps(state).items():
-        data[name] = (space, values, attributes)
     data["bed_elevation"] = (space, terrain.bed_elevation, attrs("bed_elevation"))
     data["slope_angle"] = (space, terrain.slope_deg, attrs("slope_angle"))
     data["cell_area"] = (space, terrain.mesh.cell_area, {

@@ -95,10 +95,25 @@ MAPS: dict[str, OutputMap] = {}
 SOURCES: dict[str, Source] = {}
 
 BUILT_IN_LAWS = ("coulomb", "pouliquen", "voellmy", "samosat", "velocity_weakening")
-#: Names the output already uses (a map may not take one of them)
-BUILT_IN_FIELDS = ("h", "hu", "hv", "u", "v", "speed", "flag", "peak_h", "peak_speed",
-                   "peak_pressure", "arrival_time", "rest_time", "deposit", "erodible",
-                   "forest", "entrained", "x", "y", "time", "mask", "dem", "flow_thickness")
+#: Names the output already uses (a map may not take one of them): the state's, and every
+#: variable a run's file holds (avflow.output.cf's fields and summaries, the geometry, the
+#: structures' and the run's bounds; tests/test_extension_api.py holds the list to them)
+BUILT_IN_FIELDS = (
+    "h", "hu", "hv", "u", "v", "speed", "flag", "peak_h", "peak_speed", "peak_pressure",
+    "arrival_time", "rest_time", "deposit", "erodible", "forest", "entrained", "x", "y",
+    "time", "mask", "dem", "flow_thickness",
+    # the run file's variables
+    "peak_thickness", "deposit_thickness", "flow_state", "bed_elevation", "slope_angle",
+    "bed_change", "erodible_depth", "entrained_volume_series", "moving_volume",
+    "center_of_mass_x", "center_of_mass_y", "center_of_mass_z", "cell_area", "crs",
+    "duration", "duration_bounds", "structure_height", "structure_kind", "structure_name",
+    "structure_overtopped_volume", "structure_retained_volume",
+    # its summaries
+    "compile_time", "deposit_length", "deposit_max_thickness", "deposit_volume",
+    "drop_height", "entrained_volume", "film_volume", "kinetic_energy_end",
+    "kinetic_energy_peak", "mass_balance_error", "moving_volume_end", "outflow_volume",
+    "release_volume", "runout", "secondary_release_volume", "supplied_volume",
+    "time_to_stop", "travel_angle", "travel_length", "wall_time")
 
 
 def _check_name(name: str, kind: str) -> None:
