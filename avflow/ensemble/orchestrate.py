@@ -296,6 +296,12 @@ def tiny_scenario_yamls(ensemble: Ensemble, one_thread: bool = False) -> list[st
     return out
 
 
+def _closed_scheduler_filter(record: logging.LogRecord) -> bool:
+    """False for a worker's log of a heartbeat to a scheduler that has closed (its
+    ``CommClosedError`` traceback), the one thing a worker logs when a command is stopped."""
+    return not record.getMessage().startswith("Failed to communicate with scheduler")
+
+
 def dask_setup(worker) -> None:
     """Preload of the local cluster's workers (dask's ``preload``, as the worker starts,
     before it takes a task): SIGINT ignored (see :func:`_ignore_sigint_plugin`) and the
@@ -304,6 +310,9 @@ def dask_setup(worker) -> None:
     after this process has filled the cache (numba issue 4807)."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # a worker whose scheduler closed first (the command interrupted) logged a traceback of
+    # its heartbeat's closed connection (1 SIGTERM in 6 of a 2-worker ensemble): no news
+    logging.getLogger("distributed.worker").addFilter(_closed_scheduler_filter)
     try:
         import avflow.ensemble.dataset  # noqa: F401 - member_digest
         import avflow.output.path  # noqa: F401
