@@ -178,7 +178,10 @@ def register_map(name: str, function: Callable, units: str, long_name: str,
     ``cell_methods``: how it sums up the run (CF 7.3: ``maximum``, ``minimum``, ``sum``,
     ``mean`` or ``point``)."""
     _check_name(name, "map")
-    if name in BUILT_IN_FIELDS or name in MAPS:
+    if name in BUILT_IN_FIELDS:
+        raise ExtensionError(f"a map named {name!r} would replace the run file's own variable "
+                             "of that name; give it another name")
+    if name in MAPS:
         raise ExtensionError(f"a map named {name!r} exists already")
     _check_function(function, "map", 6)
     if cell_methods not in ("maximum", "minimum", "sum", "mean", "point"):
