@@ -538,9 +538,11 @@ def _member_error(err: ScenarioError, index: int, updates: dict, vary: dict, sam
             culprit = key
     culprit = culprit or next(iter(updates))
     where = ("vary", culprit) if culprit in vary else ("sample", "ranges", culprit)
-    if culprit in vary:
-        value = updates[culprit]
+    value = updates[culprit]
+    if culprit in vary and value in vary[culprit]:
         where = ("vary", culprit, vary[culprit].index(value))
+    elif culprit in (sample_info or {}).get("ranges", {}):  # drawn: where it was drawn from
+        where = ("sample", "ranges", culprit)
     label = Member(index, None, updates, "").label  # type: ignore[arg-type]
     detail = "; ".join(f"{p.field + ': ' if p.field else ''}{p.message}" for p in err.problems)
     return fail(where, f"member {index} ({label}) is not a valid scenario: {detail}")

@@ -113,9 +113,12 @@ SLOPE_FACTOR_MIN = math.degrees(math.atan(0.202))
 #: The options that may be left out (None).
 OPTIONAL = ("wind_direction", "max_curvature", "min_area", "split_aspect_deg", "d0")
 
+#: m, the thinnest release the thickness rule may give
+MIN_THICKNESS = 1e-3
+
 #: Each number's range: a test of its low end, one of its high end, the rule in words. The
-#: high ends are physical: a snow depth over 20 m or a d0* over 10 m is a typo (the Swiss
-#: guideline's d0* is 0.5 to 3 m), an elevation outside -500..9000 m is no mountain's.
+#: high ends are physical: a snow depth over 20 m or a d0* over 10 m (or under 1 cm) is a
+#: typo (the Swiss guideline's d0* is 0.5 to 3 m), an elevation outside -500..9000 m is no mountain's.
 NUMBER_RANGES = {
     "slope_min": (lambda v: v >= 0, lambda v: v <= 90, "in [0, 90] degrees"),
     "slope_max": (lambda v: v > 0, lambda v: v <= 90, "in (0, 90] degrees"),
@@ -126,7 +129,7 @@ NUMBER_RANGES = {
     "max_curvature": (lambda v: v > 0, lambda v: True, "a number > 0 (1/m)"),
     "min_area": (lambda v: v > 0, lambda v: True, "a number > 0 (m2)"),
     "split_aspect_deg": (lambda v: v >= 1, lambda v: v <= 180, "in [1, 180] degrees"),
-    "d0": (lambda v: v > 0, lambda v: v <= 10, "in (0, 10] m"),
+    "d0": (lambda v: v >= 0.01, lambda v: v <= 10, "in [0.01, 10] m"),
     "reference_elevation": (lambda v: v >= -500, lambda v: v <= 9000, "in [-500, 9000] m"),
     "gradient": (lambda v: v >= -1, lambda v: v <= 1, "in [-1, 1] m per 100 m"),
 }
@@ -455,7 +458,8 @@ def _polygons(result: PRAResult, z, slope, settings: PRASettings) -> list:
             row["thickness"] = float(swiss_thickness(
                 settings.d0, psi, elevation, settings.reference_elevation, settings.gradient,
                 settings.slope_correction))
-            if not (math.isfinite(row["thickness"]) and row["thickness"] > 0):
+            # under a millimetre is no release (and a file's field may round it to 0)
+            if not (math.isfinite(row["thickness"]) and row["thickness"] >= MIN_THICKNESS):
                 raise PRAError(f"d0: the thickness rule gives {row['thickness']:.3g} m for the "
                                f"area at {elevation:.0f} m, {psi:.1f} degrees (d0 "
                                f"{settings.d0:g} m, gradient {settings.gradient:g} m per 100 m "
