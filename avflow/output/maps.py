@@ -453,8 +453,10 @@ def runout_text(ds, digits: int = 0) -> str | None:
     r = _fmt(ds, "runout", f".{digits}f", " m")
     if r is None:
         return None
-    if scene_kind(ds) == "profile" or not ds.attrs.get("runout_path"):
-        return f"runout {r} along the bed"
+    if scene_kind(ds) == "profile":
+        return f"runout {r} along the bed from the top"
+    if not ds.attrs.get("runout_path"):  # triangle meshes, files of earlier versions
+        return f"runout {r} from the release centroid (horizontal)"
     text = (f"runout {r} along the {ds.attrs['runout_path']} "
             f"({ds.attrs.get('runout_limit', '')})")
     a = _fmt(ds, "runout_angle", ".1f", "°")
