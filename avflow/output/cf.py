@@ -124,7 +124,7 @@ SUMMARIES = {
                                "the release to the runout point (maps)"),
     "reach_from_release_centroid": ("m", "horizontal distance from the release centroid to "
                                          "the farthest deposit cell (h > runout_threshold); "
-                                         "on profiles the runout along the bed"),
+                                         "maps only (NaN on profiles)"),
     "time_to_stop": ("s", "time the stop rule ended the run (stop_rule attribute): the moving "
                           "volume (u != 0, h > dry_threshold) below stop_fraction of the "
                           "released volume, or the kinetic energy at most stop_fraction of its "

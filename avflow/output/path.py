@@ -1327,9 +1327,11 @@ def headline_runout(result) -> dict:
     s = result.summary
     if "reach_from_release_centroid" in s:
         return s
-    s["reach_from_release_centroid"] = s["runout"]
+    # on a profile the runout is already the end of the deposit along the bed: no other
+    s["reach_from_release_centroid"] = (math.nan if result.terrain.kind == "profile"
+                                        else s["runout"])
     s["runout_angle"] = math.nan
-    s["runout_path"] = "the profile" if result.terrain.kind == "profile" else ""
+    s["runout_path"] = ""
     if result.terrain.kind != "grid":
         return s
     block = result.scenario.output.path
