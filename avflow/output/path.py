@@ -407,10 +407,12 @@ SCALARS = {
 
 def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
             threshold: float | None = None, width: float | None = None,
-            bin_size: float | None = None, regression=None) -> PathResult:
+            bin_size: float | None = None, regression=None, profiles: bool = True
+            ) -> PathResult:
     """The run ``points`` along ``line``: runout point, alpha, maxima, cross-section profiles,
     and the alpha-beta model's angles and points from the top of the release
-    (``regression``: :func:`avflow.output.alphabeta.regression`)."""
+    (``regression``: :func:`avflow.output.alphabeta.regression`); ``profiles=False``: the
+    runout point, alpha and maxima only."""
     settings = PathSettings(None, field, threshold, width)
     threshold = settings.threshold_for(points)
     variable, factor, units = FIELDS[field]
@@ -446,6 +448,8 @@ def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
         scale = 1e-3 if short == "pressure" else 1.0
         sc[f"max_{short}"] = float(v.max() * scale) if v.size else nan
     result = PathResult(line, field, threshold, units, width, s, l, run, top, sc)
+    if not profiles:  # the runout point alone (a run's headline): no sections, no alpha-beta
+        return result
     result.profile = cross_sections(points, result, inside, bin_size or points.spacing)
     if top is not None:
         result.alpha_beta = path_alpha_beta(points, line, sc["top_s"], sc["top_z"],
@@ -1310,8 +1314,12 @@ def result_points(result) -> RunPoints:
               "peak_thickness": np.asarray(state.peak_h, dtype=float)}
     com = np.asarray(result.snapshots.center_of_mass, dtype=float).reshape(-1, 3)
     spacing = float(min(abs(terrain.x[1] - terrain.x[0]), abs(terrain.y[1] - terrain.y[0])))
-    return RunPoints(x, y, np.asarray(terrain.bed_elevation, dtype=float), fields,
-                     np.nan_to_num(np.asarray(result.h0, dtype=float)) > 0.0, spacing,
+    released = np.nan_to_num(np.asarray(result.h0, dtype=float)) > 0.0
+    # only the cells the flow reached can hold the runout point: the projection onto the
+    # path then costs what the flow covers, not the map
+    keep = released | (fields["peak_thickness"] > 0.0)
+    return RunPoints(x[keep], y[keep], np.asarray(terrain.bed_elevation, dtype=float)[keep],
+                     {k: v[keep] for k, v in fields.items()}, released[keep], spacing,
                      com[:, 0], com[:, 1], "grid", result.scenario.name,
                      float(result.thresholds["runout"]))
 
@@ -1342,7 +1350,7 @@ def headline_runout(result) -> dict:
         points = result_points(result)
         line = path_for(points, settings.line)
         res = analyse(points, line, settings.field, settings.threshold_for(points),
-                      settings.width)
+                      settings.width, profiles=False)
     except (AvflowError, ValueError):
         return s  # no path to follow (nothing moved): no runout along a path
     s["runout"] = res.scalars["runout_s"]
