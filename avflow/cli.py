@@ -87,15 +87,18 @@ def summary_line(ds) -> str:
     if int(ds.attrs.get("runout_truncated", 0)):
         status += ", RUNOUT TRUNCATED by the map's edge (a lower bound: enlarge the map)"
     profile = ds["peak_thickness"].dims == ("x",)
-    runout = (f"runout {f('runout', '.1f')} m "
-              + ("along the bed from the top" if profile else
-                 "from the release centroid (horizontal)"))
+    from avflow.output.maps import runout_text
+
+    runout = runout_text(ds, 1) or "runout: none"
     if math.isnan(float(ds["runout"])):  # no cell above the runout threshold: say why
         left = float(ds["outflow_volume"]) if "outflow_volume" in ds else 0.0
         released = max(float(ds["release_volume"]), 1e-300)
         runout = ("runout: none on the map (all the mass flowed out over its edge)"
                   if left >= 0.999 * released else
-                  "runout: none (no cell above the runout threshold)")
+                  "runout: none (no cell above the runout threshold)"
+                  if profile or not ds.attrs.get("runout_path") else
+                  f"runout: none (no cell reaches {ds.attrs.get('runout_limit', '')} "
+                  f"along the {ds.attrs['runout_path']})")
     stop = float(ds["time_to_stop"])
     if math.isnan(stop):  # never at rest: say by when, not NaN
         end = float(ds["time"][-1]) if "time" in ds.coords and ds["time"].size else math.nan
@@ -363,7 +366,9 @@ def _run_path(ds, block, out: Path, quiet: bool = False, inputs=None) -> None:
     if quiet:
         return
     truncated = bool(int(ds.attrs.get("runout_truncated", 0)))
-    print(path_line(result, float(ds["runout"]), truncated))
+    reach = ds["reach_from_release_centroid"] if "reach_from_release_centroid" in ds \
+        else ds["runout"]
+    print(path_line(result, float(reach), truncated))
     print("wrote " + ", ".join(str(w) for w in written))
 
 

@@ -110,23 +110,25 @@ def test_ensemble_names_edge_members_and_draws_no_by_law_for_one_law(tmp_path, c
 
 
 def test_runouts_and_angles_are_named_by_what_they_measure(plane_run):
-    """The summary's runout is from the release centroid, the title's travel angle from the
-    highest released cell to the farthest deposit cell; the path analysis' runout and alpha
-    are along the path from the top of the release (its own line says so)."""
+    """The runout is along the path at the pressure limit, with its alpha, in the summary
+    line, the title and the path analysis alike; the distance from the release centroid
+    keeps its own name."""
     from avflow.output.maps import _title
 
     _, ds = plane_run
     line = summary_line(ds)
-    assert f"runout {float(ds.runout):.1f} m from the release centroid (horizontal)" in line
+    where = f"along the {ds.attrs['runout_path']} ({ds.attrs['runout_limit']})"
+    assert f"runout {float(ds.runout):.1f} m {where}" in line
     title = _title(ds)
-    assert f"runout {float(ds.runout):.0f} m from the release centroid" in title
-    assert (f"travel angle {float(ds.travel_angle):.1f}° (highest release cell to farthest "
-            "deposit)") in title
-    # the path analysis names its own, and the summary's for comparison
+    assert f"runout {float(ds.runout):.0f} m {where}" in title
+    assert f"alpha {float(ds.runout_angle):.1f}°" in title
+    # the path analysis gives the same runout, and the distance from the release centroid
     from avflow.output.path import analyse_run, summary_line as path_line
 
     _, res = analyse_run(ds)
-    text = path_line(res, float(ds.runout))
+    assert res.scalars["runout_s"] == float(ds.runout)
+    reach = float(ds.reach_from_release_centroid)
+    text = path_line(res, reach)
     assert "m from the top of the release, alpha" in text, text
-    assert (f"(the summary's runout, farthest deposit cell from the release centroid: "
-            f"{float(ds.runout):.1f} m)") in text, text
+    assert (f"(reach_from_release_centroid, the farthest deposit cell from the release "
+            f"centroid: {reach:.1f} m)") in text, text

@@ -193,9 +193,12 @@ def test_hairpin_valley_along_path_runout_against_the_farthest_cell(tmp_path):
     drop = points.z[top] - points.z[r.runout_index]
     assert r.scalars["runout_angle"] == pytest.approx(math.degrees(math.atan2(drop, length)),
                                                       abs=0.05)
-    # avflow's runout (farthest deposit cell from the release centroid) lies near the bend:
-    # hundreds of metres short of the path length, which it cannot see
-    farthest = float(ds["runout"])
+    # the run's headline runout is this one: along the scenario's path line
+    assert float(ds["runout"]) == pytest.approx(r.scalars["runout_s"], abs=1e-9)
+    assert ds.attrs["runout_path"] == "path line"
+    # the farthest deposit cell from the release centroid lies near the bend: hundreds of
+    # metres short of the path length, which it cannot see
+    farthest = float(ds["reach_from_release_centroid"])
     assert farthest < 0.7 * length
     # ... and the straight-line distance from the top to the runout point is shorter still
     chord = math.hypot(r.scalars["runout_x"] - points.x[top], r.scalars["runout_y"] - points.y[top])

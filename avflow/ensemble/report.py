@@ -90,6 +90,7 @@ def write_report(outdir: str | os.PathLike) -> Path:
               if c.dims == ("realization",) and c.dtype.kind == "f"
               and np.isfinite(c.values).any() and np.unique(c.values[np.isfinite(c.values)]).size > 1]
     x_units = {"runout": "m", "time_to_stop": "s"}
+    runout_label = "runout along the bed" if profile else "runout along the path"
 
     md = [f"# Ensemble report: {ds.attrs.get('ensemble_name', '')}", ""]
     md += [f"- members: {n}, succeeded: {int(ok.sum())}, failed: {int((~ok).sum())}",
@@ -110,6 +111,12 @@ def write_report(outdir: str | os.PathLike) -> Path:
         md += ["- **no member came to rest**: every final thickness is a snapshot of a flow "
                "still moving (statuses: " + ", ".join(sorted(set(status[ok]))) + "); peak "
                "maps and exceedance probabilities are unaffected"]
+    md += ["- runout: " + ("the downslope end of the deposit along the bed" if profile else
+                           "the distance along the path (the scenario's path line, else each "
+                           "member's centre-of-mass track) of the farthest cell whose peak "
+                           "pressure reaches 1 kPa (or the limit of output.path), as AIMEC; "
+                           "summary.csv's reach_from_release_centroid is the horizontal "
+                           "distance from the release centroid to the farthest deposit cell")]
     panels = ["runout"]
     if np.isfinite(ds["time_to_stop"].values[ok]).any():
         panels.append("time_to_stop")
@@ -140,7 +147,8 @@ def write_report(outdir: str | os.PathLike) -> Path:
                         label=label if ax is axes[0] and label else None)
             ax.set_xlabel(f"{ds[param].attrs.get('long_name', param)}"
                           f" ({ds[param].attrs.get('units', '')})")
-            ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
+            ax.set_ylabel(f"{runout_label if name == 'runout' else name.replace('_', ' ')} "
+                          f"({x_units[name]})")
             ax.grid(alpha=0.3)
         if others:  # one entry per line: what the other parameters are on it
             axes[0].legend(fontsize=7)
@@ -167,7 +175,8 @@ def write_report(outdir: str | os.PathLike) -> Path:
                 ax.scatter(k + rng.uniform(-0.15, 0.15, sel.sum()), y[sel], color=colors[law],
                            alpha=0.8, s=18)
             ax.set_xticks(range(len(colors)), list(colors))
-            ax.set_ylabel(f"{name.replace('_', ' ')} ({x_units[name]})")
+            ax.set_ylabel(f"{runout_label if name == 'runout' else name.replace('_', ' ')} "
+                          f"({x_units[name]})")
             ax.grid(alpha=0.3)
         fig.suptitle(f"{what} per friction law")
         _savefig(fig, figdir / "by_law.png")

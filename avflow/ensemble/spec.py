@@ -82,10 +82,12 @@ def member_limit(max_members: int | None = None) -> int:
 #: Summaries copied into every member row (and into ensemble.nc).
 SUMMARY_FIELDS = ("runout", "time_to_stop", "deposit_max_thickness", "deposit_length",
                   "deposit_volume", "release_volume", "outflow_volume", "mass_balance_error",
-                  "travel_angle", "wall_time", "entrained_volume", "moving_volume_end")
+                  "travel_angle", "wall_time", "entrained_volume", "moving_volume_end",
+                  "runout_angle", "reach_from_release_centroid")
 #: Summaries a member file from before them may lack, and what they were then (no
 #: entrainment existed: nothing was entrained; the moving volume: unknown).
-SUMMARY_DEFAULTS = {"entrained_volume": 0.0, "moving_volume_end": float("nan")}
+SUMMARY_DEFAULTS = {"entrained_volume": 0.0, "moving_volume_end": float("nan"),
+                    "runout_angle": float("nan"), "reach_from_release_centroid": float("nan")}
 OK_STATUSES = ("at_rest", "ended_by_rule", "completed", "stopped")  # runner.SUCCESS_STATUSES
 
 

@@ -125,9 +125,16 @@ def registered_maps(state) -> dict:
 
 
 SUMMARIES = {
-    "runout": ("m", "downslope end of the deposit (h > runout_threshold); along the bed "
-                    "from the top on profiles, horizontal distance from the release centroid "
-                    "on grids"),
+    "runout": ("m", "on maps: distance along the path (runout_path attribute: the scenario's "
+                    "path line, else the centre-of-mass track) of the farthest cell whose "
+                    "peak pressure reaches the limit (runout_limit attribute, 1 kPa by "
+                    "default, as AIMEC); on profiles: downslope end of the deposit "
+                    "(h > runout_threshold) along the bed from the top"),
+    "runout_angle": ("degree", "alpha: atan(drop / distance along the path) from the top of "
+                               "the release to the runout point (maps)"),
+    "reach_from_release_centroid": ("m", "horizontal distance from the release centroid to "
+                                         "the farthest deposit cell (h > runout_threshold); "
+                                         "maps only (NaN on profiles)"),
     "time_to_stop": ("s", "time the stop rule ended the run (stop_rule attribute): the moving "
                           "volume (u != 0, h > dry_threshold) below stop_fraction of the "
                           "released volume, or the kinetic energy at most stop_fraction of its "
@@ -301,6 +308,8 @@ def _attributes(result, references: str) -> dict:
         "release_time": release_stamp(sc.output.release_time),
         "status": s["status"],
         "runout_threshold_m": th["runout"],
+        "runout_path": s.get("runout_path", ""),
+        "runout_limit": s.get("runout_limit", ""),
         "dry_threshold_m": th["dry"],
         "stop_rule": th["stop_rule"],
         "stop_fraction": th["stop_fraction"],

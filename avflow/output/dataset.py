@@ -147,6 +147,10 @@ def to_dataset(result: RunResult, part: str = "all") -> xr.Dataset:
     if part not in PARTS:
         raise ValueError(f"part must be one of {PARTS}, got {part!r}")
     terrain, snaps = result.terrain, result.snapshots
+    if part != "fields":  # the headline runout: along the path, at the pressure limit
+        from avflow.output.path import headline_runout
+
+        headline_runout(result)
     if terrain.kind == "triangles":  # fields on the nodes of a UGRID mesh
         return to_ugrid_dataset(result, part)
     profile = terrain.kind == "profile"

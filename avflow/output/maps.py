@@ -447,13 +447,26 @@ def _fmt(ds, name: str, fmt: str, unit: str) -> str | None:
     return None if math.isnan(v) else f"{format(v, fmt)}{unit}"
 
 
+def runout_text(ds, digits: int = 0) -> str | None:
+    """The headline runout as the summary line and the plot title show it: on maps the
+    distance along the path at the pressure limit and its alpha, on profiles along the bed."""
+    r = _fmt(ds, "runout", f".{digits}f", " m")
+    if r is None:
+        return None
+    if scene_kind(ds) == "profile":
+        return f"runout {r} along the bed from the top"
+    if not ds.attrs.get("runout_path"):  # triangle meshes, files of earlier versions
+        return f"runout {r} from the release centroid (horizontal)"
+    text = (f"runout {r} along the {ds.attrs['runout_path']} "
+            f"({ds.attrs.get('runout_limit', '')})")
+    a = _fmt(ds, "runout_angle", ".1f", "°")
+    return text + (f", alpha {a}" if a else "")
+
+
 def _title(ds) -> str:
-    # each length and angle named by what it measures (the path analysis gives others)
-    frm = " along the bed" if scene_kind(ds) == "profile" else " from the release centroid"
+    # the headline runout and its alpha, named by what they measure (see runout_text)
     parts = [p for p in (
-        _fmt(ds, "runout", ".0f", " m") and "runout " + _fmt(ds, "runout", ".0f", " m") + frm,
-        _fmt(ds, "travel_angle", ".1f", "°") and "travel angle "
-        + _fmt(ds, "travel_angle", ".1f", "°") + " (highest release cell to farthest deposit)",
+        runout_text(ds),
         _fmt(ds, "deposit_max_thickness", ".2g", " m") and "deposit max "
         + _fmt(ds, "deposit_max_thickness", ".3g", " m"),
         _fmt(ds, "time_to_stop", ".1f", " s") and ("stops at " if at_rest(ds) else

@@ -53,6 +53,8 @@ FIELDS = {"pressure": ("peak_pressure", 1e-3, "kPa"),
 COM = "com"
 #: AIMEC's default pressure limit (kPa).
 DEFAULT_PRESSURE_KPA = 1.0
+#: The summary of the horizontal distance from the release centroid to the farthest deposit.
+_REACH = "reach_from_release_centroid"
 LINE_SUFFIXES = (".shp", ".geojson", ".json", ".csv")
 #: The fields projected along the path (run-file variables) and their short names.
 PROFILE_FIELDS = {"peak_pressure": "pressure", "peak_speed": "speed",
@@ -405,10 +407,12 @@ SCALARS = {
 
 def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
             threshold: float | None = None, width: float | None = None,
-            bin_size: float | None = None, regression=None) -> PathResult:
+            bin_size: float | None = None, regression=None, profiles: bool = True
+            ) -> PathResult:
     """The run ``points`` along ``line``: runout point, alpha, maxima, cross-section profiles,
     and the alpha-beta model's angles and points from the top of the release
-    (``regression``: :func:`avflow.output.alphabeta.regression`)."""
+    (``regression``: :func:`avflow.output.alphabeta.regression`); ``profiles=False``: the
+    runout point, alpha and maxima only."""
     settings = PathSettings(None, field, threshold, width)
     threshold = settings.threshold_for(points)
     variable, factor, units = FIELDS[field]
@@ -444,6 +448,8 @@ def analyse(points: RunPoints, line: PathLine, field: str = "pressure",
         scale = 1e-3 if short == "pressure" else 1.0
         sc[f"max_{short}"] = float(v.max() * scale) if v.size else nan
     result = PathResult(line, field, threshold, units, width, s, l, run, top, sc)
+    if not profiles:  # the runout point alone (a run's headline): no sections, no alpha-beta
+        return result
     result.profile = cross_sections(points, result, inside, bin_size or points.spacing)
     if top is not None:
         result.alpha_beta = path_alpha_beta(points, line, sc["top_s"], sc["top_z"],
@@ -591,7 +597,8 @@ def run_points(ds) -> RunPoints:
     return RunPoints(x, y, z, fields, released, spacing, com[0], com[1], kind,
                      str(ds.attrs.get("scenario_name", "")),
                      float(ds.attrs.get("runout_threshold_m", math.nan)),
-                     float(ds["runout"]) if "runout" in ds else math.nan, grid,
+                     float(ds[_REACH] if _REACH in ds else ds["runout"]) if "runout" in ds
+                     else math.nan, grid,
                      bool(int(ds.attrs.get("runout_truncated", 0))))
 
 
@@ -1001,8 +1008,8 @@ def summary_line(result: PathResult, farthest: float = math.nan,
             f"release, alpha {sc['runout_angle']:.2f} deg, max pressure "
             f"{sc['max_pressure']:.3g} kPa, max speed {sc['max_speed']:.3g} m/s")
     if not math.isnan(farthest):
-        text += (f" (the summary's runout, farthest deposit cell from the release centroid: "
-                 f"{farthest:.1f} m)")
+        text += (f" (reach_from_release_centroid, the farthest deposit cell from the "
+                 f"release centroid: {farthest:.1f} m)")
     text += alpha_beta_text(result)
     if truncated:
         text += "; a lower bound: the flow reached the edge of the map"
@@ -1092,7 +1099,8 @@ def analyse_target(target, line=None, field=None, threshold=None, width=None, ou
         inputs = inputs_of(target, ds.attrs)  # the run file and the files it records
         inputs.update(protected([settings.line]))
         result, written = write_run_path(ds, settings, stem, inputs)
-        farthest = float(ds["runout"]) if "runout" in ds else math.nan
+        farthest = float(ds[_REACH] if _REACH in ds else ds["runout"]) if "runout" in ds \
+            else math.nan
         truncated = bool(int(ds.attrs.get("runout_truncated", 0)))
     return summary_line(result, farthest, truncated), written
 
@@ -1288,3 +1296,64 @@ def ensemble_path(table, outdir, settings: PathSettings, points: dict | None = N
              "path_threshold_units": first.units,
              "path_width_m": math.nan if first.width is None else first.width}
     return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+# =========================================================================================
+# The headline runout of a run: s along the path at the pressure limit (as AIMEC)
+# =========================================================================================
+
+
+def result_points(result) -> RunPoints:
+    """The cells of a run result on a grid (before it becomes a Dataset)."""
+    terrain, state = result.terrain, result.state
+    x, y = terrain.cell_xy()
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    density = result.scenario.physics.density
+    fields = {"peak_pressure": density * np.asarray(state.peak_speed, dtype=float) ** 2,
+              "peak_speed": np.asarray(state.peak_speed, dtype=float),
+              "peak_thickness": np.asarray(state.peak_h, dtype=float)}
+    com = np.asarray(result.snapshots.center_of_mass, dtype=float).reshape(-1, 3)
+    spacing = float(min(abs(terrain.x[1] - terrain.x[0]), abs(terrain.y[1] - terrain.y[0])))
+    released = np.nan_to_num(np.asarray(result.h0, dtype=float)) > 0.0
+    # only the cells the flow reached can hold the runout point: the projection onto the
+    # path then costs what the flow covers, not the map
+    keep = released | (fields["peak_thickness"] > 0.0)
+    return RunPoints(x[keep], y[keep], np.asarray(terrain.bed_elevation, dtype=float)[keep],
+                     {k: v[keep] for k, v in fields.items()}, released[keep], spacing,
+                     com[:, 0], com[:, 1], "grid", result.scenario.name,
+                     float(result.thresholds["runout"]))
+
+
+def headline_runout(result) -> dict:
+    """Set the headline ``runout`` of a map run's summary: the distance along the path
+    (``output.path.line`` when the scenario gives one, else the flow's centre-of-mass track)
+    of the farthest cell whose peak pressure reaches the limit (``output.path``'s field and
+    threshold, else 1 kPa, as AIMEC), with ``runout_angle`` (alpha, top of the release to
+    that point). The horizontal distance from the release centroid to the farthest deposit
+    cell stays as ``reach_from_release_centroid``. Profiles keep their runout along the bed.
+    Returns the summary; a second call changes nothing."""
+    s = result.summary
+    if "reach_from_release_centroid" in s:
+        return s
+    # on a profile the runout is already the end of the deposit along the bed: no other
+    s["reach_from_release_centroid"] = (math.nan if result.terrain.kind == "profile"
+                                        else s["runout"])
+    s["runout_angle"] = math.nan
+    s["runout_path"] = ""
+    if result.terrain.kind != "grid":
+        return s
+    block = result.scenario.output.path
+    settings = PathSettings.from_scenario(block)
+    s["runout_path"] = "path line" if settings.line else "centre-of-mass track"
+    s["runout"] = math.nan
+    try:
+        points = result_points(result)
+        line = path_for(points, settings.line)
+        res = analyse(points, line, settings.field, settings.threshold_for(points),
+                      settings.width, profiles=False)
+    except (AvflowError, ValueError):
+        return s  # no path to follow (nothing moved): no runout along a path
+    s["runout"] = res.scalars["runout_s"]
+    s["runout_angle"] = res.scalars["runout_angle"]
+    s["runout_limit"] = f"{res.field} >= {res.threshold:g} {res.units}"
+    return s

@@ -104,7 +104,8 @@ def _open(path):
 def _row(ds, label: str, cell_area: float) -> dict:
     p = ds["peak_pressure"].values.astype(float) * 1e-3
     row = {"run": label, "scenario": str(ds.attrs.get("scenario_name", ""))}
-    for name in ("runout", "travel_length", "travel_angle", "release_volume",
+    for name in ("runout", "runout_angle", "reach_from_release_centroid", "travel_length",
+                 "travel_angle", "release_volume",
                  "deposit_volume", "outflow_volume"):
         row[name] = float(ds[name]) if name in ds else math.nan
     row["peak_pressure_max_kPa"] = float(np.nanmax(p)) if np.isfinite(p).any() else math.nan

@@ -214,12 +214,15 @@ def write_region_report(path) -> Path:
         lines += [f"| {status} | {count} |" for status, count in counts.items()]
         ok = table[table["status"].isin(("ok", "dem_edge"))].dropna(subset=["runout"])
         if len(ok):
-            lines += ["", "Longest runouts:", "", "| release | scenario | runout (m) | "
-                      "travel angle (deg) | volume (m3) | status |",
+            lines += ["", "Longest runouts (along the path, peak pressure >= 1 kPa; "
+                      "alpha from the top of the release to that point):", "",
+                      "| release | scenario | runout (m) | "
+                      "alpha (deg) | volume (m3) | status |",
                       "| --- | --- | --- | --- | --- | --- |"]
             for _, r in ok.sort_values("runout", ascending=False).head(10).iterrows():
                 lines.append(f"| {int(r['id'])} | {int(r['scenario'])} | {r['runout']:.0f} | "
-                             f"{r['travel_angle']:.1f} | {r['volume']:.4g} | {r['status']} |")
+                             f"{r.get('runout_angle', r['travel_angle']):.1f} | "
+                             f"{r['volume']:.4g} | {r['status']} |")
         problems = table[~table["status"].isin(("ok",))]
         if len(problems):
             lines += ["", "Releases that did not run cleanly:", ""]

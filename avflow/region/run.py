@@ -30,7 +30,8 @@ from avflow.files import atomic_write
 MERGED = ("ok", "dem_edge")
 #: Columns of releases.csv, in order.
 COLUMNS = ("id", "scenario", "return_period", "thickness", "status", "volume",
-           "entrained_volume", "runout", "travel_angle", "area", "area_outside_dem",
+           "entrained_volume", "runout", "runout_angle", "reach_from_release_centroid",
+           "travel_angle", "area", "area_outside_dem",
            "retries",
            "wall_time", "run_time", "buffer", "row0", "row1", "col0", "col1", "cells",
            "steps", "mass_balance_error", "reach_threshold", "reused", "error")
@@ -230,11 +231,15 @@ def _run_growing(task, region, dem, row, outdir: Path) -> dict:
                 break  # a flow at the DEM's own border (or NODATA): no window is larger
             buffer *= rules.growth
             retries += 1
-    s = result.summary
+    from avflow.output.path import headline_runout
+
+    s = headline_runout(result)  # runout along the path at the pressure limit
     r0, r1, c0, c1 = window
     row.update(status="dem_edge" if truncated else "ok", retries=retries,
                volume=s["release_volume"], entrained_volume=s.get("entrained_volume", 0.0),
-               runout=s["runout"], travel_angle=s["travel_angle"],
+               runout=s["runout"], runout_angle=s["runout_angle"],
+               reach_from_release_centroid=s["reach_from_release_centroid"],
+               travel_angle=s["travel_angle"],
                steps=int(s["steps"]), mass_balance_error=s["mass_balance_error"],
                run_time=run_time, buffer=buffer, row0=r0, row1=r1, col0=c0, col1=c1,
                cells=int(result.terrain.n_cells),
