@@ -244,15 +244,18 @@ def test_the_2d_demo_ensemble_shows_a_real_spread(tmp_path):
     """scenarios/ensembles/plane_box_2d_ensemble.yaml: every member stops in the open, at a
     runout of its own (all 9 hit the wall at 850.3 m before), but for the cell size: at
     order 2 two members (22 degrees with half the volume, 24 with all of it) stop in the same
-    farthest cell, 405.3 m out."""
+    farthest cell, 405.3 m out. (Measured by the farthest deposit cell: the runout along the
+    path needs 1 kPa, which the two members whose friction is steepest against their volume
+    never reach: NaN, said so.)"""
     ens = load_ensemble(SCENARIOS / "ensembles" / "plane_box_2d_ensemble.yaml")
     outcome = run_ensemble(ens, tmp_path / "out", workers=0,
                            progress=ProgressLine(len(ens.members), quiet=True))
     table = outcome.table
     assert set(table["status"]) == {"at_rest"} and (table["runout_truncated"] == 0).all()
-    runout = table["runout"].to_numpy()
-    assert len(np.unique(np.round(runout))) >= 8
-    assert runout.max() > 2.5 * runout.min()
+    reach = table["reach_from_release_centroid"].to_numpy()
+    assert len(np.unique(np.round(reach))) >= 8
+    assert reach.max() > 2.5 * reach.min()
+    assert np.isfinite(table["runout"].to_numpy()).sum() >= 7
     with xr.open_dataset(tmp_path / "out" / "ensemble.nc", decode_times=False) as ds:
         x_max = float(ds["x"].max())
         reach = ds["peak_thickness"].where(ds["peak_thickness"] > 1e-3)

@@ -112,7 +112,8 @@ BUILT_IN_FIELDS = (
     "compile_time", "deposit_length", "deposit_max_thickness", "deposit_volume",
     "drop_height", "entrained_volume", "film_volume", "kinetic_energy_end",
     "kinetic_energy_peak", "mass_balance_error", "moving_volume_end", "outflow_volume",
-    "release_volume", "runout", "secondary_release_volume", "supplied_volume",
+    "release_volume", "runout", "runout_angle", "reach_from_release_centroid",
+    "secondary_release_volume", "supplied_volume",
     "time_to_stop", "travel_angle", "travel_length", "wall_time")
 
 
