@@ -193,7 +193,7 @@ class Solver:
     #: (both orders), the face kernel elsewhere; "faces": the face kernel everywhere (the
     #: reference); "grid": the square-grid kernel, an error where it does not apply.
     kernel: str = "auto"
-    #: where the kernels run: "cpu", or "cuda" (a GPU: square grids at order 1,
+    #: where the kernels run: "cpu", or "cuda" (a GPU: square grids at orders 1 and 2 (Heun),
     #: :mod:`avflow.numerics.cuda_grid`); the kernels of
     #: :mod:`avflow.numerics.registry`
     backend: str = "cpu"
