@@ -345,17 +345,25 @@ def _bj_select(alpha, d, centre, lo, hi, thickness):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front, g_normal, dens):
-    """A wet cell's reconstructed state on one side (offset ``(rx, ry)`` in its basis), as
-    :func:`~avflow.numerics.reconstruction.reconstruct_cells` makes it, and what it emits
-    there as step_faces at order 2 (:func:`emitted_cell`, emitted_state without branches):
-    ``(h, u1, u2, c, sqrt(3) c, k / 2, k / 3)``."""
+def _side_state(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front):
+    """A wet cell's limited linear state ``(h, u1, u2)`` at the offset ``(rx, ry)`` of one
+    of its sides (in its basis), as
+    :func:`~avflow.numerics.reconstruction.reconstruct_cells` makes it."""
     hf = hc + a0 * (g0 * rx + g1 * ry)
     hf = max(hf, 0.0)
     u1 = uc1 + a1 * (g2 * rx + g3 * ry)
     u2 = uc2 + a2 * (g4 * rx + g5 * ry)
     u1 = uc1 if front else u1  # no velocity slope towards a dry neighbour
     u2 = uc2 if front else u2
+    return hf, u1, u2
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def _side(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front, g_normal, dens):
+    """A wet cell's reconstructed state on one side (:func:`_side_state`) and what it emits
+    there as step_faces at order 2 (:func:`emitted_cell`, emitted_state without branches):
+    ``(h, u1, u2, c, sqrt(3) c, k / 2, k / 3)``."""
+    hf, u1, u2 = _side_state(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front)
     e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3, _ = emitted_cell(hf, hf * u1, hf * u2, g_normal,
                                                              dens, 0.0)
     return e_h, e_u1, e_u2, e_c, e_s, e_kh, e_k3
@@ -367,12 +375,7 @@ def _side_direct(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front
     """:func:`_side` without forming q = h u and dividing it back, nor dividing k by 3: the
     same values to round-off, 12 divisions a cell fewer (MUSCL-Hancock's copy, which has no
     face-kernel twin to match bit for bit)."""
-    hf = hc + a0 * (g0 * rx + g1 * ry)
-    hf = max(hf, 0.0)
-    u1 = uc1 + a1 * (g2 * rx + g3 * ry)
-    u2 = uc2 + a2 * (g4 * rx + g5 * ry)
-    u1 = uc1 if front else u1
-    u2 = uc2 if front else u2
+    hf, u1, u2 = _side_state(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front)
     wet = hf > 0.0
     sound = math.sqrt(0.5 * g_normal * hf)
     sound = sound if g_normal > 0.0 else 0.0
@@ -420,7 +423,13 @@ def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame
         uc1 = hu[i] / hs
         uc2 = hv[i] / hs
         area = cell_area[i]
+        # the faces' weights L / A: one division a cell in MUSCL-Hancock's copy, four in
+        # Heun's (the face kernel's bits)
         inv = 1.0 / area
+        l_w = x_len[c] * inv if PREDICT else x_len[c] / area
+        l_e = x_len[c + 1] * inv if PREDICT else x_len[c + 1] / area
+        l_s = ys_len[c] * inv if PREDICT else ys_len[c] / area
+        l_n = yn_len[c] * inv if PREDICT else yn_len[c] / area
         cw, ce, cs, cn = x_code[c], x_code[c + 1], ys_code[c], yn_code[c]
         w_in = (cw & KIND) == INNER
         e_in = (ce & KIND) == INNER
@@ -433,16 +442,16 @@ def _recon_cells(base, base_s, base_n, c0, c1, x_code, ys_code, yn_code, x_frame
         # W (x face c: the cell its second side when inner), E (x face c + 1: its first),
         # S (y face below: second when inner), N (y face above: first)
         wx0, wy0, ho0, uo10, uo20, fr0 = _gg_face(
-            hc, uc1, uc2, w_in, w_in, cw, xf0[c], xf1[c], xf2[c], xf3[c], (x_len[c] * inv if PREDICT else x_len[c] / area),
+            hc, uc1, uc2, w_in, w_in, cw, xf0[c], xf1[c], xf2[c], xf3[c], l_w,
             h[iw], hu[iw], hv[iw], h_zero)
         wx1, wy1, ho1, uo11, uo21, fr1 = _gg_face(
             hc, uc1, uc2, e_in, False, ce, xf0[c + 1], xf1[c + 1], xf2[c + 1], xf3[c + 1],
-            (x_len[c + 1] * inv if PREDICT else x_len[c + 1] / area), h[ie], hu[ie], hv[ie], h_zero)
+            l_e, h[ie], hu[ie], hv[ie], h_zero)
         wx2, wy2, ho2, uo12, uo22, fr2 = _gg_face(
-            hc, uc1, uc2, s_in, s_in, cs, sf0[c], sf1[c], sf2[c], sf3[c], (ys_len[c] * inv if PREDICT else ys_len[c] / area),
+            hc, uc1, uc2, s_in, s_in, cs, sf0[c], sf1[c], sf2[c], sf3[c], l_s,
             h[i_s], hu[i_s], hv[i_s], h_zero)
         wx3, wy3, ho3, uo13, uo23, fr3 = _gg_face(
-            hc, uc1, uc2, n_in, False, cn, nf0[c], nf1[c], nf2[c], nf3[c], (yn_len[c] * inv if PREDICT else yn_len[c] / area),
+            hc, uc1, uc2, n_in, False, cn, nf0[c], nf1[c], nf2[c], nf3[c], l_n,
             h[i_n], hu[i_n], hv[i_n], h_zero)
         front = (fr0 | fr1) | (fr2 | fr3)
         # Green-Gauss sums (the mean of both sides on each face), in face order
