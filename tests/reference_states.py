@@ -58,6 +58,12 @@ def cases():
     for law in PARAMS:
         out.append((f"grid-hancock-{law}-o2", "grid", "grid", law, 2, "grid", 1))
     out.append(("grid-kernel-threads-hancock-o2", "grid", "grid", "coulomb", 2, "grid", 2))
+    # MUSCL-Hancock on the face kernel (its default at order 2), triangles on 1 and 2
+    # threads and a grid, recorded 2026-12-05 (night)
+    out.append(("triangles-hancock-coulomb-o2", "triangles", "triangles", "coulomb", 2, "auto", 1))
+    out.append(("triangles-threads-hancock-o2", "triangles", "triangles", "coulomb", 2, "faces",
+                2))
+    out.append(("grid-faces-hancock-voellmy-o2", "grid", "grid", "voellmy", 2, "faces", 1))
     return out
 
 

@@ -66,5 +66,5 @@ def test_the_reference_moves_stops_and_reaches_every_branch():
         assert REFERENCE[f"{name}/peak_speed/1"].max() > 3.0, name
         assert REFERENCE[f"{name}/stats/1"][2] > 25, name  # steps
     for name in ("grid-coulomb-o1", "triangles-coulomb-o1", "triangles-coulomb-o2",
-                 "grid-threads-coulomb-o2", "grid-pouliquen-o1"):
+                 "grid-threads-coulomb-o2", "grid-pouliquen-o1", "triangles-hancock-coulomb-o2"):
         assert np.sum(REFERENCE[f"{name}/flag/1"] == 1) > 0, name

@@ -80,7 +80,7 @@ def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists):
+def _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists, timing):
     """Pass 2 of :func:`step_cells`: each cell's sum of its active faces (index order), its
     trial momentum (eq. 47) and flag (eq. 49)."""
     face_cells, cell_area, gamma_x = mesh.face_cells, mesh.cell_area, mesh.gamma_x
@@ -123,7 +123,7 @@ def _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists):
                                      rate_h * inv_area, rate_x * inv_area, rate_y * inv_area,
                                      dt, dt_decide, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
-                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, True)
+                                     law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g, timing)
         hu_new[i] = qx
         hv_new[i] = qy
         flag[i] = fi
@@ -179,7 +179,8 @@ def _gather_mass(mesh, physics, cur, nxt, flux, transport, flag, lists):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_sums):
+def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_sums,
+                   timing):
     """Pass 4 of :func:`step_cells`: the new thickness, the projection of eq. 50, each cell's
     terms of the step's sums into ``cell_sums``."""
     cell_area, cfl_factor, gamma_x = mesh.cell_area, mesh.cfl_factor, mesh.gamma_x
@@ -202,7 +203,7 @@ def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_s
                                      hv_new[i], area, dt, gamma_x[i], gamma_y[i], gamma_z[i],
                                      centripetal_accel(curvature, i, h[i], hu[i], hv[i]),
                                      speed_n, law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, g,
-                                     h_zero, True, False)
+                                     h_zero, timing, False)
         h_new[i] = hn
         hu_new[i] = qx
         hv_new[i] = qy
@@ -213,15 +214,16 @@ def _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_s
 
 
 def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face_state,
-               cell_sums):
+               cell_sums, timing):
     """One order-2 stage on the listed faces and cells (step_faces' arguments at order 2;
     ``cell_face_ptr, cell_face_idx``: the cells' faces in index order; ``cell_sums``: work,
-    (n, :data:`N_SUMS`)). Returns ``(ok, outflow, dt_limit, moving, film, clamped,
-    kinetic)`` as step_faces does."""
+    (n, :data:`N_SUMS`); ``timing``: step_faces' ``order2``, True in Heun's stages,
+    :data:`~avflow.numerics.physics.MIDPOINT` in MUSCL-Hancock's). Returns ``(ok, outflow,
+    dt_limit, moving, film, clamped, kinetic)`` as step_faces does."""
     _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state)
-    _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists)
+    _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists, timing)
     _gather_mass(mesh, physics, cur, nxt, flux, transport, flag, lists)
-    _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_sums)
+    _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_sums, timing)
     face_cells, dirac, dt = mesh.face_cells, physics.dirac, when.dt
     active_faces, n_active, touched = lists.active_faces, lists.n_active, lists.touched
     n_touched = lists.n_touched

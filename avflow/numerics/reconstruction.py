@@ -27,10 +27,12 @@ Faces on the map's edge take the cell values (first order there).
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 from numba import njit, prange
 
-from avflow.numerics.vectorize import specialize
+from avflow.numerics.cpu import centripetal_accel, half_step
+from avflow.numerics.vectorize import cell_law, specialize
 
 MINMOD = 0
 MC = 1
@@ -82,6 +84,12 @@ _HI = 11  #: 11..13: largest
 _ALPHA = 14  #: 14..16: Barth-Jespersen factors of h, u1, u2
 _FRONT = 17  #: 1 when a neighbour is at or below h_zero (no velocity slope)
 N_WORK = 18
+
+#: What MUSCL-Hancock's predictor reads (:data:`predict_cells`): half the step ``k``, the
+#: mesh's gravity components and curvature, the friction law and its parameters, g
+Predictor = namedtuple("Predictor", "k gamma_x gamma_y gamma_z curvature law params g")
+#: Whether a copy of :func:`reconstruct_cells` predicts (a constant in each copy)
+PREDICT = False
 
 
 @njit(error_model="numpy", cache=True)
@@ -231,7 +239,7 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
 @njit(error_model="numpy", cache=True)
 def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_area, h, hu, hv,
                       h_zero, cell_face_ptr, cell_face_idx, touched, n_touched, velocity,
-                      face_state):
+                      face_state, predictor):
     """:func:`reconstruct_faces`' face states, cell after cell: the same bits (what the
     order-2 time loop runs), faster than the sweep over faces (docs/performance.md).
 
@@ -245,6 +253,11 @@ def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_are
     ``(h, 0, 0)`` on its side of all its faces, active or not. Written apart from
     reconstruct_faces on purpose: a helper they shared would hide its faults from the test
     that holds one to the other.
+
+    ``predictor`` (:data:`Predictor`) is read only by the copy :data:`predict_cells`
+    (MUSCL-Hancock): each wet cell away from a front moves its centre state half a step on
+    (:func:`~avflow.numerics.physics.half_step`, with its limited slopes) before its sides
+    are formed, so that one flux sweep is second order in time.
     """
     for c in prange(n_touched):
         i = touched[c]
@@ -333,6 +346,17 @@ def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_are
             a0 = _bj_factor(a0, g0 * rx + g1 * ry, hc, lo0, hi0, True)
             a1 = _bj_factor(a1, g2 * rx + g3 * ry, uc1, lo1, hi1, False)
             a2 = _bj_factor(a2, g4 * rx + g5 * ry, uc2, lo2, hi2, False)
+        if PREDICT and not front:  # MUSCL-Hancock: the sides of the state half a step on
+            pr = predictor
+            params = pr.params
+            pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7 = cell_law(
+                pr.law, params, i, params[0, 0], params[0, 1], params[0, 2], params[0, 3],
+                params[0, 4], params[0, 5], params[0, 6], params[0, 7])
+            hc, uc1, uc2 = half_step(hc, uc1, uc2, a0 * g0, a0 * g1, a1 * g2, a1 * g3, a2 * g4,
+                                     a2 * g5, pr.k, pr.gamma_x[i], pr.gamma_y[i],
+                                     pr.gamma_z[i],
+                                     centripetal_accel(pr.curvature, i, h[i], hu[i], hv[i]),
+                                     pr.law, pc0, pc1, pc2, pc3, pc4, pc5, pc6, pc7, pr.g)
         # 3: this cell's side of each face
         for p in range(first, last):
             f = cell_face_idx[p]
@@ -370,3 +394,8 @@ def _bj_factor(alpha, d, centre, lo, hi, thickness):
 #: :func:`reconstruct_cells` on Numba's threads (each cell writes its own sides of its faces
 #: and reads only the state: no races, the same bits on any number of threads)
 reconstruct_cells_parallel = specialize(reconstruct_cells.py_func, "_parallel", parallel=True)
+#: ... and MUSCL-Hancock's copies, serial and on threads: the sides of the state predicted
+#: half a step on (``predictor``)
+predict_cells = specialize(reconstruct_cells.py_func, "_predicted", PREDICT=True)
+predict_cells_parallel = specialize(reconstruct_cells.py_func, "_predicted_parallel",
+                                    parallel=True, PREDICT=True)

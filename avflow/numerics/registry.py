@@ -65,7 +65,7 @@ def _faces_refuses(terrain, order):
 def _face_loop(structured, order, law, parallel, scheme="heun"):
     from avflow.numerics.timeloop import time_loop
 
-    return time_loop(structured, order, law, parallel)
+    return time_loop(structured, order, law, parallel, scheme)
 
 
 def _grid_loop(structured, order, law, parallel, scheme="hancock"):
@@ -92,7 +92,7 @@ KERNELS: dict[tuple[str, str], Kernel] = {
     ("grid", "cpu"): Kernel("grid", "cpu", (1, 2), "square grids (planes, DEMs) by rows, on threads",
                             _grid_refuses, _grid_loop, schemes=("hancock", "heun")),
     ("faces", "cpu"): Kernel("faces", "cpu", (1, 2), "any mesh by face lists, on threads",
-                             _faces_refuses, _face_loop),
+                             _faces_refuses, _face_loop, schemes=("hancock", "heun")),
     # numerics.cuda_grid: the square-grid kernel's step at orders 1 and 2
     ("grid", "cuda"): Kernel("grid", "cuda", (1, 2), "square grids (planes, DEMs), a GPU "
                              "thread per cell", _grid_refuses, _cuda_grid_loop,

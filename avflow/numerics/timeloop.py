@@ -27,8 +27,11 @@ from avflow.numerics.kernels import (RELIST_SHARE, _agree, activate, heun_faces,
 from avflow.numerics.profile import N_WORK as _PROFILE_WORK
 from avflow.numerics.profile import ProfileLine
 from avflow.numerics.profile import STEP as _PROFILE_STEP
-from avflow.numerics.reconstruction import (reconstruct_cells, reconstruct_profile,
-                                            reconstruct_cells_parallel as _recon_par)
+from avflow.numerics.physics import MIDPOINT
+from avflow.numerics.reconstruction import (Predictor, predict_cells, reconstruct_cells,
+                                            reconstruct_profile)
+from avflow.numerics.reconstruction import predict_cells_parallel as _predict_par
+from avflow.numerics.reconstruction import reconstruct_cells_parallel as _recon_par
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_listed, observe_span
 from avflow.numerics.sources import add_listed, add_span
@@ -452,56 +455,88 @@ def _order2_faces(mesh, physics, cur, nxt, flux, transport, flag, work, o2, list
             fallbacks, n_changed)
 
 
+def _hancock_faces(mesh, physics, cur, nxt, flux, transport, flag, work, o2, lists, stamp,
+                   when, min_parallel_cells):
+    """An order-2 step on faces by MUSCL-Hancock: one stage (:func:`_stage_faces` with the
+    predictor) on the step's ``lists``; the cells it changed are its touched cells (into
+    o2's ``union``, which the step's other hooks read). :func:`_order2_faces`' arguments
+    and returns (no fallbacks: there is no average to fall back from)."""
+    ok, out, lim, moving, film, clamped, kinetic = order2_stage(
+        mesh, physics, cur, nxt, flux, transport, flag, when, lists, o2, min_parallel_cells)
+    touched, n_touched, union = lists.touched, lists.n_touched, o2.union
+    for c in range(n_touched):
+        union[c] = touched[c]
+    return ok, out, lim, moving, film, clamped, kinetic, 0, n_touched
+
+
 def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, o2,
                  min_parallel_cells):
     """One stage of order 2 on faces, from ``cur`` into ``nxt`` on the listed faces and
-    cells: the reconstruction (o2's ``face_state``), then the step.
+    cells: the reconstruction (o2's ``face_state``), then the step. In MUSCL-Hancock's
+    copies (``HANCOCK``) the sides are of the state half a step on and gravity and friction
+    take the step's midpoint (:data:`~avflow.numerics.physics.MIDPOINT`); in Heun's, a
+    stage's own state.
     In the copy with threads (``PARALLEL``) a stage of at least ``min_parallel_cells``
     cells runs both in gather form on Numba's threads (:mod:`avflow.numerics.face_gather`,
     the same bits), any other on :func:`reconstruct_cells` and :func:`step_faces`.
     Returns step_faces' ``(ok, outflow, dt_limit, moving, film, clamped, kinetic)``."""
     m = mesh
+    timing = MIDPOINT if HANCOCK else True
+    predictor = Predictor(0.5 * when.dt, m.gamma_x, m.gamma_y, m.gamma_z, m.curvature,
+                          physics.law, physics.params, physics.g)
     if PARALLEL and lists.n_touched >= min_parallel_cells:
         reconstruct_cells_parallel(m.face_cells, m.face_frame, m.face_length, m.face_offset,
                                    m.cell_area, cur.h, cur.hu, cur.hv, physics.h_zero,
                                    m.cell_face_ptr, m.cell_face_idx, lists.touched,
-                                   lists.n_touched, o2.velocity, o2.face_state)
+                                   lists.n_touched, o2.velocity, o2.face_state, predictor)
         return step_cells_parallel(mesh, physics, cur, nxt, flux, transport, flag, when,
-                                   lists, o2.face_state, o2.cell_sums)
+                                   lists, o2.face_state, o2.cell_sums, timing)
     reconstruct_cells(m.face_cells, m.face_frame, m.face_length, m.face_offset, m.cell_area,
                       cur.h, cur.hu, cur.hv, physics.h_zero, m.cell_face_ptr, m.cell_face_idx,
-                      lists.touched, lists.n_touched, o2.velocity, o2.face_state)
-    return step_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, True,
+                      lists.touched, lists.n_touched, o2.velocity, o2.face_state, predictor)
+    return step_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, timing,
                       o2.face_state, o2.no_emit)
 
 
 #: Placeholders of the constants of the copies of :func:`_advance`, :func:`_order2_faces`
 #: and :func:`_stage_faces` (see :func:`time_loop`), and of what their copies call (the
 #: functions on threads only in the copies with threads)
-STRUCTURED = ORDER2 = PARALLEL = False
+STRUCTURED = ORDER2 = PARALLEL = HANCOCK = False
 reconstruct_cells_parallel = step_cells_parallel = heun_cells_parallel = None
 order2_stage = order2_faces = None
 
-#: :func:`_stage_faces` and :func:`_order2_faces` serial and with threads, each under its
-#: own name
+#: :func:`_stage_faces` serial and with threads, Heun's and MUSCL-Hancock's, and the steps
+#: that run them (:func:`_order2_faces`, :func:`_hancock_faces`), each under its own name
 ORDER2_STAGE = {
-    False: specialize(_stage_faces, "_serial", PARALLEL=False),
-    True: specialize(_stage_faces, "_parallel", PARALLEL=True,
-                     reconstruct_cells_parallel=_recon_par, step_cells_parallel=_step_parallel)}
+    (parallel, scheme): specialize(
+        _stage_faces, ("_parallel" if parallel else "_serial")
+        + ("_hancock" if scheme == "hancock" else ""), PARALLEL=parallel,
+        HANCOCK=scheme == "hancock",
+        reconstruct_cells=predict_cells if scheme == "hancock" else reconstruct_cells,
+        reconstruct_cells_parallel=(None if not parallel else _predict_par
+                                    if scheme == "hancock" else _recon_par),
+        step_cells_parallel=_step_parallel if parallel else None)
+    for parallel in (False, True) for scheme in ("heun", "hancock")}
 ORDER2_FACES = {
-    parallel: specialize(_order2_faces, "_parallel" if parallel else "_serial",
-                         PARALLEL=parallel, order2_stage=ORDER2_STAGE[parallel],
-                         heun_cells_parallel=_heun_parallel if parallel else None)
+    (parallel, "heun"): specialize(_order2_faces, "_parallel" if parallel else "_serial",
+                                   PARALLEL=parallel, order2_stage=ORDER2_STAGE[parallel, "heun"],
+                                   heun_cells_parallel=_heun_parallel if parallel else None)
     for parallel in (False, True)}
+ORDER2_FACES.update({
+    (parallel, "hancock"): specialize(_hancock_faces, "_parallel" if parallel else "_serial",
+                                      order2_stage=ORDER2_STAGE[parallel, "hancock"])
+    for parallel in (False, True)})
 
 
 def _advance_for(structured: bool, order2: bool, kind: int | None = None,
-                 parallel: bool = False):
+                 parallel: bool = False, scheme: str = "heun"):
     """:func:`avflow.numerics.loop.advance` with the face kernel's region, its hooks
     compiled with the mesh kind and the order constants (and, at order 1, calling the sweep
     of the friction law ``kind``; ``parallel``: with its passes on threads, whose functions
-    the other copies never compile)."""
+    the other copies never compile; ``scheme``: order 2's time scheme on faces)."""
     suffix = f"_{'profile' if structured else 'faces'}_order{2 if order2 else 1}"
+    if order2 and scheme == "hancock":
+        suffix += "_hancock"
     names = {}
     if kind is not None:
         suffix += "_" + law_label(kind)
@@ -516,24 +551,27 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
     fns = {"start": _start, "before": _before, "step": _step, "source": _source,
            "observe": _observe, "after": _after, "end": _end}
     given = shared_names(fns, STRUCTURED=structured, ORDER2=order2, PARALLEL=parallel,
-                         order2_faces=ORDER2_FACES[parallel], **names)
+                         order2_faces=ORDER2_FACES[parallel, scheme], **names)
     hooks = {f"region_{hook}": specialize(fn, suffix, inline="always", **given[hook])
              for hook, fn in fns.items()}
     return specialize(advance, suffix, **hooks)
 
 
-#: The time loop per (structured, order 2, law kind, threads): the law only at order 1,
-#: whose sweeps have a copy per law (:data:`avflow.numerics.profile.STEP`,
-#: :data:`avflow.numerics.face_sweep.STEP`), None at order 2; threads only on faces
-ADVANCE = {(s, o, k, p): _advance_for(s, o, k, p)
-           for s, o, kinds, threads in (
-               (True, False, tuple(_PROFILE_STEP), (False,)), (True, True, (None,), (False,)),
-               (False, False, tuple(_FACES_STEP), (False, True)),
-               (False, True, (None,), (False, True)))
-           for k in kinds for p in threads}
+#: The time loop per (structured, order 2, law kind, threads, time scheme): the law only
+#: at order 1, whose sweeps have a copy per law (:data:`avflow.numerics.profile.STEP`,
+#: :data:`avflow.numerics.face_sweep.STEP`), None at order 2; threads only on faces; the
+#: scheme "heun" except at order 2 on faces, which has "hancock" too
+ADVANCE = {(s, o, k, p, sc): _advance_for(s, o, k, p, sc)
+           for s, o, kinds, threads, schemes in (
+               (True, False, tuple(_PROFILE_STEP), (False,), ("heun",)),
+               (True, True, (None,), (False,), ("heun",)),
+               (False, False, tuple(_FACES_STEP), (False, True), ("heun",)),
+               (False, True, (None,), (False, True), ("heun", "hancock")))
+           for k in kinds for p in threads for sc in schemes}
 
 
-def time_loop(structured: bool, order: int, law: int, parallel: bool = False):
+def time_loop(structured: bool, order: int, law: int, parallel: bool = False,
+              scheme: str = "heun"):
     """The time loop (:func:`avflow.numerics.loop.advance`: its arguments, its status
     codes; ``extra``: ``(sweep_geo, sweep_work)``, what the face kernel's order-1 step reads
     and works in, :func:`avflow.numerics.face_sweep.geometry`,
@@ -541,7 +579,9 @@ def time_loop(structured: bool, order: int, law: int, parallel: bool = False):
     :func:`~avflow.numerics.face_sweep.unused`) compiled for this
     mesh kind (``structured``: a profile) and ``order`` alone (and, at order 1, for the
     friction ``law``); ``parallel``: with the passes on threads (on faces only;
-    profiles run the serial copy)."""
+    profiles run the serial copy); ``scheme``: order 2's time scheme on faces ("hancock" or
+    "heun"; profiles run Heun's)."""
     structured, order2 = bool(structured), order == 2
     parallel = bool(parallel) and not structured
-    return ADVANCE[structured, order2, None if order2 else law_kind(law), parallel]
+    scheme = scheme if order2 and not structured else "heun"
+    return ADVANCE[structured, order2, None if order2 else law_kind(law), parallel, scheme]
