@@ -66,12 +66,12 @@ def test_a_stage_in_gather_form_is_step_faces(mesh_kind, law, params, scheme):
         n_active, n_touched = K.activate(wet, wet.size, solver._cell_face_ptr,
                                          solver._cell_face_idx, m.face_cells, *stamps, k,
                                          active, touched)
-        face_state = np.full((n_faces, 2, 3), np.nan)
+        face_state = np.full((n_faces, 2, 7 if hancock else 3), np.nan)
         limit = K.dt_limit(solver._cfl_factor, terrain.gamma_z, h, hu, hv, solver.gravity)
         dt = 0.5 * limit
         fm = solver._face_mesh
         predictor = Predictor(0.5 * dt, fm.gamma_x, fm.gamma_y, fm.gamma_z, fm.curvature,
-                              int(law), solver._rows, solver.gravity)
+                              int(law), solver._rows, solver.gravity, fm.density)
         (predict_cells if hancock else reconstruct_cells)(
             m.face_cells, m.face_frame, m.face_length, solver._face_offset, m.cell_area, h, hu,
             hv, solver.h_zero, solver._cell_face_ptr, solver._cell_face_idx, touched,

@@ -94,6 +94,24 @@ def test_arrays_and_tuples_by_their_bytes_and_options_count(tmp_path):
     assert codekey.code_key(njit(m.f)) != codekey.code_key(njit(fastmath=True)(m.f))
 
 
+def test_a_kernels_own_options_are_in_its_cache_key():
+    """The same kernel under other options of its own decorator (``_nrt``, ``fastmath``)
+    has another key in the kernel cache: Numba keys by the code alone, and a step_faces
+    made without reference counts loaded the machine code that counted them (twice as
+    slow) until its options were added."""
+    from numba import njit
+
+    from avflow.numerics import kernels
+
+    keys = []
+    for options in ({}, {"_nrt": False}, {"fastmath": True}):
+        d = njit(error_model="numpy", cache=True, **options)(kernels.dt_limit.py_func)
+        assert type(d._cache._impl.locator).__name__ == "SharedLocator"
+        keys.append(d._cache._index_key(("float64",), d.targetctx.codegen()))
+    assert len(set(keys)) == 3
+    assert len({k[:-1] for k in keys}) == 1  # what Numba's own key holds: the same
+
+
 def test_a_global_with_no_value_to_hash_is_refused_naming_file_line_and_name(tmp_path):
     m = _module(tmp_path, "unhashable", """
     TABLE = {"a": 1.0}
@@ -136,8 +154,9 @@ def test_a_kernel_source_edited_in_a_checkout_is_a_new_key_and_nothing_else_is(t
 
 
 def test_every_kernel_of_the_package_is_keyed_by_its_code():
-    """Numba's key of a cached avflow kernel carries the code key; another package's does
-    not (Numba's own key, as Numba makes it)."""
+    """Numba's key of a cached avflow kernel carries the code key (of the compiled
+    function: its code and its options); another package's does not (Numba's own key, as
+    Numba makes it)."""
     from numba import njit
 
     from avflow.numerics import cpu, square_grid, rheology
@@ -145,7 +164,7 @@ def test_every_kernel_of_the_package_is_keyed_by_its_code():
     loop = square_grid.grid_loop(rheology.COULOMB, False, 1)
     for dispatcher in (loop, cpu.face_flux):
         key = dispatcher._cache._index_key((), _Codegen())
-        assert key[-1] == codekey.code_key(dispatcher.py_func), dispatcher
+        assert key[-1] == codekey.code_key(dispatcher), dispatcher
     assert loop._cache._impl.locator.get_source_stamp() == "avflow keyed by code"
 
 

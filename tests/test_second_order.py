@@ -243,7 +243,7 @@ def no_predictor(solver):
 
     fm = solver._face_mesh
     return Predictor(0.0, fm.gamma_x, fm.gamma_y, fm.gamma_z, fm.curvature, 0, solver._rows,
-                     solver.gravity)
+                     solver.gravity, fm.density)
 
 
 def test_a_plane_turned_by_90_degrees_turns_the_answer():

@@ -133,12 +133,22 @@ def _shared_locator(folder: Path):
 def _key_by_code() -> None:
     """Numba's key of a cached function (its signature, the processor, its own byte code)
     with :func:`avflow.codekey.code_key` added for the functions cached in avflow's
-    folder (:func:`_shared_locator`): what they are compiled from, through their callees."""
+    folder (:func:`_shared_locator`): what they are compiled from, through their callees,
+    and the function's own options (its dispatcher's: without them a kernel whose decorator
+    changed, ``_nrt`` or ``fastmath``, loaded the machine code of the old options)."""
+    import weakref
+
     from numba.core import caching
+    from numba.core.dispatcher import Dispatcher
 
     if getattr(caching.Cache._index_key, "avflow", False):
         return
     numba_key = caching.Cache._index_key
+    numba_enable = Dispatcher.enable_caching
+
+    def enable_caching(self):
+        numba_enable(self)
+        self._cache._avflow_owner = weakref.ref(self)  # (its options are read when keyed)
 
     def index_key(self, sig, codegen):
         key = numba_key(self, sig, codegen)
@@ -146,10 +156,12 @@ def _key_by_code() -> None:
             return key
         from avflow.codekey import code_key
 
-        return (*key, code_key(self._py_func))
+        owner = getattr(self, "_avflow_owner", lambda: None)()
+        return (*key, code_key(self._py_func if owner is None else owner))
 
     index_key.avflow = True
     caching.Cache._index_key = index_key
+    Dispatcher.enable_caching = enable_caching
 
 
 def _install_cache() -> None:

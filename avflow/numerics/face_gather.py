@@ -41,6 +41,7 @@ from avflow.numerics.cpu import (DRY, carries, cell_moves, cell_update, centripe
                                  outflow_volume, speed_of, step_terms, take_back,
                                  trial_momentum)
 from avflow.numerics.kernels import listed_flux, reconstructed_sides
+from avflow.numerics.physics import MIDPOINT
 from avflow.terrain.mesh import OUTFLOW
 from avflow.numerics.vectorize import cell_law, specialize
 
@@ -54,7 +55,7 @@ N_SUMS = 6
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
+def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state, timing):
     """Pass 1 of :func:`step_cells`: each active face's fluxes into ``flux[f]``, each side
     in its own cell's basis. (Each pass is a function of its own, inlined by Numba into
     step_cells' copies: one compiled body, its loops on threads in the parallel copy.)"""
@@ -68,7 +69,8 @@ def _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state):
         i = face_cells[f, 0]
         j = face_cells[f, 1]
         (hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj,
-         k3j) = reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density)
+         k3j) = reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density,
+                                    timing == MIDPOINT)
         fh, qix, qiy, qjx, qjy = listed_flux(f, i, j, face_frame, face_length, hi, ui1, ui2, ci,
                                              si, khi, k3i, hj, uj1, uj2, cj, sj, khj, k3j)
         flux[f, 0] = fh
@@ -220,7 +222,7 @@ def step_cells(mesh, physics, cur, nxt, flux, transport, flag, when, lists, face
     (n, :data:`N_SUMS`); ``timing``: step_faces' ``order2``, True in Heun's stages,
     :data:`~avflow.numerics.physics.MIDPOINT` in MUSCL-Hancock's). Returns ``(ok, outflow,
     dt_limit, moving, film, clamped, kinetic)`` as step_faces does."""
-    _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state)
+    _gather_fluxes(mesh, physics, cur, flux, when, lists, face_state, timing)
     _gather_trials(mesh, physics, cur, nxt, flux, flag, when, lists, timing)
     _gather_mass(mesh, physics, cur, nxt, flux, transport, flag, lists)
     _gather_finals(mesh, physics, cur, nxt, transport, flag, when, lists, cell_sums, timing)
@@ -305,7 +307,9 @@ def _add_terms(cells, n_cells, cell_sums):
 
 #: Each compiled twice under its own name: on Numba's threads, and serial (``prange`` runs
 #: as ``range`` without ``parallel``), which tests hold to step_faces on one thread
-step_cells_parallel = specialize(step_cells, "_parallel", parallel=True)
-heun_cells_parallel = specialize(heun_cells, "_parallel", parallel=True)
-step_cells_serial = specialize(step_cells, "_serial")
-heun_cells_serial = specialize(heun_cells, "_serial")
+# (no reference counts: each inlined helper that takes an array counted it up and down in
+# every cell's or face's iteration, half a stage's time: see kernels.step_faces)
+step_cells_parallel = specialize(step_cells, "_parallel", parallel=True, nrt=False)
+heun_cells_parallel = specialize(heun_cells, "_parallel", parallel=True, nrt=False)
+step_cells_serial = specialize(step_cells, "_serial", nrt=False)
+heun_cells_serial = specialize(heun_cells, "_serial", nrt=False)

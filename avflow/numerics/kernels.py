@@ -37,15 +37,18 @@ import numpy as np
 from numba import njit
 
 from avflow.numerics.cpu import DRY, FACE_INNER, FACE_OPEN, FACE_WALL, INLINED
+from avflow.numerics.physics import MIDPOINT
 from avflow.numerics.vectorize import cell_law
 from avflow.terrain.mesh import OUTFLOW, WALL
 
-(carries, cell_moves, centripetal_accel, dirac_face, dt_from_inverse, emitted_state, emitting,
- face_flux, cell_update, half_fluxes, heun_average, observe_cell, open_mass, outflow_volume,
- side_fluxes, sound_speed, speed_of, step_terms, take_back, trial_momentum) = (
+(carries, cell_moves, centripetal_accel, dirac_face, dt_from_inverse, emitted_side,
+ emitted_state, emitting, face_flux, cell_update, half_fluxes, heun_average, observe_cell,
+ open_mass, outflow_volume, side_fluxes, sound_speed, speed_of, step_terms, take_back,
+ trial_momentum) = (
     INLINED[name] for name in (
         "carries", "cell_moves", "centripetal_accel", "dirac_face", "dt_from_inverse",
-        "emitted_state", "emitting", "face_flux", "cell_update", "half_fluxes", "heun_average",
+        "emitted_side", "emitted_state", "emitting", "face_flux", "cell_update", "half_fluxes",
+        "heun_average",
         "observe_cell", "open_mass", "outflow_volume", "side_fluxes", "sound_speed",
         "speed_of", "step_terms", "take_back", "trial_momentum"))
 
@@ -243,12 +246,23 @@ def step_profile(mesh, physics, cur, nxt, flux, flag, when, order2, recon):
 
 
 @njit(error_model="numpy", cache=True, inline="always")
-def reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density):
+def reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density, direct):
     """What the two sides of listed face f emit at order 2 (:func:`emitted_state` of each
-    side's reconstructed state at the face, ``face_state[f, side]``; nothing from a cell at
-    or below ``h_zero``): i's seven values, then j's (beyond a boundary, ``j < 0``: values
-    the flux does not read)."""
+    side's reconstructed state at the face, ``face_state[f, side, 0:3] = (h, q1, q2)``, or
+    with ``direct`` (MUSCL-Hancock's) the seven values the reconstruction wrote; nothing from
+    a cell at or below ``h_zero``): i's seven values, then j's (beyond a boundary, ``j < 0``:
+    values the flux does not read)."""
     k = j if j >= 0 else i
+    if direct:  # the seven values as the reconstruction wrote them
+        wi = h[i] > h_zero
+        wj = j >= 0 and h[k] > h_zero
+        return ((face_state[f, 0, 0] if wi else 0.0), (face_state[f, 0, 1] if wi else 0.0),
+                (face_state[f, 0, 2] if wi else 0.0), (face_state[f, 0, 3] if wi else 0.0),
+                (face_state[f, 0, 4] if wi else 0.0), (face_state[f, 0, 5] if wi else 0.0),
+                (face_state[f, 0, 6] if wi else 0.0), (face_state[f, 1, 0] if wj else 0.0),
+                (face_state[f, 1, 1] if wj else 0.0), (face_state[f, 1, 2] if wj else 0.0),
+                (face_state[f, 1, 3] if wj else 0.0), (face_state[f, 1, 4] if wj else 0.0),
+                (face_state[f, 1, 5] if wj else 0.0), (face_state[f, 1, 6] if wj else 0.0))
     hi = qi1 = qi2 = 0.0
     if h[i] > h_zero:
         hi, qi1, qi2 = face_state[f, 0, 0], face_state[f, 0, 1], face_state[f, 0, 2]
@@ -308,7 +322,8 @@ def _face_fluxes(mesh, physics, cur, nxt, flux, when, lists, order2, face_state,
         j = face_cells[f, 1]
         if order2:  # the reconstructed states at the face
             (hi, ui1, ui2, ci, si, khi, k3i, hj, uj1, uj2, cj, sj, khj,
-             k3j) = reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density)
+             k3j) = reconstructed_sides(f, i, j, h, h_zero, face_state, g, gamma_z, density,
+                                        order2 == MIDPOINT)
         else:
             k = j if j >= 0 else i  # beyond a boundary: values the flux does not read
             hi, ui1, ui2, ci = emit[i, 0], emit[i, 1], emit[i, 2], emit[i, 3]
@@ -451,7 +466,10 @@ def _face_finals(mesh, physics, cur, nxt, transport, flag, when, lists, order2):
     return True, dt_from_inverse(inv_lim), moving, film, clamped, kinetic
 
 
-@njit(error_model="numpy", cache=True)
+# no reference counts: each helper Numba inlines that takes an array (the face's sides,
+# its flux, a cell's law) counted each array up and down in every face's and cell's
+# iteration, atomically: half the step's time at order 2 (docs/performance.md)
+@njit(error_model="numpy", cache=True, _nrt=False)
 def step_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, order2,
                face_state, emit):
     """One step on any mesh (grid, triangles, profile): loops over faces, then cells.
@@ -493,7 +511,7 @@ def profile_transport(flag, flux, dirac, transport):
         transport[k] = max(abs(fl), abs(fr))
 
 
-@njit(error_model="numpy", cache=True)
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see step_faces
 def heun_faces(cells, n_cells, mesh, physics, start, stage2, flag1, transport, new):
     """Order 2: Heun's average of the two stages over the ``n_cells``
     listed ``cells`` (those either stage changed; all cells on a profile) and the step's

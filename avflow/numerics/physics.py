@@ -366,6 +366,24 @@ def emitted_state(h, q1, q2, h_zero, g_normal, dens):
     return h, q1 / h, q2 / h, c, SQRT3 * c, 0.5 * k, k / 3.0
 
 
+#: 1 / 3, for the sides of MUSCL-Hancock (:func:`emitted_side`)
+THIRD = 1.0 / 3.0
+
+
+def emitted_side(hf, u1, u2, g_normal, dens):
+    """:func:`emitted_state` of a reconstructed side given by its velocity, not its
+    discharge (MUSCL-Hancock's sides): the same values to round-off without q = h u formed
+    and divided back nor k divided by 3, and no branch (a loop with it vectorises); all zero
+    where ``hf`` is 0."""
+    wet = hf > 0.0
+    sound = math.sqrt(0.5 * g_normal * hf)
+    sound = sound if g_normal > 0.0 else 0.0
+    k = sound * dens
+    return ((hf if wet else 0.0), (u1 if wet else 0.0), (u2 if wet else 0.0),
+            (sound if wet else 0.0), (SQRT3 * sound if wet else 0.0), (0.5 * k if wet else 0.0),
+            (THIRD * k if wet else 0.0))
+
+
 def side_fluxes(hf, uf, wet, dens, g_normal):
     """Half fluxes of a cell's reconstructed state (hf, uf) at one of its faces; nothing from
     a cell at or below the minimum flowing thickness (``wet`` False). Scalars only: Numba's

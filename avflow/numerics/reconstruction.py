@@ -31,7 +31,7 @@ from collections import namedtuple
 
 from numba import njit, prange
 
-from avflow.numerics.cpu import centripetal_accel, half_step
+from avflow.numerics.cpu import centripetal_accel, emitted_side, half_step
 from avflow.numerics.vectorize import cell_law, specialize
 
 MINMOD = 0
@@ -86,8 +86,9 @@ _FRONT = 17  #: 1 when a neighbour is at or below h_zero (no velocity slope)
 N_WORK = 18
 
 #: What MUSCL-Hancock's predictor reads (:data:`predict_cells`): half the step ``k``, the
-#: mesh's gravity components and curvature, the friction law and its parameters, g
-Predictor = namedtuple("Predictor", "k gamma_x gamma_y gamma_z curvature law params g")
+#: mesh's gravity components and curvature, the friction law and its parameters, g, and the
+#: cells' density of particles (what a side emits)
+Predictor = namedtuple("Predictor", "k gamma_x gamma_y gamma_z curvature law params g density")
 #: Whether a copy of :func:`reconstruct_cells` predicts (a constant in each copy)
 PREDICT = False
 
@@ -236,7 +237,7 @@ def reconstruct_faces(face_cells, face_frame, face_length, face_offset, cell_are
             face_state[f, side, 2] = hf * u2
 
 
-@njit(error_model="numpy", cache=True)
+@njit(error_model="numpy", cache=True, _nrt=False)  # no reference counts: see step_faces
 def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_area, h, hu, hv,
                       h_zero, cell_face_ptr, cell_face_idx, touched, n_touched, velocity,
                       face_state, predictor):
@@ -257,7 +258,9 @@ def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_are
     ``predictor`` (:data:`Predictor`) is read only by the copy :data:`predict_cells`
     (MUSCL-Hancock): each wet cell away from a front moves its centre state half a step on
     (:func:`~avflow.numerics.physics.half_step`, with its limited slopes) before its sides
-    are formed, so that one flux sweep is second order in time.
+    are formed, so that one flux sweep is second order in time; it writes what each side
+    emits (``face_state[f, side, 0:7]``, :func:`~avflow.numerics.physics.emitted_side`),
+    which the flux sweep then reads as it is.
     """
     for c in prange(n_touched):
         i = touched[c]
@@ -346,6 +349,8 @@ def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_are
             a0 = _bj_factor(a0, g0 * rx + g1 * ry, hc, lo0, hi0, True)
             a1 = _bj_factor(a1, g2 * rx + g3 * ry, uc1, lo1, hi1, False)
             a2 = _bj_factor(a2, g4 * rx + g5 * ry, uc2, lo2, hi2, False)
+        g_normal = predictor.g * predictor.gamma_z[i]
+        dens = predictor.density[i]
         if PREDICT and not front:  # MUSCL-Hancock: the sides of the state half a step on
             pr = predictor
             params = pr.params
@@ -370,9 +375,14 @@ def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_are
             if not front:  # no velocity slope towards a dry neighbour
                 u1 += a1 * (g2 * rx + g3 * ry)
                 u2 += a2 * (g4 * rx + g5 * ry)
-            face_state[f, side, 0] = hf
-            face_state[f, side, 1] = hf * u1
-            face_state[f, side, 2] = hf * u2
+            if PREDICT:  # what the side emits (kernels.reconstructed_sides' direct form)
+                (face_state[f, side, 0], face_state[f, side, 1], face_state[f, side, 2],
+                 face_state[f, side, 3], face_state[f, side, 4], face_state[f, side, 5],
+                 face_state[f, side, 6]) = emitted_side(hf, u1, u2, g_normal, dens)
+            else:
+                face_state[f, side, 0] = hf
+                face_state[f, side, 1] = hf * u1
+                face_state[f, side, 2] = hf * u2
 
 
 @njit(error_model="numpy", cache=True, inline="always")
@@ -393,9 +403,10 @@ def _bj_factor(alpha, d, centre, lo, hi, thickness):
 
 #: :func:`reconstruct_cells` on Numba's threads (each cell writes its own sides of its faces
 #: and reads only the state: no races, the same bits on any number of threads)
-reconstruct_cells_parallel = specialize(reconstruct_cells.py_func, "_parallel", parallel=True)
+reconstruct_cells_parallel = specialize(reconstruct_cells.py_func, "_parallel", parallel=True,
+                                        nrt=False)
 #: ... and MUSCL-Hancock's copies, serial and on threads: the sides of the state predicted
 #: half a step on (``predictor``)
-predict_cells = specialize(reconstruct_cells.py_func, "_predicted", PREDICT=True)
+predict_cells = specialize(reconstruct_cells.py_func, "_predicted", nrt=False, PREDICT=True)
 predict_cells_parallel = specialize(reconstruct_cells.py_func, "_predicted_parallel",
-                                    parallel=True, PREDICT=True)
+                                    parallel=True, nrt=False, PREDICT=True)

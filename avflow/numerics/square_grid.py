@@ -55,8 +55,8 @@ import numpy as np
 from numba import njit, prange
 
 from avflow.numerics.cpu import (DRY, FACE_INNER, FACE_OPEN, FACE_WALL, carries, cell_moves,
-                                 cell_update, dirac_face, dt_from_inverse, face_flux,
-                                 half_step, heun_average, observe_cell, outflow_volume, speed_of,
+                                 cell_update, dirac_face, dt_from_inverse, emitted_side,
+                                 face_flux, half_step, heun_average, observe_cell, outflow_volume, speed_of,
                                  step_terms, take_back, trial_momentum, vector_face_flux)
 from avflow.numerics.loop import advance
 from avflow.numerics.observers import observe_span
@@ -376,17 +376,7 @@ def _side_direct(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front
     same values to round-off, 12 divisions a cell fewer (MUSCL-Hancock's copy, which has no
     face-kernel twin to match bit for bit)."""
     hf, u1, u2 = _side_state(hc, uc1, uc2, a0, a1, a2, g0, g1, g2, g3, g4, g5, rx, ry, front)
-    wet = hf > 0.0
-    sound = math.sqrt(0.5 * g_normal * hf)
-    sound = sound if g_normal > 0.0 else 0.0
-    k = sound * dens
-    return ((hf if wet else 0.0), (u1 if wet else 0.0), (u2 if wet else 0.0),
-            (sound if wet else 0.0), (SQRT3 * sound if wet else 0.0), (0.5 * k if wet else 0.0),
-            (THIRD * k if wet else 0.0))
-
-
-#: 1 / 3, for MUSCL-Hancock's sides (:func:`_side_direct`)
-THIRD = 1.0 / 3.0
+    return emitted_side(hf, u1, u2, g_normal, dens)
 
 
 @noalias

@@ -149,7 +149,7 @@ def _start(loop):
     mesh, fields, work = loop.mesh, loop.fields, loop.work
     face_cells, h = mesh.face_cells, fields.h
     o2 = order2_work(h.size if ORDER2 else 0, face_cells.shape[0] if ORDER2 else 0,
-                     STRUCTURED, PARALLEL)
+                     STRUCTURED, PARALLEL, 7 if HANCOCK else 3)
     # order-1 profile sweep (avflow.numerics.profile): its work lines, once per call
     m1 = h.size if STRUCTURED and not ORDER2 else 0
     p_kappa = np.empty(m1)
@@ -365,12 +365,13 @@ Order2Work = namedtuple("Order2Work", "recon velocity face_state no_emit cell_su
 
 
 @njit(error_model="numpy", cache=True)
-def order2_work(m2, f2, structured, parallel):
+def order2_work(m2, f2, structured, parallel, width):
     """:data:`Order2Work` for ``m2`` cells and ``f2`` faces (0 and 0 at order 1), once a call
-    (none per step)."""
+    (none per step); ``width``: the values of a face's side (3, its state; MUSCL-Hancock's
+    7, what it emits)."""
     return Order2Work(np.zeros((m2 if structured else 0, 4)),
                       np.zeros((0 if structured else m2, 2)),
-                      np.zeros((0 if structured else f2, 2, 3)),
+                      np.zeros((0 if structured else f2, 2, width)),
                       np.zeros((0, 7)),  # step_faces' emitted values: read at order 1 only
                       np.empty((m2 if parallel else 0, N_SUMS)),
                       np.zeros(m2), np.zeros(m2), np.zeros(m2),
@@ -483,7 +484,7 @@ def _stage_faces(mesh, physics, cur, nxt, flux, transport, flag, when, lists, o2
     m = mesh
     timing = MIDPOINT if HANCOCK else True
     predictor = Predictor(0.5 * when.dt, m.gamma_x, m.gamma_y, m.gamma_z, m.curvature,
-                          physics.law, physics.params, physics.g)
+                          physics.law, physics.params, physics.g, m.density)
     if PARALLEL and lists.n_touched >= min_parallel_cells:
         reconstruct_cells_parallel(m.face_cells, m.face_frame, m.face_length, m.face_offset,
                                    m.cell_area, cur.h, cur.hu, cur.hv, physics.h_zero,
@@ -551,6 +552,7 @@ def _advance_for(structured: bool, order2: bool, kind: int | None = None,
     fns = {"start": _start, "before": _before, "step": _step, "source": _source,
            "observe": _observe, "after": _after, "end": _end}
     given = shared_names(fns, STRUCTURED=structured, ORDER2=order2, PARALLEL=parallel,
+                         HANCOCK=order2 and scheme == "hancock",
                          order2_faces=ORDER2_FACES[parallel, scheme], **names)
     hooks = {f"region_{hook}": specialize(fn, suffix, inline="always", **given[hook])
              for hook, fn in fns.items()}
