@@ -309,7 +309,8 @@ def _cmd_run(args) -> int:
             return 1
         import xarray as xr
 
-        with xr.open_dataset(out, decode_times=False) as on_disk:
+        # the engine named: guessing it loads every installed backend (rioxarray's, dask)
+        with xr.open_dataset(out, decode_times=False, engine="netcdf4") as on_disk:
             # the run as avflow.run returns it: the fields on (time, space) read from the
             # file when asked for (the path analysis reads h at t = 0), the rest from memory
             ds = rest.assign({name: on_disk[name].variable for name in on_disk.data_vars
