@@ -1002,8 +1002,9 @@ OUT_OF_MEMORY = {
 
 
 #: The collector's first threshold while avflow runs as a command (Python's default: 700).
-#: Importing numba, pandas and xarray makes 200,000 objects that live as long as the
-#: process, and the default had the collector walk them again and again (0.2 s of a run).
+#: Importing numba, pandas and xarray makes some 200,000 objects that live as long as the
+#: process, and the default had the collector walk them again and again (the figures:
+#: docs/performance.md, "Start-up and files of a run").
 PROGRAM_GC_THRESHOLD = 5000
 
 
@@ -1062,7 +1063,7 @@ def main(argv=None) -> int:
                 and signal.getsignal(signal.SIGINT) is _interrupt:
             signal.signal(signal.SIGINT, signal.default_int_handler)
         if program:  # the files are closed: the exit then skips a last walk over every
-            gc.freeze()  # object (0.3 s), which would only find what the exit frees anyway
+            gc.freeze()  # object, which would only find what the exit frees anyway
 
 
 if __name__ == "__main__":

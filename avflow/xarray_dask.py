@@ -1,8 +1,9 @@
 """xarray without importing dask.array until a dask array can exist.
 
 xarray asks, for every variable it makes, whether the data is a dask array, and to know the
-class it imports ``dask.array`` (0.2 s of a 2-core machine, with scipy.fft and psutil)
-whenever dask is installed, even where no dask array is ever made (``avflow run``, a plot).
+class it imports ``dask.array`` (and scipy's FFT with it) whenever dask is installed, even
+where no dask array is ever made (``avflow run``; docs/performance.md, "Start-up and files
+of a run").
 No dask array can exist before ``dask.array`` is imported, so until then the answer is
 "not a dask array" without the import; once ``dask.array`` is imported (an ensemble, a
 user's chunked file) xarray's own record of dask takes over, and every later check is
