@@ -309,7 +309,8 @@ def _cmd_run(args) -> int:
             return 1
         import xarray as xr
 
-        with xr.open_dataset(out, decode_times=False) as on_disk:
+        # the engine named: guessing it loads every installed backend (rioxarray's, dask)
+        with xr.open_dataset(out, decode_times=False, engine="netcdf4") as on_disk:
             # the run as avflow.run returns it: the fields on (time, space) read from the
             # file when asked for (the path analysis reads h at t = 0), the rest from memory
             ds = rest.assign({name: on_disk[name].variable for name in on_disk.data_vars
@@ -1000,11 +1001,22 @@ OUT_OF_MEMORY = {
 }
 
 
+#: The collector's first threshold while avflow runs as a command (Python's default: 700).
+#: Importing numba, pandas and xarray makes some 200,000 objects that live as long as the
+#: process, and the default had the collector walk them again and again (the figures:
+#: docs/performance.md, "Start-up and files of a run").
+PROGRAM_GC_THRESHOLD = 5000
+
+
 def main(argv=None) -> int:
+    import gc
     import logging
     import signal
     import threading
 
+    program = argv is None  # the command itself, not main() called in a longer process
+    if program:
+        gc.set_threshold(PROGRAM_GC_THRESHOLD, *gc.get_threshold()[1:])
     # GDAL's messages reach Python's logging (rasterio); avflow reports the failure itself,
     # in one line, and a full disk would otherwise print each message of libtiff first
     logging.getLogger("rasterio").addHandler(logging.NullHandler())
@@ -1050,6 +1062,8 @@ def main(argv=None) -> int:
         if threading.current_thread() is threading.main_thread() \
                 and signal.getsignal(signal.SIGINT) is _interrupt:
             signal.signal(signal.SIGINT, signal.default_int_handler)
+        if program:  # the files are closed: the exit then skips a last walk over every
+            gc.freeze()  # object, which would only find what the exit frees anyway
 
 
 if __name__ == "__main__":

@@ -18,6 +18,9 @@ from avflow.output.fields import (cell_values, entrainment_variables, horizontal
                                   snapshot_fields)
 from avflow.output.ugrid import to_ugrid_dataset
 from avflow.simulation.runner import RunResult, flags_of, wet_cells
+from avflow.xarray_dask import defer_dask_array
+
+defer_dask_array()  # a run's Dataset is made without importing dask.array
 
 #: The variables on (time, space), one value per cell and snapshot (``v`` not on profiles).
 TIME_FIELDS = ("h", "u", "v", "flow_state")

@@ -18,6 +18,9 @@ import xarray as xr
 from avflow.files import (OutputError, OutputWriteError, atomic_write, check_target,
                           make_temporary, publish, remove_stale_temporaries,
                           write_error)
+from avflow.xarray_dask import defer_dask_array
+
+defer_dask_array()  # a run's file is made without importing dask.array
 
 __all__ = ["OutputError", "OutputWriteError", "check_output_path", "make_temporary",
            "publish", "remove_stale_temporaries", "write_error", "write_netcdf"]

@@ -297,8 +297,9 @@ def curvature_tensor(basis, cos_theta, bxx, bxy, byy):
     return np.ascontiguousarray(np.stack([k[:, 0, 0], k[:, 0, 1], k[:, 1, 1]], axis=1))
 
 
-def _frames(normal, tangent, basis_i, basis_j):
-    """(k, 2, 2, 2) face frames from 3D face normals and the two cells' bases.
+def _side_frame(normal, tangent, basis):
+    """(k, 2, 2) frames of faces with 3D normals and tangents as one side sees them, in
+    that side's cell bases ``basis`` (k, 2, 3): rows the in-plane normal and tangent.
 
     Each side sees the face normal as its projection on that cell's tangent plane,
     *normalised*, and the tangent as that normal turned by +90 degrees in the plane (the
@@ -310,17 +311,16 @@ def _frames(normal, tangent, basis_i, basis_j):
     outgoing momentum while the mass left: on a 46 to 84 degree break of a real DEM a thin
     cell accelerated to 350 m/s.
     """
-    out = np.zeros((normal.shape[0], 2, 2, 2))
-    for side, basis in enumerate((basis_i, basis_j)):
-        n2 = np.einsum("kc,kbc->kb", normal, basis)
-        t2 = np.einsum("kc,kbc->kb", tangent, basis)
-        norm = np.hypot(n2[:, 0], n2[:, 1])
-        n2 = n2 / norm[:, None]
-        rot = np.stack([-n2[:, 1], n2[:, 0]], axis=1)
-        # the 3D tangent fixes the orientation (it is +90 degrees of the normal in 3D)
-        sign = np.where(np.einsum("kb,kb->k", rot, t2) >= 0.0, 1.0, -1.0)
-        out[:, side, 0, :] = n2
-        out[:, side, 1, :] = rot * sign[:, None]
+    n2 = np.einsum("kc,kbc->kb", normal, basis)
+    t2 = np.einsum("kc,kbc->kb", tangent, basis)
+    norm = np.hypot(n2[:, 0], n2[:, 1])
+    n2 = n2 / norm[:, None]
+    rot = np.stack([-n2[:, 1], n2[:, 0]], axis=1)
+    # the 3D tangent fixes the orientation (it is +90 degrees of the normal in 3D)
+    sign = np.where(np.einsum("kb,kb->k", rot, t2) >= 0.0, 1.0, -1.0)
+    out = np.empty((normal.shape[0], 2, 2))
+    out[:, 0, :] = n2
+    out[:, 1, :] = rot * sign[:, None]
     return out
 
 
@@ -413,7 +413,7 @@ def surface_terrain(elevation, x, y, boundary, nodata: str = "wall", crs_wkt=Non
             plane = _unit(np.stack([-grad[:, 0], -grad[:, 1], np.ones_like(grad[:, 0])], 1))
             n_side = _unit(np.cross(e, plane) if along_x else np.cross(plane, e)) * direction
             t_side = np.cross(plane, n_side)
-            frame[:, side] = _frames(n_side, t_side, b, b)[:, side]
+            frame[:, side] = _side_frame(n_side, t_side, b)
         frames.append(frame)
         lengths.append(np.linalg.norm(edge, axis=1))
 

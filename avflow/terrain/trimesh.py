@@ -42,7 +42,7 @@ import math
 import numpy as np
 
 from avflow.terrain.mesh import BOUNDARY_CODES, Mesh, _perimeters
-from avflow.terrain.bed import Terrain, _frames, _unit, bed_coefficients, bed_hessian
+from avflow.terrain.bed import Terrain, _side_frame, _unit, bed_coefficients, bed_hessian
 
 PATTERNS = ("alternate", "criss-cross")
 _LOCAL_EDGES = ((0, 1), (1, 2), (2, 0))
@@ -307,7 +307,7 @@ def dual_mesh(xyz, tris, boundary_code):
     for side, cell in enumerate((i, jj)):
         n_side = _in_plane(fvec, normal[cell])
         t_side = np.cross(normal[cell], n_side)
-        frames[:, side] = _frames(n_side, t_side, basis[cell], basis[cell])[:, 0]
+        frames[:, side] = _side_frame(n_side, t_side, basis[cell])
     face_frame = np.ascontiguousarray(frames)
     mesh = Mesh(
         cell_area=area,
