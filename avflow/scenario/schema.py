@@ -1155,19 +1155,19 @@ class Numerics(_Model):
     """1: the seed's scheme (its figures are reproduced with it); 2: limited linear
     reconstruction of thickness and velocity at the faces, in time MUSCL-Hancock or Heun's
     Runge-Kutta (``time_scheme``), keeping the threshold, Dirac faces and projection.
-    Default: 2 on square grids (planes and DEMs) with the CPU kernels, 1 elsewhere
-    (profiles, triangles, the GPU)."""
+    Default: 2 on planes and DEMs (square grids and triangles) with the CPU kernels, 1
+    elsewhere (profiles, the GPU)."""
     limiter: Literal["minmod", "mc"] = "minmod"
+    """Limited slopes of order 2: minmod (robust at wet/dry fronts; Barth-Jespersen on grids
+    and triangles) or mc (monotonized central, sharper at smooth extrema: profiles only, as
+    grids and triangles have the one Barth-Jespersen limiter)."""
     time_scheme: Literal["auto", "hancock", "heun"] = "auto"
     """Order 2's time stepping. hancock: MUSCL-Hancock, the faces' sides predicted half a
     step on in each cell, then one step of the seed's scheme with them (threshold, Dirac
     faces and projection as at order 1): about half the cost of heun and no less accurate
-    (docs/validation.md); square grids only. heun: Heun's two-stage Runge-Kutta, each stage
-    a step of the seed's scheme, then their mean; every mesh. auto: hancock on square grids
-    (planes, DEMs) with the CPU kernels, heun elsewhere."""
-    """Limited slopes of order 2: minmod (robust at wet/dry fronts; Barth-Jespersen on grids
-    and triangles) or mc (monotonized central, sharper at smooth extrema: profiles only, as
-    grids and triangles have the one Barth-Jespersen limiter)."""
+    (docs/validation.md); planes and DEMs (square grids and triangles) on the CPU. heun:
+    Heun's two-stage Runge-Kutta, each stage a step of the seed's scheme, then their mean;
+    every mesh. auto: hancock on planes and DEMs with the CPU kernels, heun elsewhere."""
     threads: Annotated[int, Field(strict=True, ge=1, le=4096)] | None = None
     """CPU threads of the time loop (grids and triangles; profiles run on one; null: every
     core this process may use, where a few timed steps show them faster than one thread,
@@ -1341,11 +1341,12 @@ class Scenario(_Model):
     @model_validator(mode="before")
     @classmethod
     def _default_order(cls, data: Any) -> Any:
-        """numerics.order where not given: 2 on square grids (planes and DEMs, the CPU
-        kernels), where MUSCL-Hancock costs about two order-1 steps and is far closer to
-        analytic 2D solutions and to the grid's turned copy (docs/validation.md); 1 on
-        profiles (the seed's scheme, which its figures are reproduced with), on triangles
-        and on the GPU. Filled in before validation (the model stays frozen)."""
+        """numerics.order where not given: 2 on planes and DEMs (square grids and
+        triangles, the CPU kernels), where MUSCL-Hancock costs about two order-1 steps on a
+        square grid and three on triangles and is far closer to analytic 2D solutions and
+        to the grid's turned copy (docs/validation.md); 1 on profiles (the seed's scheme,
+        which its figures are reproduced with) and on the GPU. Filled in before validation
+        (the model stays frozen)."""
         if not isinstance(data, dict):
             return data
         numerics = data.get("numerics", {})
@@ -1360,11 +1361,9 @@ class Scenario(_Model):
                 return getattr(value, key, default)
             return value.get(key, default) if isinstance(value, dict) else default
 
-        square = (field("terrain", "kind") in ("plane", "dem")
-                  and field("grid", "mesh", "square") == "square"
-                  and numerics.get("kernel", "auto") != "faces"
-                  and numerics.get("backend", "cpu") == "cpu")
-        return {**data, "numerics": {**numerics, "order": 2 if square else 1}}
+        surface = (field("terrain", "kind") in ("plane", "dem")
+                   and numerics.get("backend", "cpu") == "cpu")
+        return {**data, "numerics": {**numerics, "order": 2 if surface else 1}}
 
     @model_validator(mode="before")
     @classmethod
