@@ -74,7 +74,7 @@ print("ok")
 def test_a_deferred_record_asks_dask_only_when_asked_for_more_than_the_class():
     from xarray.namedarray import pycompat
 
-    from avflow.xarray_dask import _deferred_class
+    from avflow.output.xarray_dask import _deferred_class
 
     record = _deferred_class(pycompat.DuckArrayModule)()
     if "dask.array" not in sys.modules:

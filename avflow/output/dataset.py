@@ -18,7 +18,7 @@ from avflow.output.fields import (cell_values, entrainment_variables, horizontal
                                   snapshot_fields)
 from avflow.output.ugrid import to_ugrid_dataset
 from avflow.simulation.runner import RunResult, flags_of, wet_cells
-from avflow.xarray_dask import defer_dask_array
+from avflow.output.xarray_dask import defer_dask_array
 
 defer_dask_array()  # a run's Dataset is made without importing dask.array
 

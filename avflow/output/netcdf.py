@@ -18,7 +18,7 @@ import xarray as xr
 from avflow.files import (OutputError, OutputWriteError, atomic_write, check_target,
                           make_temporary, publish, remove_stale_temporaries,
                           write_error)
-from avflow.xarray_dask import defer_dask_array
+from avflow.output.xarray_dask import defer_dask_array
 
 defer_dask_array()  # a run's file is made without importing dask.array
 
