@@ -30,6 +30,8 @@ from __future__ import annotations
 
 from collections import namedtuple
 
+import numpy as np
+
 from avflow.numerics.cpu import SOURCE_NONE, dt_from_inverse
 from avflow.numerics.sources import SRC_KIND
 from avflow.numerics.stepping import (FAILED, MAX_RETRIES, REACHED_TARGET, ST_FALLBACK,
@@ -63,7 +65,9 @@ def advance(mesh, fields, work, physics, run, extra, supply):
     nxt = Conserved(work.h_work, work.hu_work, work.hv_work)
     t = stats[ST_TIME]
     status = REACHED_TARGET
-    steps = 0
+    # an int64 from the start: a literal 0 had Numba compile a hook that is a function of
+    # its own (the square grid's step) twice, once for the literal (1.4 s of a first run)
+    steps = np.int64(0)
     while t < t_target:
         dt, dt_decide, last = step_size(stats, cfl, t, t_target)
         region = region_before(region, ctx, loop, cur, nxt, steps)

@@ -130,10 +130,11 @@ def end_loop(stats, t, steps, h, hu, hv, cur_h, cur_hu, cur_hv):
     """The end of a time loop that swaps two buffers each step: the newest state back in
     ``(h, hu, hv)`` when it sits in the work buffers (an odd number of steps), and
     :func:`record_end`. (Loops that know where the buffers differ copy only there.)"""
-    if steps % 2 == 1:
-        h[:] = cur_h
-        hu[:] = cur_hu
-        hv[:] = cur_hv
+    if steps % 2 == 1:  # element by element: no shape check and message to compile
+        for i in range(h.size):
+            h[i] = cur_h[i]
+            hu[i] = cur_hu[i]
+            hv[i] = cur_hv[i]
     record_end(stats, t, steps)
 
 

@@ -160,9 +160,10 @@ def _start(loop):
                        mesh.gamma_z, p_kappa, np.zeros((_PROFILE_WORK, m1 + 2 if m1 else 0)),
                        np.full(m1 + 2 if m1 else 0, DRY, dtype=fields.flag.dtype))
     if STRUCTURED or ORDER2:  # the whole state into the work buffers (faces, order 1: lazily)
-        work.h_work[:] = h
-        work.hu_work[:] = fields.hu
-        work.hv_work[:] = fields.hv
+        for i in range(h.size):  # (element by element: no shape check's message to compile)
+            work.h_work[i] = h[i]
+            work.hu_work[i] = fields.hu[i]
+            work.hv_work[i] = fields.hv[i]
     work.clock[1] += 1
     n = h.size
     nf = face_cells.shape[0]
@@ -395,7 +396,8 @@ def heun_profile(mesh, physics, cur, nxt, flux, transport, flag, o2, limiter, wh
         mesh, physics, cur, nxt, flux, flag, when, True, o2.recon)
     if not ok:
         return ok, out, lim, moving, film, clamped, kinetic, 0
-    o2.flag1[:] = flag
+    for k in range(flag.size):
+        o2.flag1[k] = flag[k]
     reconstruct_profile(nxt.h, nxt.hu, physics.h_zero, limiter, o2.recon)
     ok, out2, lim, moving, film, clamped2, kinetic = step_profile(
         mesh, physics, nxt, s, flux, flag, when, True, o2.recon)
