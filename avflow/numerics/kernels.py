@@ -41,14 +41,12 @@ from avflow.numerics.physics import MIDPOINT
 from avflow.numerics.vectorize import cell_law
 from avflow.terrain.mesh import OUTFLOW, WALL
 
-(carries, cell_moves, centripetal_accel, dirac_face, dt_from_inverse, emitted_side,
- emitted_state, emitting, face_flux, cell_update, half_fluxes, heun_average, observe_cell,
- open_mass, outflow_volume, side_fluxes, sound_speed, speed_of, step_terms, take_back,
- trial_momentum) = (
+(carries, cell_moves, centripetal_accel, dirac_face, dt_from_inverse, emitted_state, emitting,
+ face_flux, cell_update, half_fluxes, heun_average, observe_cell, open_mass, outflow_volume,
+ side_fluxes, sound_speed, speed_of, step_terms, take_back, trial_momentum) = (
     INLINED[name] for name in (
         "carries", "cell_moves", "centripetal_accel", "dirac_face", "dt_from_inverse",
-        "emitted_side", "emitted_state", "emitting", "face_flux", "cell_update", "half_fluxes",
-        "heun_average",
+        "emitted_state", "emitting", "face_flux", "cell_update", "half_fluxes", "heun_average",
         "observe_cell", "open_mass", "outflow_volume", "side_fluxes", "sound_speed",
         "speed_of", "step_terms", "take_back", "trial_momentum"))
 

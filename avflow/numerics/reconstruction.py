@@ -349,8 +349,9 @@ def reconstruct_cells(face_cells, face_frame, face_length, face_offset, cell_are
             a0 = _bj_factor(a0, g0 * rx + g1 * ry, hc, lo0, hi0, True)
             a1 = _bj_factor(a1, g2 * rx + g3 * ry, uc1, lo1, hi1, False)
             a2 = _bj_factor(a2, g4 * rx + g5 * ry, uc2, lo2, hi2, False)
-        g_normal = predictor.g * predictor.gamma_z[i]
-        dens = predictor.density[i]
+        # what MUSCL-Hancock's sides emit reads these (Heun's copy loads nothing)
+        g_normal = predictor.g * predictor.gamma_z[i] if PREDICT else 0.0
+        dens = predictor.density[i] if PREDICT else 0.0
         if PREDICT and not front:  # MUSCL-Hancock: the sides of the state half a step on
             pr = predictor
             params = pr.params
