@@ -20,7 +20,7 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from avflow.numerics.analytic import similarity, similarity_thickness
+from avflow.numerics.analytic import bed_coordinates, similarity, similarity_errors
 from avflow.terrain.bed import plane_terrain
 from conftest import coulomb, walls
 
@@ -41,25 +41,15 @@ def run(dx, order, turn_deg, time_scheme="auto", t=T):
     solver = coulomb(terrain, DELTA, order=order, threads=1, h_zero=1e-9,
                      time_scheme=time_scheme)
     assert solver.kernel_used == "grid"
-    x, y = terrain.cell_xy()
     az = math.radians(azimuth)
-    down, across = np.array([math.sin(az), math.cos(az)]), np.array([-math.cos(az), math.sin(az)])
-    start = np.array([SIDE / 2, SIDE / 2]) - 250.0 * down  # the cap's centre at t = 0
-    xi = ((x - start[0]) * down[0] + (y - start[1]) * down[1]) / math.cos(math.radians(THETA))
-    eta = (x - start[0]) * across[0] + (y - start[1]) * across[1]
+    start = (SIDE / 2 - 250.0 * math.sin(az), SIDE / 2 - 250.0 * math.cos(az))  # t = 0
+    xi, eta = bed_coordinates(*terrain.cell_xy(), start, azimuth, THETA)
     state = solver.new_state(H0 * np.clip(1.0 - (xi / RADIUS) ** 2 - (eta / RADIUS) ** 2,
                                           0.0, None))
     solver.advance(state, t)
-    cap = similarity(t, THETA, DELTA, H0, RADIUS, RADIUS)
-    exact = similarity_thickness(cap, xi, eta)
-    l2 = math.sqrt(np.sum((state.h - exact) ** 2) / np.sum(exact**2))
-    wet = state.h > EDGE
-    inside = math.sqrt(1.0 - EDGE / cap.h_centre)  # the analytic contour at EDGE
-    front = xi[wet].max() - (cap.travel + cap.a * inside)
-    spread = (eta[wet].max() - eta[wet].min()) / (2.0 * cap.b * inside) - 1.0
-    area = (wet.sum() * dx * dx / math.cos(math.radians(THETA))
-            / (math.pi * cap.a * cap.b * inside**2) - 1.0)
-    return l2, front, spread, area, state, terrain, (xi, eta)
+    e = similarity_errors(similarity(t, THETA, DELTA, H0, RADIUS, RADIUS), state.h, xi, eta,
+                          terrain.mesh.cell_area, EDGE)
+    return e["l2"], e["front"], e["spread"], e["area"], state, terrain, (xi, eta)
 
 
 @pytest.fixture(scope="module")

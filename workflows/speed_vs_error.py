@@ -446,26 +446,24 @@ SIMILARITY_EDGE = 0.01 * SIMILARITY["h0"]
 
 
 def _similarity_frame(turn_deg: float):
-    """The plane facing ``90 + turn_deg`` degrees (east, turned clockwise): its downslope and
-    across-slope unit vectors (horizontal) and the cap's centre at t = 0, 250 m up the
-    plane from (400, 400) m as in tests/test_similarity.py (so that the cells are its
-    cells); and the map, 400 m square around the flow's path to 5 s, its sides on multiples
-    of 10 m."""
+    """On the plane facing ``90 + turn_deg`` degrees (east, turned clockwise): the cap's
+    centre at t = 0, 250 m up the plane from (400, 400) m as in tests/test_similarity.py (so
+    that the cells are its cells), and the map, 400 m square around the flow's path to 5 s,
+    its sides on multiples of 10 m."""
     az = math.radians(90.0 + turn_deg)
-    down = np.array([math.sin(az), math.cos(az)])
-    across = np.array([-math.cos(az), math.sin(az)])
+    down = np.array([math.sin(az), math.cos(az)])  # horizontal
     start = np.array([400.0, 400.0]) - 250.0 * down
     mid = start + 15.0 * down  # the cap reaches 94 m down, 67 m up, 83 m across (horizontal)
     extent = {k: [10.0 * math.floor((c - 200.0) / 10.0), 10.0 * math.ceil((c + 200.0) / 10.0)]
               for k, c in zip("xy", mid)}
-    return down, across, start, extent
+    return start, extent
 
 
-def _bed_coordinates(x, y, down, across, start):
+def _bed_coordinates(x, y, turn_deg, start):
     """(along the slope from the cap's start, across it), both on the bed (m)."""
-    xi = ((x - start[0]) * down[0] + (y - start[1]) * down[1]) / math.cos(
-        math.radians(SIMILARITY["theta"]))
-    return xi, (x - start[0]) * across[0] + (y - start[1]) * across[1]
+    from avflow.numerics.analytic import bed_coordinates
+
+    return bed_coordinates(x, y, start, 90.0 + turn_deg, SIMILARITY["theta"])
 
 
 def _release_cap(xi, eta):
@@ -476,7 +474,7 @@ def _release_cap(xi, eta):
 
 
 def _similarity_problem(name: str, turn_deg: float):
-    down, across, start, extent = _similarity_frame(turn_deg)
+    start, extent = _similarity_frame(turn_deg)
     sim = SIMILARITY
     folder: list = []  # a temporary folder for the scenarios and rasters, made once
 
@@ -500,7 +498,7 @@ def _similarity_problem(name: str, turn_deg: float):
         # cell centres x0 + (k + 1/2) dx (plane_terrain), vertices x0 + k dx (triangles)
         x = x0 + np.arange(2 * int(round((x1 - x0) / dx)) + 1) * (0.5 * dx)
         y = y0 + np.arange(2 * int(round((y1 - y0) / dx)) + 1) * (0.5 * dx)
-        xi, eta = _bed_coordinates(*np.meshgrid(x, y), down, across, start)
+        xi, eta = _bed_coordinates(*np.meshgrid(x, y), turn_deg, start)
         raster = write_tif(folder[0] / f"{name}_dx{dx:g}.tif", _release_cap(xi, eta), x, y,
                            dtype="float64", description="release thickness", units="m")
         path.write_text(
@@ -516,25 +514,17 @@ def _similarity_problem(name: str, turn_deg: float):
         return path
 
     def observe(r):
-        from avflow.numerics.analytic import similarity, similarity_thickness
+        from avflow.numerics.analytic import similarity, similarity_errors
 
-        terrain, h = r.terrain, r.state.h
-        xi, eta = _bed_coordinates(*terrain.cell_xy(), down, across, start)
+        terrain = r.terrain
+        xi, eta = _bed_coordinates(*terrain.cell_xy(), turn_deg, start)
         cap = similarity(r.state.t, sim["theta"], sim["delta"], sim["h0"], sim["radius"],
                          sim["radius"])
-        exact = similarity_thickness(cap, xi, eta)
-        wet = h > SIMILARITY_EDGE
-        inside = math.sqrt(1.0 - SIMILARITY_EDGE / cap.h_centre)  # the exact contour there
         area = terrain.mesh.cell_area  # triangles' dual cells: 2/3 and 4/3 of dx^2 (bed)
         volume = math.pi * sim["radius"] ** 2 * sim["h0"] / 2.0  # the cap's, on the bed
-        return {"l2": math.sqrt(np.sum(area * (h - exact) ** 2) / np.sum(area * exact**2)),
+        return {**similarity_errors(cap, r.state.h, xi, eta, area, SIMILARITY_EDGE),
                 "volume0": float(np.sum(area * r.h0) / volume - 1.0),
                 "release": float(np.max(np.abs(r.h0 - _release_cap(xi, eta)))),
-                "front": float(xi[wet].max() - (cap.travel + cap.a * inside)),
-                "spread": float((eta[wet].max() - eta[wet].min()) / (2.0 * cap.b * inside)
-                                - 1.0),
-                "area": float(np.sum(area[wet])
-                              / (math.pi * cap.a * cap.b * inside**2) - 1.0),
                 # no film rule: the scheme moves some mass a cell a step, 3e-9 m reaches
                 # the edge at first order and 10 m; a micron would count
                 "edge_touched": _touches_edge(terrain, r.state.peak_h, 1e-6)}

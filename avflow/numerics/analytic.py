@@ -110,3 +110,29 @@ def similarity_thickness(cap, xi, eta):
     xi, eta = np.asarray(xi, dtype=float), np.asarray(eta, dtype=float)
     return cap.h_centre * np.clip(1.0 - ((xi - cap.travel) / cap.a) ** 2 - (eta / cap.b) ** 2,
                                   0.0, None)
+
+
+def bed_coordinates(x, y, start, azimuth_deg, theta_deg):
+    """Bed coordinates ``(xi, eta)`` (m) of map points ``(x, y)`` on a plane of slope
+    ``theta_deg`` facing ``azimuth_deg`` (clockwise from north): ``xi`` along the slope from
+    ``start`` (a map point), ``eta`` across it (horizontal, to the right looking downslope)."""
+    az = math.radians(azimuth_deg)
+    down_x, down_y = math.sin(az), math.cos(az)
+    dx, dy = np.asarray(x, dtype=float) - start[0], np.asarray(y, dtype=float) - start[1]
+    return ((dx * down_x + dy * down_y) / math.cos(math.radians(theta_deg)),
+            -dx * down_y + dy * down_x)
+
+
+def similarity_errors(cap, h, xi, eta, area, edge):
+    """A thickness ``h`` (m, on cells of bed ``area`` m^2 at bed coordinates ``xi``, ``eta``)
+    against :func:`similarity`'s ``cap``: the relative L2 of h (area-weighted), and with the
+    footprint drawn at ``edge`` (m): the front (the farthest cell downslope against the exact
+    contour there, m; negative: behind), the spread across the slope and the area, relative
+    to the exact ellipse's. Returns a dict with ``l2``, ``front``, ``spread``, ``area``."""
+    exact = similarity_thickness(cap, xi, eta)
+    wet = h > edge
+    inside = math.sqrt(1.0 - edge / cap.h_centre)  # the exact contour at edge
+    return {"l2": math.sqrt(np.sum(area * (h - exact) ** 2) / np.sum(area * exact**2)),
+            "front": float(xi[wet].max() - (cap.travel + cap.a * inside)),
+            "spread": float((eta[wet].max() - eta[wet].min()) / (2.0 * cap.b * inside) - 1.0),
+            "area": float(np.sum(area[wet]) / (math.pi * cap.a * cap.b * inside**2) - 1.0)}
